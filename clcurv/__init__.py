@@ -1,0 +1,15 @@
+"""clcurv: differential operators (normals, curvatures, MLS projections, scale space) on raw
+3D point clouds, with OpenCL kernels and a float64 NumPy reference.
+
+Reference: J. Digne, J.-M. Morel, *Numerical analysis of differential operators on raw point
+clouds*, Numerische Mathematik 127 (2014), DOI 10.1007/s00211-013-0584-y.
+"""
+from .api import curvature, normals, METHODS
+from .cloud import DeviceCloud
+from .device import devices, get_device, NoDeviceError
+from .program import BuildError, PrecisionError
+from .result import CurvatureResult
+
+__version__ = "0.1.0"
+__all__ = ["curvature", "normals", "METHODS", "DeviceCloud", "devices", "get_device",
+           "NoDeviceError", "BuildError", "PrecisionError", "CurvatureResult", "__version__"]

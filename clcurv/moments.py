@@ -1,0 +1,66 @@
+"""Moment operators on the device: neighbour counts, PCA normals, eigenvalues, surface
+variation (Pauly) and the barycenter shift used by MLS0 and MLS1.
+
+:func:`device_moments` returns the raw per-point quantities in input order; the public
+API (:mod:`clcurv.api`) orients normals and turns them into curvatures.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from .program import build
+
+
+def _launch(cloud, kernel, *args):
+    """Enqueue ``kernel`` over the cloud's points (no zero-size launches)."""
+    kernel(cloud.device.queue, (cloud.n,), None, *args)
+
+
+def device_counts(cloud, radius):
+    """#N_r(p) (point itself included) in *sorted* order, and the buffer of weights 1/#N_r."""
+    import pyopencl as cl
+    r = cloud.check_radius(radius)
+    ctx = cloud.device.context
+    prg = build(cloud.device, "moments.cl", cloud.defines)
+    counts = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, size=4 * cloud.n)
+    weights = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, size=np.dtype(cloud.dtype).itemsize * (cloud.n + 16))
+    _launch(cloud, prg.count_neighbors, cloud.x, cloud.y, cloud.z, cloud.cell_of, cloud.ranges,
+            np.uint32(cloud.n), cloud.real(r * r), counts, weights)
+    return counts, weights
+
+
+def device_moments(cloud, radius, *, weights="uniform", refine=True):
+    """Raw moments of N_r(p) for every point, in input order.
+
+    Returns a dict: ``count`` (N,) uint32, ``status`` (N,) uint8, ``normals`` (N, 3) unit,
+    unoriented, ``eigenvalues`` (N, 3) ascending, of the weighted covariance
+    sum w (q - o)(q - o)^T / sum w, ``variation`` (N,), ``shift`` (N, 3) = o - p, all in the
+    cloud's precision; rows with status != 0 are NaN. ``refine`` recomputes lambda0 in a
+    second pass (needed for ``variation`` and ``eigenvalues`` in float32).
+    """
+    import pyopencl as cl
+    r = cloud.check_radius(radius)
+    density = weights == "density"
+    t0 = time.perf_counter()
+    defines = dict(cloud.defines, DENSITY=int(density), REFINE_L0=int(refine))
+    prg = build(cloud.device, "moments.cl", defines)
+    q, ctx, n = cloud.device.queue, cloud.device.context, cloud.n
+    t1 = time.perf_counter()
+    wbuf = device_counts(cloud, r)[1] if density else cloud.x
+    out = {"count": np.empty(n, np.uint32), "status": np.empty(n, np.uint8),
+           "normals": cloud.empty((n, 3)), "eigenvalues": cloud.empty((n, 3)),
+           "variation": cloud.empty(n), "shift": cloud.empty((n, 3))}
+    bufs = {k: cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, size=max(v.nbytes, 1)) for k, v in out.items()}
+    _launch(cloud, prg.moments, cloud.x, cloud.y, cloud.z, wbuf, cloud.cell_of, cloud.ranges,
+            cloud.order, np.uint32(n), cloud.real(r * r), bufs["count"], bufs["status"],
+            bufs["normals"], bufs["eigenvalues"], bufs["variation"], bufs["shift"])
+    q.finish()
+    t2 = time.perf_counter()
+    for k, v in out.items():
+        cl.enqueue_copy(q, v, bufs[k])
+    q.finish()
+    t3 = time.perf_counter()
+    cloud.timings.update(build_moments=t1 - t0, kernel_moments=t2 - t1, download=t3 - t2)
+    return out

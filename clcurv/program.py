@@ -1,0 +1,86 @@
+"""Load the OpenCL sources in ``kernels/`` and build them once per (context, file, options).
+
+Programs are built with ``-I <kernels dir>`` so that ``#include "common.h"`` works, and
+with ``-D`` options for precision and vector width. Built programs are kept in memory;
+a failed build raises :class:`BuildError` carrying the compiler log.
+"""
+from __future__ import annotations
+
+import threading
+from importlib import resources
+from pathlib import Path
+
+
+class BuildError(RuntimeError):
+    """An OpenCL program failed to build; the message contains the build log."""
+
+
+class PrecisionError(RuntimeError):
+    """float64 was requested on a device without cl_khr_fp64."""
+
+
+def kernels_dir() -> Path:
+    """Directory holding the ``.cl``/``.h`` sources: installed package data, else the source tree."""
+    try:
+        d = Path(str(resources.files("clcurv.kernels")))
+        if (d / "common.h").is_file():
+            return d
+    except (ModuleNotFoundError, TypeError):
+        pass
+    d = Path(__file__).resolve().parent.parent / "kernels"
+    if (d / "common.h").is_file():
+        return d
+    raise FileNotFoundError("clcurv kernels not found (expected clcurv/kernels or ../kernels)")
+
+
+_cache = {}
+_lock = threading.Lock()
+
+
+def precision_defines(device, precision):
+    """``-D`` options for ``precision`` ('float' or 'double') on ``device``."""
+    if precision not in ("float", "double"):
+        raise ValueError(f"precision must be 'float' or 'double', got {precision!r}")
+    if precision == "double" and not device.info.fp64:
+        raise PrecisionError(f"device {device.info.name!r} has no float64 support "
+                             "(cl_khr_fp64); use precision='float'")
+    vw = 8 if device.info.kind == "cpu" else 4
+    return {"REAL_IS_DOUBLE": int(precision == "double"), "VW": vw}
+
+
+class Program:
+    """A built program whose kernels are created once and reused (``prg.name``)."""
+
+    def __init__(self, program):
+        self.program = program
+        self._kernels = {k.function_name: k for k in program.all_kernels()}
+
+    def __getattr__(self, name):
+        try:
+            return self._kernels[name]
+        except KeyError:
+            raise AttributeError(f"no kernel {name!r} in this program") from None
+
+
+def build(device, filename, defines=None):
+    """Return the built :class:`Program` for ``kernels/<filename>`` with ``defines`` on ``device``.
+
+    Not thread-safe to *launch* kernels of one program from several threads at once
+    (kernel arguments are per kernel object); building is.
+    """
+    import pyopencl as cl
+    defines = dict(defines or {})
+    key = (device.context.int_ptr, filename, tuple(sorted(defines.items())))
+    with _lock:
+        prg = _cache.get(key)
+        if prg is not None:
+            return prg
+        kdir = kernels_dir()
+        source = (kdir / filename).read_text()
+        options = ["-I", str(kdir)] + [f"-D{k}={v}" for k, v in sorted(defines.items())]
+        try:
+            prg = Program(cl.Program(device.context, source).build(options=options))
+        except cl.Error as exc:
+            raise BuildError(f"building {filename} with {options} failed:\n{exc}") from exc
+        _cache[key] = prg
+        return prg

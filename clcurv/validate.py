@@ -1,0 +1,62 @@
+"""Checks at the API boundary: clear errors instead of crashes in a kernel."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def as_points(points, name="points"):
+    """Return ``points`` as a C-contiguous float64 (N, 3) array, or raise.
+
+    Raises TypeError for non-real dtypes and ValueError for a wrong shape or non-finite
+    coordinates (the message gives how many rows are bad and the first of them).
+    """
+    arr = np.asarray(points)
+    if arr.dtype.kind not in "fiu":
+        raise TypeError(f"{name} must be a real numeric array, got dtype {arr.dtype}")
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (N, 3), got {arr.shape}")
+    arr = np.ascontiguousarray(arr, dtype=np.float64)
+    bad = ~np.isfinite(arr).all(axis=1)
+    if bad.any():
+        first = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"{name} has {int(bad.sum())} row(s) with NaN or Inf "
+                         f"(first at index {first}); drop them first, e.g. "
+                         f"{name}[np.isfinite({name}).all(axis=1)]")
+    return arr
+
+
+def as_radius(radius):
+    """Return ``radius`` as a positive finite float, or raise ValueError."""
+    try:
+        r = float(radius)
+    except (TypeError, ValueError):
+        raise TypeError(f"radius must be a number, got {radius!r}") from None
+    if not math.isfinite(r) or r <= 0:
+        raise ValueError(f"radius must be a positive finite number, got {radius!r}")
+    return r
+
+
+def as_normals(normals, n):
+    """Unit float64 (n, 3) normals from user input; zero or non-finite rows raise."""
+    arr = as_points(normals, "normals")
+    if len(arr) != n:
+        raise ValueError(f"normals must have one row per point: {len(arr)} rows for {n} points")
+    norm = np.linalg.norm(arr, axis=1)
+    if n and not (norm > 0).all():
+        raise ValueError(f"normals has {int((norm <= 0).sum())} zero-length row(s)")
+    return arr / norm[:, None] if n else arr
+
+
+def as_viewpoint(viewpoint):
+    vp = np.asarray(viewpoint, dtype=np.float64).reshape(-1)
+    if vp.shape != (3,) or not np.isfinite(vp).all():
+        raise ValueError(f"viewpoint must be 3 finite numbers, got {viewpoint!r}")
+    return vp
+
+
+def choice(value, name, allowed):
+    if value not in allowed:
+        raise ValueError(f"{name} must be one of {', '.join(map(repr, allowed))}, got {value!r}")
+    return value

@@ -1,0 +1,44 @@
+/* common.h -- precision and vector-width macros shared by every clcurv kernel.
+ *
+ * Build options (set by clcurv/program.py, never by editing a kernel):
+ *   -D REAL_IS_DOUBLE=0|1   scalar type REAL = float or double (double needs cl_khr_fp64)
+ *   -D VW=2|4|8|16          width of the explicit vectors used in neighbour loops
+ */
+#ifndef CLCURV_COMMON_H
+#define CLCURV_COMMON_H
+
+#ifndef REAL_IS_DOUBLE
+#define REAL_IS_DOUBLE 0
+#endif
+#ifndef VW
+#define VW 8
+#endif
+
+#define CAT_(a, b) a##b
+#define CAT(a, b) CAT_(a, b)
+
+#if REAL_IS_DOUBLE
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+#define REAL double
+#define IREAL long             /* integer type of a REAL comparison result */
+#define REAL_EPS DBL_EPSILON
+#define REAL_MAX DBL_MAX
+#else
+#define REAL float
+#define IREAL int
+#define REAL_EPS FLT_EPSILON
+#define REAL_MAX FLT_MAX
+#endif
+
+#define REAL3 CAT(REAL, 3)
+#define REALV CAT(REAL, VW)     /* VW lanes of REAL */
+#define IREALV CAT(IREAL, VW)   /* VW lanes of comparison masks */
+#define VLOADV CAT(vload, VW)
+
+/* Per-point status codes (mirrored in clcurv/result.py). */
+#define ST_OK 0
+#define ST_TOO_FEW 1      /* fewer neighbours than the operator needs */
+#define ST_DEGENERATE 2   /* covariance of rank < 2 (collinear or coincident points) */
+#define ST_SINGULAR 3     /* a least-squares system could not be solved */
+
+#endif

@@ -1,0 +1,140 @@
+"""Bad input gets a clear error or a documented, tested behaviour."""
+import dataclasses
+import warnings
+
+import numpy as np
+import pytest
+
+import clcurv
+from clcurv.program import PrecisionError, precision_defines
+from clcurv.result import DEGENERATE, TOO_FEW
+
+from conftest import bumpy_surface
+
+
+@pytest.mark.parametrize("bad", [np.zeros((5, 2)), np.zeros(5), np.zeros((2, 5, 3)), [[1, 2]]])
+def test_wrong_shape(bad):
+    with pytest.raises(ValueError, match=r"shape \(N, 3\)"):
+        clcurv.curvature(bad, 0.1)
+
+
+@pytest.mark.parametrize("bad", [np.zeros((4, 3), complex), np.zeros((4, 3), bool),
+                                 np.array([["a", "b", "c"]]), np.array([[None] * 3])])
+def test_wrong_dtype(bad):
+    with pytest.raises(TypeError, match="real numeric"):
+        clcurv.curvature(bad, 0.1)
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
+def test_non_finite_points(value):
+    pts = bumpy_surface(100, seed=0)
+    pts[[3, 7], 1] = value
+    with pytest.raises(ValueError, match=r"2 row\(s\) with NaN or Inf \(first at index 3\)"):
+        clcurv.curvature(pts, 0.1)
+
+
+@pytest.mark.parametrize("radius", [0, -1, np.nan, np.inf])
+def test_bad_radius(radius):
+    with pytest.raises(ValueError, match="radius must be a positive finite"):
+        clcurv.curvature(bumpy_surface(100, 0), radius)
+
+
+def test_radius_not_a_number():
+    with pytest.raises(TypeError, match="radius must be a number"):
+        clcurv.curvature(bumpy_surface(100, 0), "big")
+
+
+@pytest.mark.parametrize("kw", [{"method": "mls9"}, {"weights": "gauss"}, {"backend": "cuda"},
+                                {"orient": "inward"}, {"precision": "half"}])
+def test_bad_options(kw, device):
+    with pytest.raises(ValueError):
+        clcurv.curvature(bumpy_surface(100, 0), 0.1, device=device, **kw)
+
+
+def test_bad_normals_shape():
+    with pytest.raises(ValueError, match="one row per point"):
+        clcurv.curvature(bumpy_surface(100, 0), 0.1, normals=np.ones((99, 3)))
+    with pytest.raises(ValueError, match="zero-length"):
+        clcurv.curvature(bumpy_surface(100, 0), 0.1, normals=np.zeros((100, 3)))
+
+
+@pytest.mark.parametrize("backend", ["opencl", "numpy"])
+def test_empty_cloud(backend):
+    res = clcurv.curvature(np.empty((0, 3)), 0.1, method="mls1", backend=backend)
+    assert res.normals.shape == (0, 3) and res.mean.shape == (0,) and res.points.shape == (0, 3)
+    assert clcurv.normals(np.empty((0, 3)), 0.1).shape == (0, 3)
+
+
+@pytest.mark.parametrize("backend", ["opencl", "numpy"])
+def test_single_point(backend):
+    with pytest.warns(RuntimeWarning, match="fewer than 3 neighbours"):
+        res = clcurv.curvature([[1.0, 2.0, 3.0]], 0.1, method="mls1", backend=backend)
+    assert res.count.tolist() == [1] and res.status.tolist() == [TOO_FEW]
+    assert np.isnan(res.mean).all() and np.isnan(res.normals).all() and np.isnan(res.points).all()
+
+
+def test_radius_with_no_neighbours(device):
+    pts = bumpy_surface(2000, 0)
+    with pytest.warns(RuntimeWarning, match="radius is probably too small"):
+        res = clcurv.curvature(pts, 1e-6, method="mls1", device=device)
+    assert (res.count == 1).all() and (res.status == TOO_FEW).all()
+    assert np.isnan(res.mean).all() and np.isnan(res.variation).all()
+
+
+def test_duplicated_points_do_not_change_moments(device):
+    pts = bumpy_surface(5000, 1)
+    one = clcurv.curvature(pts, 0.1, method="mls1", device=device)
+    two = clcurv.curvature(np.concatenate([pts, pts]), 0.1, method="mls1", device=device)
+    np.testing.assert_array_equal(two.count[:5000], 2 * one.count)
+    np.testing.assert_allclose(two.eigenvalues[:5000], one.eigenvalues, rtol=1e-4, atol=1e-9)
+    np.testing.assert_allclose(two.mean[:5000], one.mean, rtol=1e-4, atol=1e-4)
+    np.testing.assert_array_equal(two.normals[:5000], two.normals[5000:])
+
+
+def test_coincident_and_collinear_points_are_degenerate(device):
+    same = np.tile([[1.0, 1.0, 1.0]], (10, 1))
+    line = np.column_stack([np.linspace(0, 1, 50), 2 * np.linspace(0, 1, 50), np.zeros(50)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for pts in (same, line):
+            res = clcurv.curvature(pts, 0.2, method="mls1", device=device)
+            assert (res.status == DEGENERATE).all()
+            assert np.isnan(res.normals).all() and np.isnan(res.mean).all()
+
+
+def test_far_from_origin_gives_same_results(device):
+    pts = bumpy_surface(20000, 2)
+    offset = np.array([512_345.678, 4_987_654.321, 250.0])      # UTM-like
+    a = clcurv.curvature(pts, 0.08, method="mls1", device=device)
+    b = clcurv.curvature(pts + offset, 0.08, method="mls1", device=device)
+    np.testing.assert_array_equal(a.count, b.count)
+    cos = np.einsum("ij,ij->i", a.normals, b.normals)
+    assert (cos[a.valid] > 1 - 1e-6).all()
+    np.testing.assert_allclose(a.mean, b.mean, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(a.variation, b.variation, rtol=1e-4)
+    np.testing.assert_allclose(b.points - offset, a.points, atol=1e-6)
+
+
+def test_integer_and_float32_input(device):
+    pts = np.random.default_rng(3).integers(0, 20, size=(3000, 3))
+    a = clcurv.curvature(pts, 3.0, method="variation", device=device, orient=None)
+    b = clcurv.curvature(pts.astype(np.float32), 3.0, method="variation", device=device, orient=None)
+    np.testing.assert_array_equal(a.variation, b.variation)
+
+
+def test_double_on_device_without_fp64(device):
+    no_fp64 = dataclasses.replace(device.info, fp64=False)
+    fake = type("D", (), {"info": no_fp64})()
+    with pytest.raises(PrecisionError, match="no float64 support"):
+        precision_defines(fake, "double")
+
+
+def test_unknown_device():
+    with pytest.raises(clcurv.NoDeviceError, match="no OpenCL device matches"):
+        clcurv.curvature(bumpy_surface(100, 0), 0.1, device="no-such-accelerator")
+
+
+def test_huge_bounding_box_is_an_error_not_a_dense_grid(device):
+    pts = np.array([[0.0, 0.0, 0.0], [1e9, 1e9, 1e9], [1.0, 0.0, 0.0]])
+    with pytest.raises(ValueError, match="too large for cell size"):
+        clcurv.curvature(pts, 1e-6, device=device)
