@@ -5,10 +5,10 @@ Tolerances (float32 kernels vs float64 oracle), compared on the points whose nei
 sets agree (a neighbour within ~1e-7 r of the sphere |q - p| = r may fall on either side in
 float32; those points are counted, and must be rare):
   normals        1 - |cos| <= 1e-4
-  eigenvalues    |d lambda_i| <= 2e-5 * lambda_2 for 99.9% (max 2e-4; float32 rounding of
-                 r^2-size sums; density weights of a neighbour can differ at a boundary tie)
+  eigenvalues    |d lambda_i| <= 4 (n + 32) eps32 * lambda_2   (float32 sums of n = #N_r(p)
+                 terms, plus the eigen solver's 32 eps)
   lambda_0, variation   relative <= 1e-3 for 99.9% of points (second-pass lambda_0)
-  shift o - p    |d| <= 1e-5 * r
+  shift o - p    |d| <= 4 (n + 32) eps32 * r
 """
 import numpy as np
 import pytest
@@ -21,9 +21,8 @@ from clcurv.moments import device_moments
 from conftest import bumpy_surface, worst
 
 COS_TOL = 1e-4
-EIG_TOL = 2e-5
+F32_EPS = float(np.finfo(np.float32).eps)
 L0_REL_TOL = 1e-3
-SHIFT_TOL = 1e-5
 AGREE_MIN = 0.998   # fraction of points whose counts agree with the reference
 
 
@@ -42,16 +41,17 @@ def check_moments(points, radius, weights, device, precision="float"):
     one_minus_cos = 1 - np.abs(np.einsum("ij,ij->i", n_g, n_r))
     assert one_minus_cos.max() <= COS_TOL, worst(one_minus_cos)
     e_g, e_r = got["eigenvalues"][ok].astype(float), ref["eigenvalues"][ok]
-    err = (np.abs(e_g - e_r) / e_r[:, 2:3]).max(axis=1)
-    # with density weights a neighbour's own count may differ at a boundary tie: 99.9%
-    assert np.quantile(err, 0.999) <= EIG_TOL and err.max() <= 10 * EIG_TOL, worst(err)
+    # float32 sums of n terms plus the eigen solver: error bound 4 (n + 32) eps
+    bound = 4 * (got["count"][ok] + 32) * F32_EPS
+    err = (np.abs(e_g - e_r) / e_r[:, 2:3]).max(axis=1) / bound
+    assert err.max() <= 1, worst(err)
     flat = e_r[:, 0] > 1e-6 * e_r[:, 2]     # lambda0 relative error is meaningful
     rel0 = np.abs(e_g[flat, 0] - e_r[flat, 0]) / e_r[flat, 0]
     assert np.quantile(rel0, 0.999) <= L0_REL_TOL, worst(rel0)
     relv = np.abs(got["variation"][ok][flat] - ref["variation"][ok][flat]) / ref["variation"][ok][flat]
     assert np.quantile(relv, 0.999) <= L0_REL_TOL, worst(relv)
-    derr = np.linalg.norm(got["shift"][ok] - ref["shift"][ok], axis=1) / radius
-    assert derr.max() <= SHIFT_TOL, worst(derr)
+    derr = np.linalg.norm(got["shift"][ok] - ref["shift"][ok], axis=1) / (radius * bound)
+    assert derr.max() <= 1, worst(derr)
     return got, ref
 
 
