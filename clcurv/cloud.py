@@ -12,7 +12,7 @@ import numpy as np
 
 from .device import get_device
 from .grid import bin_points
-from .program import build, precision_defines
+from .program import build, launch, precision_defines
 from .validate import as_points, as_radius
 
 
@@ -68,8 +68,8 @@ class DeviceCloud:
         t3 = time.perf_counter()
         self.timings["build"] = t3 - t2
         nx, ny, nz = g.dims
-        prg.cell_ranges(q, (g.ncells,), None, keys, np.uint32(g.ncells), cell_start,
-                        np.int64(nx), np.int64(ny), np.int64(nz), self.ranges)
+        launch(self.device, prg.cell_ranges, g.ncells, keys, np.uint32(g.ncells), cell_start,
+               np.int64(nx), np.int64(ny), np.int64(nz), self.ranges)
         q.finish()
         self.timings["cell_ranges"] = time.perf_counter() - t3
 

@@ -10,12 +10,12 @@ import time
 
 import numpy as np
 
-from .program import build
+from .program import build, launch
 
 
 def _launch(cloud, kernel, *args):
-    """Enqueue ``kernel`` over the cloud's points (no zero-size launches)."""
-    kernel(cloud.device.queue, (cloud.n,), None, *args)
+    """Enqueue ``kernel`` over the cloud's points."""
+    launch(cloud.device, kernel, cloud.n, *args)
 
 
 def device_counts(cloud, radius):

@@ -234,32 +234,47 @@ def flip_by_propagation(points, normals, k=10):
     if k < 1:
         raise ValueError(f"k must be >= 1, got {k}")
     flip = np.zeros(len(p_all), dtype=bool)
-    valid = _valid_rows(p_all, n_all)
-    idx = np.flatnonzero(valid)
-    m = len(idx)
-    if m >= MIN_COMPONENT:
-        idx = idx[_spatial_order(p_all[idx])]
-    if m == 0:
+    idx = np.flatnonzero(_valid_rows(p_all, n_all))
+    if len(idx) == 0:
         return flip
+    if len(idx) >= MIN_COMPONENT:
+        idx = idx[_spatial_order(p_all[idx])]
     p = p_all[idx]
     u = n_all[idx] / np.linalg.norm(n_all[idx], axis=1)[:, None]
+    flip[idx] = _propagate(p, u, k)
+    return flip
+
+
+def _super_rooted_parents(tree, roots):
+    """BFS parent of every node of a spanning forest hung under a super-root.
+
+    The super-root is node ``m`` (``m`` = number of tree nodes), linked to
+    every component root; it is its own parent in the returned ``(m + 1,)``
+    array.
+    """
+    m, ncomp = tree.shape[0], len(roots)
+    t = tree.tocoo()
+    rows = np.concatenate([t.row, t.col, np.full(ncomp, m)])
+    cols = np.concatenate([t.col, t.row, roots])
+    graph = csr_matrix((np.ones(len(rows)), (rows, cols)),
+                       shape=(m + 1, m + 1))
+    _, parent = breadth_first_order(graph, m, directed=True,
+                                    return_predecessors=True)
+    parent[m] = m
+    return parent
+
+
+def _propagate(p, u, k):
+    """Flip mask of valid points ``p`` with unit normals ``u`` (Hoppe 1992)."""
+    m = len(p)
     global_out = _negative(_rowdot(u, p - p.mean(axis=0)))
     if m < MIN_COMPONENT:
-        flip[idx] = global_out
-        return flip
+        return global_out
 
     tree = minimum_spanning_tree(_knn_graph(p, u, k), overwrite=True)
     ncomp, labels = connected_components(tree, directed=False)
     cen, roots = _component_roots(p, labels, ncomp)
-
-    # Tree plus a super-root (node m) linked to every component root.
-    t = tree.tocoo()
-    rows = np.concatenate([t.row, t.col, np.full(ncomp, m), roots])
-    cols = np.concatenate([t.col, t.row, roots, np.full(ncomp, m)])
-    graph = csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(m + 1, m + 1))
-    _, parent = breadth_first_order(graph, m, directed=True,
-                                    return_predecessors=True)
-    parent[m] = m
+    parent = _super_rooted_parents(tree, roots)
 
     edge_flip = np.zeros(m + 1, dtype=bool)
     child = np.flatnonzero(parent[:m] != m)
@@ -269,8 +284,7 @@ def flip_by_propagation(points, normals, k=10):
 
     small = np.bincount(labels, minlength=ncomp)[labels] < MIN_COMPONENT
     f[small] = global_out[small]
-    flip[idx] = f
-    return flip
+    return f
 
 
 def apply_flip(flip, *arrays):

@@ -84,3 +84,28 @@ def build(device, filename, defines=None):
             raise BuildError(f"building {filename} with {options} failed:\n{exc}") from exc
         _cache[key] = prg
         return prg
+
+
+def local_size(device, kernel, limit=128):
+    """A work-group size for ``kernel`` on ``device``, queried, never assumed: the largest
+    multiple of the preferred size multiple that is <= min(limit, kernel max)."""
+    import pyopencl as cl
+    dev = device.cl_device
+    kmax = kernel.get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE, dev)
+    mult = kernel.get_work_group_info(
+        cl.kernel_work_group_info.PREFERRED_WORK_GROUP_SIZE_MULTIPLE, dev)
+    top = max(1, min(limit, kmax))
+    return max(1, (top // mult) * mult) if mult <= top else top
+
+
+def launch(device, kernel, n, *args, limit=128):
+    """Enqueue ``kernel`` over ``n`` work-items (the kernel must ignore ids >= n).
+
+    The global size is padded to a multiple of a fixed local size, so that PoCL compiles
+    the work-group function once instead of once per cloud size. ``n == 0`` enqueues nothing.
+    """
+    if n == 0:
+        return None
+    ls = local_size(device, kernel, limit)
+    gs = -(-n // ls) * ls
+    return kernel(device.queue, (gs,), (ls,), *args)

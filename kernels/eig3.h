@@ -50,19 +50,55 @@ inline REAL eig3_max_abs(eig3_mat m)
     return fmax(d, o);
 }
 
-/* m * 2^e for every entry (exact unless the result is denormal). */
-inline eig3_mat eig3_ldexp(eig3_mat m, int e)
-{
-    eig3_mat r = { ldexp(m.a00, e), ldexp(m.a01, e), ldexp(m.a02, e),
-                   ldexp(m.a11, e), ldexp(m.a12, e), ldexp(m.a22, e) };
-    return r;
-}
-
 /* m * s for every entry. */
 inline eig3_mat eig3_scale(eig3_mat m, REAL s)
 {
     eig3_mat r = { m.a00 * s, m.a01 * s, m.a02 * s, m.a11 * s, m.a12 * s, m.a22 * s };
     return r;
+}
+
+/* 2^e as two exact power-of-two factors (each within the exponent range even when 2^e is
+   not), so scaling by them is exact and costs multiplications, not ldexp calls. */
+#if REAL_IS_DOUBLE
+#define EIG3_MANT 52
+#define EIG3_BIAS 1023
+#define EIG3_AS_REAL(b) as_double(b)
+#define EIG3_AS_BITS(x) as_long(x)
+typedef long eig3_bits;
+#else
+#define EIG3_MANT 23
+#define EIG3_BIAS 127
+#define EIG3_AS_REAL(b) as_float(b)
+#define EIG3_AS_BITS(x) as_int(x)
+typedef int eig3_bits;
+#endif
+
+/* 2^h for |h| well inside the normal exponent range, from its bits (no library call). */
+inline REAL eig3_exp2i(int h)
+{
+    return EIG3_AS_REAL(((eig3_bits)(h + EIG3_BIAS)) << EIG3_MANT);
+}
+
+/* floor(log2(x)) of a positive finite x: read from the bits, ilogb only for denormals. */
+inline int eig3_ilogb(REAL x)
+{
+    const int biased = (int)((EIG3_AS_BITS(x) >> EIG3_MANT) & (2 * EIG3_BIAS + 1));
+    return biased != 0 ? biased - EIG3_BIAS : ilogb(x);
+}
+
+inline void eig3_pow2(int e, REAL *f1, REAL *f2)
+{
+    const int h = e / 2;
+    *f1 = eig3_exp2i(h);
+    *f2 = eig3_exp2i(e - h);
+}
+
+/* m * 2^e for every entry (exact unless the result is denormal). */
+inline eig3_mat eig3_ldexp(eig3_mat m, int e)
+{
+    REAL f1, f2;
+    eig3_pow2(e, &f1, &f2);
+    return eig3_scale(eig3_scale(m, f1), f2);
 }
 
 /* m - s I */
@@ -171,7 +207,7 @@ inline void eig3_sym(REAL a00, REAL a01, REAL a02, REAL a11, REAL a12, REAL a22,
         *w = (REAL3)(zero, zero, zero);
         return;
     }
-    int e1 = ilogb(amax);
+    int e1 = eig3_ilogb(amax);
     a = eig3_ldexp(a, -e1);
 
     /* 2. shift to trace 0, rescale exactly, normalise to trace(d^2) = 6 */
@@ -179,10 +215,12 @@ inline void eig3_sym(REAL a00, REAL a01, REAL a02, REAL a11, REAL a12, REAL a22,
     eig3_mat c = eig3_shift(a, q);
     REAL cmax = eig3_max_abs(c);
     if (!(cmax > zero)) {
-        *w = (REAL3)(ldexp(q, e1), ldexp(q, e1), ldexp(q, e1));
+        REAL f1, f2;
+        eig3_pow2(e1, &f1, &f2);
+        *w = (REAL3)(q * f1 * f2);
         return;
     }
-    int e2 = ilogb(cmax);
+    int e2 = eig3_ilogb(cmax);
     c = eig3_ldexp(c, -e2);
     REAL p = sqrt((c.a00 * c.a00 + c.a11 * c.a11 + c.a22 * c.a22
                    + EIG3_C(2.0) * (c.a01 * c.a01 + c.a02 * c.a02 + c.a12 * c.a12))
@@ -220,7 +258,9 @@ inline void eig3_sym(REAL a00, REAL a01, REAL a02, REAL a11, REAL a12, REAL a22,
     REAL l0 = eig3_rayleigh(a, *v0);
     REAL l1 = fmax(eig3_rayleigh(a, *v1), l0);
     REAL l2 = fmax(eig3_rayleigh(a, *v2), l1);
-    *w = ldexp((REAL3)(l0, l1, l2), e1);
+    REAL f1, f2;
+    eig3_pow2(e1, &f1, &f2);
+    *w = (REAL3)(l0, l1, l2) * f1 * f2;
 }
 
 #endif

@@ -334,6 +334,15 @@ def test_flip_by_propagation_components_and_invalid_rows():
     assert np.isnan(out[invalid]).all() and np.isnan(n[invalid]).all()
 
 
+def test_flip_by_propagation_duplicate_points():
+    # every point three times: the kNN self match is not always first
+    s = shapes.sphere(5000, 2.0, seed=13)
+    pts, truth = np.vstack([s["points"]] * 3), np.vstack([s["normals"]] * 3)
+    n = truth * np.random.default_rng(13).choice([-1.0, 1.0], size=(len(pts), 1))
+    out = orient.apply_flip(orient.flip_by_propagation(pts, n), n)
+    assert np.all(rowdot(out, truth) > 0)
+
+
 def test_flip_by_propagation_tiny_inputs():
     assert orient.flip_by_propagation(np.empty((0, 3)), np.empty((0, 3))).shape == (0,)
     p = np.array([[1.0, 0, 0], [-1.0, 0, 0]])
