@@ -9,7 +9,8 @@ from .cloud import DeviceCloud
 from .device import devices, get_device, NoDeviceError
 from .program import BuildError, PrecisionError
 from .result import CurvatureResult
+from . import shapes
 
 __version__ = "0.1.0"
 __all__ = ["curvature", "normals", "METHODS", "DeviceCloud", "devices", "get_device",
-           "NoDeviceError", "BuildError", "PrecisionError", "CurvatureResult", "__version__"]
+           "NoDeviceError", "BuildError", "PrecisionError", "CurvatureResult", "shapes", "__version__"]

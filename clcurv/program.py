@@ -7,7 +7,6 @@ a failed build raises :class:`BuildError` carrying the compiler log.
 from __future__ import annotations
 
 import threading
-from importlib import resources
 from pathlib import Path
 
 
@@ -21,15 +20,10 @@ class PrecisionError(RuntimeError):
 
 def kernels_dir() -> Path:
     """Directory holding the ``.cl``/``.h`` sources: installed package data, else the source tree."""
-    try:
-        d = Path(str(resources.files("clcurv.kernels")))
+    here = Path(__file__).resolve().parent
+    for d in (here / "kernels", here.parent / "kernels"):   # installed, then source tree
         if (d / "common.h").is_file():
             return d
-    except (ModuleNotFoundError, TypeError):
-        pass
-    d = Path(__file__).resolve().parent.parent / "kernels"
-    if (d / "common.h").is_file():
-        return d
     raise FileNotFoundError("clcurv kernels not found (expected clcurv/kernels or ../kernels)")
 
 
