@@ -1,0 +1,1 @@
+"""Benchmarks of clcurv against its peers: run ``python -m bench.run`` (see bench/run.py)."""
