@@ -10,7 +10,9 @@ The cloud is a uniform sample of the unit sphere (``clcurv.shapes.sphere``) in r
 plus a spatially sorted copy (k-d tree leaf order). Radii give ~k neighbours:
 r = sqrt(4 k / n) (area 4 pi, k = n pi r^2 / (4 pi)). Every timing is the minimum of
 ``--repeats`` runs after an untimed warm-up (so program builds are cached), except where the
-table says otherwise. Prints a table, writes ``bench/results/bench-<devicekind>.json`` and
+table says otherwise. Each block (reference, clcurv per device and neighbour count, Open3D,
+orientation) runs between two checks that both cores are free (a PoCL kernel timed with 1 and
+2 threads); busy blocks are flagged. Prints a table, writes ``bench/results/bench-<devicekind>.json`` and
 ``bench/results/bench.md``.
 """
 from __future__ import annotations
@@ -32,6 +34,7 @@ from scipy.spatial import cKDTree
 import clcurv
 from clcurv import orient, reference, shapes
 from clcurv.cloud import DeviceCloud
+from clcurv.grid import bin_points
 from clcurv.moments import device_moments
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -41,7 +44,7 @@ STAGES = ("binning", "upload", "build", "cell_ranges", "build_moments", "kernel_
 
 COS_TOL = 1e-4            # normals: 1 - |cos| against the float64 reference (tests/test_moments.py)
 VAR_MEDIAN_TOL = 1e-3     # surface variation: median relative error against the reference
-THREADS_MIN_GAIN = 1.3    # two PoCL threads must be at least this much faster than one
+THREADS_MIN_GAIN = 1.6    # two PoCL threads must be this much faster than one (quiet: ~2.0)
 AGREE_MIN = 0.998         # fraction of cap-interior points whose counts equal the reference's
 
 E2E_VS_OPEN3D = 5.0       # targets
@@ -68,7 +71,7 @@ def timeit(fn, repeats, warmup=1, setup=None):
 
 
 def radius_for(k, n):
-    """Radius giving ~k neighbours (point included) on a unit sphere sampled with n points."""
+    """Radius giving ~k neighbours besides the point itself on a unit sphere of n points."""
     return math.sqrt(4.0 * k / n)
 
 
@@ -102,11 +105,22 @@ def cpu_model():
     return platform.processor() or "unknown"
 
 
+def cpu_flags():
+    """The vector extensions that matter for PoCL's code generation."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return []
+    flags = next((ln.split(":", 1)[1].split() for ln in text.splitlines()
+                  if ln.startswith("flags")), [])
+    return [f for f in ("avx2", "fma", "avx512f") if f in flags]
+
+
 def environment():
     """Machine and library versions."""
     import pyopencl as cl
     env = {"date": datetime.datetime.now().isoformat(timespec="seconds"),
-           "cpu": cpu_model(), "cpus": os.cpu_count(), "python": platform.python_version(),
+           "cpu": cpu_model(), "cpu_flags": cpu_flags(), "cpus": os.cpu_count(), "python": platform.python_version(),
            "numpy": np.__version__, "pyopencl": cl.VERSION_TEXT, "clcurv": clcurv.__version__,
            "open3d": None, "loadavg": Path("/proc/loadavg").read_text().split()[:3]}
     try:
@@ -135,7 +149,7 @@ k = cl.Program(ctx, SRC).build().spin
 n = 1 << 16
 out = cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, 4 * n)
 best = float("inf")
-for i in range(6):
+for i in range(4):
     t0 = time.perf_counter()
     k(q, (n,), (64,), out, np.int32(2000))
     q.finish()
@@ -164,15 +178,48 @@ def thread_check():
 
 def describe_threads(check, when):
     if check.get("ok") is None:
-        return f"thread check ({when}): {check['note']}"
-    line = (f"thread check ({when}): PoCL spin kernel 1 thread {check['one_thread_s'] * 1e3:.0f} ms, "
-            f"2 threads {check['two_threads_s'] * 1e3:.0f} ms -> x{check['gain']:.2f}, "
-            f"loadavg {' '.join(check['loadavg'])}")
-    if not check["ok"]:
-        line += (f"\nWARNING: two threads are not faster than one (x{check['gain']:.2f} < "
-                 f"x{THREADS_MIN_GAIN}): the cores are shared with other work, the figures "
-                 "are pessimistic and not comparable with a quiet run")
-    return line
+        return f"{when}: {check['note']}"
+    return (f"{when}: 1 thread {check['one_thread_s'] * 1e3:.0f} ms, 2 threads "
+            f"{check['two_threads_s'] * 1e3:.0f} ms -> x{check['gain']:.2f}"
+            f"{'' if check['ok'] else ' BUSY'}, loadavg {' '.join(check['loadavg'])}")
+
+
+class Guard:
+    """Thread checks around every measured block, waiting up to ``wait`` s for free cores.
+
+    The machine may be shared: a block measured while another process holds a core is
+    flagged (its figures are pessimistic, and ratios against a peer measured at another
+    time are off)."""
+
+    def __init__(self, wait):
+        self.wait = wait
+        self.checks = {}
+
+    def _quiet(self):
+        deadline = time.monotonic() + self.wait
+        check = thread_check()
+        while check.get("ok") is False and time.monotonic() < deadline:
+            log(f"  cores busy (x{check['gain']:.2f}), waiting")
+            time.sleep(5)
+            check = thread_check()
+        return check
+
+    def block(self, label, fn):
+        """Run ``fn()`` between two thread checks; return its result."""
+        self.checks[f"{label}, before"] = before = self._quiet()
+        log(describe_threads(before, f"{label}, before"))
+        result = fn()
+        self.checks[f"{label}, after"] = after = thread_check()
+        log(describe_threads(after, f"{label}, after"))
+        return result
+
+    def gains(self, label):
+        """'x2.01 / x1.98': the 2-thread gain before / after the block."""
+        g = [self.checks.get(f"{label}, {w}", {}).get("gain") for w in ("before", "after")]
+        return " / ".join(fmt(x, ".2f", "x") for x in g)
+
+    def busy(self):
+        return sorted({k.rsplit(",", 1)[0] for k, c in self.checks.items() if c.get("ok") is False})
 
 
 # ----------------------------------------------------------------------------- clouds
@@ -196,14 +243,27 @@ def cap_interior(pts, cap, r):
 
 
 # ----------------------------------------------------------------------------- peers
+def device_coordinates(pts, r):
+    """The float32 coordinates the device sees (centred in float64, then cast), input order."""
+    g = bin_points(pts, r, np.float32)
+    out = np.empty((len(pts), 3))
+    out[g.order] = np.stack([g.x[:len(pts)], g.y[:len(pts)], g.z[:len(pts)]], axis=1)
+    return out
+
+
 def bench_reference(pts, r, cap):
-    """The float64 NumPy reference on the cap (timed once; it is slow and deterministic)."""
+    """The float64 NumPy reference on the cap (timed once; it is slow and deterministic).
+
+    Also run (untimed) on the float32-rounded coordinates the device works with: the
+    difference to that run is the kernels' own arithmetic error, the difference to the
+    float64 run includes the rounding of the input to float32."""
     sub = pts[cap]
     t0 = time.perf_counter()
     ref = reference.moments(sub, r)
     seconds = time.perf_counter() - t0
+    ref32 = reference.moments(device_coordinates(pts, r)[cap], r)
     return {"points": len(sub), "seconds": seconds, "mpts": mpts(len(sub), seconds),
-            "mean_count": float(ref["count"].mean()), "result": ref}
+            "mean_count": float(ref["count"].mean()), "result": ref, "result_f32_input": ref32}
 
 
 def open3d_or_none():
@@ -319,7 +379,14 @@ def bench_e2e(clouds, r, index, repeats):
     return seconds, results
 
 
-def check_against_reference(results, ref, cap, interior):
+def variation_error(var, ref, cap):
+    """Relative error of surface variation on the cap points with equal counts, status ok."""
+    same = (var.count[cap] == ref["count"]) & (var.status[cap] == 0) & (ref["status"] == 0)
+    rel = np.abs(var.variation[cap][same] - ref["variation"][same]) / ref["variation"][same]
+    return float(np.median(rel)), float(np.quantile(rel, 0.999))
+
+
+def check_against_reference(results, ref, cap, interior, ref32):
     """Normals and variation of the whole-cloud run, on the cap, against the float64 reference.
 
     Counts must agree on the cap interior (points farther than r from the cap border, whose
@@ -335,9 +402,9 @@ def check_against_reference(results, ref, cap, interior):
         one_minus_cos = 1 - np.abs(np.einsum("ij,ij->i", n[same], ref["normals"][same]))
         out[f"{name}_cos_worst"] = float(one_minus_cos.max())
         out[f"{name}_cos_fail"] = int(np.count_nonzero(one_minus_cos > COS_TOL))
-    rel = np.abs(var.variation[cap][same] - ref["variation"][same]) / ref["variation"][same]
-    out["variation_rel_median"] = float(np.median(rel))
-    out["variation_rel_p999"] = float(np.quantile(rel, 0.999))
+    out["variation_rel_median"], out["variation_rel_p999"] = variation_error(var, ref, cap)
+    out["variation_rel_median_f32_input"], out["variation_rel_p999_f32_input"] = \
+        variation_error(var, ref32, cap)
     out["normals_pass"] = out["curvature_cos_fail"] == 0 and out["normals_cos_fail"] == 0
     out["variation_pass"] = out["variation_rel_median"] <= VAR_MEDIAN_TOL
     out["counts_pass"] = out["interior_counts_agree"] >= AGREE_MIN
@@ -345,18 +412,25 @@ def check_against_reference(results, ref, cap, interior):
     return out
 
 
-def bench_device(info, clouds, radii, refs, caps, repeats):
+def clcurv_label(index, k):
+    return f"clcurv device {index} ~{k}"
+
+
+def bench_device(info, clouds, radii, refs, caps, repeats, guard):
     """All clcurv measurements on one device, per neighbour count."""
     log(f"device {info}: cold build (no PoCL cache, subprocess)")
     out = {"device": device_record(info), "cold_build_no_cache": cold_build(info.index), "k": {}}
     for k, r in radii.items():
-        log(f"  ~{k} neighbours: stages")
-        split = bench_split(clouds["random"], r, info.index, repeats)
-        log(f"  ~{k} neighbours: end to end")
-        seconds, results = bench_e2e(clouds, r, info.index, repeats)
+        def measure():
+            log(f"  ~{k} neighbours: stages, end to end")
+            return (bench_split(clouds["random"], r, info.index, repeats),
+                    *bench_e2e(clouds, r, info.index, repeats))
+        split, seconds, results = guard.block(clcurv_label(info.index, k), measure)
         check = check_against_reference(results, refs[k]["result"], caps[k],
-                                        cap_interior(clouds["random"], caps[k], r))
+                                        cap_interior(clouds["random"], caps[k], r),
+                                        refs[k]["result_f32_input"])
         out["k"][k] = {"radius": r, "e2e_s": seconds, "split": split, "check": check,
+                       "threads": guard.gains(clcurv_label(info.index, k)),
                        "mean_count": float(results["variation"].count.mean())}
     return out
 
@@ -437,7 +511,7 @@ def device_rows(n, dev, refs, o3d, rat, ks):
     if "error" not in cold:
         rows.append(("build grid.cl + moments.cl, PoCL cache off (ms)",
                      [f"{ms(cold['build'])} + {ms(cold['build_moments'])}"] + [""] * (len(ks) - 1)))
-    rows.append(("host rest: e2e variation − warm stages (ms)",
+    rows.append(("host rest ≈ e2e variation − Σ warm stages (ms)",
                  [ms(K[k]["e2e_s"]["variation"] - sum(K[k]["split"]["warm"].values()))
                   for k in ks]))
     rows.append(("kernel-only M pts/s (λ0 refined, curvature / one pass, normals)",
@@ -471,6 +545,14 @@ def device_rows(n, dev, refs, o3d, rat, ks):
                  [f"{K[k]['check']['variation_rel_median']:.1e} "
                   f"({K[k]['check']['variation_rel_p999']:.1e}) "
                   f"{pass_fail(K[k]['check']['variation_pass'])}" for k in ks]))
+    rows.append(("same vs reference on the float32 input (kernel arithmetic only)",
+                 [f"{K[k]['check']['variation_rel_median_f32_input']:.1e} "
+                  f"({K[k]['check']['variation_rel_p999_f32_input']:.1e})" for k in ks]))
+    rows.append(("**cores free? 2-thread gain of a PoCL spin kernel, before / after**",
+                 [""] * len(ks)))
+    rows.append(("clcurv block", [K[k]["threads"] for k in ks]))
+    if o3d:
+        rows.append(("Open3D block", [o3d[k]["threads"] for k in ks]))
     return rows
 
 
@@ -514,11 +596,12 @@ def summary_text(env, args, threads):
     return "\n".join([
         f"clcurv {env['clcurv']} benchmark, {env['date']}: unit sphere, n = {args.n:,}, "
         f"min of {args.repeats} repeats after a warm-up",
-        f"CPU {env['cpu']} ({env['cpus']} logical), Python {env['python']}, numpy {env['numpy']}, "
+        f"CPU {env['cpu']} ({env['cpus']} logical, {' '.join(env['cpu_flags'])}), Python {env['python']}, numpy {env['numpy']}, "
         f"pyopencl {env['pyopencl']}, open3d {env['open3d'] or 'not available'}",
         f"OpenCL platforms: {plats}",
-        describe_threads(threads["start"], "start"),
-        describe_threads(threads["end"], "end"),
+        "thread checks (PoCL spin kernel, 1 vs 2 threads; BUSY when 2 threads are less than "
+        f"x{THREADS_MIN_GAIN} faster):",
+        *("  " + describe_threads(check, when) for when, check in threads.items()),
         "Ratios use clcurv on the random-order cloud and Open3D on the spatially sorted copy "
         "(Open3D is several times slower on random order; both orders are listed). The NumPy "
         "reference runs once on a polar cap of the same cloud at the same radius (same "
@@ -545,12 +628,15 @@ def parse_args(argv=None):
     ap.add_argument("--ref-points", type=int, default=100_000,
                     help="points of the NumPy reference subsample (at most n/4)")
     ap.add_argument("--orient-points", type=int, default=100_000)
-    ap.add_argument("--quick", action="store_true", help="n=100k, 1 repeat, 20k-point subsamples")
+    ap.add_argument("--quick", action="store_true", help="n=100k, 2 repeats, 20k-point subsamples")
     ap.add_argument("--no-open3d", action="store_true")
+    ap.add_argument("--wait-quiet", type=float, default=60, metavar="SECONDS",
+                    help="before each block, wait up to this long for both cores to be free")
     args = ap.parse_args(argv)
     if args.quick:
-        args.n, args.repeats = 100_000, 1
+        args.n, args.repeats = 100_000, 2
         args.ref_points, args.orient_points = 20_000, 20_000
+        args.wait_quiet = min(args.wait_quiet, 15)
     args.ref_points = min(args.ref_points, args.n // 4)
     return args
 
@@ -558,8 +644,7 @@ def parse_args(argv=None):
 def main(argv=None):
     args = parse_args(argv)
     env = environment()
-    threads = {"start": thread_check()}
-    log(describe_threads(threads["start"], "start"))
+    guard = Guard(args.wait_quiet)
     o3d = None if args.no_open3d else open3d_or_none()
     infos = clcurv.devices()
     if not infos:
@@ -570,29 +655,33 @@ def main(argv=None):
     ks = list(args.neighbours)
     radii = {k: radius_for(k, args.n) for k in ks}
     caps = {k: cap_indices(pts, args.ref_points) for k in ks}
-    refs = {}
-    for k in ks:
-        log(f"NumPy reference, ~{k} neighbours, {len(caps[k])} points")
-        refs[k] = bench_reference(pts, radii[k], caps[k])
+    refs = {k: guard.block(f"NumPy reference ~{k}",
+                           lambda k=k: bench_reference(pts, radii[k], caps[k])) for k in ks}
 
-    devs = [bench_device(info, clouds, radii, refs, caps, args.repeats) for info in infos]
+    devs = [bench_device(info, clouds, radii, refs, caps, args.repeats, guard) for info in infos]
 
     o3d_res = {}
     if o3d is not None:
         for k in ks:
-            log(f"Open3D, ~{k} neighbours")
-            o3d_res[k] = bench_open3d(o3d, clouds, radii[k], args.repeats)
-    log("orientation")
-    orientation = bench_orientation(o3d, args.orient_points, infos[0].index)
-    threads["end"] = thread_check()
+            label = f"Open3D ~{k}"
+            o3d_res[k] = guard.block(label, lambda k=k: bench_open3d(o3d, clouds, radii[k],
+                                                                    args.repeats))
+            o3d_res[k]["threads"] = guard.gains(label)
+    orientation = guard.block("orientation", lambda: bench_orientation(
+        o3d, args.orient_points, infos[0].index))
 
-    report(args, env, threads, ks, refs, o3d_res, orientation, devs)
+    report(args, env, guard, ks, refs, o3d_res, orientation, devs)
 
 
-def report(args, env, threads, ks, refs, o3d_res, orientation, devs):
+def report(args, env, guard, ks, refs, o3d_res, orientation, devs):
     """Print the tables and write JSON (one file per device kind) and bench.md."""
     RESULTS.mkdir(parents=True, exist_ok=True)
+    threads = guard.checks
     text = [summary_text(env, args, threads), orientation_text(orientation)]
+    if guard.busy():
+        text.append(f"WARNING: cores were busy around: {', '.join(guard.busy())}; their figures "
+                    "are pessimistic and ratios involving them are unreliable: rerun on a quiet "
+                    "machine")
     md = ["# clcurv benchmark", "", "```", *text, "```"]
     kinds_seen = {}
     for dev in devs:
@@ -611,7 +700,8 @@ def report(args, env, threads, ks, refs, o3d_res, orientation, devs):
         suffix = kind if kinds_seen[kind] == 1 else f"{kind}{kinds_seen[kind]}"
         write_json(RESULTS / f"bench-{suffix}.json", {
             "args": vars(args), "env": env, "threads": threads, "device": dev,
-            "reference": {k: {x: v for x, v in refs[k].items() if x != "result"} for k in ks},
+            "reference": {k: {x: v for x, v in refs[k].items() if not x.startswith("result")}
+                          for k in ks},
             "open3d": o3d_res, "orientation": orientation, "ratios": rat,
             "targets": [dict(zip(("name", "value", "threshold", "result"), t)) for t in tgt]})
     print("\n".join(text))

@@ -1,5 +1,16 @@
 /* eig3.h -- closed-form eigen decomposition of a symmetric 3x3 matrix (float or double).
  *
+ * Two entry points, the same algorithm and the same operations:
+ *   eig3_sym    one matrix (REAL entries, REAL3 results);
+ *   eig3_sym_v  VW matrices at once, one per lane of REALV (see common.h), results as
+ *               eig3_v3_v structs of three REALV. It has no branches at all (every special
+ *               case is a select), so it runs at the full SIMD width of a CPU: a scalar
+ *               eig3_sym is a long chain of dependent divisions, square roots and acos/cos
+ *               calls, about 300 ns per call on one core; eight matrices at once cost little
+ *               more than one.
+ * The algorithm body below is written once, for a generic type ET (REAL or REALV), and
+ * instantiated twice by including this file again (EIG3_GENERIC_PASS).
+ *
  * Method (no iterations, no data-dependent loops):
  *   1. Scale A by a power of two (exact) so that its max-abs entry lies in [1, 2).
  *   2. Shift by q = trace/3 and scale again by a power of two:  C = (A/2^e1 - qI) / 2^e2,
@@ -26,6 +37,7 @@
  * Denormal inputs are handled if the device does not flush them to zero.
  * Ideas from D. Eberly, "A Robust Eigensolver for 3x3 Symmetric Matrices" (Geometric Tools).
  */
+#ifndef EIG3_GENERIC_PASS
 #ifndef CLCURV_EIG3_H
 #define CLCURV_EIG3_H
 
@@ -33,157 +45,53 @@
 
 #if REAL_IS_DOUBLE
 #define EIG3_C(x) x          /* REAL literal */
-#else
-#define EIG3_C(x) x##f
-#endif
-
-/* Symmetric 3x3 matrix stored by its upper triangle. */
-typedef struct {
-    REAL a00, a01, a02, a11, a12, a22;
-} eig3_mat;
-
-/* Largest absolute entry. */
-inline REAL eig3_max_abs(eig3_mat m)
-{
-    REAL d = fmax(fmax(fabs(m.a00), fabs(m.a11)), fabs(m.a22));
-    REAL o = fmax(fmax(fabs(m.a01), fabs(m.a02)), fabs(m.a12));
-    return fmax(d, o);
-}
-
-/* m * s for every entry. */
-inline eig3_mat eig3_scale(eig3_mat m, REAL s)
-{
-    eig3_mat r = { m.a00 * s, m.a01 * s, m.a02 * s, m.a11 * s, m.a12 * s, m.a22 * s };
-    return r;
-}
-
-/* 2^e as two exact power-of-two factors (each within the exponent range even when 2^e is
-   not), so scaling by them is exact and costs multiplications, not ldexp calls. */
-#if REAL_IS_DOUBLE
 #define EIG3_MANT 52
 #define EIG3_BIAS 1023
-#define EIG3_AS_REAL(b) as_double(b)
-#define EIG3_AS_BITS(x) as_long(x)
-typedef long eig3_bits;
+#define EIG3_DENORM_SCALE 9007199254740992.0   /* 2^(MANT+1): makes any denormal normal */
+#define EIG3_BIG 0x1p100     /* |theta| clamp of the Jacobi rotation: BIG^2 is finite, 1/BIG << eps */
 #else
+#define EIG3_C(x) x##f
 #define EIG3_MANT 23
 #define EIG3_BIAS 127
-#define EIG3_AS_REAL(b) as_float(b)
-#define EIG3_AS_BITS(x) as_int(x)
-typedef int eig3_bits;
+#define EIG3_DENORM_SCALE 16777216.0f
+#define EIG3_BIG 0x1p40f
 #endif
 
-/* 2^h for |h| well inside the normal exponent range, from its bits (no library call). */
-inline REAL eig3_exp2i(int h)
-{
-    return EIG3_AS_REAL(((eig3_bits)(h + EIG3_BIAS)) << EIG3_MANT);
-}
+/* ---- scalar instantiation: eig3_sym_g on REAL ---- */
+#define EIG3_GENERIC_PASS
+#define ET REAL
+#define EI IREAL                                  /* integer of the width of REAL */
+#define EIG3_SEL(a, b, c) ((c) ? (ET)(b) : (ET)(a))   /* c ? b : a */
+#define EIG3_SELI(a, b, c) ((c) ? (EI)(b) : (EI)(a))
+#define EIG3_AS_I(x) CAT(as_, IREAL)(x)
+#define EIG3_AS_R(b) CAT(as_, REAL)(b)
+#define EIG3_FN(name) name
+#include "eig3.h"
+#undef ET
+#undef EI
+#undef EIG3_SEL
+#undef EIG3_SELI
+#undef EIG3_AS_I
+#undef EIG3_AS_R
+#undef EIG3_FN
 
-/* floor(log2(x)) of a positive finite x: read from the bits, ilogb only for denormals. */
-inline int eig3_ilogb(REAL x)
-{
-    const int biased = (int)((EIG3_AS_BITS(x) >> EIG3_MANT) & (2 * EIG3_BIAS + 1));
-    return biased != 0 ? biased - EIG3_BIAS : ilogb(x);
-}
-
-inline void eig3_pow2(int e, REAL *f1, REAL *f2)
-{
-    const int h = e / 2;
-    *f1 = eig3_exp2i(h);
-    *f2 = eig3_exp2i(e - h);
-}
-
-/* m * 2^e for every entry (exact unless the result is denormal). */
-inline eig3_mat eig3_ldexp(eig3_mat m, int e)
-{
-    REAL f1, f2;
-    eig3_pow2(e, &f1, &f2);
-    return eig3_scale(eig3_scale(m, f1), f2);
-}
-
-/* m - s I */
-inline eig3_mat eig3_shift(eig3_mat m, REAL s)
-{
-    m.a00 -= s;
-    m.a11 -= s;
-    m.a22 -= s;
-    return m;
-}
-
-/* Matrix-vector product m v. */
-inline REAL3 eig3_mul(eig3_mat m, REAL3 v)
-{
-    return (REAL3)(m.a00 * v.x + m.a01 * v.y + m.a02 * v.z,
-                   m.a01 * v.x + m.a11 * v.y + m.a12 * v.z,
-                   m.a02 * v.x + m.a12 * v.y + m.a22 * v.z);
-}
-
-/* Rayleigh quotient v^T m v of a unit vector v. */
-inline REAL eig3_rayleigh(eig3_mat m, REAL3 v)
-{
-    return dot(v, eig3_mul(m, v));
-}
-
-/* Isolated eigenvalue of a matrix d with trace 0 and trace(d^2) = 6: the largest one
-   2 cos(acos(r)/3) if r = det(d)/2 >= 0, else the smallest, -2 cos(acos(-r)/3). The
-   angle acos(|r|)/3 lies in [0, pi/6], where cos is flat: the value is accurate even
-   when the other two eigenvalues are (nearly) equal, i.e. |r| close to 1. */
-inline REAL eig3_isolated_eigenvalue(eig3_mat d)
-{
-    REAL det = d.a00 * (d.a11 * d.a22 - d.a12 * d.a12)
-             - d.a01 * (d.a01 * d.a22 - d.a12 * d.a02)
-             + d.a02 * (d.a01 * d.a12 - d.a11 * d.a02);
-    REAL r = clamp(EIG3_C(0.5) * det, EIG3_C(-1.0), EIG3_C(1.0));
-    REAL b = EIG3_C(2.0) * cos(acos(fabs(r)) / EIG3_C(3.0));
-    return r >= EIG3_C(0.0) ? b : -b;
-}
-
-/* Unit vector spanning the kernel of the rank-2 matrix m = d - beta I: the longest of the
-   cross products of its rows (for a simple eigenvalue beta they are all parallel to the
-   eigenvector; the longest has norm >= sqrt(3) here). */
-inline REAL3 eig3_null_vector(eig3_mat d, REAL beta)
-{
-    eig3_mat m = eig3_shift(d, beta);
-    REAL3 r0 = (REAL3)(m.a00, m.a01, m.a02);
-    REAL3 r1 = (REAL3)(m.a01, m.a11, m.a12);
-    REAL3 r2 = (REAL3)(m.a02, m.a12, m.a22);
-    REAL3 c01 = cross(r0, r1), c02 = cross(r0, r2), c12 = cross(r1, r2);
-    REAL n01 = dot(c01, c01), n02 = dot(c02, c02), n12 = dot(c12, c12);
-    REAL3 c = c01;
-    REAL n = n01;
-    if (n02 > n) { c = c02; n = n02; }
-    if (n12 > n) { c = c12; n = n12; }
-    if (!(n > EIG3_C(0.0)))           /* unreachable for finite input; keeps NaN out */
-        return (REAL3)(EIG3_C(0.0), EIG3_C(0.0), EIG3_C(1.0));
-    return c / sqrt(n);
-}
-
-/* Unit vectors u, v with (w, u, v) a right-handed orthonormal basis, for a unit vector w.
-   u is built from the two largest components of w, so its norm before scaling is >= 1/sqrt(2). */
-inline void eig3_complement(REAL3 w, REAL3 *u, REAL3 *v)
-{
-    if (fabs(w.x) > fabs(w.y))
-        *u = (REAL3)(-w.z, EIG3_C(0.0), w.x) / sqrt(w.x * w.x + w.z * w.z);
-    else
-        *u = (REAL3)(EIG3_C(0.0), w.z, -w.y) / sqrt(w.y * w.y + w.z * w.z);
-    *v = cross(w, *u);
-}
-
-/* Jacobi rotation (c, s) diagonalising the symmetric 2x2 [[m00, m01], [m01, m11]]: the
-   eigenvectors are (c, -s) and (s, c). t = tan of the smaller of the two possible angles,
-   computed without overflow (hypot) and without dividing by m01 == 0. */
-inline void eig3_jacobi2(REAL m00, REAL m01, REAL m11, REAL *c, REAL *s)
-{
-    REAL t = EIG3_C(0.0);
-    if (m01 != EIG3_C(0.0)) {
-        REAL theta = (m11 - m00) / (EIG3_C(2.0) * m01);     /* may be +-inf: then t = 0 */
-        t = EIG3_C(1.0) / (fabs(theta) + hypot(theta, EIG3_C(1.0)));
-        if (theta < EIG3_C(0.0))
-            t = -t;
-    }
-    *c = EIG3_C(1.0) / sqrt(t * t + EIG3_C(1.0));
-    *s = t * *c;
-}
+/* ---- vector instantiation: eig3_sym_g_v on REALV (VW matrices, one per lane) ---- */
+#define ET REALV
+#define EI IREALV
+#define EIG3_SEL(a, b, c) select((ET)(a), (ET)(b), (c))  /* lane-wise c ? b : a (c: a comparison) */
+#define EIG3_SELI(a, b, c) select((EI)(a), (EI)(b), (c))
+#define EIG3_AS_I(x) CAT(as_, IREALV)(x)
+#define EIG3_AS_R(b) CAT(as_, REALV)(b)
+#define EIG3_FN(name) name##_v
+#include "eig3.h"
+#undef ET
+#undef EI
+#undef EIG3_SEL
+#undef EIG3_SELI
+#undef EIG3_AS_I
+#undef EIG3_AS_R
+#undef EIG3_FN
+#undef EIG3_GENERIC_PASS
 
 /* Eigen decomposition of the symmetric matrix [[a00,a01,a02],[a01,a11,a12],[a02,a12,a22]].
    Writes eigenvalues ascending into *w (w->x <= w->y <= w->z) and unit eigenvectors v0, v1, v2
@@ -193,74 +101,276 @@ inline void eig3_jacobi2(REAL m00, REAL m01, REAL m11, REAL *c, REAL *s)
 inline void eig3_sym(REAL a00, REAL a01, REAL a02, REAL a11, REAL a12, REAL a22,
                      REAL3 *w, REAL3 *v0, REAL3 *v1, REAL3 *v2)
 {
-    const REAL zero = EIG3_C(0.0), one = EIG3_C(1.0);
-    eig3_mat a = { a00, a01, a02, a11, a12, a22 };
+    REAL w0, w1, w2;
+    eig3_v3 u0, u1, u2;
+    eig3_sym_g(a00, a01, a02, a11, a12, a22, &w0, &w1, &w2, &u0, &u1, &u2);
+    *w = (REAL3)(w0, w1, w2);
+    *v0 = (REAL3)(u0.x, u0.y, u0.z);
+    *v1 = (REAL3)(u1.x, u1.y, u1.z);
+    *v2 = (REAL3)(u2.x, u2.y, u2.z);
+}
 
-    /* Default answer for a multiple of the identity. */
-    *v0 = (REAL3)(zero, zero, one);
-    *v1 = (REAL3)(one, zero, zero);
-    *v2 = (REAL3)(zero, one, zero);
+/* The same for VW matrices at once (lane k of every argument is matrix k): eigenvalues
+   *w0 <= *w1 <= *w2 and eigenvectors v0, v1, v2 as structs {x, y, z} of REALV. */
+inline void eig3_sym_v(REALV a00, REALV a01, REALV a02, REALV a11, REALV a12, REALV a22,
+                       REALV *w0, REALV *w1, REALV *w2, eig3_v3_v *v0, eig3_v3_v *v1, eig3_v3_v *v2)
+{
+    eig3_sym_g_v(a00, a01, a02, a11, a12, a22, w0, w1, w2, v0, v1, v2);
+}
 
-    /* 1. exact scaling: max-abs entry in [1, 2) */
-    REAL amax = eig3_max_abs(a);
-    if (!(amax > zero)) {
-        *w = (REAL3)(zero, zero, zero);
-        return;
-    }
-    int e1 = eig3_ilogb(amax);
-    a = eig3_ldexp(a, -e1);
+#endif /* CLCURV_EIG3_H */
 
-    /* 2. shift to trace 0, rescale exactly, normalise to trace(d^2) = 6 */
-    REAL q = (a.a00 + a.a11 + a.a22) / EIG3_C(3.0);
-    eig3_mat c = eig3_shift(a, q);
-    REAL cmax = eig3_max_abs(c);
-    if (!(cmax > zero)) {
-        REAL f1, f2;
-        eig3_pow2(e1, &f1, &f2);
-        *w = (REAL3)(q * f1 * f2);
-        return;
-    }
-    int e2 = eig3_ilogb(cmax);
-    c = eig3_ldexp(c, -e2);
-    REAL p = sqrt((c.a00 * c.a00 + c.a11 * c.a11 + c.a22 * c.a22
-                   + EIG3_C(2.0) * (c.a01 * c.a01 + c.a02 * c.a02 + c.a12 * c.a12))
-                  / EIG3_C(6.0));                      /* >= 1/sqrt(6) */
-    eig3_mat d = eig3_scale(c, one / p);
+#else /* EIG3_GENERIC_PASS: the algorithm on ET (REAL or REALV), mask/exponent type EI */
+
+#define V3 EIG3_FN(eig3_v3)
+#define M3 EIG3_FN(eig3_m3)
+
+typedef struct { ET x, y, z; } V3;
+/* Symmetric 3x3 matrix stored by its upper triangle. */
+typedef struct { ET a00, a01, a02, a11, a12, a22; } M3;
+
+inline V3 EIG3_FN(eig3_vec)(ET x, ET y, ET z)
+{
+    V3 r = { x, y, z };
+    return r;
+}
+
+/* c ? b : a, lane-wise */
+inline V3 EIG3_FN(eig3_sel3)(V3 a, V3 b, EI c)
+{
+    return EIG3_FN(eig3_vec)(EIG3_SEL(a.x, b.x, c), EIG3_SEL(a.y, b.y, c), EIG3_SEL(a.z, b.z, c));
+}
+
+inline ET EIG3_FN(eig3_dot)(V3 a, V3 b)
+{
+    return a.x * b.x + a.y * b.y + a.z * b.z;
+}
+
+inline V3 EIG3_FN(eig3_cross)(V3 a, V3 b)
+{
+    return EIG3_FN(eig3_vec)(a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x);
+}
+
+inline V3 EIG3_FN(eig3_lin)(ET s, V3 a, ET t, V3 b)        /* s a + t b */
+{
+    return EIG3_FN(eig3_vec)(s * a.x + t * b.x, s * a.y + t * b.y, s * a.z + t * b.z);
+}
+
+/* Largest absolute entry. */
+inline ET EIG3_FN(eig3_max_abs)(M3 m)
+{
+    ET d = fmax(fmax(fabs(m.a00), fabs(m.a11)), fabs(m.a22));
+    ET o = fmax(fmax(fabs(m.a01), fabs(m.a02)), fabs(m.a12));
+    return fmax(d, o);
+}
+
+/* m * s for every entry. */
+inline M3 EIG3_FN(eig3_scale)(M3 m, ET s)
+{
+    M3 r = { m.a00 * s, m.a01 * s, m.a02 * s, m.a11 * s, m.a12 * s, m.a22 * s };
+    return r;
+}
+
+/* m - s I */
+inline M3 EIG3_FN(eig3_shift)(M3 m, ET s)
+{
+    m.a00 -= s;
+    m.a11 -= s;
+    m.a22 -= s;
+    return m;
+}
+
+/* 2^h for |h| well inside the normal exponent range, from its bits (no library call). */
+inline ET EIG3_FN(eig3_exp2i)(EI h)
+{
+    return EIG3_AS_R((h + (EI)EIG3_BIAS) << (EI)EIG3_MANT);
+}
+
+/* floor(log2(x)) of a positive finite x, read from the bits; a denormal x is first scaled
+   exactly by 2^(MANT+1), which makes it normal. */
+inline EI EIG3_FN(eig3_ilogb)(ET x)
+{
+    const EI emask = (EI)(2 * EIG3_BIAS + 1);
+    const EI den = ((EIG3_AS_I(x) >> (EI)EIG3_MANT) & emask) == (EI)0;
+    const ET xs = EIG3_SEL(x, x * EIG3_DENORM_SCALE, den);
+    const EI biased = (EIG3_AS_I(xs) >> (EI)EIG3_MANT) & emask;
+    return biased - (EI)EIG3_BIAS - EIG3_SELI(0, EIG3_MANT + 1, den);
+}
+
+/* 2^e as two exact power-of-two factors (each within the exponent range even when 2^e is
+   not), so scaling by them is exact and costs multiplications, not ldexp calls. */
+inline void EIG3_FN(eig3_pow2)(EI e, ET *f1, ET *f2)
+{
+    const EI h = e >> (EI)1;
+    *f1 = EIG3_FN(eig3_exp2i)(h);
+    *f2 = EIG3_FN(eig3_exp2i)(e - h);
+}
+
+/* m * 2^e for every entry (exact unless the result is denormal). */
+inline M3 EIG3_FN(eig3_ldexp)(M3 m, EI e)
+{
+    ET f1, f2;
+    EIG3_FN(eig3_pow2)(e, &f1, &f2);
+    return EIG3_FN(eig3_scale)(EIG3_FN(eig3_scale)(m, f1), f2);
+}
+
+/* Matrix-vector product m v. */
+inline V3 EIG3_FN(eig3_mul)(M3 m, V3 v)
+{
+    return EIG3_FN(eig3_vec)(m.a00 * v.x + m.a01 * v.y + m.a02 * v.z,
+                             m.a01 * v.x + m.a11 * v.y + m.a12 * v.z,
+                             m.a02 * v.x + m.a12 * v.y + m.a22 * v.z);
+}
+
+/* Rayleigh quotient v^T m v of a unit vector v. */
+inline ET EIG3_FN(eig3_rayleigh)(M3 m, V3 v)
+{
+    return EIG3_FN(eig3_dot)(v, EIG3_FN(eig3_mul)(m, v));
+}
+
+/* Isolated eigenvalue of a matrix d with trace 0 and trace(d^2) = 6: the largest one
+   2 cos(acos(r)/3) if r = det(d)/2 >= 0, else the smallest, -2 cos(acos(-r)/3). The
+   angle acos(|r|)/3 lies in [0, pi/6], where cos is flat: the value is accurate even
+   when the other two eigenvalues are (nearly) equal, i.e. |r| close to 1. */
+inline ET EIG3_FN(eig3_isolated_eigenvalue)(M3 d)
+{
+    ET det = d.a00 * (d.a11 * d.a22 - d.a12 * d.a12)
+           - d.a01 * (d.a01 * d.a22 - d.a12 * d.a02)
+           + d.a02 * (d.a01 * d.a12 - d.a11 * d.a02);
+    ET r = clamp(EIG3_C(0.5) * det, EIG3_C(-1.0), EIG3_C(1.0));
+    ET b = EIG3_C(2.0) * cos(acos(fabs(r)) / EIG3_C(3.0));
+    return EIG3_SEL(-b, b, r >= EIG3_C(0.0));
+}
+
+/* Unit vector spanning the kernel of the rank-2 matrix m = d - beta I: the longest of the
+   cross products of its rows (for a simple eigenvalue beta they are all parallel to the
+   eigenvector; the longest has norm >= sqrt(3) here). */
+inline V3 EIG3_FN(eig3_null_vector)(M3 d, ET beta)
+{
+    M3 m = EIG3_FN(eig3_shift)(d, beta);
+    V3 r0 = EIG3_FN(eig3_vec)(m.a00, m.a01, m.a02);
+    V3 r1 = EIG3_FN(eig3_vec)(m.a01, m.a11, m.a12);
+    V3 r2 = EIG3_FN(eig3_vec)(m.a02, m.a12, m.a22);
+    V3 c01 = EIG3_FN(eig3_cross)(r0, r1), c02 = EIG3_FN(eig3_cross)(r0, r2);
+    V3 c12 = EIG3_FN(eig3_cross)(r1, r2);
+    ET n01 = EIG3_FN(eig3_dot)(c01, c01), n02 = EIG3_FN(eig3_dot)(c02, c02);
+    ET n12 = EIG3_FN(eig3_dot)(c12, c12);
+    EI t = n02 > n01;
+    V3 c = EIG3_FN(eig3_sel3)(c01, c02, t);
+    ET n = EIG3_SEL(n01, n02, t);
+    t = n12 > n;
+    c = EIG3_FN(eig3_sel3)(c, c12, t);
+    n = EIG3_SEL(n, n12, t);
+    const EI ok = n > EIG3_C(0.0);       /* always, for finite input; keeps NaN out */
+    const ET s = sqrt(EIG3_SEL(EIG3_C(1.0), n, ok));
+    return EIG3_FN(eig3_vec)(EIG3_SEL(EIG3_C(0.0), c.x / s, ok), EIG3_SEL(EIG3_C(0.0), c.y / s, ok),
+                             EIG3_SEL(EIG3_C(1.0), c.z / s, ok));
+}
+
+/* Unit vectors u, v with (w, u, v) a right-handed orthonormal basis, for a unit vector w.
+   u is built from the two largest components of w, so its norm before scaling is >= 1/sqrt(2). */
+inline void EIG3_FN(eig3_complement)(V3 w, V3 *u, V3 *v)
+{
+    const EI bx = fabs(w.x) > fabs(w.y);
+    /* bx: u = (-w.z, 0, w.x) / |(w.x, w.z)|, else u = (0, w.z, -w.y) / |(w.y, w.z)| */
+    const ET s = EIG3_SEL(w.y, w.x, bx);
+    const ET nrm = sqrt(s * s + w.z * w.z);
+    *u = EIG3_FN(eig3_vec)(EIG3_SEL(EIG3_C(0.0), -w.z, bx) / nrm,
+                           EIG3_SEL(w.z, EIG3_C(0.0), bx) / nrm,
+                           EIG3_SEL(-w.y, w.x, bx) / nrm);
+    *v = EIG3_FN(eig3_cross)(w, *u);
+}
+
+/* Jacobi rotation (c, s) diagonalising the symmetric 2x2 [[m00, m01], [m01, m11]]: the
+   eigenvectors are (c, -s) and (s, c). t = tan of the smaller of the two possible angles,
+   t = sign(theta) / (|theta| + sqrt(theta^2 + 1)), theta = (m11 - m00) / (2 m01), and t = 0
+   when m01 == 0. |theta| is clamped to EIG3_BIG (theta^2 stays finite; beyond it t < 1/BIG
+   is far below eps, where the rotation is the identity to working precision). */
+inline void EIG3_FN(eig3_jacobi2)(ET m00, ET m01, ET m11, ET *c, ET *s)
+{
+    const EI nz = m01 != EIG3_C(0.0);
+    const ET theta = (m11 - m00) / (EIG3_C(2.0) * EIG3_SEL(EIG3_C(1.0), m01, nz));
+    const ET at = fmin(fabs(theta), EIG3_BIG);
+    ET t = EIG3_C(1.0) / (at + sqrt(at * at + EIG3_C(1.0)));
+    t = EIG3_SEL(t, -t, theta < EIG3_C(0.0));
+    t = EIG3_SEL(EIG3_C(0.0), t, nz);
+    *c = EIG3_C(1.0) / sqrt(t * t + EIG3_C(1.0));
+    *s = t * *c;
+}
+
+inline void EIG3_FN(eig3_sym_g)(ET a00, ET a01, ET a02, ET a11, ET a12, ET a22,
+                                ET *w0, ET *w1, ET *w2, V3 *v0, V3 *v1, V3 *v2)
+{
+    const ET zero = EIG3_C(0.0), one = EIG3_C(1.0);
+    M3 a = { a00, a01, a02, a11, a12, a22 };
+
+    /* 1. exact scaling: max-abs entry in [1, 2). The zero matrix (or NaN input) is answered
+       at the end; meanwhile its lanes run on harmless values. */
+    const ET amax = EIG3_FN(eig3_max_abs)(a);
+    const EI is_zero = !(amax > zero);
+    const EI e1 = EIG3_FN(eig3_ilogb)(EIG3_SEL(amax, one, is_zero));
+    a = EIG3_FN(eig3_ldexp)(a, -e1);
+
+    /* 2. shift to trace 0, rescale exactly, normalise to trace(d^2) = 6. A multiple of the
+       identity (c = 0) is answered at the end. */
+    const ET q = (a.a00 + a.a11 + a.a22) / EIG3_C(3.0);
+    M3 c = EIG3_FN(eig3_shift)(a, q);
+    const ET cmax = EIG3_FN(eig3_max_abs)(c);
+    const EI is_ident = !(cmax > zero);
+    c = EIG3_FN(eig3_ldexp)(c, -EIG3_FN(eig3_ilogb)(EIG3_SEL(cmax, one, is_ident)));
+    ET p = sqrt((c.a00 * c.a00 + c.a11 * c.a11 + c.a22 * c.a22
+                 + EIG3_C(2.0) * (c.a01 * c.a01 + c.a02 * c.a02 + c.a12 * c.a12))
+                / EIG3_C(6.0));                        /* >= 1/sqrt(6) unless c = 0 */
+    p = EIG3_SEL(p, one, is_ident);
+    const M3 d = EIG3_FN(eig3_scale)(c, one / p);
 
     /* 3. most isolated eigenvalue and its eigenvector */
-    REAL beta = eig3_isolated_eigenvalue(d);
-    REAL3 vi = eig3_null_vector(d, beta);
+    const ET beta = EIG3_FN(eig3_isolated_eigenvalue)(d);
+    const V3 vi = EIG3_FN(eig3_null_vector)(d, beta);
 
     /* 4. 2x2 problem in the orthogonal complement (vi, u, v) */
-    REAL3 u, v;
-    eig3_complement(vi, &u, &v);
-    REAL3 du = eig3_mul(d, u), dv = eig3_mul(d, v);
-    REAL cs, sn;
-    eig3_jacobi2(dot(u, du), dot(u, dv), dot(v, dv), &cs, &sn);
-    REAL3 ea = cs * u - sn * v;               /* (vi, ea, eb) stays right-handed */
-    REAL3 eb = sn * u + cs * v;
+    V3 u, v;
+    EIG3_FN(eig3_complement)(vi, &u, &v);
+    const V3 du = EIG3_FN(eig3_mul)(d, u), dv = EIG3_FN(eig3_mul)(d, v);
+    ET cs, sn;
+    EIG3_FN(eig3_jacobi2)(EIG3_FN(eig3_dot)(u, du), EIG3_FN(eig3_dot)(u, dv),
+                          EIG3_FN(eig3_dot)(v, dv), &cs, &sn);
+    V3 ea = EIG3_FN(eig3_lin)(cs, u, -sn, v);          /* (vi, ea, eb) stays right-handed */
+    V3 eb = EIG3_FN(eig3_lin)(sn, u, cs, v);
 
-    /* 5. order the pair by its Rayleigh quotients in d (the isolated one is >= sqrt(3) away) */
-    if (eig3_rayleigh(d, eb) < eig3_rayleigh(d, ea)) {
-        REAL3 t = ea;                         /* (ea, eb) <- (eb, -ea) keeps handedness */
-        ea = eb;
-        eb = -t;
-    }
-    if (beta >= zero) {                       /* isolated = largest */
-        *v0 = ea; *v1 = eb; *v2 = vi;
-    } else {                                  /* isolated = smallest */
-        *v0 = vi; *v1 = ea; *v2 = eb;
-    }
+    /* 5. order the pair by its Rayleigh quotients in d (the isolated one is >= sqrt(3) away);
+       (ea, eb) <- (eb, -ea) keeps handedness */
+    const EI swap = EIG3_FN(eig3_rayleigh)(d, eb) < EIG3_FN(eig3_rayleigh)(d, ea);
+    const V3 nea = EIG3_FN(eig3_vec)(-ea.x, -ea.y, -ea.z);
+    const V3 fa = EIG3_FN(eig3_sel3)(ea, eb, swap);
+    const V3 fb = EIG3_FN(eig3_sel3)(eb, nea, swap);
+    /* isolated = largest if beta >= 0, else smallest */
+    const EI top = beta >= zero;
+    V3 x0 = EIG3_FN(eig3_sel3)(vi, fa, top);
+    V3 x1 = EIG3_FN(eig3_sel3)(fa, fb, top);
+    V3 x2 = EIG3_FN(eig3_sel3)(fb, vi, top);
 
     /* 6. eigenvalues = Rayleigh quotients in the unshifted matrix (exactly scaled): as accurate
        as the entries allow, exact for axis-aligned input (e.g. a plane z = 0 gives 0, not
        +-eps). Rounding may break ties the wrong way by an ulp: restore the order. */
-    REAL l0 = eig3_rayleigh(a, *v0);
-    REAL l1 = fmax(eig3_rayleigh(a, *v1), l0);
-    REAL l2 = fmax(eig3_rayleigh(a, *v2), l1);
-    REAL f1, f2;
-    eig3_pow2(e1, &f1, &f2);
-    *w = (REAL3)(l0, l1, l2) * f1 * f2;
+    const ET l0 = EIG3_FN(eig3_rayleigh)(a, x0);
+    const ET l1 = fmax(EIG3_FN(eig3_rayleigh)(a, x1), l0);
+    const ET l2 = fmax(EIG3_FN(eig3_rayleigh)(a, x2), l1);
+    ET f1, f2;
+    EIG3_FN(eig3_pow2)(e1, &f1, &f2);
+
+    /* Multiple of the identity (including the zero matrix): w = (a, a, a), basis e_z, e_x, e_y. */
+    const EI dflt = is_ident | is_zero;
+    const ET wid = EIG3_SEL(q * f1 * f2, zero, is_zero);
+    *w0 = EIG3_SEL(l0 * f1 * f2, wid, dflt);
+    *w1 = EIG3_SEL(l1 * f1 * f2, wid, dflt);
+    *w2 = EIG3_SEL(l2 * f1 * f2, wid, dflt);
+    *v0 = EIG3_FN(eig3_sel3)(x0, EIG3_FN(eig3_vec)(zero, zero, one), dflt);
+    *v1 = EIG3_FN(eig3_sel3)(x1, EIG3_FN(eig3_vec)(one, zero, zero), dflt);
+    *v2 = EIG3_FN(eig3_sel3)(x2, EIG3_FN(eig3_vec)(zero, one, zero), dflt);
 }
 
-#endif
+#undef V3
+#undef M3
+
+#endif /* EIG3_GENERIC_PASS */

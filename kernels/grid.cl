@@ -1,14 +1,53 @@
-/* grid.cl -- per occupied cell, the 9 index ranges of the sorted points in its 27-cell block. */
+/* grid.cl -- per occupied cell, the 9 index ranges of the sorted points in its 27-cell block.
+ *
+ * Layout: ranges[9 c + j], j = 0..8: the non-empty ranges first, in the block's row order
+ * (increasing keys, so increasing point indices), then (0, 0) for the empty ones. The
+ * neighbour walk (neighbors.h) relies on this: it stops at the first empty range.
+ *
+ * Searches in the sorted cell keys: rows of the block have increasing keys, and the rows of
+ * the cell's own z-slab are close to the cell itself, so most rows are found by galloping
+ * from a nearby index (a few probes) instead of a full binary search over all cells (17
+ * probes for 10^5 cells, most of them mispredicted branches). Even the rows of the z-1 and
+ * z+1 slabs, about one slab of cells away, are found faster by galloping from the cell than
+ * by a full binary search (measured). */
 #include "common.h"
 
-inline uint lower_bound(__global const long *keys, uint n, long k)
+/* First i in [lo, hi) with keys[i] >= k, or hi (keys sorted). Branch-free body. */
+inline uint search_range(__global const long *keys, uint lo, uint hi, long k)
 {
-    uint lo = 0, hi = n;
-    while (lo < hi) {
-        const uint mid = (lo + hi) >> 1;
-        if (keys[mid] < k) lo = mid + 1; else hi = mid;
+    uint len = hi - lo;
+    while (len > 0) {
+        const uint step = len >> 1;
+        const uint mid = lo + step;
+        const int lt = keys[mid] < k;
+        lo = lt ? mid + 1 : lo;
+        len = lt ? len - step - 1 : step;
     }
     return lo;
+}
+
+/* First i in [0, n) with keys[i] >= k (or n), searched outwards from the guess h <= n. */
+inline uint gallop(__global const long *keys, uint n, long k, uint h)
+{
+    uint step = 1;
+    if (h < n && keys[h] < k) {               /* answer in (h, n] */
+        uint lo = h + 1;
+        for (;;) {
+            const uint probe = lo + step - 1;
+            if (probe >= n) return search_range(keys, lo, n, k);
+            if (keys[probe] >= k) return search_range(keys, lo, probe, k);
+            lo = probe + 1;
+            step <<= 1;
+        }
+    }
+    uint hi = h;                              /* answer in [0, h] */
+    for (;;) {
+        if (hi < step) return search_range(keys, 0, hi, k);
+        const uint probe = hi - step;
+        if (keys[probe] < k) return search_range(keys, probe + 1, hi, k);
+        hi = probe;
+        step <<= 1;
+    }
 }
 
 __kernel void cell_ranges(__global const long *keys, const uint ncells,
@@ -19,20 +58,27 @@ __kernel void cell_ranges(__global const long *keys, const uint ncells,
     const uint c = get_global_id(0);
     if (c >= ncells) return;
     const long k = keys[c];
-    const long ix = k % nx, iy = (k / nx) % ny, iz = k / (nx * ny);
+    const long ixy = k % (nx * ny), iz = k / (nx * ny);
+    const long ix = ixy % nx, iy = ixy / nx;
     const long x0 = max(ix - 1, 0L), x1 = min(ix + 1, nx - 1);
-    int j = 0;
+    __global uint2 *out = ranges + (size_t)c * 9;
+    int m = 0;                                /* non-empty rows written so far */
     for (long dz = -1; dz <= 1; ++dz) {
-        for (long dy = -1; dy <= 1; ++dy, ++j) {
-            const long y = iy + dy, z = iz + dz;
-            uint2 r = (uint2)(0, 0);
+        const long z = iz + dz;
+        uint h = c;                           /* search guess: c, then the previous row's end */
+        for (long dy = -1; dy <= 1; ++dy) {
+            const long y = iy + dy;
             if (y >= 0 && y < ny && z >= 0 && z < nz) {
                 const long row = (z * ny + y) * nx;
-                const uint a = lower_bound(keys, ncells, row + x0);
-                const uint b = lower_bound(keys, ncells, row + x1 + 1);
-                r = (uint2)(cell_start[a], cell_start[b]);
+                const uint a = gallop(keys, ncells, row + x0, h);
+                uint b = a;                   /* the row has at most 3 cells from a */
+                while (b < ncells && keys[b] <= row + x1) ++b;
+                if (b > a)
+                    out[m++] = (uint2)(cell_start[a], cell_start[b]);
+                h = b;
             }
-            ranges[(size_t)c * 9 + j] = r;
         }
     }
+    for (; m < 9; ++m)
+        out[m] = (uint2)(0, 0);
 }

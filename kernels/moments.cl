@@ -55,20 +55,12 @@ inline void store3(__global REAL *a, size_t j, REAL3 v)
     a[3 * j] = v.x; a[3 * j + 1] = v.y; a[3 * j + 2] = v.z;
 }
 
-/* Per point: count, PCA normal v0 (unoriented), ascending eigenvalues of the weighted
- * covariance, surface variation l0/(l0+l1+l2), barycenter shift o - p, status. */
-__kernel void moments(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
-                      __global const REAL *W, __global const uint *cell_of,
-                      __global const uint2 *ranges, __global const uint *order,
-                      const uint n, const REAL r2,
-                      __global uint *count, __global uchar *status,
-                      __global REAL *normal, __global REAL *eigval,
-                      __global REAL *variation, __global REAL *shift)
+/* Neighbour sums of the sorted point g: count c, 1 / sum w, mu = o - p and the centred
+   weighted covariance (xx, xy, xz, yy, yz, zz) into lane k of the staging arrays. */
+inline void point_moments(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
+                          __global const REAL *W, __global const uint2 *ranges, uint cell,
+                          REAL3 p, REAL r2, uint *c, REAL *iw_out, REAL3 *mu_out, REAL *cov)
 {
-    const uint g = get_global_id(0);
-    if (g >= n) return;
-    const REAL3 p = (REAL3)(X[g], Y[g], Z[g]);
-    const uint cell = cell_of[g];
     REALV sc = 0, sw = 0, sx = 0, sy = 0, sz = 0;
     REALV sxx = 0, sxy = 0, sxz = 0, syy = 0, syz = 0, szz = 0;
     REALV dx, dy, dz;
@@ -81,40 +73,102 @@ __kernel void moments(__global const REAL *X, __global const REAL *Y, __global c
         sxx += wx * dx; sxy += wx * dy; sxz += wx * dz;
         syy += wy * dy; syz += wy * dz; szz += wz * dz;
     NEIGHBOR_CHUNKS_END
-    const uint c = (uint)hsum(sc);
+    *c = (uint)hsum(sc);
     const REAL iw = (REAL)1 / hsum(sw);
     const REAL3 mu = (REAL3)(hsum(sx), hsum(sy), hsum(sz)) * iw;   /* o - p */
-    const REAL cxx = hsum(sxx) * iw - mu.x * mu.x, cxy = hsum(sxy) * iw - mu.x * mu.y;
-    const REAL cxz = hsum(sxz) * iw - mu.x * mu.z, cyy = hsum(syy) * iw - mu.y * mu.y;
-    const REAL cyz = hsum(syz) * iw - mu.y * mu.z, czz = hsum(szz) * iw - mu.z * mu.z;
-    REAL3 lam, v0, v1, v2;
-    eig3_sym(cxx, cxy, cxz, cyy, cyz, czz, &lam, &v0, &v1, &v2);
-    lam = fmax(lam, (REAL3)0);
-    uchar st = ST_OK;
-    if (c < 3) st = ST_TOO_FEW;
-    else if (!(lam.z > 0) || lam.y <= DEGENERATE_RATIO * lam.z) st = ST_DEGENERATE;
+    *iw_out = iw;
+    *mu_out = mu;
+    cov[0] = hsum(sxx) * iw - mu.x * mu.x; cov[1] = hsum(sxy) * iw - mu.x * mu.y;
+    cov[2] = hsum(sxz) * iw - mu.x * mu.z; cov[3] = hsum(syy) * iw - mu.y * mu.y;
+    cov[4] = hsum(syz) * iw - mu.y * mu.z; cov[5] = hsum(szz) * iw - mu.z * mu.z;
+}
+
+#define VSTOREV CAT(vstore, VW)
+
+/* Per point: count, PCA normal v0 (unoriented), ascending eigenvalues of the weighted
+ * covariance, surface variation l0/(l0+l1+l2), barycenter shift o - p, status.
+ *
+ * One work-item per VW consecutive sorted points (global size >= ceil(n / VW)): the
+ * neighbour sums of the VW points are computed one after the other, then their VW
+ * covariances are decomposed at once by eig3_sym_v (one per vector lane: a scalar
+ * eig3_sym per point cost more than all the neighbour loops together), then the lambda0
+ * refinement and the stores run per point again. */
+__kernel void moments(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
+                      __global const REAL *W, __global const uint *cell_of,
+                      __global const uint2 *ranges, __global const uint *order,
+                      const uint n, const REAL r2,
+                      __global uint *count, __global uchar *status,
+                      __global REAL *normal, __global REAL *eigval,
+                      __global REAL *variation, __global REAL *shift)
+{
+    const uint g0 = get_global_id(0) * VW;
+    if (g0 >= n) return;
+    const uint kn = min((uint)VW, n - g0);       /* points of this work-item */
+
+    /* 1. neighbour sums, point by point, into lane k of the staging arrays */
+    REAL cov[6][VW], iws[VW], mux[VW], muy[VW], muz[VW];
+    uint cs[VW];
+    for (uint k = 0; k < VW; ++k) {
+        if (k < kn) {
+            const uint g = g0 + k;
+            REAL c6[6];
+            REAL3 mu;
+            point_moments(X, Y, Z, W, ranges, cell_of[g], (REAL3)(X[g], Y[g], Z[g]), r2,
+                          &cs[k], &iws[k], &mu, c6);
+            for (int e = 0; e < 6; ++e) cov[e][k] = c6[e];
+            mux[k] = mu.x; muy[k] = mu.y; muz[k] = mu.z;
+        } else {                                  /* unused lane: the identity */
+            for (int e = 0; e < 6; ++e) cov[e][k] = (REAL)(e == 0 || e == 3 || e == 5);
+        }
+    }
+
+    /* 2. VW eigen decompositions at once */
+    REALV w0, w1, w2;
+    eig3_v3_v e0, e1, e2;
+    eig3_sym_v(VLOADV(0, cov[0]), VLOADV(0, cov[1]), VLOADV(0, cov[2]),
+               VLOADV(0, cov[3]), VLOADV(0, cov[4]), VLOADV(0, cov[5]),
+               &w0, &w1, &w2, &e0, &e1, &e2);
+    REAL l0s[VW], l1s[VW], l2s[VW], nx[VW], ny[VW], nz[VW];
+    VSTOREV(fmax(w0, (REALV)0), 0, l0s);
+    VSTOREV(fmax(w1, (REALV)0), 0, l1s);
+    VSTOREV(fmax(w2, (REALV)0), 0, l2s);
+    VSTOREV(e0.x, 0, nx); VSTOREV(e0.y, 0, ny); VSTOREV(e0.z, 0, nz);
+
+    /* 3. per point: status, lambda0 refinement, stores */
+    for (uint k = 0; k < kn; ++k) {
+        const uint g = g0 + k;
+        const uint c = cs[k];
+        REAL3 lam = (REAL3)(l0s[k], l1s[k], l2s[k]);
+        const REAL3 v0 = (REAL3)(nx[k], ny[k], nz[k]);
+        const REAL3 mu = (REAL3)(mux[k], muy[k], muz[k]);
+        uchar st = ST_OK;
+        if (c < 3) st = ST_TOO_FEW;
+        else if (!(lam.z > 0) || lam.y <= DEGENERATE_RATIO * lam.z) st = ST_DEGENERATE;
 #if REFINE_L0
-    if (st == ST_OK) {
-        REALV s0 = 0;
-        NEIGHBOR_CHUNKS_BEGIN(ranges, cell, i, end)
-            const IREALV m = chunk_offsets(X, Y, Z, i, end, p, r2, &dx, &dy, &dz);
-            const REALV h = (dx - mu.x) * v0.x + (dy - mu.y) * v0.y + (dz - mu.z) * v0.z;
-            s0 += select((REALV)0, CHUNK_WEIGHT(i), m) * h * h;
-        NEIGHBOR_CHUNKS_END
-        lam.x = hsum(s0) * iw;
-    }
+        if (st == ST_OK) {
+            const REAL3 p = (REAL3)(X[g], Y[g], Z[g]);
+            REALV s0 = 0;
+            REALV dx, dy, dz;
+            NEIGHBOR_CHUNKS_BEGIN(ranges, cell_of[g], i, end)
+                const IREALV m = chunk_offsets(X, Y, Z, i, end, p, r2, &dx, &dy, &dz);
+                const REALV h = (dx - mu.x) * v0.x + (dy - mu.y) * v0.y + (dz - mu.z) * v0.z;
+                s0 += select((REALV)0, CHUNK_WEIGHT(i), m) * h * h;
+            NEIGHBOR_CHUNKS_END
+            lam.x = hsum(s0) * iws[k];
+        }
 #endif
-    const size_t j = order[g];
-    count[j] = c;
-    status[j] = st;
-    if (st != ST_OK) {
-        const REAL nan3 = NAN;
-        store3(normal, j, (REAL3)nan3); store3(eigval, j, (REAL3)nan3);
-        store3(shift, j, (REAL3)nan3); variation[j] = nan3;
-        return;
+        const size_t j = order[g];
+        count[j] = c;
+        status[j] = st;
+        if (st != ST_OK) {
+            const REAL nan3 = NAN;
+            store3(normal, j, (REAL3)nan3); store3(eigval, j, (REAL3)nan3);
+            store3(shift, j, (REAL3)nan3); variation[j] = nan3;
+            continue;
+        }
+        store3(normal, j, v0);
+        store3(eigval, j, lam);
+        store3(shift, j, mu);
+        variation[j] = lam.x / (lam.x + lam.y + lam.z);
     }
-    store3(normal, j, v0);
-    store3(eigval, j, lam);
-    store3(shift, j, mu);
-    variation[j] = lam.x / (lam.x + lam.y + lam.z);
 }
