@@ -1,4 +1,5 @@
-"""Public entry points: :func:`curvature` and :func:`normals` (numpy in, numpy out)."""
+"""Public entry points: :func:`curvature`, :func:`normals` and :func:`project` (numpy in,
+numpy out, input order preserved)."""
 from __future__ import annotations
 
 import warnings
@@ -10,25 +11,58 @@ from .result import CurvatureResult, OK, TOO_FEW
 from .validate import as_normals, as_points, as_radius, as_viewpoint, choice
 
 MOMENT_METHODS = ("variation", "mls0", "mls1")
-METHODS = MOMENT_METHODS
+COVARIANCE_METHODS = ("2dcov1", "2dcov2", "3dcov")
+METHODS = MOMENT_METHODS + COVARIANCE_METHODS + ("mls2",)
 ORIENTS = ("auto", "mst", "viewpoint", "normals", None)
+MLS_KERNELS = ("ball", "gaussian")
 
 
-def _raw_moments(points, radius, weights, backend, device, precision, refine):
+class _OpenCL:
+    """The kernels, on one DeviceCloud binned once for every pass of a call."""
+
+    def __init__(self, points, radius, device, precision):
+        from .cloud import DeviceCloud
+        self.cloud = DeviceCloud(points, radius, device=device, precision=precision)
+        self.radius = radius
+
+    def moments(self, weights, refine):
+        from .moments import device_moments
+        return device_moments(self.cloud, self.radius, weights=weights, refine=refine)
+
+    def covariances(self, normals, method, weights):
+        from .covariances import device_covariances
+        return device_covariances(self.cloud, self.radius, normals, method, weights=weights)
+
+    def mls2(self, normals, weights, kernel, h):
+        from .mls import device_mls2
+        return device_mls2(self.cloud, self.radius, normals, weights=weights, kernel=kernel, h=h)
+
+
+class _NumPy:
+    """The float64 reference (clcurv.reference), same interface as :class:`_OpenCL`."""
+
+    def __init__(self, points, radius):
+        from . import reference
+        self.ref, self.points, self.radius = reference, points, radius
+
+    def moments(self, weights, refine):
+        return self.ref.moments(self.points, self.radius, weights=weights)
+
+    def covariances(self, normals, method, weights):
+        return self.ref.covariance_ops(self.points, self.radius, normals, method, weights=weights)
+
+    def mls2(self, normals, weights, kernel, h):
+        if normals is None:
+            raise ValueError("backend='numpy' MLS2 needs oriented normals (orient must not be None)")
+        out = self.ref.mls2(self.points, self.radius, normals, weights=weights, kernel=kernel, h=h)
+        out["shift"] = out.pop("points") - self.points
+        return out
+
+
+def _backend(backend, points, radius, device, precision):
     if backend == "numpy":
-        from .reference import moments
-        return moments(points, radius, weights=weights)
-    from .cloud import DeviceCloud
-    from .moments import device_moments
-    cloud = DeviceCloud(points, radius, device=device, precision=precision)
-    return device_moments(cloud, radius, weights=weights, refine=refine)
-
-
-def _empty(method, radius, weights):
-    z3 = np.empty((0, 3))
-    return CurvatureResult(method, radius, weights, np.empty(0, np.int64), np.empty(0, np.uint8),
-                           z3, z3.copy(), np.empty(0), np.empty(0) if method != "variation" else None,
-                           z3.copy() if method in ("mls0", "mls1") else None)
+        return _NumPy(points, radius)
+    return _OpenCL(points, radius, device, precision)
 
 
 def _orientation(orient, normals, viewpoint):
@@ -51,16 +85,68 @@ def _flip(points, n, how, normals, viewpoint, k):
     return np.zeros(len(n), dtype=bool)
 
 
-def _warn_sparse(status, radius):
+def _warn_sparse(status, radius, need=3):
     few = np.count_nonzero(status == TOO_FEW)
     if few > len(status) // 2:
-        warnings.warn(f"{few} of {len(status)} points have fewer than 3 neighbours within "
+        warnings.warn(f"{few} of {len(status)} points have fewer than {need} neighbours within "
                       f"radius {radius}: their outputs are NaN; the radius is probably too small",
                       RuntimeWarning, stacklevel=3)
 
 
+def _f64(a):
+    return None if a is None else np.asarray(a, dtype=np.float64)
+
+
+def _empty(method, radius, weights):
+    z, z3 = np.empty(0), np.empty((0, 3))
+    res = CurvatureResult(method, radius, weights, np.empty(0, np.int64), np.empty(0, np.uint8),
+                          z3, z3.copy(), z.copy())
+    if method in ("mls0", "mls1", "mls2"):
+        res.mean, res.points = z.copy(), z3.copy()
+    if method in COVARIANCE_METHODS + ("mls2",):
+        res.k1, res.k2, res.dir1, res.dir2 = z.copy(), z.copy(), z3.copy(), z3.copy()
+        res.eigenvalues = np.empty((0, 3 if method in ("3dcov", "mls2") else 2))
+    if method == "mls2":
+        res.gaussian = z.copy()
+    return res
+
+
+def _moment_result(method, r, weights, pts, raw, n, ref_normals):
+    status = raw["status"].astype(np.uint8)
+    res = CurvatureResult(method, r, weights, raw["count"].astype(np.int64), status, n,
+                          _f64(raw["eigenvalues"]), _f64(raw["variation"]))
+    shift = _f64(raw["shift"])
+    if method == "mls0":
+        nref = ref_normals if ref_normals is not None else n
+        res.mean = -4.0 * np.einsum("ij,ij->i", shift, nref) / (r * r)
+        res.mean[status != OK] = np.nan
+        res.points = pts + shift
+    elif method == "mls1":
+        along = np.einsum("ij,ij->i", shift, n)
+        res.mean = -4.0 * along / (r * r)
+        res.points = pts + along[:, None] * n
+    return res
+
+
+def _operator_result(method, r, weights, pts, raw, moments, n):
+    res = CurvatureResult(method, r, weights, raw["count"].astype(np.int64),
+                          raw["status"].astype(np.uint8), n, None, _f64(moments["variation"]))
+    res.k1, res.k2 = _f64(raw["k1"]), _f64(raw["k2"])
+    res.dir1, res.dir2 = _f64(raw["dir1"]), _f64(raw["dir2"])
+    if method == "mls2":
+        res.normals = _f64(raw["normals"])
+        res.points = pts + _f64(raw["shift"])
+        res.mean = 0.5 * (res.k1 + res.k2)
+        res.gaussian = res.k1 * res.k2
+        res.eigenvalues = _f64(moments["eigenvalues"])
+    else:
+        res.eigenvalues = _f64(raw["eigenvalues"])
+    return res
+
+
 def curvature(points, radius, *, method="mls1", weights="uniform", normals=None, orient="auto",
-              viewpoint=None, orient_k=10, device=None, precision="float", backend="opencl"):
+              viewpoint=None, orient_k=10, kernel="ball", h=None, iterations=0, device=None,
+              precision="float", backend="opencl"):
     """Differential operators on the ball N_r(p) = {q : |q - p| < radius} of every point.
 
     Parameters
@@ -69,7 +155,7 @@ def curvature(points, radius, *, method="mls1", weights="uniform", normals=None,
         The raw cloud. Any finite coordinates; georeferenced ones are centred in float64.
     radius : float
         Ball radius, in the points' length unit (about 30 neighbours is a good start).
-    method : {'variation', 'mls0', 'mls1'}
+    method : str
         'variation': surface variation l0/(l0+l1+l2) (Pauly et al.; Theorem 4 of Digne &
         Morel: r^2/16 ((k1^2+k2^2)/2 - k1 k2/3)), unsigned.
         'mls0': barycenter shift o - p; ``mean`` = H = 4 <p - o, n> / r^2 (Lemma 2) with n
@@ -77,18 +163,32 @@ def curvature(points, radius, *, method="mls1", weights="uniform", normals=None,
         MLS1's); ``points`` = o, the barycenter.
         'mls1': projection on the PCA regression plane; ``mean`` = H = 4 <p - p', n> / r^2
         (Theorem 5); ``points`` = p'.
+        '2dcov1', '2dcov2', '3dcov': covariances of normal-based quantities (Theorems 1-3);
+        ``k1 >= k2 >= 0`` are curvature MAGNITUDES (unsigned), ``dir1``, ``dir2`` principal
+        directions, ``eigenvalues`` the count-normalised covariance eigenvalues (descending).
+        They use ``normals`` when given (normalised), else the oriented PCA normals.
+        'mls2': weighted quadric fit in the PCA frame (operator 7): signed ``k1 >= k2``,
+        ``dir1``, ``dir2``, ``mean`` H, ``gaussian`` K, fitted ``normals``, ``points`` the
+        MLS2 projection (fourth-order accurate).
     weights : {'uniform', 'density'}
         'density' weights each neighbour q by 1/#N_r(q) to compensate irregular sampling.
     normals : (N, 3) array_like, optional
-        Reference normals (need not be unit): they orient the PCA normals.
+        Normals of the points (need not be unit). They orient the PCA normals and are the
+        normals of the normal-based operators (the PCL/CGAL convention).
     orient : {'auto', 'mst', 'viewpoint', 'normals', None}
-        How to orient the normals (and so sign H). 'auto' uses ``normals`` when given, else
-        ``viewpoint`` when given, else 'mst': Hoppe's minimum-spanning-tree propagation over
-        the ``orient_k``-nearest-neighbour graph with the outward choice at the point
+        How to orient the normals (and so sign H, k1, k2). 'auto' uses ``normals`` when given,
+        else ``viewpoint`` when given, else 'mst': Hoppe's minimum-spanning-tree propagation
+        over the ``orient_k``-nearest-neighbour graph with the outward choice at the point
         farthest from each component's centroid (closed shapes come out outward).
-        None leaves the PCA sign as computed (then the sign of H is arbitrary per point).
+        None keeps the PCA sign (arbitrary per point; not allowed for the 2dcov/3dcov methods,
+        which need consistent normals).
     viewpoint : 3 floats, optional
         Scanner position: normals are turned towards it.
+    kernel : {'ball', 'gaussian'}
+        MLS2 weights: uniform in the ball, or exp(-|q - p|^2 / h^2) (h = radius/2 by default).
+    iterations : int
+        MLS2 only: project the cloud this many times by MLS2 first (neighbourhoods recomputed
+        each time, see :func:`project`), then evaluate; values refer to the input indices.
     device : None, int or str
         OpenCL device (see :func:`clcurv.devices`); default ``CLCURV_DEVICE`` or a GPU or PoCL.
     precision : {'float', 'double'}
@@ -100,50 +200,97 @@ def curvature(points, radius, *, method="mls1", weights="uniform", normals=None,
     -------
     CurvatureResult
         Arrays in input order. Sign convention: outward normals, sphere of radius R has
-        H = +1/R. Points with fewer than 3 neighbours (status 1) or collinear/coincident
-        neighbours (status 2) get NaN.
+        H = k1 = k2 = +1/R. Points with too few neighbours (status 1: < 3, or < 6 for MLS2),
+        a degenerate neighbourhood (2) or a singular fit (3) get NaN.
 
     Examples
     --------
     >>> import numpy as np, clcurv
-    >>> rng = np.random.default_rng(0)
-    >>> p = rng.normal(size=(20000, 3)); p *= 2 / np.linalg.norm(p, axis=1)[:, None]
-    >>> res = clcurv.curvature(p, 0.3, method="mls1")
-    >>> bool(abs(np.nanmedian(res.mean) - 0.5) < 0.01)
+    >>> p = clcurv.shapes.sphere(20000, 2.0)["points"]
+    >>> res = clcurv.curvature(p, 0.3, method="mls2")
+    >>> bool(abs(np.nanmedian(res.k2) - 0.5) < 0.01)
     True
     """
     method = choice(method, "method", METHODS)
     weights = choice(weights, "weights", ("uniform", "density"))
     backend = choice(backend, "backend", ("opencl", "numpy"))
     orient = choice(orient, "orient", ORIENTS)
+    kernel = choice(kernel, "kernel", MLS_KERNELS)
     pts = as_points(points)
     r = as_radius(radius)
     ref_normals = as_normals(normals, len(pts)) if normals is not None else None
     vp = as_viewpoint(viewpoint) if viewpoint is not None else None
     how = _orientation(orient, ref_normals, vp)
+    if method in COVARIANCE_METHODS and how is None and ref_normals is None:
+        raise ValueError(f"{method} needs consistently oriented normals: pass normals= or an orient")
+    iterations = int(iterations)
+    if iterations < 0 or (iterations and method != "mls2"):
+        raise ValueError("iterations must be >= 0 and is for method='mls2' "
+                         "(use clcurv.scale_space for MLS1)")
     if len(pts) == 0:
         return _empty(method, r, weights)
-    raw = _raw_moments(pts, r, weights, backend, device, precision, refine=True)
-    n = raw["normals"].astype(np.float64)
-    flip = _flip(pts, n, how, ref_normals, vp, orient_k)
-    n[flip] *= -1
-    shift = raw["shift"].astype(np.float64)
-    status = raw["status"].astype(np.uint8)
-    _warn_sparse(status, r)
-    res = CurvatureResult(method, r, weights, raw["count"].astype(np.int64), status, n,
-                          raw["eigenvalues"].astype(np.float64),
-                          raw["variation"].astype(np.float64))
-    if method == "mls0":
-        nref = ref_normals if ref_normals is not None else n
-        res.mean = -4.0 * np.einsum("ij,ij->i", shift, nref) / (r * r)
-        res.mean[status != OK] = np.nan
-        res.points = pts + shift
-    elif method == "mls1":
-        along = np.einsum("ij,ij->i", shift, n)
-        res.mean = -4.0 * along / (r * r)
-        res.points = pts + along[:, None] * n
+    if iterations:
+        moved = project(pts, r, iterations=iterations, weights=weights, normals=ref_normals,
+                        orient=orient, viewpoint=vp, orient_k=orient_k, kernel=kernel, h=h,
+                        device=device, precision=precision, backend=backend)
+        res = curvature(moved, r, method=method, weights=weights, orient=orient if orient != "normals" else "mst",
+                        viewpoint=vp, orient_k=orient_k, kernel=kernel, h=h, device=device,
+                        precision=precision, backend=backend)
+        res.info["iterations"] = iterations
+        return res
+    be = _backend(backend, pts, r, device, precision)
+    raw = be.moments(weights, refine=True)
+    n = _f64(raw["normals"]).copy()
+    n[_flip(pts, n, how, ref_normals, vp, orient_k)] *= -1
+    if method in MOMENT_METHODS:
+        _warn_sparse(raw["status"], r)
+        res = _moment_result(method, r, weights, pts, raw, n, ref_normals)
+    elif method in COVARIANCE_METHODS:
+        use = ref_normals if ref_normals is not None else n
+        op = be.covariances(use, method, weights)
+        _warn_sparse(op["status"], r)
+        res = _operator_result(method, r, weights, pts, op, raw, use)
+    else:
+        use = ref_normals if ref_normals is not None else (n if how is not None else None)
+        op = be.mls2(use, weights, kernel, h)
+        _warn_sparse(op["status"], r, need=6)
+        res = _operator_result(method, r, weights, pts, op, raw, n)
     res.info["orientation"] = how
     return res
+
+
+def project(points, radius, *, iterations=1, method="mls2", weights="uniform", normals=None,
+            orient="auto", viewpoint=None, orient_k=10, kernel="ball", h=None, device=None,
+            precision="float", backend="opencl"):
+    """Iterated MLS2 projection: every point is replaced by its MLS2 projection, all together,
+    ``iterations`` times, neighbourhoods recomputed on the moved cloud each time.
+
+    The fit's normals are oriented at the first iteration as ``orient`` says and then
+    propagated: each iteration's PCA normals are oriented to agree with the previous
+    iteration's fitted normals. Points whose fit fails (status != 0) stay where they are for
+    that iteration. Returns the moved (N, 3) float64 points in input order. Iterated MLS2 is
+    not a scale space (Digne & Morel): use :func:`clcurv.scale_space` (MLS1) to smooth.
+    """
+    choice(method, "method", ("mls2",))
+    pts = as_points(points).copy()
+    iterations = int(iterations)
+    if iterations < 0:
+        raise ValueError(f"iterations must be >= 0, got {iterations}")
+    ref = as_normals(normals, len(pts)) if normals is not None else None
+    how = orient
+    for _ in range(iterations):
+        if len(pts) == 0:
+            break
+        res = curvature(pts, radius, method="mls2", weights=weights, normals=ref, orient=how,
+                        viewpoint=viewpoint, orient_k=orient_k, kernel=kernel, h=h,
+                        device=device, precision=precision, backend=backend)
+        ok = res.valid
+        pts[ok] = res.points[ok]
+        ref = np.where(ok[:, None], res.normals, ref if ref is not None else res.normals)
+        if not np.isfinite(ref).all():
+            ref = None
+        how = "normals" if ref is not None else orient
+    return pts
 
 
 def normals(points, radius, *, weights="uniform", normals=None, orient="auto", viewpoint=None,
@@ -164,8 +311,8 @@ def normals(points, radius, *, weights="uniform", normals=None, orient="auto", v
     how = _orientation(orient, ref_normals, vp)
     if len(pts) == 0:
         return np.empty((0, 3))
-    raw = _raw_moments(pts, r, weights, backend, device, precision, refine=False)
-    n = raw["normals"].astype(np.float64)
+    raw = _backend(backend, pts, r, device, precision).moments(weights, refine=False)
+    n = _f64(raw["normals"]).copy()
     _warn_sparse(raw["status"], r)
     n[_flip(pts, n, how, ref_normals, vp, orient_k)] *= -1
     return n

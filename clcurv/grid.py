@@ -6,6 +6,9 @@ digits. They are binned into cubic cells of size ``cell >= radius``; the cell ke
 ``(iz * ny + iy) * nx + ix`` (x fastest, so the three cells ix-1..ix+1 of a row have
 consecutive keys). Only occupied cells are stored: memory is O(N) whatever the bounding box.
 
+Points of one cell keep their input order (a stable sort), so the layout, and every result
+computed on it, does not depend on numpy's sort algorithm.
+
 Device layout (sorted by cell key):
   ``x, y, z``      coordinates relative to ``center``, padded with ``PAD`` zeros
   ``order``        sorted position -> input index
@@ -112,8 +115,8 @@ def bin_points(points, cell, dtype=np.float32):
     cell_start[-1] = n
     cell_of = np.cumsum(new_cell, dtype=np.uint32)
     cell_of -= 1
-    # centre and cast each column (a sequential pass), then gather the 4- or 8-byte values
-    # in sorted order: cheaper than gathering 24-byte float64 rows.
+    # centre and cast each column (a sequential pass), then gather the 4- or 8-byte values in
+    # sorted order: cheaper than gathering 24-byte float64 rows (np.take(points, order, 0))
     coords = []
     col = np.empty(n, dtype=dtype)
     for d in range(3):

@@ -55,9 +55,10 @@ def device_moments(cloud, radius, *, weights="uniform", refine=True):
     bufs = {k: cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, size=max(v.nbytes, 1)) for k, v in out.items()}
     # one work-item per VW consecutive points (the eigen decompositions run VW lanes at once)
     vw = int(defines["VW"])
-    launch(cloud.device, prg.moments, -(-n // vw), cloud.x, cloud.y, cloud.z, wbuf, cloud.cell_of, cloud.ranges,
-            cloud.order, np.uint32(n), cloud.real(r * r), bufs["count"], bufs["status"],
-            bufs["normals"], bufs["eigenvalues"], bufs["variation"], bufs["shift"])
+    launch(cloud.device, prg.moments, -(-n // vw), cloud.x, cloud.y, cloud.z, wbuf,
+           cloud.cell_of, cloud.ranges, cloud.order, np.uint32(n), cloud.real(r * r),
+           bufs["count"], bufs["status"], bufs["normals"], bufs["eigenvalues"],
+           bufs["variation"], bufs["shift"])
     q.finish()
     t2 = time.perf_counter()
     for k, v in out.items():

@@ -565,9 +565,11 @@ def invert_theorem1(lam1, lam2, radius):
     ``lam2 -> c (k1^2 + 2 k1 k2 + 5 k2^2)``, ``c = r^6 / 256``. With
     ``u = lam1 / c``, ``v = lam2 / c`` and ``m = (k1 + k2)^2`` this reads
     ``u = 4 k1^2 + m``, ``v = 4 k2^2 + m``; eliminating gives
-    ``32 m^2 - 8 S m + S^2 - 4 u v = 0`` (``S = u + v``), whose two roots are
-    the two sign hypotheses on ``k1 k2``:
-    ``m_pm = (S +- sqrt(8 u v - S^2)) / 8``.
+    ``32 m^2 - 8 S m + S^2 - 4 u v = 0`` (``S = u + v``), whose two roots
+    ``m_pm = (S +- sqrt(8 u v - S^2)) / 8`` are the two sign hypotheses:
+    the sign of ``k1 k2`` belonging to a root is that of ``6 m - S``
+    (``m_-`` always gives ``k1 k2 <= 0``; ``m_+`` gives ``k1 k2 >= 0`` iff
+    ``u/v <= 5``).
 
     **Sign rule.** Both roots always give non-negative squares (``0 <= m <= v``
     for ``1 <= u/v <= 3 + 2 sqrt 2``), so the data cannot tell the two

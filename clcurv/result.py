@@ -35,7 +35,14 @@ class CurvatureResult:
     variation : (N,) float64, surface variation l0 / (l0 + l1 + l2), in [0, 1/3].
     mean : (N,) float64 or None, signed mean curvature H (1/length).
     points : (N, 3) float64 or None, the projected positions (MLS0 barycenter, MLS1 point
-        projected on the regression plane).
+        projected on the regression plane, MLS2 projection).
+    k1, k2 : (N,) float64 or None, principal curvatures, k1 >= k2 (1/length): signed for
+        MLS2, magnitudes (>= 0) for 2dcov1, 2dcov2 and 3dcov.
+    dir1, dir2 : (N, 3) float64 or None, unit principal directions (tangent, orthogonal).
+    gaussian : (N,) float64 or None, Gaussian curvature K = k1 k2 (1/length^2), MLS2.
+
+    For the covariance methods ``eigenvalues`` are those of the operator's covariance
+    (descending, count-normalised); for the others those of the PCA covariance (ascending).
     """
     method: str
     radius: float
@@ -47,6 +54,11 @@ class CurvatureResult:
     variation: np.ndarray
     mean: np.ndarray | None = None
     points: np.ndarray | None = None
+    k1: np.ndarray | None = None
+    k2: np.ndarray | None = None
+    dir1: np.ndarray | None = None
+    dir2: np.ndarray | None = None
+    gaussian: np.ndarray | None = None
     info: dict = field(default_factory=dict, repr=False, compare=False)
 
     def __len__(self):

@@ -30,6 +30,7 @@
 #define REAL_MAX FLT_MAX
 #endif
 
+#define REAL2 CAT(REAL, 2)
 #define REAL3 CAT(REAL, 3)
 #define REALV CAT(REAL, VW)     /* VW lanes of REAL */
 #define IREALV CAT(IREAL, VW)   /* VW lanes of comparison masks */

@@ -8,7 +8,7 @@
  *               eig3_sym is a long chain of dependent divisions, square roots and acos/cos
  *               calls, about 300 ns per call on one core; eight matrices at once cost little
  *               more than one.
- * The algorithm body below is written once, for a generic type ET (REAL or REALV), and
+ * The algorithm body below is written once, for a generic type EIG3_T (REAL or REALV), and
  * instantiated twice by including this file again (EIG3_GENERIC_PASS).
  *
  * Method (no iterations, no data-dependent loops):
@@ -59,16 +59,16 @@
 
 /* ---- scalar instantiation: eig3_sym_g on REAL ---- */
 #define EIG3_GENERIC_PASS
-#define ET REAL
-#define EI IREAL                                  /* integer of the width of REAL */
-#define EIG3_SEL(a, b, c) ((c) ? (ET)(b) : (ET)(a))   /* c ? b : a */
-#define EIG3_SELI(a, b, c) ((c) ? (EI)(b) : (EI)(a))
+#define EIG3_T REAL
+#define EIG3_I IREAL                                  /* integer of the width of REAL */
+#define EIG3_SEL(a, b, c) ((c) ? (EIG3_T)(b) : (EIG3_T)(a))   /* c ? b : a */
+#define EIG3_SELI(a, b, c) ((c) ? (EIG3_I)(b) : (EIG3_I)(a))
 #define EIG3_AS_I(x) CAT(as_, IREAL)(x)
 #define EIG3_AS_R(b) CAT(as_, REAL)(b)
 #define EIG3_FN(name) name
 #include "eig3.h"
-#undef ET
-#undef EI
+#undef EIG3_T
+#undef EIG3_I
 #undef EIG3_SEL
 #undef EIG3_SELI
 #undef EIG3_AS_I
@@ -76,16 +76,16 @@
 #undef EIG3_FN
 
 /* ---- vector instantiation: eig3_sym_g_v on REALV (VW matrices, one per lane) ---- */
-#define ET REALV
-#define EI IREALV
-#define EIG3_SEL(a, b, c) select((ET)(a), (ET)(b), (c))  /* lane-wise c ? b : a (c: a comparison) */
-#define EIG3_SELI(a, b, c) select((EI)(a), (EI)(b), (c))
+#define EIG3_T REALV
+#define EIG3_I IREALV
+#define EIG3_SEL(a, b, c) select((EIG3_T)(a), (EIG3_T)(b), (c))  /* lane-wise c ? b : a (c: a comparison) */
+#define EIG3_SELI(a, b, c) select((EIG3_I)(a), (EIG3_I)(b), (c))
 #define EIG3_AS_I(x) CAT(as_, IREALV)(x)
 #define EIG3_AS_R(b) CAT(as_, REALV)(b)
 #define EIG3_FN(name) name##_v
 #include "eig3.h"
-#undef ET
-#undef EI
+#undef EIG3_T
+#undef EIG3_I
 #undef EIG3_SEL
 #undef EIG3_SELI
 #undef EIG3_AS_I
@@ -120,59 +120,59 @@ inline void eig3_sym_v(REALV a00, REALV a01, REALV a02, REALV a11, REALV a12, RE
 
 #endif /* CLCURV_EIG3_H */
 
-#else /* EIG3_GENERIC_PASS: the algorithm on ET (REAL or REALV), mask/exponent type EI */
+#else /* EIG3_GENERIC_PASS: the algorithm on EIG3_T (REAL or REALV), mask/exponent type EIG3_I */
 
-#define V3 EIG3_FN(eig3_v3)
-#define M3 EIG3_FN(eig3_m3)
+#define EIG3_V3 EIG3_FN(eig3_v3)
+#define EIG3_M3 EIG3_FN(eig3_m3)
 
-typedef struct { ET x, y, z; } V3;
+typedef struct { EIG3_T x, y, z; } EIG3_V3;
 /* Symmetric 3x3 matrix stored by its upper triangle. */
-typedef struct { ET a00, a01, a02, a11, a12, a22; } M3;
+typedef struct { EIG3_T a00, a01, a02, a11, a12, a22; } EIG3_M3;
 
-inline V3 EIG3_FN(eig3_vec)(ET x, ET y, ET z)
+inline EIG3_V3 EIG3_FN(eig3_vec)(EIG3_T x, EIG3_T y, EIG3_T z)
 {
-    V3 r = { x, y, z };
+    EIG3_V3 r = { x, y, z };
     return r;
 }
 
 /* c ? b : a, lane-wise */
-inline V3 EIG3_FN(eig3_sel3)(V3 a, V3 b, EI c)
+inline EIG3_V3 EIG3_FN(eig3_sel3)(EIG3_V3 a, EIG3_V3 b, EIG3_I c)
 {
     return EIG3_FN(eig3_vec)(EIG3_SEL(a.x, b.x, c), EIG3_SEL(a.y, b.y, c), EIG3_SEL(a.z, b.z, c));
 }
 
-inline ET EIG3_FN(eig3_dot)(V3 a, V3 b)
+inline EIG3_T EIG3_FN(eig3_dot)(EIG3_V3 a, EIG3_V3 b)
 {
     return a.x * b.x + a.y * b.y + a.z * b.z;
 }
 
-inline V3 EIG3_FN(eig3_cross)(V3 a, V3 b)
+inline EIG3_V3 EIG3_FN(eig3_cross)(EIG3_V3 a, EIG3_V3 b)
 {
     return EIG3_FN(eig3_vec)(a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x);
 }
 
-inline V3 EIG3_FN(eig3_lin)(ET s, V3 a, ET t, V3 b)        /* s a + t b */
+inline EIG3_V3 EIG3_FN(eig3_lin)(EIG3_T s, EIG3_V3 a, EIG3_T t, EIG3_V3 b)        /* s a + t b */
 {
     return EIG3_FN(eig3_vec)(s * a.x + t * b.x, s * a.y + t * b.y, s * a.z + t * b.z);
 }
 
 /* Largest absolute entry. */
-inline ET EIG3_FN(eig3_max_abs)(M3 m)
+inline EIG3_T EIG3_FN(eig3_max_abs)(EIG3_M3 m)
 {
-    ET d = fmax(fmax(fabs(m.a00), fabs(m.a11)), fabs(m.a22));
-    ET o = fmax(fmax(fabs(m.a01), fabs(m.a02)), fabs(m.a12));
+    EIG3_T d = fmax(fmax(fabs(m.a00), fabs(m.a11)), fabs(m.a22));
+    EIG3_T o = fmax(fmax(fabs(m.a01), fabs(m.a02)), fabs(m.a12));
     return fmax(d, o);
 }
 
 /* m * s for every entry. */
-inline M3 EIG3_FN(eig3_scale)(M3 m, ET s)
+inline EIG3_M3 EIG3_FN(eig3_scale)(EIG3_M3 m, EIG3_T s)
 {
-    M3 r = { m.a00 * s, m.a01 * s, m.a02 * s, m.a11 * s, m.a12 * s, m.a22 * s };
+    EIG3_M3 r = { m.a00 * s, m.a01 * s, m.a02 * s, m.a11 * s, m.a12 * s, m.a22 * s };
     return r;
 }
 
 /* m - s I */
-inline M3 EIG3_FN(eig3_shift)(M3 m, ET s)
+inline EIG3_M3 EIG3_FN(eig3_shift)(EIG3_M3 m, EIG3_T s)
 {
     m.a00 -= s;
     m.a11 -= s;
@@ -181,41 +181,41 @@ inline M3 EIG3_FN(eig3_shift)(M3 m, ET s)
 }
 
 /* 2^h for |h| well inside the normal exponent range, from its bits (no library call). */
-inline ET EIG3_FN(eig3_exp2i)(EI h)
+inline EIG3_T EIG3_FN(eig3_exp2i)(EIG3_I h)
 {
-    return EIG3_AS_R((h + (EI)EIG3_BIAS) << (EI)EIG3_MANT);
+    return EIG3_AS_R((h + (EIG3_I)EIG3_BIAS) << (EIG3_I)EIG3_MANT);
 }
 
 /* floor(log2(x)) of a positive finite x, read from the bits; a denormal x is first scaled
    exactly by 2^(MANT+1), which makes it normal. */
-inline EI EIG3_FN(eig3_ilogb)(ET x)
+inline EIG3_I EIG3_FN(eig3_ilogb)(EIG3_T x)
 {
-    const EI emask = (EI)(2 * EIG3_BIAS + 1);
-    const EI den = ((EIG3_AS_I(x) >> (EI)EIG3_MANT) & emask) == (EI)0;
-    const ET xs = EIG3_SEL(x, x * EIG3_DENORM_SCALE, den);
-    const EI biased = (EIG3_AS_I(xs) >> (EI)EIG3_MANT) & emask;
-    return biased - (EI)EIG3_BIAS - EIG3_SELI(0, EIG3_MANT + 1, den);
+    const EIG3_I emask = (EIG3_I)(2 * EIG3_BIAS + 1);
+    const EIG3_I den = ((EIG3_AS_I(x) >> (EIG3_I)EIG3_MANT) & emask) == (EIG3_I)0;
+    const EIG3_T xs = EIG3_SEL(x, x * EIG3_DENORM_SCALE, den);
+    const EIG3_I biased = (EIG3_AS_I(xs) >> (EIG3_I)EIG3_MANT) & emask;
+    return biased - (EIG3_I)EIG3_BIAS - EIG3_SELI(0, EIG3_MANT + 1, den);
 }
 
 /* 2^e as two exact power-of-two factors (each within the exponent range even when 2^e is
    not), so scaling by them is exact and costs multiplications, not ldexp calls. */
-inline void EIG3_FN(eig3_pow2)(EI e, ET *f1, ET *f2)
+inline void EIG3_FN(eig3_pow2)(EIG3_I e, EIG3_T *f1, EIG3_T *f2)
 {
-    const EI h = e >> (EI)1;
+    const EIG3_I h = e >> (EIG3_I)1;
     *f1 = EIG3_FN(eig3_exp2i)(h);
     *f2 = EIG3_FN(eig3_exp2i)(e - h);
 }
 
 /* m * 2^e for every entry (exact unless the result is denormal). */
-inline M3 EIG3_FN(eig3_ldexp)(M3 m, EI e)
+inline EIG3_M3 EIG3_FN(eig3_ldexp)(EIG3_M3 m, EIG3_I e)
 {
-    ET f1, f2;
+    EIG3_T f1, f2;
     EIG3_FN(eig3_pow2)(e, &f1, &f2);
     return EIG3_FN(eig3_scale)(EIG3_FN(eig3_scale)(m, f1), f2);
 }
 
 /* Matrix-vector product m v. */
-inline V3 EIG3_FN(eig3_mul)(M3 m, V3 v)
+inline EIG3_V3 EIG3_FN(eig3_mul)(EIG3_M3 m, EIG3_V3 v)
 {
     return EIG3_FN(eig3_vec)(m.a00 * v.x + m.a01 * v.y + m.a02 * v.z,
                              m.a01 * v.x + m.a11 * v.y + m.a12 * v.z,
@@ -223,7 +223,7 @@ inline V3 EIG3_FN(eig3_mul)(M3 m, V3 v)
 }
 
 /* Rayleigh quotient v^T m v of a unit vector v. */
-inline ET EIG3_FN(eig3_rayleigh)(M3 m, V3 v)
+inline EIG3_T EIG3_FN(eig3_rayleigh)(EIG3_M3 m, EIG3_V3 v)
 {
     return EIG3_FN(eig3_dot)(v, EIG3_FN(eig3_mul)(m, v));
 }
@@ -232,49 +232,49 @@ inline ET EIG3_FN(eig3_rayleigh)(M3 m, V3 v)
    2 cos(acos(r)/3) if r = det(d)/2 >= 0, else the smallest, -2 cos(acos(-r)/3). The
    angle acos(|r|)/3 lies in [0, pi/6], where cos is flat: the value is accurate even
    when the other two eigenvalues are (nearly) equal, i.e. |r| close to 1. */
-inline ET EIG3_FN(eig3_isolated_eigenvalue)(M3 d)
+inline EIG3_T EIG3_FN(eig3_isolated_eigenvalue)(EIG3_M3 d)
 {
-    ET det = d.a00 * (d.a11 * d.a22 - d.a12 * d.a12)
+    EIG3_T det = d.a00 * (d.a11 * d.a22 - d.a12 * d.a12)
            - d.a01 * (d.a01 * d.a22 - d.a12 * d.a02)
            + d.a02 * (d.a01 * d.a12 - d.a11 * d.a02);
-    ET r = clamp(EIG3_C(0.5) * det, EIG3_C(-1.0), EIG3_C(1.0));
-    ET b = EIG3_C(2.0) * cos(acos(fabs(r)) / EIG3_C(3.0));
+    EIG3_T r = clamp(EIG3_C(0.5) * det, EIG3_C(-1.0), EIG3_C(1.0));
+    EIG3_T b = EIG3_C(2.0) * cos(acos(fabs(r)) / EIG3_C(3.0));
     return EIG3_SEL(-b, b, r >= EIG3_C(0.0));
 }
 
 /* Unit vector spanning the kernel of the rank-2 matrix m = d - beta I: the longest of the
    cross products of its rows (for a simple eigenvalue beta they are all parallel to the
    eigenvector; the longest has norm >= sqrt(3) here). */
-inline V3 EIG3_FN(eig3_null_vector)(M3 d, ET beta)
+inline EIG3_V3 EIG3_FN(eig3_null_vector)(EIG3_M3 d, EIG3_T beta)
 {
-    M3 m = EIG3_FN(eig3_shift)(d, beta);
-    V3 r0 = EIG3_FN(eig3_vec)(m.a00, m.a01, m.a02);
-    V3 r1 = EIG3_FN(eig3_vec)(m.a01, m.a11, m.a12);
-    V3 r2 = EIG3_FN(eig3_vec)(m.a02, m.a12, m.a22);
-    V3 c01 = EIG3_FN(eig3_cross)(r0, r1), c02 = EIG3_FN(eig3_cross)(r0, r2);
-    V3 c12 = EIG3_FN(eig3_cross)(r1, r2);
-    ET n01 = EIG3_FN(eig3_dot)(c01, c01), n02 = EIG3_FN(eig3_dot)(c02, c02);
-    ET n12 = EIG3_FN(eig3_dot)(c12, c12);
-    EI t = n02 > n01;
-    V3 c = EIG3_FN(eig3_sel3)(c01, c02, t);
-    ET n = EIG3_SEL(n01, n02, t);
+    EIG3_M3 m = EIG3_FN(eig3_shift)(d, beta);
+    EIG3_V3 r0 = EIG3_FN(eig3_vec)(m.a00, m.a01, m.a02);
+    EIG3_V3 r1 = EIG3_FN(eig3_vec)(m.a01, m.a11, m.a12);
+    EIG3_V3 r2 = EIG3_FN(eig3_vec)(m.a02, m.a12, m.a22);
+    EIG3_V3 c01 = EIG3_FN(eig3_cross)(r0, r1), c02 = EIG3_FN(eig3_cross)(r0, r2);
+    EIG3_V3 c12 = EIG3_FN(eig3_cross)(r1, r2);
+    EIG3_T n01 = EIG3_FN(eig3_dot)(c01, c01), n02 = EIG3_FN(eig3_dot)(c02, c02);
+    EIG3_T n12 = EIG3_FN(eig3_dot)(c12, c12);
+    EIG3_I t = n02 > n01;
+    EIG3_V3 c = EIG3_FN(eig3_sel3)(c01, c02, t);
+    EIG3_T n = EIG3_SEL(n01, n02, t);
     t = n12 > n;
     c = EIG3_FN(eig3_sel3)(c, c12, t);
     n = EIG3_SEL(n, n12, t);
-    const EI ok = n > EIG3_C(0.0);       /* always, for finite input; keeps NaN out */
-    const ET s = sqrt(EIG3_SEL(EIG3_C(1.0), n, ok));
+    const EIG3_I ok = n > EIG3_C(0.0);       /* always, for finite input; keeps NaN out */
+    const EIG3_T s = sqrt(EIG3_SEL(EIG3_C(1.0), n, ok));
     return EIG3_FN(eig3_vec)(EIG3_SEL(EIG3_C(0.0), c.x / s, ok), EIG3_SEL(EIG3_C(0.0), c.y / s, ok),
                              EIG3_SEL(EIG3_C(1.0), c.z / s, ok));
 }
 
 /* Unit vectors u, v with (w, u, v) a right-handed orthonormal basis, for a unit vector w.
    u is built from the two largest components of w, so its norm before scaling is >= 1/sqrt(2). */
-inline void EIG3_FN(eig3_complement)(V3 w, V3 *u, V3 *v)
+inline void EIG3_FN(eig3_complement)(EIG3_V3 w, EIG3_V3 *u, EIG3_V3 *v)
 {
-    const EI bx = fabs(w.x) > fabs(w.y);
+    const EIG3_I bx = fabs(w.x) > fabs(w.y);
     /* bx: u = (-w.z, 0, w.x) / |(w.x, w.z)|, else u = (0, w.z, -w.y) / |(w.y, w.z)| */
-    const ET s = EIG3_SEL(w.y, w.x, bx);
-    const ET nrm = sqrt(s * s + w.z * w.z);
+    const EIG3_T s = EIG3_SEL(w.y, w.x, bx);
+    const EIG3_T nrm = sqrt(s * s + w.z * w.z);
     *u = EIG3_FN(eig3_vec)(EIG3_SEL(EIG3_C(0.0), -w.z, bx) / nrm,
                            EIG3_SEL(w.z, EIG3_C(0.0), bx) / nrm,
                            EIG3_SEL(-w.y, w.x, bx) / nrm);
@@ -286,82 +286,82 @@ inline void EIG3_FN(eig3_complement)(V3 w, V3 *u, V3 *v)
    t = sign(theta) / (|theta| + sqrt(theta^2 + 1)), theta = (m11 - m00) / (2 m01), and t = 0
    when m01 == 0. |theta| is clamped to EIG3_BIG (theta^2 stays finite; beyond it t < 1/BIG
    is far below eps, where the rotation is the identity to working precision). */
-inline void EIG3_FN(eig3_jacobi2)(ET m00, ET m01, ET m11, ET *c, ET *s)
+inline void EIG3_FN(eig3_jacobi2)(EIG3_T m00, EIG3_T m01, EIG3_T m11, EIG3_T *c, EIG3_T *s)
 {
-    const EI nz = m01 != EIG3_C(0.0);
-    const ET theta = (m11 - m00) / (EIG3_C(2.0) * EIG3_SEL(EIG3_C(1.0), m01, nz));
-    const ET at = fmin(fabs(theta), EIG3_BIG);
-    ET t = EIG3_C(1.0) / (at + sqrt(at * at + EIG3_C(1.0)));
+    const EIG3_I nz = m01 != EIG3_C(0.0);
+    const EIG3_T theta = (m11 - m00) / (EIG3_C(2.0) * EIG3_SEL(EIG3_C(1.0), m01, nz));
+    const EIG3_T at = fmin(fabs(theta), EIG3_BIG);
+    EIG3_T t = EIG3_C(1.0) / (at + sqrt(at * at + EIG3_C(1.0)));
     t = EIG3_SEL(t, -t, theta < EIG3_C(0.0));
     t = EIG3_SEL(EIG3_C(0.0), t, nz);
     *c = EIG3_C(1.0) / sqrt(t * t + EIG3_C(1.0));
     *s = t * *c;
 }
 
-inline void EIG3_FN(eig3_sym_g)(ET a00, ET a01, ET a02, ET a11, ET a12, ET a22,
-                                ET *w0, ET *w1, ET *w2, V3 *v0, V3 *v1, V3 *v2)
+inline void EIG3_FN(eig3_sym_g)(EIG3_T a00, EIG3_T a01, EIG3_T a02, EIG3_T a11, EIG3_T a12, EIG3_T a22,
+                                EIG3_T *w0, EIG3_T *w1, EIG3_T *w2, EIG3_V3 *v0, EIG3_V3 *v1, EIG3_V3 *v2)
 {
-    const ET zero = EIG3_C(0.0), one = EIG3_C(1.0);
-    M3 a = { a00, a01, a02, a11, a12, a22 };
+    const EIG3_T zero = EIG3_C(0.0), one = EIG3_C(1.0);
+    EIG3_M3 a = { a00, a01, a02, a11, a12, a22 };
 
     /* 1. exact scaling: max-abs entry in [1, 2). The zero matrix (or NaN input) is answered
        at the end; meanwhile its lanes run on harmless values. */
-    const ET amax = EIG3_FN(eig3_max_abs)(a);
-    const EI is_zero = !(amax > zero);
-    const EI e1 = EIG3_FN(eig3_ilogb)(EIG3_SEL(amax, one, is_zero));
+    const EIG3_T amax = EIG3_FN(eig3_max_abs)(a);
+    const EIG3_I is_zero = !(amax > zero);
+    const EIG3_I e1 = EIG3_FN(eig3_ilogb)(EIG3_SEL(amax, one, is_zero));
     a = EIG3_FN(eig3_ldexp)(a, -e1);
 
     /* 2. shift to trace 0, rescale exactly, normalise to trace(d^2) = 6. A multiple of the
        identity (c = 0) is answered at the end. */
-    const ET q = (a.a00 + a.a11 + a.a22) / EIG3_C(3.0);
-    M3 c = EIG3_FN(eig3_shift)(a, q);
-    const ET cmax = EIG3_FN(eig3_max_abs)(c);
-    const EI is_ident = !(cmax > zero);
+    const EIG3_T q = (a.a00 + a.a11 + a.a22) / EIG3_C(3.0);
+    EIG3_M3 c = EIG3_FN(eig3_shift)(a, q);
+    const EIG3_T cmax = EIG3_FN(eig3_max_abs)(c);
+    const EIG3_I is_ident = !(cmax > zero);
     c = EIG3_FN(eig3_ldexp)(c, -EIG3_FN(eig3_ilogb)(EIG3_SEL(cmax, one, is_ident)));
-    ET p = sqrt((c.a00 * c.a00 + c.a11 * c.a11 + c.a22 * c.a22
+    EIG3_T p = sqrt((c.a00 * c.a00 + c.a11 * c.a11 + c.a22 * c.a22
                  + EIG3_C(2.0) * (c.a01 * c.a01 + c.a02 * c.a02 + c.a12 * c.a12))
                 / EIG3_C(6.0));                        /* >= 1/sqrt(6) unless c = 0 */
     p = EIG3_SEL(p, one, is_ident);
-    const M3 d = EIG3_FN(eig3_scale)(c, one / p);
+    const EIG3_M3 d = EIG3_FN(eig3_scale)(c, one / p);
 
     /* 3. most isolated eigenvalue and its eigenvector */
-    const ET beta = EIG3_FN(eig3_isolated_eigenvalue)(d);
-    const V3 vi = EIG3_FN(eig3_null_vector)(d, beta);
+    const EIG3_T beta = EIG3_FN(eig3_isolated_eigenvalue)(d);
+    const EIG3_V3 vi = EIG3_FN(eig3_null_vector)(d, beta);
 
     /* 4. 2x2 problem in the orthogonal complement (vi, u, v) */
-    V3 u, v;
+    EIG3_V3 u, v;
     EIG3_FN(eig3_complement)(vi, &u, &v);
-    const V3 du = EIG3_FN(eig3_mul)(d, u), dv = EIG3_FN(eig3_mul)(d, v);
-    ET cs, sn;
+    const EIG3_V3 du = EIG3_FN(eig3_mul)(d, u), dv = EIG3_FN(eig3_mul)(d, v);
+    EIG3_T cs, sn;
     EIG3_FN(eig3_jacobi2)(EIG3_FN(eig3_dot)(u, du), EIG3_FN(eig3_dot)(u, dv),
                           EIG3_FN(eig3_dot)(v, dv), &cs, &sn);
-    V3 ea = EIG3_FN(eig3_lin)(cs, u, -sn, v);          /* (vi, ea, eb) stays right-handed */
-    V3 eb = EIG3_FN(eig3_lin)(sn, u, cs, v);
+    EIG3_V3 ea = EIG3_FN(eig3_lin)(cs, u, -sn, v);          /* (vi, ea, eb) stays right-handed */
+    EIG3_V3 eb = EIG3_FN(eig3_lin)(sn, u, cs, v);
 
     /* 5. order the pair by its Rayleigh quotients in d (the isolated one is >= sqrt(3) away);
        (ea, eb) <- (eb, -ea) keeps handedness */
-    const EI swap = EIG3_FN(eig3_rayleigh)(d, eb) < EIG3_FN(eig3_rayleigh)(d, ea);
-    const V3 nea = EIG3_FN(eig3_vec)(-ea.x, -ea.y, -ea.z);
-    const V3 fa = EIG3_FN(eig3_sel3)(ea, eb, swap);
-    const V3 fb = EIG3_FN(eig3_sel3)(eb, nea, swap);
+    const EIG3_I swap = EIG3_FN(eig3_rayleigh)(d, eb) < EIG3_FN(eig3_rayleigh)(d, ea);
+    const EIG3_V3 nea = EIG3_FN(eig3_vec)(-ea.x, -ea.y, -ea.z);
+    const EIG3_V3 fa = EIG3_FN(eig3_sel3)(ea, eb, swap);
+    const EIG3_V3 fb = EIG3_FN(eig3_sel3)(eb, nea, swap);
     /* isolated = largest if beta >= 0, else smallest */
-    const EI top = beta >= zero;
-    V3 x0 = EIG3_FN(eig3_sel3)(vi, fa, top);
-    V3 x1 = EIG3_FN(eig3_sel3)(fa, fb, top);
-    V3 x2 = EIG3_FN(eig3_sel3)(fb, vi, top);
+    const EIG3_I top = beta >= zero;
+    EIG3_V3 x0 = EIG3_FN(eig3_sel3)(vi, fa, top);
+    EIG3_V3 x1 = EIG3_FN(eig3_sel3)(fa, fb, top);
+    EIG3_V3 x2 = EIG3_FN(eig3_sel3)(fb, vi, top);
 
     /* 6. eigenvalues = Rayleigh quotients in the unshifted matrix (exactly scaled): as accurate
        as the entries allow, exact for axis-aligned input (e.g. a plane z = 0 gives 0, not
        +-eps). Rounding may break ties the wrong way by an ulp: restore the order. */
-    const ET l0 = EIG3_FN(eig3_rayleigh)(a, x0);
-    const ET l1 = fmax(EIG3_FN(eig3_rayleigh)(a, x1), l0);
-    const ET l2 = fmax(EIG3_FN(eig3_rayleigh)(a, x2), l1);
-    ET f1, f2;
+    const EIG3_T l0 = EIG3_FN(eig3_rayleigh)(a, x0);
+    const EIG3_T l1 = fmax(EIG3_FN(eig3_rayleigh)(a, x1), l0);
+    const EIG3_T l2 = fmax(EIG3_FN(eig3_rayleigh)(a, x2), l1);
+    EIG3_T f1, f2;
     EIG3_FN(eig3_pow2)(e1, &f1, &f2);
 
     /* Multiple of the identity (including the zero matrix): w = (a, a, a), basis e_z, e_x, e_y. */
-    const EI dflt = is_ident | is_zero;
-    const ET wid = EIG3_SEL(q * f1 * f2, zero, is_zero);
+    const EIG3_I dflt = is_ident | is_zero;
+    const EIG3_T wid = EIG3_SEL(q * f1 * f2, zero, is_zero);
     *w0 = EIG3_SEL(l0 * f1 * f2, wid, dflt);
     *w1 = EIG3_SEL(l1 * f1 * f2, wid, dflt);
     *w2 = EIG3_SEL(l2 * f1 * f2, wid, dflt);
@@ -370,7 +370,7 @@ inline void EIG3_FN(eig3_sym_g)(ET a00, ET a01, ET a02, ET a11, ET a12, ET a22,
     *v2 = EIG3_FN(eig3_sel3)(x2, EIG3_FN(eig3_vec)(zero, one, zero), dflt);
 }
 
-#undef V3
-#undef M3
+#undef EIG3_V3
+#undef EIG3_M3
 
 #endif /* EIG3_GENERIC_PASS */

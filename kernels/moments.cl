@@ -1,8 +1,9 @@
 /* moments.cl -- neighbour counts and the PCA moments of the ball N_r(p) around each point.
  *
- * One work-item per sorted point. Offsets are taken relative to the query point p, so the
- * sums are small numbers and large coordinates do not matter. Outputs are scattered to the
- * input order through `order`.
+ * count_neighbors: one work-item per sorted point; moments: one work-item per VW
+ * consecutive sorted points (see there). Offsets are taken relative to the query point p,
+ * so the sums are small numbers and large coordinates do not matter. Outputs are
+ * scattered to the input order through `order`.
  *
  * Build options: DENSITY (0|1) weights w(q) = 1/#N_r(q) read from W;
  *                REFINE_L0 (0|1) second pass giving lambda0 = sum w <q - o, v0>^2 / sum w
@@ -55,8 +56,8 @@ inline void store3(__global REAL *a, size_t j, REAL3 v)
     a[3 * j] = v.x; a[3 * j + 1] = v.y; a[3 * j + 2] = v.z;
 }
 
-/* Neighbour sums of the sorted point g: count c, 1 / sum w, mu = o - p and the centred
-   weighted covariance (xx, xy, xz, yy, yz, zz) into lane k of the staging arrays. */
+/* Neighbour sums of the query point p (in cell `cell`): count c, 1 / sum w, mu = o - p and
+   the centred weighted covariance cov = (xx, xy, xz, yy, yz, zz). */
 inline void point_moments(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
                           __global const REAL *W, __global const uint2 *ranges, uint cell,
                           REAL3 p, REAL r2, uint *c, REAL *iw_out, REAL3 *mu_out, REAL *cov)
@@ -67,14 +68,21 @@ inline void point_moments(__global const REAL *X, __global const REAL *Y, __glob
     NEIGHBOR_CHUNKS_BEGIN(ranges, cell, i, end)
         const IREALV m = chunk_offsets(X, Y, Z, i, end, p, r2, &dx, &dy, &dz);
         const REALV w = select((REALV)0, CHUNK_WEIGHT(i), m);
+#if DENSITY
         sc += select((REALV)0, (REALV)1, m);
+#endif
         const REALV wx = w * dx, wy = w * dy, wz = w * dz;
         sw += w; sx += wx; sy += wy; sz += wz;
         sxx += wx * dx; sxy += wx * dy; sxz += wx * dz;
         syy += wy * dy; syz += wy * dz; szz += wz * dz;
     NEIGHBOR_CHUNKS_END
+    const REAL w_sum = hsum(sw);
+#if DENSITY
     *c = (uint)hsum(sc);
-    const REAL iw = (REAL)1 / hsum(sw);
+#else
+    *c = (uint)w_sum;                 /* w = 1: the sum of the weights is the count (exact) */
+#endif
+    const REAL iw = (REAL)1 / w_sum;
     const REAL3 mu = (REAL3)(hsum(sx), hsum(sy), hsum(sz)) * iw;   /* o - p */
     *iw_out = iw;
     *mu_out = mu;
@@ -147,12 +155,20 @@ __kernel void moments(__global const REAL *X, __global const REAL *Y, __global c
 #if REFINE_L0
         if (st == ST_OK) {
             const REAL3 p = (REAL3)(X[g], Y[g], Z[g]);
+            /* h = <q - o, v0> = <q - p, v0> - <o - p, v0>: both terms are heights above the
+               tangent plane, small on a smooth surface, so the split costs no accuracy */
+            const REAL h0 = dot(mu, v0);
             REALV s0 = 0;
             REALV dx, dy, dz;
             NEIGHBOR_CHUNKS_BEGIN(ranges, cell_of[g], i, end)
                 const IREALV m = chunk_offsets(X, Y, Z, i, end, p, r2, &dx, &dy, &dz);
-                const REALV h = (dx - mu.x) * v0.x + (dy - mu.y) * v0.y + (dz - mu.z) * v0.z;
+                const REALV h = dx * v0.x + dy * v0.y + dz * v0.z - h0;
+#if DENSITY
                 s0 += select((REALV)0, CHUNK_WEIGHT(i), m) * h * h;
+#else
+                const REALV hm = select((REALV)0, h, m);
+                s0 += hm * hm;
+#endif
             NEIGHBOR_CHUNKS_END
             lam.x = hsum(s0) * iws[k];
         }

@@ -1,0 +1,342 @@
+"""Render a point cloud coloured by a per-point field to a PNG (matplotlib, Agg, no display).
+
+:func:`render` draws orthographic projections of the cloud from two or three viewpoints side
+by side, with one colorbar and a caption giving the point, drawn-point and NaN counts::
+
+    import clcurv
+    from clcurv.render import render
+    res = clcurv.curvature(pts, 0.01, method="mls1")
+    render(pts, res.mean, "bunny_H.png", field="mean_curvature", unit="1/m")
+
+Views follow the usual scanned-object convention (y up, as in the Stanford models):
+
+========  ===================  ==================  ===============
+name      seen from            screen right, up    nearer points
+========  ===================  ==================  ===============
+front     +z                   +x, +y              larger z
+back      -z                   -x, +y              smaller z
+side      +x  (alias "right")  -z, +y              larger x
+left      -x                   +z, +y              smaller x
+top       +y                   +x, -z              larger y
+bottom    -y                   +x, +z              smaller y
+iso       (+1, +1, +1)         oblique, y up       larger x+y+z
+========  ===================  ==================  ===============
+
+For z-up data (LiDAR, terrain) pass e.g. ``views=("top", "front", "side")`` and read
+"front" as a vertical section; all views of one figure share the same scale.
+
+Points are sorted by depth so that near points are drawn last (over far ones). Signed fields
+use a diverging colormap centred on 0 ("RdBu_r", symmetric limits); unsigned ones "viridis".
+Colour limits are robust percentiles of the finite values; NaN values are drawn light grey.
+
+matplotlib is imported inside :func:`render` only; without it :class:`MissingMatplotlibError`
+(an ``ImportError``) says how to install it.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["render", "MissingMatplotlibError", "VIEWS", "SIGNED_FIELDS"]
+
+#: Field names treated as signed (diverging colormap) when ``signed=None`` and the values
+#: take both signs.
+SIGNED_FIELDS = frozenset({"mean_curvature", "gaussian_curvature", "k1", "k2", "mean",
+                           "gaussian", "h", "k"})
+
+_S3 = 1.0 / np.sqrt(3.0)
+_S2 = 1.0 / np.sqrt(2.0)
+_S6 = 1.0 / np.sqrt(6.0)
+
+#: name -> (screen right, screen up, towards the viewer), each a unit 3-vector.
+VIEWS = {
+    "front": ((1, 0, 0), (0, 1, 0), (0, 0, 1)),
+    "back": ((-1, 0, 0), (0, 1, 0), (0, 0, -1)),
+    "side": ((0, 0, -1), (0, 1, 0), (1, 0, 0)),
+    "right": ((0, 0, -1), (0, 1, 0), (1, 0, 0)),
+    "left": ((0, 0, 1), (0, 1, 0), (-1, 0, 0)),
+    "top": ((1, 0, 0), (0, 0, -1), (0, 1, 0)),
+    "bottom": ((1, 0, 0), (0, 0, 1), (0, -1, 0)),
+    "iso": ((_S2, 0, -_S2), (-_S6, 2 * _S6, -_S6), (_S3, _S3, _S3)),
+}
+
+_AXIS_NAMES = {(1, 0, 0): "x", (0, 1, 0): "y", (0, 0, 1): "z"}
+_NAN_GREY = "#c8c8c8"
+
+
+class MissingMatplotlibError(ImportError):
+    """matplotlib is not installed; ``pip install matplotlib`` (or ``clcurv[render]``)."""
+
+
+def _import_matplotlib():
+    try:
+        import matplotlib  # noqa: F401
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+    except ImportError as exc:  # pragma: no cover - exercised only without matplotlib
+        raise MissingMatplotlibError(
+            "clcurv.render needs matplotlib: pip install matplotlib "
+            '(or pip install "clcurv[render]")') from exc
+    return matplotlib, Figure, FigureCanvasAgg
+
+
+def _axis_label(vec):
+    """'+x', '-z', or '' for an oblique direction."""
+    v = tuple(int(round(c)) for c in vec)
+    if sum(abs(c) for c in v) != 1 or not np.allclose(vec, v):
+        return ""
+    sign = "-" if min(v) < 0 else "+"
+    return sign + _AXIS_NAMES[tuple(abs(c) for c in v)]
+
+
+def _is_signed(signed, field, lo, hi, finite):
+    if signed is not None:
+        return bool(signed)
+    if finite.size == 0:
+        return False
+    if lo < 0 < hi:
+        return True
+    vmin, vmax = float(finite.min()), float(finite.max())
+    return str(field).lower() in SIGNED_FIELDS and vmin < 0 < vmax
+
+
+def _fmt_count(n):
+    return f"{n:,}"
+
+
+def _point_diameter_px(u, v, scale_px, n_total_drawn):
+    """Marker diameter (pixels) so that the projected points roughly tile the silhouette.
+
+    The silhouette area is estimated on a coarse occupancy grid; about half of the points are
+    assumed on the visible side of a closed surface.
+    """
+    if u.size == 0:
+        return 2.0
+    bins = 48
+    du = max(float(np.ptp(u)), 1e-300)
+    dv = max(float(np.ptp(v)), 1e-300)
+    h, _, _ = np.histogram2d(u, v, bins=bins)
+    occupied = np.count_nonzero(h) / (bins * bins)
+    area_px = max(occupied * du * dv * scale_px * scale_px, 1.0)
+    visible = max(0.5 * n_total_drawn, 1.0)
+    d = 1.5 * np.sqrt(area_px / visible)
+    return float(np.clip(d, 0.9, 9.0))
+
+
+def render(points, values, path, *, field="mean_curvature", unit="1/length unit",
+           signed=None, views=("front", "side", "top"), max_points=200_000,
+           percentiles=(2, 98), title=None, dpi=110, seed=0) -> Path:
+    """Write a PNG of ``points`` coloured by ``values`` seen from ``views``; return its path.
+
+    Parameters
+    ----------
+    points : (N, 3) array_like
+        Positions. Rows with a non-finite coordinate are not drawn (counted in the caption).
+    values : (N,) array_like
+        The per-point field (NaN allowed: drawn light grey and counted in the caption).
+    path : str or Path
+        Output PNG file; parent directories are created.
+    field, unit : str
+        Colorbar label ``"field [unit]"`` (``unit`` may be empty or None).
+    signed : bool or None
+        Diverging colormap centred on 0 (True) or sequential (False). None: signed when the
+        robust range contains both signs, or when ``field`` is a curvature name
+        (:data:`SIGNED_FIELDS`) and the values take both signs.
+    views : sequence of str
+        1 to 6 names from :data:`VIEWS`, drawn left to right at a common scale.
+    max_points : int
+        Draw at most this many points, a uniform random subsample (``seed``) when N is larger.
+    percentiles : (lo, hi)
+        Colour limits from these percentiles of the finite values (symmetric ``+-max(|lo|,
+        |hi|)`` when signed); values beyond are clipped to the colormap ends.
+    title : str or None
+        First line of the caption (default: the field name).
+    dpi : int
+        The PNG is ``figsize * dpi`` pixels; the figure is ``(3.7 * len(views) + 0.9) x 4.5``
+        inches (12 x 4.5 for three views).
+    seed : int
+        Seed of the subsample.
+
+    Raises
+    ------
+    ValueError
+        ``points`` not (N, 3), ``values`` not of length N, bad ``views``, ``percentiles``,
+        ``max_points`` or ``dpi``.
+    MissingMatplotlibError
+        matplotlib is not installed (an ``ImportError``).
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"points must be an (N, 3) array, got shape {pts.shape}")
+    n = pts.shape[0]
+    vals = np.asarray(values, dtype=np.float64)
+    if vals.ndim == 2 and vals.shape[1] == 1:
+        vals = vals[:, 0]
+    if vals.ndim != 1 or vals.shape[0] != n:
+        raise ValueError(f"values must have one entry per point ({n}), got shape {vals.shape}")
+    if isinstance(views, str):
+        views = (views,)
+    views = tuple(views)
+    if not 1 <= len(views) <= 6:
+        raise ValueError(f"views must name 1 to 6 viewpoints, got {len(views)}")
+    for name in views:
+        if name not in VIEWS:
+            raise ValueError(f"unknown view {name!r}; choose from {', '.join(VIEWS)}")
+    try:
+        p_lo, p_hi = (float(p) for p in percentiles)
+    except (TypeError, ValueError):
+        raise ValueError(f"percentiles must be a pair (lo, hi), got {percentiles!r}") from None
+    if not 0.0 <= p_lo < p_hi <= 100.0:
+        raise ValueError(f"percentiles must satisfy 0 <= lo < hi <= 100, got {percentiles!r}")
+    if int(max_points) < 1:
+        raise ValueError(f"max_points must be >= 1, got {max_points}")
+    if dpi <= 0:
+        raise ValueError(f"dpi must be positive, got {dpi}")
+    max_points = int(max_points)
+
+    matplotlib, Figure, FigureCanvasAgg = _import_matplotlib()
+    from matplotlib.colors import Normalize
+    from matplotlib.cm import ScalarMappable
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+
+    # --- colour scale from all finite values (before subsampling) ---------------------------
+    finite_mask = np.isfinite(vals)
+    finite = vals[finite_mask]
+    n_nan = int(n - finite.size)
+    if finite.size:
+        lo, hi = (float(x) for x in np.percentile(finite, [p_lo, p_hi]))
+    else:
+        lo, hi = 0.0, 1.0
+    is_signed = _is_signed(signed, field, lo, hi, finite)
+    if is_signed:
+        m = max(abs(lo), abs(hi))
+        if not m > 0:
+            m = float(np.max(np.abs(finite))) if finite.size else 0.0
+        if not m > 0:
+            m = 1.0
+        vmin, vmax = -m, m
+        cmap_name = "RdBu_r"
+    else:
+        vmin, vmax = lo, hi
+        if not vmax > vmin:
+            pad = abs(vmin) * 0.05 if vmin != 0 else 0.5
+            vmin, vmax = vmin - pad, vmax + pad
+        cmap_name = "viridis"
+    cmap = matplotlib.colormaps[cmap_name].with_extremes(bad=_NAN_GREY)
+    norm = Normalize(vmin=vmin, vmax=vmax)
+    below = finite.size and float(finite.min()) < vmin
+    above = finite.size and float(finite.max()) > vmax
+    extend = {(True, True): "both", (True, False): "min",
+              (False, True): "max"}.get((bool(below), bool(above)), "neither")
+
+    # --- subsample, drop non-finite positions -----------------------------------------------
+    if n > max_points:
+        rng = np.random.default_rng(seed)
+        idx = np.sort(rng.choice(n, size=max_points, replace=False))
+    else:
+        idx = np.arange(n)
+    n_shown = idx.size
+    good = np.all(np.isfinite(pts[idx]), axis=1)
+    n_bad_pos = int(n_shown - np.count_nonzero(good))
+    idx = idx[good]
+    sp = pts[idx]
+    sv = vals[idx]
+    center = 0.5 * (sp.min(axis=0) + sp.max(axis=0)) if sp.size else np.zeros(3)
+    sp = sp - center
+
+    # --- layout (inches): panels side by side, colorbar at the right ------------------------
+    nv = len(views)
+    panel_w, fig_h = 3.7, 4.5
+    left_pad, cbar_w = 0.1, 0.9
+    fig_w = panel_w * nv + cbar_w
+    top_pad, bottom_pad = 0.75, 0.1
+    panel_h = fig_h - top_pad - bottom_pad
+    inner_w, inner_h = panel_w - 2 * left_pad, panel_h - 0.25  # room for the view label
+
+    fig = Figure(figsize=(fig_w, fig_h), dpi=dpi, facecolor="white")
+    FigureCanvasAgg(fig)
+
+    projections = []
+    for name in views:
+        r, up, toward = (np.asarray(a, dtype=np.float64) for a in VIEWS[name])
+        projections.append((sp @ r, sp @ up, sp @ toward))
+    # common scale: data units per inch that fits every view in its panel
+    need = 1e-300
+    for u, v, _ in projections:
+        if u.size:
+            need = max(need, np.ptp(u) / inner_w, np.ptp(v) / inner_h)
+    units_per_inch = need * 1.06
+    if not np.isfinite(units_per_inch) or units_per_inch <= 1e-300:
+        units_per_inch = 1.0
+    scale_px = dpi / units_per_inch  # pixels per data unit
+
+    for k, (name, (u, v, depth)) in enumerate(zip(views, projections)):
+        x0 = (k * panel_w + left_pad) / fig_w
+        ax = fig.add_axes((x0, bottom_pad / fig_h, inner_w / fig_w, inner_h / fig_h))
+        ax.set_facecolor("white")
+        ax.set_xticks([])
+        ax.set_yticks([])
+        for s in ax.spines.values():
+            s.set_visible(False)
+        cu = 0.5 * (u.min() + u.max()) if u.size else 0.0
+        cv = 0.5 * (v.min() + v.max()) if v.size else 0.0
+        half_w = 0.5 * inner_w * units_per_inch
+        half_h = 0.5 * inner_h * units_per_inch
+        ax.set_xlim(cu - half_w, cu + half_w)
+        ax.set_ylim(cv - half_h, cv + half_h)
+        ax.set_aspect("equal", adjustable="box")
+        r, up, _ = VIEWS[name]
+        lr, lu = _axis_label(r), _axis_label(up)
+        label = f"{name}  ({lr} \u2192, {lu} \u2191)" if lr and lu else name
+        ax.set_title(label, fontsize=9, color="#555555", pad=4)
+        if u.size == 0:
+            continue
+        order = np.argsort(depth, kind="stable")  # far first, near last
+        d_px = _point_diameter_px(u, v, scale_px, u.size)
+        size_pt2 = (d_px * 72.0 / dpi) ** 2
+        ax.scatter(u[order], v[order], c=sv[order], s=size_pt2, cmap=cmap, norm=norm,
+                   marker="o", linewidths=0, edgecolors="none", plotnonfinite=True,
+                   rasterized=True)
+
+    # --- colorbar ------------------------------------------------------------------------
+    cax = fig.add_axes(((fig_w - cbar_w + 0.12) / fig_w, (bottom_pad + 0.35) / fig_h,
+                        0.16 / fig_w, (panel_h - 0.85) / fig_h))
+    sm = ScalarMappable(norm=norm, cmap=cmap)
+    sm.set_array(np.array([]))
+    cb = fig.colorbar(sm, cax=cax, extend=extend)
+    label = f"{field} [{unit}]" if unit else f"{field}"
+    cb.set_label(label, fontsize=9)
+    cb.ax.tick_params(labelsize=8)
+    cb.formatter.set_powerlimits((-3, 4))
+    cb.update_ticks()
+
+    # --- caption -------------------------------------------------------------------------
+    head = title if title is not None else field
+    parts = [f"{_fmt_count(n)} points"]
+    if n_shown < n:
+        parts = [f"showing {_fmt_count(n_shown)} of {_fmt_count(n)} points "
+                 f"(uniform random subsample, seed {seed})"]
+    if n == 0:
+        parts = ["no points"]
+    elif n_nan == n:
+        parts.append(f"all {_fmt_count(n)} values are NaN (drawn grey)")
+    elif n_nan:
+        parts.append(f"{_fmt_count(n_nan)} NaN (grey)")
+    else:
+        parts.append("no NaN")
+    if n_bad_pos:
+        parts.append(f"{_fmt_count(n_bad_pos)} with non-finite coordinates not drawn")
+    if finite.size:
+        scale = "signed, centred on 0" if is_signed else "sequential"
+        parts.append(f"colour range {vmin:.3g} .. {vmax:.3g} "
+                     f"(p{p_lo:g}-p{p_hi:g}, {scale})")
+    fig.text(0.5, 1 - 0.18 / fig_h, head, ha="center", va="top", fontsize=12,
+             fontweight="bold")
+    fig.text(0.5, 1 - 0.45 / fig_h, "  \u00b7  ".join(parts), ha="center", va="top",
+             fontsize=9, color="#333333")
+
+    fig.savefig(path, dpi=dpi, format="png", facecolor="white")
+    return path

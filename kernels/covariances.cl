@@ -1,0 +1,137 @@
+/* covariances.cl -- the normal-based "fundamental forms" of Digne & Morel (Section 4):
+ *   COV_METHOD 1  2dcov1: covariance of alpha_i = <d_i, n> (<d_i, t1>, <d_i, t2>)  (Theorem 1)
+ *   COV_METHOD 2  2dcov2: covariance of the neighbours' unit normals projected on the
+ *                 tangent plane at p (Theorem 2; PCL's PrincipalCurvaturesEstimation)
+ *   COV_METHOD 3  3dcov:  covariance of the neighbours' unit normals (Theorem 3)
+ * with d_i = q_i - p and (t1, t2, n) the tangent frame of p's oriented unit normal n.
+ * Covariances are weighted and normalised by the sum of weights (= Sigma / n_p for uniform
+ * weights, the paper's count normalisation). The 3D normals are accumulated relative to n
+ * (a shift leaves a covariance unchanged and keeps float32 sums small).
+ *
+ * Outputs per point (input order): count, status, eigenvalues (descending; 2 or 3), the
+ * curvature magnitudes k1 >= k2 >= 0 (1/length) and the unit tangent directions dir1, dir2
+ * (dir2 = n x dir1). A NaN normal anywhere in the ball gives status DEGENERATE.
+ */
+#include "common.h"
+#include "neighbors.h"
+#include "weights.h"
+#include "frame.h"
+#include "eig3.h"
+
+#ifndef COV_METHOD
+#define COV_METHOD 2
+#endif
+
+inline void store3c(__global REAL *a, size_t j, REAL3 v)
+{
+    a[3 * j] = v.x; a[3 * j + 1] = v.y; a[3 * j + 2] = v.z;
+}
+
+/* |k1| >= |k2| from 2dcov1's count-normalised eigenvalues (Theorem 1), keeping the root
+ * m+ of m = (k1 + k2)^2 (the k1 k2 >= 0 solution whenever one exists), as
+ * reference.invert_theorem1 documents. */
+inline REAL2 invert_theorem1(REAL l1, REAL l2, REAL r)
+{
+    const REAL r2 = r * r;
+    const REAL s = (REAL)256 / (r2 * r2 * r2);
+    const REAL u = l1 * s, v = l2 * s, S = u + v;
+    const REAL m = (S + sqrt(fmax((REAL)8 * u * v - S * S, (REAL)0))) / (REAL)8;
+    return (REAL2)(sqrt(fmax(u - m, (REAL)0) * (REAL)0.25), sqrt(fmax(v - m, (REAL)0) * (REAL)0.25));
+}
+
+__kernel void covariance(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
+                         __global const REAL *NX, __global const REAL *NY,
+                         __global const REAL *NZ, __global const REAL *W,
+                         __global const uint *cell_of, __global const uint2 *ranges,
+                         __global const uint *order, const uint n, const REAL r,
+                         __global uint *count, __global uchar *status,
+                         __global REAL *eigval, __global REAL *k12,
+                         __global REAL *dir1, __global REAL *dir2)
+{
+    const uint g = get_global_id(0);
+    if (g >= n) return;
+    const REAL3 p = (REAL3)(X[g], Y[g], Z[g]);
+    const REAL3 nrm = (REAL3)(NX[g], NY[g], NZ[g]);
+    REAL3 t1, t2;
+    tangent_frame(nrm, &t1, &t2);
+    const REAL r2 = r * r;
+    REALV sc = 0, sw = 0, sa = 0, sb = 0, sd = 0, saa = 0, sab = 0, sad = 0, sbb = 0, sbd = 0, sdd = 0;
+    REALV dx, dy, dz;
+    NEIGHBOR_CHUNKS_BEGIN(ranges, cell_of[g], i, end)
+        const IREALV m = chunk_offsets(X, Y, Z, i, end, p, r2, &dx, &dy, &dz);
+        const REALV w = chunk_weights(W, i, dx, dy, dz, m, (REAL)0);
+        sc += select((REALV)0, (REALV)1, m);
+#if COV_METHOD == 1
+        const REALV s = dx * nrm.x + dy * nrm.y + dz * nrm.z;
+        const REALV fa = s * (dx * t1.x + dy * t1.y + dz * t1.z);
+        const REALV fb = s * (dx * t2.x + dy * t2.y + dz * t2.z);
+        const REALV fd = 0;
+#else
+        const REALV qx = VLOADV(0, NX + i), qy = VLOADV(0, NY + i), qz = VLOADV(0, NZ + i);
+#if COV_METHOD == 2
+        const REALV fa0 = qx * t1.x + qy * t1.y + qz * t1.z;
+        const REALV fb0 = qx * t2.x + qy * t2.y + qz * t2.z;
+        const REALV fd0 = 0;
+#else
+        const REALV fa0 = qx - nrm.x, fb0 = qy - nrm.y, fd0 = qz - nrm.z;
+#endif
+        /* lanes outside the ball have w = 0, but a NaN normal there must not leak */
+        const REALV fa = select((REALV)0, fa0, m), fb = select((REALV)0, fb0, m);
+        const REALV fd = select((REALV)0, fd0, m);
+#endif
+        const REALV wa = w * fa, wb = w * fb;
+        sw += w; sa += wa; sb += wb; saa += wa * fa; sab += wa * fb; sbb += wb * fb;
+#if COV_METHOD == 3
+        const REALV wd = w * fd;
+        sd += wd; sad += wa * fd; sbd += wb * fd; sdd += wd * fd;
+#endif
+    NEIGHBOR_CHUNKS_END
+    const uint c = (uint)hsum(sc);
+    const REAL iw = (REAL)1 / hsum(sw);
+    const REAL ma = hsum(sa) * iw, mb = hsum(sb) * iw;
+    const REAL caa = hsum(saa) * iw - ma * ma, cab = hsum(sab) * iw - ma * mb;
+    const REAL cbb = hsum(sbb) * iw - mb * mb;
+    REAL3 lam = (REAL3)(0);
+    REAL3 e1 = t1;
+#if COV_METHOD == 3
+    const REAL md = hsum(sd) * iw;
+    const REAL cad = hsum(sad) * iw - ma * md, cbd = hsum(sbd) * iw - mb * md;
+    const REAL cdd = hsum(sdd) * iw - md * md;
+    REAL3 w3, v0, v1, v2;
+    eig3_sym(caa, cab, cad, cbb, cbd, cdd, &w3, &v0, &v1, &v2);
+    lam = fmax((REAL3)(w3.z, w3.y, w3.x), (REAL3)0);     /* descending */
+    const REAL3 tang = v2 - dot(v2, nrm) * nrm;           /* largest, on the tangent plane */
+    e1 = length(tang) > (REAL)1e-3 ? normalize(tang) : t1;
+    REAL2 k = (REAL)2 / r * sqrt(lam.xy);
+#else
+    REAL l1, l2;
+    REAL2 ev;
+    eig2_sym(caa, cab, cbb, &l1, &l2, &ev);
+    lam = fmax((REAL3)(l1, l2, 0), (REAL3)0);
+    e1 = ev.x * t1 + ev.y * t2;
+#if COV_METHOD == 1
+    REAL2 k = invert_theorem1(lam.x, lam.y, r);
+#else
+    REAL2 k = (REAL)2 / r * sqrt(lam.xy);
+#endif
+#endif
+    uchar st = ST_OK;
+    if (c < 3) st = ST_TOO_FEW;
+    else if (!(isfinite(lam.x) && isfinite(lam.y) && isfinite(lam.z) && isfinite(e1.x)
+               && isfinite(nrm.x))) st = ST_DEGENERATE;
+    const size_t j = order[g];
+    count[j] = c;
+    status[j] = st;
+    const REAL nan = NAN;
+    if (st != ST_OK) {
+        lam = (REAL3)(nan); k = (REAL2)(nan); e1 = (REAL3)(nan);
+    }
+#if COV_METHOD == 3
+    store3c(eigval, j, lam);
+#else
+    eigval[2 * j] = lam.x; eigval[2 * j + 1] = lam.y;
+#endif
+    k12[2 * j] = k.x; k12[2 * j + 1] = k.y;
+    store3c(dir1, j, e1);
+    store3c(dir2, j, st == ST_OK ? cross(nrm, e1) : (REAL3)(nan));
+}

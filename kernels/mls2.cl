@@ -1,0 +1,136 @@
+/* mls2.cl -- MLS2 (Digne & Morel operator 7): weighted least-squares quadric in the PCA frame.
+ *
+ * Per point p: weighted PCA of the ball (pca.h) gives o and v0, oriented to agree with the
+ * reference normal of p when REF_NORMALS is given (user or oriented PCA normals); Q is the
+ * projection of p on the regression plane, (t1, t2, v0) the frame at Q. The heights
+ * h = <q - Q, v0> are fitted by g(x, y) = a0 + a1 x + a2 y + a3 x^2 + a4 xy + a5 y^2 with
+ * (x, y) = (<q - Q, t1>, <q - Q, t2>) / r (scaled for conditioning), a 6x6 LDL^T solve.
+ * The projection is Q + a0 v0. Principal curvatures: eigenvalues of the shape operator
+ * I^-1 II of the graph at the origin, negated to clcurv's convention (outward normal, a
+ * sphere is positive), k1 >= k2; directions mapped to 3D through (1, 0, gx), (0, 1, gy).
+ *
+ * Outputs (input order): count, status, shift = projection - p, k1 k2, dir1, dir2 (= normal
+ * x dir1), the fitted unit normal.
+ */
+#include "common.h"
+#include "neighbors.h"
+#include "weights.h"
+#include "pca.h"
+#include "frame.h"
+#include "eig3.h"
+#include "solve6.h"
+
+#if REAL_IS_DOUBLE
+#define DEGENERATE_RATIO 1e-10
+#else
+#define DEGENERATE_RATIO 1e-5f
+#endif
+
+inline void put3(__global REAL *a, size_t j, REAL3 v)
+{
+    a[3 * j] = v.x; a[3 * j + 1] = v.y; a[3 * j + 2] = v.z;
+}
+
+/* Unit eigenvector (in the parameter plane) of the 2x2 matrix s for its eigenvalue lam. */
+inline REAL2 eigvec2(REAL s00, REAL s01, REAL s10, REAL s11, REAL lam)
+{
+    const REAL2 a = (REAL2)(s01, lam - s00), b = (REAL2)(lam - s11, s10);
+    const REAL na = dot(a, a), nb = dot(b, b);
+    const REAL2 v = na >= nb ? a : b;
+    const REAL nv = sqrt(fmax(na, nb));
+    return nv > (REAL)1e-12 * (fabs(s00) + fabs(s11) + fabs(s01) + fabs(s10)) && nv > 0
+           ? v / nv : (REAL2)(1, 0);
+}
+
+__kernel void mls2(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
+                   __global const REAL *NX, __global const REAL *NY, __global const REAL *NZ,
+                   __global const REAL *W, __global const uint *cell_of,
+                   __global const uint2 *ranges, __global const uint *order, const uint n,
+                   const REAL r, const REAL ih2, const int use_ref,
+                   __global uint *count, __global uchar *status, __global REAL *shift,
+                   __global REAL *k12, __global REAL *dir1, __global REAL *dir2,
+                   __global REAL *normal)
+{
+    const uint g = get_global_id(0);
+    if (g >= n) return;
+    const REAL3 p = (REAL3)(X[g], Y[g], Z[g]);
+    const uint cell = cell_of[g];
+    const REAL r2 = r * r, ir = (REAL)1 / r;
+    const pca_t pc = pca_ball(X, Y, Z, W, ranges, cell, p, r2, ih2);
+    REAL3 lam, v0, v1, v2;
+    eig3_sym(pc.cxx, pc.cxy, pc.cxz, pc.cyy, pc.cyz, pc.czz, &lam, &v0, &v1, &v2);
+    uchar st = ST_OK;
+    if (pc.count < 6) st = ST_TOO_FEW;
+    else if (!(lam.z > 0) || lam.y <= DEGENERATE_RATIO * lam.z) st = ST_DEGENERATE;
+    if (use_ref) {
+        const REAL s = dot(v0, (REAL3)(NX[g], NY[g], NZ[g]));
+        if (!(s != 0)) st = st == ST_OK ? ST_DEGENERATE : st;   /* also NaN */
+        if (s < 0) v0 = -v0;
+    }
+    REAL3 t1, t2;
+    tangent_frame(v0, &t1, &t2);
+    const REAL3 qo = dot(pc.mu, v0) * v0;          /* Q - p */
+    const REAL3 c = qo;
+    REAL a[6] = {0, 0, 0, 0, 0, 0};
+    if (st == ST_OK) {
+        REALV s00 = 0, s10 = 0, s01 = 0, s20 = 0, s11 = 0, s02 = 0, s30 = 0, s21 = 0;
+        REALV s12 = 0, s03 = 0, s40 = 0, s31 = 0, s22 = 0, s13 = 0, s04 = 0;
+        REALV h0 = 0, hx = 0, hy = 0, hxx = 0, hxy = 0, hyy = 0;
+        REALV dx, dy, dz;
+        NEIGHBOR_CHUNKS_BEGIN(ranges, cell, i, end)
+            const IREALV m = chunk_offsets(X, Y, Z, i, end, p, r2, &dx, &dy, &dz);
+            const REALV w = chunk_weights(W, i, dx, dy, dz, m, ih2);
+            const REALV ex = dx - c.x, ey = dy - c.y, ez = dz - c.z;
+            const REALV x = (ex * t1.x + ey * t1.y + ez * t1.z) * ir;
+            const REALV y = (ex * t2.x + ey * t2.y + ez * t2.z) * ir;
+            const REALV h = ex * v0.x + ey * v0.y + ez * v0.z;
+            const REALV wx = w * x, wy = w * y, wxx = wx * x, wxy = wx * y, wyy = wy * y;
+            s00 += w; s10 += wx; s01 += wy; s20 += wxx; s11 += wxy; s02 += wyy;
+            s30 += wxx * x; s21 += wxx * y; s12 += wxy * y; s03 += wyy * y;
+            s40 += wxx * x * x; s31 += wxx * x * y; s22 += wxx * y * y;
+            s13 += wxy * y * y; s04 += wyy * y * y;
+            h0 += w * h; hx += wx * h; hy += wy * h; hxx += wxx * h; hxy += wxy * h; hyy += wyy * h;
+        NEIGHBOR_CHUNKS_END
+        const REAL S00 = hsum(s00), S10 = hsum(s10), S01 = hsum(s01), S20 = hsum(s20);
+        const REAL S11 = hsum(s11), S02 = hsum(s02), S30 = hsum(s30), S21 = hsum(s21);
+        const REAL S12 = hsum(s12), S03 = hsum(s03), S40 = hsum(s40), S31 = hsum(s31);
+        const REAL S22 = hsum(s22), S13 = hsum(s13), S04 = hsum(s04);
+        /* packed lower triangle of sum w phi phi^T, phi = (1, x, y, x^2, xy, y^2) */
+        REAL M[21] = {S00,
+                      S10, S20,
+                      S01, S11, S02,
+                      S20, S30, S21, S40,
+                      S11, S21, S12, S31, S22,
+                      S02, S12, S03, S22, S13, S04};
+        const REAL b[6] = {hsum(h0), hsum(hx), hsum(hy), hsum(hxx), hsum(hxy), hsum(hyy)};
+        if (!solve6(M, b, a)) st = ST_SINGULAR;
+    }
+    const size_t j = order[g];
+    count[j] = pc.count;
+    status[j] = st;
+    if (st != ST_OK) {
+        const REAL nan = NAN;
+        put3(shift, j, (REAL3)(nan)); put3(dir1, j, (REAL3)(nan)); put3(dir2, j, (REAL3)(nan));
+        put3(normal, j, (REAL3)(nan)); k12[2 * j] = nan; k12[2 * j + 1] = nan;
+        return;
+    }
+    const REAL gx = a[1] * ir, gy = a[2] * ir;
+    const REAL gxx = 2 * a[3] * ir * ir, gxy = a[4] * ir * ir, gyy = 2 * a[5] * ir * ir;
+    const REAL q = 1 + gx * gx + gy * gy, iq = (REAL)1 / q, wn = rsqrt(q);
+    const REAL Lxx = gxx * wn, Lxy = gxy * wn, Lyy = gyy * wn;          /* II */
+    const REAL i00 = (1 + gy * gy) * iq, i01 = -gx * gy * iq, i11 = (1 + gx * gx) * iq;  /* I^-1 */
+    const REAL S00 = i00 * Lxx + i01 * Lxy, S01 = i00 * Lxy + i01 * Lyy;
+    const REAL S10 = i01 * Lxx + i11 * Lxy, S11 = i01 * Lxy + i11 * Lyy;
+    const REAL hmean = (REAL)0.5 * (S00 + S11);
+    const REAL disc = sqrt(fmax(hmean * hmean - (S00 * S11 - S01 * S10), (REAL)0));
+    const REAL lo = hmean - disc;                    /* -> k1 = -lo (the largest k) */
+    const REAL2 e = eigvec2(S00, S01, S10, S11, lo);
+    const REAL3 nfit = (v0 - gx * t1 - gy * t2) * wn;
+    const REAL3 d1 = normalize(e.x * (t1 + gx * v0) + e.y * (t2 + gy * v0));
+    put3(shift, j, qo + a[0] * v0);
+    k12[2 * j] = -lo;
+    k12[2 * j + 1] = -(hmean + disc);
+    put3(dir1, j, d1);
+    put3(dir2, j, cross(nfit, d1));
+    put3(normal, j, nfit);
+}

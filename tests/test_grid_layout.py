@@ -1,0 +1,85 @@
+"""Host binning (clcurv/grid.py) and the device cell ranges (kernels/grid.cl) against a
+brute-force numpy construction."""
+import numpy as np
+import pyopencl as cl
+import pytest
+
+from clcurv import grid as G
+from clcurv.cloud import DeviceCloud
+
+
+def clouds():
+    rng = np.random.default_rng(7)
+    sphere = rng.normal(size=(30_000, 3))
+    sphere /= np.linalg.norm(sphere, axis=1)[:, None]
+    blob = rng.uniform(-1, 1, (5_000, 3)) * [3.0, 1.0, 0.2] + 1e6     # offset, flat
+    line = np.stack([np.linspace(0, 1, 2_000)] + [np.zeros(2_000)] * 2, 1)   # nx only
+    dup = np.repeat(rng.uniform(size=(50, 3)), 20, axis=0)              # coincident points
+    return {"sphere": (sphere, 0.05), "blob": (blob, 0.1), "line": (line, 0.01),
+            "dup": (dup, 0.2)}
+
+
+@pytest.mark.parametrize("name", list(clouds()))
+def test_bin_points_layout(name):
+    pts, cell = clouds()[name]
+    g = G.bin_points(pts, cell)
+    lo = pts.min(0)
+    ijk = np.floor((pts - lo) / cell).astype(np.int64)
+    nx, ny, nz = g.dims
+    key = (ijk[:, 2] * ny + ijk[:, 1]) * nx + ijk[:, 0]
+    assert np.array_equal(g.order, np.argsort(key, kind="stable"))      # stable sort
+    assert np.array_equal(g.keys, np.unique(key))
+    assert np.array_equal(g.keys[g.cell_of], key[g.order])
+    assert np.array_equal(g.cell_start[:-1], np.searchsorted(key[g.order], g.keys))
+    assert g.cell_start[-1] == len(pts)
+    want = (pts[g.order] - g.center).astype(np.float32)
+    for d, c in enumerate((g.x, g.y, g.z)):
+        assert np.array_equal(c[:len(pts)], want[:, d])
+        assert not c[len(pts):].any() and len(c) == len(pts) + G.PAD
+
+
+def test_sort_keys_fallback_when_key_and_index_do_not_fit():
+    key = np.array([5, 3, 5, 2 ** 60, 3, 0], dtype=np.int64)
+    order, skey = G._sort_keys(key.copy(), float(2 ** 61))
+    assert np.array_equal(order, np.argsort(key, kind="stable"))
+    assert np.array_equal(skey, np.sort(key))
+    small = np.array([5, 3, 5, 7, 3, 0], dtype=np.int64)        # fits: packed sort
+    order2, skey2 = G._sort_keys(small.copy(), 100.0)
+    assert np.array_equal(order2, np.argsort(small, kind="stable"))
+    assert np.array_equal(skey2, np.sort(small))
+
+
+def test_bounding_box_matches_min_max():
+    rng = np.random.default_rng(3)
+    for n in (1, 5, 1023, 1024, 1025, 5000):
+        p = rng.normal(size=(n, 3))
+        lo, hi = G._bounding_box(p)
+        assert np.array_equal(lo, p.min(0)) and np.array_equal(hi, p.max(0))
+
+
+@pytest.mark.parametrize("name", list(clouds()))
+def test_cell_ranges_brute_force(name, device):
+    pts, cell = clouds()[name]
+    c = DeviceCloud(pts, cell, device=device)
+    g = c.grid
+    got = np.empty((g.ncells, 9, 2), np.uint32)
+    cl.enqueue_copy(c.device.queue, got, c.ranges)
+    c.device.queue.finish()
+    nx, ny, nz = g.dims
+    ix = g.keys % nx
+    iy = (g.keys // nx) % ny
+    iz = g.keys // (nx * ny)
+    for ci in range(g.ncells):
+        want = []
+        for dz in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                y, z = iy[ci] + dy, iz[ci] + dz
+                if not (0 <= y < ny and 0 <= z < nz):
+                    continue
+                row = (z * ny + y) * nx
+                a = np.searchsorted(g.keys, row + max(ix[ci] - 1, 0))
+                b = np.searchsorted(g.keys, row + min(ix[ci] + 1, nx - 1) + 1)
+                if b > a:
+                    want.append((g.cell_start[a], g.cell_start[b]))
+        want += [(0, 0)] * (9 - len(want))          # non-empty ranges first, in row order
+        assert np.array_equal(got[ci], np.array(want, np.uint32)), ci
