@@ -5,6 +5,7 @@ Reference: J. Digne, J.-M. Morel, *Numerical analysis of differential operators 
 clouds*, Numerische Mathematik 127 (2014), DOI 10.1007/s00211-013-0584-y.
 """
 from .api import curvature, normals, project, METHODS
+from .scale_space import scale_space
 from .cloud import DeviceCloud
 from .device import devices, get_device, NoDeviceError
 from .program import BuildError, PrecisionError
@@ -12,5 +13,5 @@ from .result import CurvatureResult
 from . import shapes
 
 __version__ = "0.1.0"
-__all__ = ["curvature", "normals", "project", "METHODS", "DeviceCloud", "devices", "get_device",
+__all__ = ["curvature", "normals", "project", "scale_space", "METHODS", "DeviceCloud", "devices", "get_device",
            "NoDeviceError", "BuildError", "PrecisionError", "CurvatureResult", "shapes", "__version__"]

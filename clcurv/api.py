@@ -145,8 +145,8 @@ def _operator_result(method, r, weights, pts, raw, moments, n):
 
 
 def curvature(points, radius, *, method="mls1", weights="uniform", normals=None, orient="auto",
-              viewpoint=None, orient_k=10, kernel="ball", h=None, iterations=0, device=None,
-              precision="float", backend="opencl"):
+              viewpoint=None, orient_k=10, kernel="ball", h=None, iterations=0, scale_space=0,
+              device=None, precision="float", backend="opencl"):
     """Differential operators on the ball N_r(p) = {q : |q - p| < radius} of every point.
 
     Parameters
@@ -227,8 +227,22 @@ def curvature(points, radius, *, method="mls1", weights="uniform", normals=None,
     if iterations < 0 or (iterations and method != "mls2"):
         raise ValueError("iterations must be >= 0 and is for method='mls2' "
                          "(use clcurv.scale_space for MLS1)")
+    scale_space = int(scale_space)
+    if scale_space < 0:
+        raise ValueError(f"scale_space must be >= 0, got {scale_space}")
     if len(pts) == 0:
         return _empty(method, r, weights)
+    if scale_space:
+        from .scale_space import scale_space as _smooth
+        smoothed = _smooth(pts, r, scale_space, weights=weights, device=device,
+                           precision=precision, backend=backend)
+        res = curvature(smoothed, r, method=method, weights=weights, normals=ref_normals,
+                        orient=orient, viewpoint=vp, orient_k=orient_k, kernel=kernel, h=h,
+                        iterations=iterations, device=device, precision=precision, backend=backend)
+        if res.points is None:
+            res.points = smoothed
+        res.info["scale_space"] = scale_space
+        return res
     if iterations:
         moved = project(pts, r, iterations=iterations, weights=weights, normals=ref_normals,
                         orient=orient, viewpoint=vp, orient_k=orient_k, kernel=kernel, h=h,

@@ -1048,3 +1048,21 @@ def mls2_iterate(points, radius, normals, iterations, **kw):
     cur[bad] = np.nan
     nrm[bad] = np.nan
     return {"points": cur, "status": status, "normals": nrm}
+
+
+def scale_space(points, radius, iterations, weights="uniform"):
+    """Float64 MLS1 scale space: ``iterations`` projections p <- p - <p - o, v0> v0 of every
+    point on the weighted PCA plane of its ball, all points together, neighbourhoods
+    recomputed on the moved cloud each time; points with status != 0 stay. Returns the
+    list of the iterates (input first), each (N, 3) float64."""
+    pts = np.array(points, dtype=np.float64)
+    out = [pts.copy()]
+    for _ in range(int(iterations)):
+        m = moments(pts, radius, weights=weights)
+        ok = m["status"] == STATUS_OK
+        n = m["normals"][ok]
+        along = np.einsum("ij,ij->i", m["shift"][ok], n)
+        pts = pts.copy()
+        pts[ok] += along[:, None] * n
+        out.append(pts.copy())
+    return out

@@ -1,0 +1,145 @@
+"""The MLS1 scale space on the device (Digne & Morel, Section 5): N iterations of the MLS1
+projection over the whole cloud, neighbourhoods recomputed on the moved points every time.
+
+The cloud stays on the device between iterations (ping-pong buffers). It is binned once
+with a cell size h = (1 + 2 MARGIN) r; the candidate cells of a point then contain its
+whole ball as long as every point moved less than MARGIN r from where it was binned, which
+the device checks at each iteration (a per-block maximum, a few KB downloaded). Only when
+the bound is crossed is the cloud brought back and re-binned on the host.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from .cloud import DeviceCloud
+from .grid import PAD
+from .program import build, launch
+from .validate import as_points, as_radius, choice
+
+MARGIN = 0.1        # allowed drift between re-binnings, in units of r
+BLOCK = 256         # drift values reduced per work-item
+
+
+def _buffers(cloud, host_arrays):
+    import pyopencl as cl
+    mf = cl.mem_flags
+    return [cl.Buffer(cloud.device.context, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=a)
+            for a in host_arrays]
+
+
+class _DeviceState:
+    """One binning of the current positions, with ping-pong and displacement buffers."""
+
+    def __init__(self, base, disp, radius, device, precision):
+        import pyopencl as cl
+        self.cloud = c = DeviceCloud(base + disp, radius * (1 + 2 * MARGIN), device=device,
+                                     precision=precision)
+        g = c.grid
+        ctx = c.device.context
+        # c.x, c.y, c.z keep the binned positions B; the iterates live in ping/pong, whose
+        # padding is zeroed (vector loads read it, masked, and NaN garbage would leak)
+        self.ping = _buffers(c, (g.x, g.y, g.z))
+        self.pong = _buffers(c, (g.x, g.y, g.z))
+        d = [np.zeros(g.n + PAD, c.dtype) for _ in range(3)]
+        for k in range(3):
+            d[k][:g.n] = disp[g.order, k]
+        self.disp = _buffers(c, d)
+        self.drift = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, size=np.dtype(c.dtype).itemsize * g.n)
+        self.nblocks = -(-g.n // BLOCK)
+        self.block_max = cl.Buffer(ctx, cl.mem_flags.READ_WRITE,
+                                   size=np.dtype(c.dtype).itemsize * self.nblocks)
+        self.weights = _buffers(c, [np.zeros(g.n + PAD, c.dtype)])[0]
+        self.counts = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, size=4 * g.n)
+
+    def displacement(self):
+        """Accumulated displacement from the input, (N, 3) float64 in input order."""
+        import pyopencl as cl
+        c = self.cloud
+        out = np.empty((c.n, 3))
+        for k in range(3):
+            col = np.empty(c.n + PAD, c.dtype)
+            cl.enqueue_copy(c.device.queue, col, self.disp[k])
+            out[c.grid.order, k] = col[:c.n]
+        return out
+
+    def step(self, radius, density):
+        """One MLS1 iteration; returns the largest drift from the binned positions."""
+        import pyopencl as cl
+        c = self.cloud
+        n, r2 = np.uint32(c.n), c.real(radius * radius)
+        defines = dict(c.defines, DENSITY=int(density))
+        if density:
+            m = build(c.device, "moments.cl", c.defines)
+            launch(c.device, m.count_neighbors, c.n, *self.ping, c.cell_of, c.ranges, n, r2,
+                   self.counts, self.weights)
+        prg = build(c.device, "scale_space.cl", defines)
+        launch(c.device, prg.mls1_step, c.n, *self.ping, self.weights, c.cell_of, c.ranges, n,
+               r2, c.x, c.y, c.z, *self.pong, *self.disp, self.drift)
+        launch(c.device, prg.block_max, self.nblocks, self.drift, n, np.uint32(BLOCK),
+               self.block_max, np.uint32(self.nblocks))
+        bm = np.empty(self.nblocks, c.dtype)
+        cl.enqueue_copy(c.device.queue, bm, self.block_max)
+        self.ping, self.pong = self.pong, self.ping
+        return float(bm.max()) if len(bm) else 0.0
+
+
+def scale_space(points, radius, iterations, *, weights="uniform", return_iterates=False,
+                device=None, precision="float", backend="opencl"):
+    """MLS1 scale space: ``iterations`` MLS1 projections of the whole cloud at ``radius``.
+
+    Each iteration moves every point p to p' = p - <p - o, v0> v0 (o the weighted barycenter
+    of its ball N_r(p) = {q : |q - p| < r}, v0 the PCA normal), all points together, the
+    neighbourhoods recomputed on the moved cloud. This is a discrete mean curvature motion:
+    one iteration moves a point by about H r^2 / 4 along the inward normal of a convex shape;
+    N iterations at r act roughly like one at sqrt(N) r. Points with fewer than 3 neighbours
+    or a degenerate ball stay where they are for that iteration.
+
+    Parameters
+    ----------
+    points : (N, 3) array_like
+    radius : float, same length unit as the points
+    iterations : int >= 0
+    weights : {'uniform', 'density'}
+    return_iterates : bool
+        Also return every iterate (a list of N+1 arrays, the input first).
+    backend : {'opencl', 'numpy'}
+        'numpy' runs the float64 reference (clcurv.reference.scale_space).
+
+    Returns
+    -------
+    (N, 3) float64 smoothed points in input order (or the list of iterates).
+    """
+    pts = as_points(points)
+    r = as_radius(radius)
+    weights = choice(weights, "weights", ("uniform", "density"))
+    choice(backend, "backend", ("opencl", "numpy"))
+    iterations = int(iterations)
+    if iterations < 0:
+        raise ValueError(f"iterations must be >= 0, got {iterations}")
+    if backend == "numpy":
+        from .reference import scale_space as ref
+        its = ref(pts, r, iterations, weights=weights)
+        return its if return_iterates else its[-1]
+    iterates = [pts.copy()]
+    if len(pts) == 0 or iterations == 0:
+        return iterates if return_iterates else pts.copy()
+    disp = np.zeros_like(pts)
+    state = _DeviceState(pts, disp, r, device, precision)
+    stats = {"rebins": 0, "binning": state.cloud.timings["binning"], "steps": 0.0}
+    for it in range(iterations):
+        t = time.perf_counter()
+        drift = state.step(r, weights == "density")
+        stats["steps"] += time.perf_counter() - t
+        last = it == iterations - 1
+        if return_iterates or last or drift > MARGIN * r:
+            disp = state.displacement()
+            if return_iterates:
+                iterates.append(pts + disp)
+        if not last and drift > MARGIN * r:
+            state = _DeviceState(pts, disp, r, device, precision)
+            stats["rebins"] += 1
+            stats["binning"] += state.cloud.timings["binning"]
+    scale_space.last_stats = stats
+    return iterates if return_iterates else pts + disp

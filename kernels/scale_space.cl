@@ -1,0 +1,57 @@
+/* scale_space.cl -- one iteration of the MLS1 scale space (Digne & Morel, Theorem 5): every
+ * point moves to its projection on the weighted PCA plane of its ball, all points together
+ * from the previous iterate (ping-pong buffers, sorted order).
+ *
+ * The grid (cells, ranges) was built on the binned positions B with a cell size h > r; the
+ * candidate set of a point is exact as long as every point drifted less than (h - r) / 2
+ * from B. Each step writes the drift |x' - B| per point; block_max reduces it so that the
+ * host re-bins only when that bound is crossed. Points with too few neighbours or a
+ * degenerate ball stay where they are. D accumulates the displacement from the input (small
+ * numbers, so the final positions keep the input's float64 digits on the host).
+ */
+#include "common.h"
+#include "neighbors.h"
+#include "weights.h"
+#include "pca.h"
+#include "eig3.h"
+
+#if REAL_IS_DOUBLE
+#define DEGENERATE_RATIO 1e-10
+#else
+#define DEGENERATE_RATIO 1e-5f
+#endif
+
+__kernel void mls1_step(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
+                        __global const REAL *W, __global const uint *cell_of,
+                        __global const uint2 *ranges, const uint n, const REAL r2,
+                        __global const REAL *BX, __global const REAL *BY, __global const REAL *BZ,
+                        __global REAL *XN, __global REAL *YN, __global REAL *ZN,
+                        __global REAL *DX, __global REAL *DY, __global REAL *DZ,
+                        __global REAL *drift)
+{
+    const uint g = get_global_id(0);
+    if (g >= n) return;
+    const REAL3 p = (REAL3)(X[g], Y[g], Z[g]);
+    const pca_t pc = pca_ball(X, Y, Z, W, ranges, cell_of[g], p, r2, (REAL)0);
+    REAL3 lam, v0, v1, v2;
+    eig3_sym(pc.cxx, pc.cxy, pc.cxz, pc.cyy, pc.cyz, pc.czz, &lam, &v0, &v1, &v2);
+    REAL3 move = (REAL3)(0);
+    if (pc.count >= 3 && lam.z > 0 && lam.y > DEGENERATE_RATIO * lam.z)
+        move = dot(pc.mu, v0) * v0;
+    const REAL3 q = p + move;
+    XN[g] = q.x; YN[g] = q.y; ZN[g] = q.z;
+    DX[g] += move.x; DY[g] += move.y; DZ[g] += move.z;
+    drift[g] = length(q - (REAL3)(BX[g], BY[g], BZ[g]));
+}
+
+/* Maximum of each block of `block` consecutive values (fixed order, no atomics). */
+__kernel void block_max(__global const REAL *v, const uint n, const uint block,
+                        __global REAL *out, const uint nblocks)
+{
+    const uint b = get_global_id(0);
+    if (b >= nblocks) return;
+    const uint s = b * block, e = min(s + block, n);
+    REAL m = 0;
+    for (uint i = s; i < e; ++i) m = fmax(m, v[i]);
+    out[b] = m;
+}
