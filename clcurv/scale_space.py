@@ -86,7 +86,7 @@ class _DeviceState:
 
 
 def scale_space(points, radius, iterations, *, weights="uniform", return_iterates=False,
-                device=None, precision="float", backend="opencl"):
+                device=None, precision="float", backend="opencl", progress=None):
     """MLS1 scale space: ``iterations`` MLS1 projections of the whole cloud at ``radius``.
 
     Each iteration moves every point p to p' = p - <p - o, v0> v0 (o the weighted barycenter
@@ -106,6 +106,8 @@ def scale_space(points, radius, iterations, *, weights="uniform", return_iterate
         Also return every iterate (a list of N+1 arrays, the input first).
     backend : {'opencl', 'numpy'}
         'numpy' runs the float64 reference (clcurv.reference.scale_space).
+    progress : callable, optional
+        Called with no argument after each iteration (e.g. a tqdm bar's ``update``).
 
     Returns
     -------
@@ -132,6 +134,8 @@ def scale_space(points, radius, iterations, *, weights="uniform", return_iterate
         t = time.perf_counter()
         drift = state.step(r, weights == "density")
         stats["steps"] += time.perf_counter() - t
+        if progress is not None:
+            progress()
         last = it == iterations - 1
         if return_iterates or last or drift > MARGIN * r:
             disp = state.displacement()

@@ -1,0 +1,94 @@
+"""The clcurv command line end to end on the bundled sample and a LAS file; bad input gives
+a non-zero exit and a one-line message, never a traceback."""
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from clcurv import cli, io
+from clcurv.demo import sample_path
+
+DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
+
+
+def run(*args):
+    return subprocess.run([sys.executable, "-m", "clcurv.cli", *map(str, args)],
+                          capture_output=True, text=True)
+
+
+def test_compute_on_bundled_sample_writes_fields(tmp_path):
+    out = tmp_path / "bunny.ply"
+    p = run("compute", sample_path(), "-o", out, "--method", "mls2", "--scale-space", "2", "-q")
+    assert p.returncode == 0, p.stderr
+    assert "radius auto" in p.stdout and "mean neighbours" in p.stdout
+    cloud = io.read(out)
+    src = io.read(sample_path())
+    np.testing.assert_array_equal(cloud.points, src.points)           # order and points kept
+    for name in ("mean_curvature", "gaussian_curvature", "k1", "k2", "surface_variation",
+                 "neighbours", "status"):
+        assert name in cloud.attributes, name
+    ok = cloud.attributes["status"] == 0
+    assert ok.mean() > 0.98
+    assert np.isfinite(cloud.attributes["mean_curvature"][ok]).all()
+    assert np.isnan(cloud.attributes["mean_curvature"][~ok]).all()
+    assert np.all(cloud.attributes["k1"][ok] >= cloud.attributes["k2"][ok])
+    assert np.allclose(np.linalg.norm(cloud.normals[ok], axis=1), 1, atol=1e-5)
+    assert 0 < np.median(cloud.attributes["mean_curvature"][ok]) < 200     # bunny ~ 5 cm: H > 0
+
+
+def test_compute_on_las_keeps_header_and_adds_extra_bytes(tmp_path):
+    src = DATA / "laspy_simple.las"
+    if not src.is_file():
+        pytest.skip(f"{src} not present (shared data set)")
+    out = tmp_path / "simple.las"
+    p = run("compute", src, "-o", out, "--method", "mls1", "--radius", "400",
+            "--fields", "mean_curvature", "surface_variation", "-q")
+    assert p.returncode == 0, p.stderr
+    import laspy
+    a, b = laspy.read(src), laspy.read(out)
+    np.testing.assert_array_equal(np.asarray(a.x), np.asarray(b.x))
+    assert tuple(b.header.scales) == tuple(a.header.scales)
+    assert tuple(b.header.offsets) == tuple(a.header.offsets)
+    assert {"mean_curvature", "surface_variation"} <= set(b.point_format.extra_dimension_names)
+    v = np.asarray(b["surface_variation"])
+    assert np.isfinite(v).mean() > 0.95 and np.nanmax(v) <= 1 / 3 + 1e-6
+
+
+def test_devices_lists_the_default():
+    p = run("devices")
+    assert p.returncode == 0 and "*" in p.stdout and "fp64" in p.stdout
+
+
+@pytest.mark.parametrize("args,code,msg", [
+    (["compute", "/no/such/file.ply", "-o", "x.ply"], 3, "no/such/file.ply"),
+    (["compute", "{sample}", "-o", "{tmp}/x.ply", "--radius", "-1"], 2, "--radius must be positive"),
+    (["compute", "{sample}", "-o", "{tmp}/x.ply", "--radius", "big"], 2, "number or 'auto'"),
+    (["compute", "{sample}", "-o", "{tmp}/x.unknown"], 3, "x.unknown"),
+    (["compute", "{sample}", "-o", "{tmp}/x.ply", "--fields", "nonsense"], 2, "unknown field"),
+    (["compute", "{sample}", "-o", "{tmp}/x.ply", "--device", "no-such-gpu"], 4, "no OpenCL device"),
+    (["compute", "{sample}", "-o", "{tmp}/x.ply", "--method", "mls9"], 2, "invalid choice"),
+])
+def test_bad_arguments_exit_codes(tmp_path, args, code, msg):
+    args = [a.format(sample=sample_path(), tmp=tmp_path) for a in args]
+    p = run(*args)
+    assert p.returncode == code, (p.returncode, p.stderr)
+    assert msg in p.stderr and "Traceback" not in p.stderr
+
+
+def test_no_opencl_platform_names_the_apt_command(tmp_path):
+    import os
+    env = dict(os.environ, OCL_ICD_VENDORS=str(tmp_path))
+    p = subprocess.run([sys.executable, "-m", "clcurv.cli", "devices"], capture_output=True,
+                       text=True, env=env)
+    assert p.returncode == 4 and "apt-get install -y pocl-opencl-icd" in p.stderr
+    assert "Traceback" not in p.stderr
+
+
+def test_auto_radius_gives_about_30_neighbours():
+    pts = io.read(sample_path()).points
+    r = cli.auto_radius(pts)
+    from scipy.spatial import cKDTree
+    counts = np.array([len(x) for x in cKDTree(pts).query_ball_point(pts[::50], r)])
+    assert 26 <= np.median(counts) <= 34
