@@ -3,7 +3,7 @@
 Run from the repository root::
 
     python -m bench.paper               # full setting (~4000 points per unit area, a few minutes)
-    python -m bench.paper --small       # CI setting (1/8 of the density, < 60 s)
+    python -m bench.paper --small       # CI setting (1/4 of the density, < 60 s)
     python -m bench.paper --out some.md --seed 3
 
 Every table is printed beside the paper's numbers and written as markdown (default
@@ -96,6 +96,7 @@ AREA = {"sphere": 4 * math.pi * SPHERE_R ** 2, "cylinder": 2 * math.pi * CYL_R *
 
 @dataclass
 class Setting:
+    """density: points per unit area (the point counts follow from the shapes' areas)."""
     name: str
     density: float            # points per unit area
     cal_evals: int            # radius evaluations per calibration
@@ -107,10 +108,10 @@ class Setting:
         return int(round(self.density * AREA[shape]))
 
 
-FULL = Setting("full", 4000.0, 6, 0.02, 1.0, 2)
-# 1/8 of the density: stds at a given radius grow ~ sqrt(8), so the targets are scaled by sqrt(8)
-# to keep the calibrated radii (and so the geometry) close to the full setting's.
-SMALL = Setting("small", 500.0, 4, 0.04, math.sqrt(8.0), 1)
+FULL = Setting("full", 4000.0, 8, 0.02, 1.0, 2)
+# 1/4 of the density: stds at a given radius grow ~ sqrt(4), so the targets are scaled by 2 to
+# keep the calibrated radii (and so the geometry) close to the full setting's.
+SMALL = Setting("small", 1000.0, 6, 0.04, 2.0, 1)
 
 
 def paper_target(shape):
@@ -133,8 +134,9 @@ class Cloud:
         self.points = s["points"]
         self.exact = s
         if shape == "torus":
-            nrm = s["normals"]   # exact normals: tube angle phi, sin phi = n_z
-            radial = np.hypot(nrm[:, 0], nrm[:, 1])
+            nrm, p = s["normals"], s["points"]   # exact normal: tube angle phi, sin phi = n_z
+            out = p[:, :2] / np.hypot(p[:, 0], p[:, 1])[:, None]    # unit radial direction
+            radial = np.einsum("ij,ij->i", nrm[:, :2], out)         # cos phi, < 0 inside
             self.phi = np.arctan2(nrm[:, 2], radial)
         self.k1_exact, self.k2_exact = EXACT[shape]
 
@@ -163,13 +165,27 @@ def stats(values, mask):
 
 
 # ----------------------------------------------------------------------------- operators
-def run(method, points, r, n_iter=0):
+ORIENT = {"how": "exact"}   # set by main(): 'exact' or 'mst'
+
+
+def orient_kw(method, exact_normals):
+    """How the signed operators (MLS1, MLS2) orient their PCA normals: by the sign of the
+    sampler's exact normals ('exact': the PCA normal itself is kept, only its sign is taken
+    from the exact one) or by clcurv's MST propagation ('mst'). The covariances always use
+    MST-oriented PCA normals (their outputs do not depend on a global flip, and normals=
+    would replace their normals by the exact ones)."""
+    if method in ("mls1", "mls0", "mls2") and ORIENT["how"] == "exact" and exact_normals is not None:
+        return {"normals": exact_normals, "orient": "normals"}
+    return {}
+
+
+def run(method, points, r, n_iter=0, exact_normals=None):
     """(result, seconds): the scale space first when n_iter > 0, then the operator, all at r."""
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         pts = clcurv.scale_space(points, r, n_iter) if n_iter else points
-        res = clcurv.curvature(pts, r, method=method)
+        res = clcurv.curvature(pts, r, method=method, **orient_kw(method, exact_normals))
     return res, time.perf_counter() - t0
 
 
@@ -181,7 +197,7 @@ def mean_estimate(res):
 
 
 def evaluate(cloud, method, r, n_iter=0):
-    res, dt = run(method, cloud.points, r, n_iter)
+    res, dt = run(method, cloud.points, r, n_iter, cloud.exact["normals"])
     mask = cloud.mask((n_iter + 1) * r)
     out = {"method": method, "r": float(r), "N": int(n_iter),
            "r_eq": float(math.sqrt(max(n_iter, 1)) * r), "seconds": dt,
@@ -196,37 +212,49 @@ def evaluate(cloud, method, r, n_iter=0):
 
 
 def secant_radius(f, target, r0, evals, tol, slope0=-2.5, lo=1e-3, hi=10.0):
-    """Find r with f(r)['H']['std'] = target by a secant search on log std against log r
-    (std ~ r^slope). Returns (closest evaluation, every evaluation)."""
+    """Find r with f(r)['H']['std'] = target: a secant search on log std against log r
+    (std ~ r^slope, decreasing), interpolating inside the tightest bracket once one value is
+    above and one below the target. Returns (closest evaluation, every evaluation)."""
     hist, r = [], r0
     for _ in range(evals):
         e = f(r)
         hist.append(e)
         s = e["H"]["std"]
-        if not np.isfinite(s) or abs(s / target - 1) < tol:
+        if not np.isfinite(s) or s <= 0 or abs(s / target - 1) < tol:
             break
-        pts = [(math.log(h["r"]), math.log(h["H"]["std"])) for h in hist if h["H"]["std"] > 0]
-        slope = slope0
-        if len(pts) >= 2:
-            (x0, y0), (x1, y1) = pts[-2], pts[-1]
-            if abs(x1 - x0) > 1e-9:
-                slope = (y1 - y0) / (x1 - x0)
-            if not -6.0 <= slope <= -0.5:
-                slope = slope0
-        step = (math.log(target) - math.log(s)) / slope
-        step = max(-math.log(2.5), min(math.log(2.5), step))
-        r = min(hi, max(lo, r * math.exp(step)))
+        pts = sorted((math.log(h["r"]), math.log(h["H"]["std"])) for h in hist
+                     if np.isfinite(h["H"]["std"]) and h["H"]["std"] > 0)
+        yt = math.log(target)
+        above = [p for p in pts if p[1] > yt]     # too noisy: radius too small
+        below = [p for p in pts if p[1] < yt]
+        a = max(above) if above else None          # largest radius still above the target
+        b = min((p for p in below if a is None or p[0] > a[0]), default=None)
+        if a is not None and b is not None:        # bracket: interpolate in log-log
+            x = a[0] + (yt - a[1]) * (b[0] - a[0]) / (b[1] - a[1])
+            x = min(max(x, a[0] + 0.1 * (b[0] - a[0])), b[0] - 0.1 * (b[0] - a[0]))
+        else:                                      # extrapolate with the last local slope
+            slope = slope0
+            if len(hist) >= 2:
+                (x0, y0) = (math.log(hist[-2]["r"]), math.log(hist[-2]["H"]["std"]))
+                (x1, y1) = (math.log(hist[-1]["r"]), math.log(hist[-1]["H"]["std"]))
+                if abs(x1 - x0) > 1e-9 and -6.0 <= (y1 - y0) / (x1 - x0) <= -0.5:
+                    slope = (y1 - y0) / (x1 - x0)
+            step = (yt - math.log(s)) / slope
+            x = math.log(r) + max(-math.log(2.0), min(math.log(2.0), step))
+        r = min(hi, max(lo, math.exp(x)))
     best = min(hist, key=lambda h: abs(math.log(h["H"]["std"] / target))
-               if h["H"]["std"] > 0 else math.inf)
+               if np.isfinite(h["H"]["std"]) and h["H"]["std"] > 0 else math.inf)
     return best, hist
 
 
-def mls2_iterates(points, r, iterations):
+def mls2_iterates(points, r, iterations, exact_normals=None):
     """Iterated MLS2, exactly as :func:`clcurv.project` does it (the first iteration oriented
-    by MST, the next ones by the previous fitted normals, failed fits stay put), returning the
-    MLS2 result of every iterate 0..iterations (iterate k = the cloud projected k times)."""
+    as :func:`orient_kw` says, the next ones by the previous fitted normals, failed fits stay
+    put), returning the MLS2 result of every iterate 0..iterations (iterate k = the cloud
+    projected k times)."""
     pts = np.array(points, dtype=np.float64)
-    ref, how, results = None, "auto", []
+    kw = orient_kw("mls2", exact_normals)
+    ref, how, results = kw.get("normals"), kw.get("orient", "auto"), []
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         for k in range(iterations + 1):
@@ -249,7 +277,7 @@ def calibrate_t1_radius(cloud, setting):
     """The paper does not give Table 1's radius: take the one at which the iteration-0 MLS1
     std equals the paper's 2.8609."""
     def f(r):
-        res, dt = run("mls1", cloud.points, r)
+        res, dt = run("mls1", cloud.points, r, 0, cloud.exact["normals"])
         return {"r": r, "H": stats(res.mean, np.ones(cloud.n, bool))}
     best, hist = secant_radius(f, PAPER_T1[0][1], 0.35, setting.cal_evals, setting.cal_tol, -2.0)
     return round(best["r"], 3), hist
@@ -264,9 +292,10 @@ def table1(setting, seed, noise_as):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         its = clcurv.scale_space(cloud.points, r, kmax, return_iterates=True)
-        mls1 = {k: stats(clcurv.curvature(its[k], r, method="mls1").mean, cloud.mask(0))
+        kw = orient_kw("mls1", cloud.exact["normals"])
+        mls1 = {k: stats(clcurv.curvature(its[k], r, method="mls1", **kw).mean, cloud.mask(0))
                 for k in T1_ITERATIONS}
-    mls2_res = mls2_iterates(cloud.points, r, kmax)
+    mls2_res = mls2_iterates(cloud.points, r, kmax, cloud.exact["normals"])
     mls2 = {k: stats(mls2_res[k].mean, cloud.mask(0)) for k in T1_ITERATIONS}
     return {"r": r, "sigma": sigma, "n": cloud.n, "mls1": mls1, "mls2": mls2,
             "seconds": time.perf_counter() - t0}
@@ -287,8 +316,9 @@ def table1_noise_check(setting, seed, t1):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             its = clcurv.scale_space(cloud.points, r, 10, return_iterates=True)
+            kw = orient_kw("mls1", cloud.exact["normals"])
             out[reading] = {"sigma": sigma, "r": r, **{
-                k: stats(clcurv.curvature(its[k], r, method="mls1").mean, cloud.mask(0))
+                k: stats(clcurv.curvature(its[k], r, method="mls1", **kw).mean, cloud.mask(0))
                 for k in (1, 5, 10)}}
     for v in out.values():
         v["misfit"] = float(np.sqrt(np.mean([(v[k]["mean"] / PAPER_T1[k][0] - 1) ** 2
@@ -340,8 +370,9 @@ def table8(setting, cloud, cal, ss):
     t_ss = best_time(lambda: _timed(lambda: clcurv.scale_space(cloud.points, r_small, n_iter)))
     for m in OPERATORS:
         r_cal = cal["rows"][m]["r"]
-        without = best_time(lambda: run(m, cloud.points, r_cal)[1])
-        with_ss = best_time(lambda: run(m, cloud.points, r_small, n_iter)[1])
+        nrm = cloud.exact["normals"]
+        without = best_time(lambda: run(m, cloud.points, r_cal, 0, nrm)[1])
+        with_ss = best_time(lambda: run(m, cloud.points, r_small, n_iter, nrm)[1])
         out[m] = {"r_without": r_cal, "without": without, "r_with": r_small, "N": n_iter,
                   "with": with_ss}
     return {"scale_space": t_ss, "rows": out, "n": cloud.n}
@@ -526,12 +557,15 @@ def render_cal(shape, c):
     return (f"## Table {n_t}: calibrated comparison, {title}\n\n"
             f"n = {c['n']:,}; every radius set so that the std of the mean-curvature estimate "
             f"is {c['target']:.4f} (mean of the paper's four stds"
-            f"{'' if c['target'] == paper_target(shape) else ' x sqrt(8), small setting'}). "
+            f"{'' if c['target'] == paper_target(shape) else ' x 2, small setting'}). "
             f"Estimate: H for MLS1 and MLS2, (|k1| + |k2|)/2 for 2dcov2 and 3dcov. Exact: H = "
             f"{0.5 * (k1e + k2e):g}, k1 = {k1e:g}, k2 = {k2e:g}. Time: one full call (the "
             f"scale space included for MLS1, MST orientation included).\n\n"
             + md_table(["method", "parameters", "nbrs", "mean", "std", "SNR", "k1 / k2 mean",
-                        "time s", "paper parameters", "paper std", "paper SNR"], rows))
+                        "time s", "paper parameters", "paper std", "paper SNR"], rows)
+            + "\n\nCalibration evaluations (r: std): " + "; ".join(
+                f"{m} " + ", ".join(f"{r:.3f}: {sd:.4f}" for r, sd in c["rows"][m]["evaluations"])
+                for m in METHODS) + ".")
 
 
 def render_ss(shape, s, cal):
@@ -597,9 +631,20 @@ def assumptions(setting, t1, chk, cal):
         f"iteration-0 std equals the paper's 2.8609. MLS1 iteration k = k clcurv.scale_space "
         f"steps then MLS1's H; MLS2 iteration k = k MLS2 projections (what clcurv.project "
         f"does, normals propagated from one iteration to the next) then the H of the MLS2 "
-        f"fit. Normals are oriented by clcurv's MST propagation (the paper oriented its "
-        f"normals too; its MLS2 iteration-0 mean 0.052 suggests a sign problem that ours "
-        f"does not have).",
+        f"fit. Our MLS2 iteration-0 mean, {t1['mls2'][0]['mean']:.3f}, is as far from 0.5 as "
+        f"the paper's 0.052 although every normal is consistently oriented: on a cloud this "
+        f"noisy the MLS2 curvature is strongly biased towards 0, it is not a sign problem.",
+        f"- **Orientation** ({ORIENT['how']}): "
+        + ("the signed operators (MLS1, MLS2) take the sign of their PCA normal from the "
+           "sampler's exact outward normal (the PCA normal itself is unchanged): the paper "
+           "also worked on a consistently oriented cloud, and clcurv's MST propagation picks "
+           "the global sign at the point farthest from the centroid, which on the open "
+           "cylinder is a noisy rim point and can turn the whole cylinder inward. "
+           if ORIENT["how"] == "exact" else
+           "every operator orients its PCA normals by clcurv's MST propagation (a global "
+           "inward choice on the open cylinder flips the signs of MLS1/MLS2 there). ")
+        + "2dcov2 and 3dcov always use clcurv's MST-oriented PCA normals (their magnitudes do "
+          "not depend on the global sign, only on the consistency within a ball).",
         "- **MLS1 with N iterations** (Tables 2-7): N clcurv.scale_space steps at r, then the "
         "MLS1 H of the result at r (the paper's N: 5, 5, 4); r_eq = sqrt(N) r.",
         "- **Calibration**: the quantity calibrated is the mean-curvature estimate of each "
@@ -608,8 +653,9 @@ def assumptions(setting, t1, chk, cal):
         "= the mean of the paper's four stds of the table (sphere "
         f"{paper_target('sphere'):.4f}, cylinder {paper_target('cylinder'):.4f}, torus "
         f"{paper_target('torus'):.4f})"
-        + (f", times sqrt(8) = {setting.target_scale:.2f} in this small setting (1/8 of the "
-           "density, so similar radii)" if setting.target_scale != 1 else "")
+        + (f", times {setting.target_scale:g} in this small setting (1/4 of the density: "
+           "std ~ 1/sqrt(density) at a given radius, so the radii stay similar)"
+           if setting.target_scale != 1 else "")
         + f". Radius search: secant on log std vs log r, at most {setting.cal_evals} "
         f"evaluations, stop within {100 * setting.cal_tol:g}%; the closest evaluation is "
         f"reported (its std is the one in the table).",
@@ -677,14 +723,18 @@ def warm_up():
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--small", action="store_true", help="CI setting: 1/8 density, < 60 s")
+    ap.add_argument("--small", action="store_true", help="CI setting: 1/4 density, < 60 s")
     ap.add_argument("--out", type=Path, default=RESULTS / "paper.md")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--noise-as", choices=("std", "variance"), default="std",
                     help="read the paper's noise 'variance' v as std v (default) or sqrt(v)")
+    ap.add_argument("--orient", choices=("exact", "mst"), default="exact",
+                    help="sign of the MLS1/MLS2 normals: from the exact normals (default) or "
+                         "clcurv's MST propagation")
     ap.add_argument("--quiet", action="store_true", help="do not print the tables")
     args = ap.parse_args(argv)
     setting = SMALL if args.small else FULL
+    ORIENT["how"] = args.orient
     t_start = time.perf_counter()
     say = (lambda *a: None) if args.quiet else (lambda *a: print(*a, flush=True))
     warm_up()

@@ -12,7 +12,7 @@ import time
 import numpy as np
 
 from .covariances import download, fetch, upload_sorted, weight_buffer
-from .program import build, launch
+from .program import batches, build, launch
 
 KERNELS = ("ball", "gaussian")
 
@@ -27,8 +27,9 @@ def device_mls2(cloud, radius, reference_normals=None, *, weights="uniform", ker
     if not h > 0:
         raise ValueError(f"h must be positive, got {h}")
     t0 = time.perf_counter()
-    prg = build(cloud.device, "mls2.cl", dict(cloud.defines, DENSITY=int(weights == "density"),
-                                               GAUSSIAN=int(kernel == "gaussian")))
+    defines = dict(cloud.defines, DENSITY=int(weights == "density"),
+                   GAUSSIAN=int(kernel == "gaussian"))
+    prg = build(cloud.device, "mls2.cl", defines)
     use_ref = reference_normals is not None
     nx, ny, nz = upload_sorted(cloud, reference_normals) if use_ref else (cloud.x,) * 3
     wbuf = weight_buffer(cloud, r, weights)
@@ -38,7 +39,7 @@ def device_mls2(cloud, radius, reference_normals=None, *, weights="uniform", ker
                                   "dir1": ((n, 3), cloud.dtype), "dir2": ((n, 3), cloud.dtype),
                                   "normals": ((n, 3), cloud.dtype)})
     t1 = time.perf_counter()
-    launch(cloud.device, prg.mls2, n, cloud.x, cloud.y, cloud.z, nx, ny, nz, wbuf, cloud.cell_of,
+    launch(cloud.device, prg.mls2, batches(n, defines), cloud.x, cloud.y, cloud.z, nx, ny, nz, wbuf, cloud.cell_of,
            cloud.ranges, cloud.order, np.uint32(n), cloud.real(r), cloud.real(1.0 / (h * h)),
            np.int32(use_ref), bufs["count"], bufs["status"], bufs["shift"], bufs["k"],
            bufs["dir1"], bufs["dir2"], bufs["normals"])

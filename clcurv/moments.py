@@ -10,7 +10,7 @@ import time
 
 import numpy as np
 
-from .program import build, launch
+from .program import batches, build, launch
 
 
 def _launch(cloud, kernel, *args):
@@ -54,8 +54,7 @@ def device_moments(cloud, radius, *, weights="uniform", refine=True):
            "variation": cloud.empty(n), "shift": cloud.empty((n, 3))}
     bufs = {k: cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, size=max(v.nbytes, 1)) for k, v in out.items()}
     # one work-item per VW consecutive points (the eigen decompositions run VW lanes at once)
-    vw = int(defines["VW"])
-    launch(cloud.device, prg.moments, -(-n // vw), cloud.x, cloud.y, cloud.z, wbuf,
+    launch(cloud.device, prg.moments, batches(n, defines), cloud.x, cloud.y, cloud.z, wbuf,
            cloud.cell_of, cloud.ranges, cloud.order, np.uint32(n), cloud.real(r * r),
            bufs["count"], bufs["status"], bufs["normals"], bufs["eigenvalues"],
            bufs["variation"], bufs["shift"])

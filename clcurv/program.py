@@ -92,6 +92,11 @@ def local_size(device, kernel, limit=128):
     return max(1, (top // mult) * mult) if mult <= top else top
 
 
+def batches(n, defines):
+    """Work-items for a kernel that handles VW consecutive points per work-item."""
+    return -(-n // int(defines["VW"]))
+
+
 def launch(device, kernel, n, *args, limit=128):
     """Enqueue ``kernel`` over ``n`` work-items (the kernel must ignore ids >= n).
 

@@ -15,7 +15,7 @@ import numpy as np
 
 from .cloud import DeviceCloud
 from .grid import PAD
-from .program import build, launch
+from .program import batches, build, launch
 from .validate import as_points, as_radius, choice
 
 MARGIN = 0.1        # allowed drift between re-binnings, in units of r
@@ -75,7 +75,7 @@ class _DeviceState:
             launch(c.device, m.count_neighbors, c.n, *self.ping, c.cell_of, c.ranges, n, r2,
                    self.counts, self.weights)
         prg = build(c.device, "scale_space.cl", defines)
-        launch(c.device, prg.mls1_step, c.n, *self.ping, self.weights, c.cell_of, c.ranges, n,
+        launch(c.device, prg.mls1_step, batches(c.n, defines), *self.ping, self.weights, c.cell_of, c.ranges, n,
                r2, c.x, c.y, c.z, *self.pong, *self.disp, self.drift)
         launch(c.device, prg.block_max, self.nblocks, self.drift, n, np.uint32(BLOCK),
                self.block_max, np.uint32(self.nblocks))

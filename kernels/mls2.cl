@@ -17,14 +17,7 @@
 #include "weights.h"
 #include "pca.h"
 #include "frame.h"
-#include "eig3.h"
 #include "solve6.h"
-
-#if REAL_IS_DOUBLE
-#define DEGENERATE_RATIO 1e-10
-#else
-#define DEGENERATE_RATIO 1e-5f
-#endif
 
 inline void put3(__global REAL *a, size_t j, REAL3 v)
 {
@@ -42,26 +35,20 @@ inline REAL2 eigvec2(REAL s00, REAL s01, REAL s10, REAL s11, REAL lam)
            ? v / nv : (REAL2)(1, 0);
 }
 
-__kernel void mls2(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
-                   __global const REAL *NX, __global const REAL *NY, __global const REAL *NZ,
-                   __global const REAL *W, __global const uint *cell_of,
-                   __global const uint2 *ranges, __global const uint *order, const uint n,
-                   const REAL r, const REAL ih2, const int use_ref,
-                   __global uint *count, __global uchar *status, __global REAL *shift,
-                   __global REAL *k12, __global REAL *dir1, __global REAL *dir2,
-                   __global REAL *normal)
+/* The fit, curvatures and stores of the sorted point g, once its PCA is known. */
+inline void mls2_point(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
+                       __global const REAL *NX, __global const REAL *NY, __global const REAL *NZ,
+                       __global const REAL *W, __global const uint2 *ranges, uint cell, uint g,
+                       const pca_batch_t *pb, uint k, REAL r, REAL ih2, int use_ref, size_t j,
+                       __global uint *count, __global uchar *status, __global REAL *shift,
+                       __global REAL *k12, __global REAL *dir1, __global REAL *dir2,
+                       __global REAL *normal)
 {
-    const uint g = get_global_id(0);
-    if (g >= n) return;
     const REAL3 p = (REAL3)(X[g], Y[g], Z[g]);
-    const uint cell = cell_of[g];
     const REAL r2 = r * r, ir = (REAL)1 / r;
-    const pca_t pc = pca_ball(X, Y, Z, W, ranges, cell, p, r2, ih2);
-    REAL3 lam, v0, v1, v2;
-    eig3_sym(pc.cxx, pc.cxy, pc.cxz, pc.cyy, pc.cyz, pc.czz, &lam, &v0, &v1, &v2);
-    uchar st = ST_OK;
-    if (pc.count < 6) st = ST_TOO_FEW;
-    else if (!(lam.z > 0) || lam.y <= DEGENERATE_RATIO * lam.z) st = ST_DEGENERATE;
+    REAL3 v0 = (REAL3)(pb->v0x[k], pb->v0y[k], pb->v0z[k]);
+    const REAL3 mu = (REAL3)(pb->mux[k], pb->muy[k], pb->muz[k]);
+    uchar st = pca_status(pb, k, 6);
     if (use_ref) {
         const REAL s = dot(v0, (REAL3)(NX[g], NY[g], NZ[g]));
         if (!(s != 0)) st = st == ST_OK ? ST_DEGENERATE : st;   /* also NaN */
@@ -69,7 +56,7 @@ __kernel void mls2(__global const REAL *X, __global const REAL *Y, __global cons
     }
     REAL3 t1, t2;
     tangent_frame(v0, &t1, &t2);
-    const REAL3 qo = dot(pc.mu, v0) * v0;          /* Q - p */
+    const REAL3 qo = dot(mu, v0) * v0;             /* Q - p */
     const REAL3 c = qo;
     REAL a[6] = {0, 0, 0, 0, 0, 0};
     if (st == ST_OK) {
@@ -105,8 +92,7 @@ __kernel void mls2(__global const REAL *X, __global const REAL *Y, __global cons
         const REAL b[6] = {hsum(h0), hsum(hx), hsum(hy), hsum(hxx), hsum(hxy), hsum(hyy)};
         if (!solve6(M, b, a)) st = ST_SINGULAR;
     }
-    const size_t j = order[g];
-    count[j] = pc.count;
+    count[j] = pb->count[k];
     status[j] = st;
     if (st != ST_OK) {
         const REAL nan = NAN;
@@ -133,4 +119,26 @@ __kernel void mls2(__global const REAL *X, __global const REAL *Y, __global cons
     put3(dir1, j, d1);
     put3(dir2, j, cross(nfit, d1));
     put3(normal, j, nfit);
+}
+
+/* One work-item per VW consecutive sorted points (global size >= ceil(n / VW)). */
+__kernel void mls2(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
+                   __global const REAL *NX, __global const REAL *NY, __global const REAL *NZ,
+                   __global const REAL *W, __global const uint *cell_of,
+                   __global const uint2 *ranges, __global const uint *order, const uint n,
+                   const REAL r, const REAL ih2, const int use_ref,
+                   __global uint *count, __global uchar *status, __global REAL *shift,
+                   __global REAL *k12, __global REAL *dir1, __global REAL *dir2,
+                   __global REAL *normal)
+{
+    const uint g0 = get_global_id(0) * VW;
+    if (g0 >= n) return;
+    const uint kn = min((uint)VW, n - g0);
+    pca_batch_t pb;
+    pca_batch(X, Y, Z, W, cell_of, ranges, g0, kn, r * r, ih2, &pb);
+    for (uint k = 0; k < kn; ++k) {
+        const uint g = g0 + k;
+        mls2_point(X, Y, Z, NX, NY, NZ, W, ranges, cell_of[g], g, &pb, k, r, ih2, use_ref,
+                   order[g], count, status, shift, k12, dir1, dir2, normal);
+    }
 }

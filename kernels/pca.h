@@ -1,17 +1,29 @@
-/* pca.h -- weighted PCA of the ball N_r(p): count, barycenter shift mu = o - p and the
- * centred covariance, accumulated in one fixed-order pass relative to p (weights.h decides
- * the weights). Used by every kernel that needs the PCA frame before its own pass. */
+/* pca.h -- weighted PCA of the ball N_r(p), shared by every kernel that needs it.
+ *
+ *   pca_ball   the sums of one point, one fixed-order pass relative to p (weights.h decides
+ *              the weights): count, 1/sum w, mu = o - p and the centred covariance;
+ *   pca_batch  pca_ball for the VW consecutive sorted points g0 .. g0 + kn - 1 of one
+ *              work-item, then their VW covariances decomposed at once by eig3_sym_v (a
+ *              scalar eig3 per point costs more than the neighbour loops together).
+ */
 #ifndef CLCURV_PCA_H
 #define CLCURV_PCA_H
 #include "common.h"
 #include "neighbors.h"
 #include "weights.h"
+#include "eig3.h"
+
+#if REAL_IS_DOUBLE
+#define DEGENERATE_RATIO 1e-10
+#else
+#define DEGENERATE_RATIO 1e-5f
+#endif
 
 typedef struct {
     uint count;
-    REAL wsum;
+    REAL iw;                         /* 1 / sum of weights */
     REAL3 mu;                        /* o - p */
-    REAL cxx, cxy, cxz, cyy, cyz, czz;
+    REAL c[6];                       /* centred covariance xx xy xz yy yz zz */
 } pca_t;
 
 inline pca_t pca_ball(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
@@ -24,23 +36,77 @@ inline pca_t pca_ball(__global const REAL *X, __global const REAL *Y, __global c
     NEIGHBOR_CHUNKS_BEGIN(ranges, cell, i, end)
         const IREALV m = chunk_offsets(X, Y, Z, i, end, p, r2, &dx, &dy, &dz);
         const REALV w = chunk_weights(W, i, dx, dy, dz, m, ih2);
+#if DENSITY || GAUSSIAN
         sc += select((REALV)0, (REALV)1, m);
+#endif
         const REALV wx = w * dx, wy = w * dy, wz = w * dz;
         sw += w; sx += wx; sy += wy; sz += wz;
         sxx += wx * dx; sxy += wx * dy; sxz += wx * dz;
         syy += wy * dy; syz += wy * dz; szz += wz * dz;
     NEIGHBOR_CHUNKS_END
     pca_t r;
+    const REAL wsum = hsum(sw);
+#if DENSITY || GAUSSIAN
     r.count = (uint)hsum(sc);
-    r.wsum = hsum(sw);
-    const REAL iw = (REAL)1 / r.wsum;
-    r.mu = (REAL3)(hsum(sx), hsum(sy), hsum(sz)) * iw;
-    r.cxx = hsum(sxx) * iw - r.mu.x * r.mu.x;
-    r.cxy = hsum(sxy) * iw - r.mu.x * r.mu.y;
-    r.cxz = hsum(sxz) * iw - r.mu.x * r.mu.z;
-    r.cyy = hsum(syy) * iw - r.mu.y * r.mu.y;
-    r.cyz = hsum(syz) * iw - r.mu.y * r.mu.z;
-    r.czz = hsum(szz) * iw - r.mu.z * r.mu.z;
+#else
+    r.count = (uint)wsum;            /* w = 1: the sum of the weights is the count (exact) */
+#endif
+    r.iw = (REAL)1 / wsum;
+    r.mu = (REAL3)(hsum(sx), hsum(sy), hsum(sz)) * r.iw;
+    r.c[0] = hsum(sxx) * r.iw - r.mu.x * r.mu.x;
+    r.c[1] = hsum(sxy) * r.iw - r.mu.x * r.mu.y;
+    r.c[2] = hsum(sxz) * r.iw - r.mu.x * r.mu.z;
+    r.c[3] = hsum(syy) * r.iw - r.mu.y * r.mu.y;
+    r.c[4] = hsum(syz) * r.iw - r.mu.y * r.mu.z;
+    r.c[5] = hsum(szz) * r.iw - r.mu.z * r.mu.z;
     return r;
+}
+
+/* PCA of VW consecutive points, lane k for point g0 + k (k < kn). */
+typedef struct {
+    uint count[VW];
+    REAL iw[VW], mux[VW], muy[VW], muz[VW];
+    REAL l0[VW], l1[VW], l2[VW];     /* ascending, clamped at 0 */
+    REAL v0x[VW], v0y[VW], v0z[VW];  /* eigenvector of l0: the unoriented PCA normal */
+} pca_batch_t;
+
+#define VSTOREV CAT(vstore, VW)
+
+inline void pca_batch(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
+                      __global const REAL *W, __global const uint *cell_of,
+                      __global const uint2 *ranges, uint g0, uint kn, REAL r2, REAL ih2,
+                      pca_batch_t *b)
+{
+    REAL cov[6][VW];
+    for (uint k = 0; k < VW; ++k) {
+        if (k < kn) {
+            const uint g = g0 + k;
+            const pca_t pc = pca_ball(X, Y, Z, W, ranges, cell_of[g], (REAL3)(X[g], Y[g], Z[g]),
+                                      r2, ih2);
+            for (int e = 0; e < 6; ++e) cov[e][k] = pc.c[e];
+            b->count[k] = pc.count; b->iw[k] = pc.iw;
+            b->mux[k] = pc.mu.x; b->muy[k] = pc.mu.y; b->muz[k] = pc.mu.z;
+        } else {                     /* unused lane: the identity */
+            for (int e = 0; e < 6; ++e) cov[e][k] = (REAL)(e == 0 || e == 3 || e == 5);
+            b->count[k] = 0;
+        }
+    }
+    REALV w0, w1, w2;
+    eig3_v3_v e0, e1, e2;
+    eig3_sym_v(VLOADV(0, cov[0]), VLOADV(0, cov[1]), VLOADV(0, cov[2]),
+               VLOADV(0, cov[3]), VLOADV(0, cov[4]), VLOADV(0, cov[5]),
+               &w0, &w1, &w2, &e0, &e1, &e2);
+    VSTOREV(fmax(w0, (REALV)0), 0, b->l0);
+    VSTOREV(fmax(w1, (REALV)0), 0, b->l1);
+    VSTOREV(fmax(w2, (REALV)0), 0, b->l2);
+    VSTOREV(e0.x, 0, b->v0x); VSTOREV(e0.y, 0, b->v0y); VSTOREV(e0.z, 0, b->v0z);
+}
+
+/* Status of lane k: too few neighbours (< min_count) or a covariance of rank < 2. */
+inline uchar pca_status(const pca_batch_t *b, uint k, uint min_count)
+{
+    if (b->count[k] < min_count) return ST_TOO_FEW;
+    if (!(b->l2[k] > 0) || b->l1[k] <= DEGENERATE_RATIO * b->l2[k]) return ST_DEGENERATE;
+    return ST_OK;
 }
 #endif

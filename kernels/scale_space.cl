@@ -13,14 +13,8 @@
 #include "neighbors.h"
 #include "weights.h"
 #include "pca.h"
-#include "eig3.h"
 
-#if REAL_IS_DOUBLE
-#define DEGENERATE_RATIO 1e-10
-#else
-#define DEGENERATE_RATIO 1e-5f
-#endif
-
+/* One work-item per VW consecutive sorted points (global size >= ceil(n / VW)). */
 __kernel void mls1_step(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
                         __global const REAL *W, __global const uint *cell_of,
                         __global const uint2 *ranges, const uint n, const REAL r2,
@@ -29,21 +23,24 @@ __kernel void mls1_step(__global const REAL *X, __global const REAL *Y, __global
                         __global REAL *DX, __global REAL *DY, __global REAL *DZ,
                         __global REAL *drift)
 {
-    const uint g = get_global_id(0);
-    if (g >= n) return;
-    const REAL3 p = (REAL3)(X[g], Y[g], Z[g]);
-    const pca_t pc = pca_ball(X, Y, Z, W, ranges, cell_of[g], p, r2, (REAL)0);
-    REAL3 lam, v0, v1, v2;
-    eig3_sym(pc.cxx, pc.cxy, pc.cxz, pc.cyy, pc.cyz, pc.czz, &lam, &v0, &v1, &v2);
-    REAL3 move = (REAL3)(0);
-    if (pc.count >= 3 && lam.z > 0 && lam.y > DEGENERATE_RATIO * lam.z)
-        move = dot(pc.mu, v0) * v0;
-    const REAL3 q = p + move;
-    XN[g] = q.x; YN[g] = q.y; ZN[g] = q.z;
-    DX[g] += move.x; DY[g] += move.y; DZ[g] += move.z;
-    drift[g] = length(q - (REAL3)(BX[g], BY[g], BZ[g]));
+    const uint g0 = get_global_id(0) * VW;
+    if (g0 >= n) return;
+    const uint kn = min((uint)VW, n - g0);
+    pca_batch_t pb;
+    pca_batch(X, Y, Z, W, cell_of, ranges, g0, kn, r2, (REAL)0, &pb);
+    for (uint k = 0; k < kn; ++k) {
+        const uint g = g0 + k;
+        REAL3 move = (REAL3)(0);
+        if (pca_status(&pb, k, 3) == ST_OK) {
+            const REAL3 v0 = (REAL3)(pb.v0x[k], pb.v0y[k], pb.v0z[k]);
+            move = dot((REAL3)(pb.mux[k], pb.muy[k], pb.muz[k]), v0) * v0;
+        }
+        const REAL3 q = (REAL3)(X[g], Y[g], Z[g]) + move;
+        XN[g] = q.x; YN[g] = q.y; ZN[g] = q.z;
+        DX[g] += move.x; DY[g] += move.y; DZ[g] += move.z;
+        drift[g] = length(q - (REAL3)(BX[g], BY[g], BZ[g]));
+    }
 }
-
 /* Maximum of each block of `block` consecutive values (fixed order, no atomics). */
 __kernel void block_max(__global const REAL *v, const uint n, const uint block,
                         __global REAL *out, const uint nblocks)
