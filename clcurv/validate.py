@@ -18,6 +18,8 @@ def as_points(points, name="points"):
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise ValueError(f"{name} must have shape (N, 3), got {arr.shape}")
     arr = np.ascontiguousarray(arr, dtype=np.float64)
+    if np.isfinite(arr).all():      # fast path: one pass, no per-row mask
+        return arr
     bad = ~np.isfinite(arr).all(axis=1)
     if bad.any():
         first = int(np.flatnonzero(bad)[0])
