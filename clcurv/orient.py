@@ -191,13 +191,15 @@ def flip_by_propagation(points, normals, k=10):
     2. Take its minimum spanning forest (Kruskal,
        :func:`scipy.sparse.csgraph.minimum_spanning_tree`).
     3. In every connected component, the root is the point farthest from the
-       component's centroid; its normal is oriented away from the centroid
-       (the global outward choice: closed shapes get outward normals).
+       component's centroid; its normal is oriented away from the centroid.
     4. Propagate along the tree from the root: a node is flipped relative to
        its already-oriented parent when their normals disagree (dot < 0).
        All components are processed at once by hanging their roots under a
        virtual super-root, doing one breadth-first search and accumulating
        the flips along root paths by vectorised pointer jumping.
+    5. Global outward choice: a component is flipped as a whole when the sum
+       over its points of <n, p - centroid> is negative (closed shapes, open
+       cylinders and most single-view scans get outward normals).
 
     Components with fewer than 3 points (only possible when there are at most
     ``k`` valid points in a region) are not propagated: each of their points
@@ -221,9 +223,9 @@ def flip_by_propagation(points, normals, k=10):
 
     Notes
     -----
-    The outward choice at the root assumes the farthest point from the
-    centroid sees the centroid on its inner side, true for closed surfaces
-    (sphere, capsule, torus, ...) and for most open scans.
+    The outward vote assumes that on the whole the centroid lies on the inner
+    side of the surface: true for closed surfaces (sphere, capsule, torus...)
+    and for most object scans; for terrain (aerial LiDAR) use a viewpoint.
     """
     p_all = _as_vectors(points, "points")
     n_all = _as_vectors(normals, "normals")
@@ -281,6 +283,12 @@ def _propagate(p, u, k):
     edge_flip[child] = _negative(_rowdot(u[child], u[parent[child]]))
     edge_flip[roots] = _negative(_rowdot(u[roots], p[roots] - cen))
     f = _xor_to_root(edge_flip, parent, m)[:m]
+    # global outward choice by a vote of the whole component rather than of its root (the
+    # root's normal can be poor at a scan's rim): flip a component whose oriented normals
+    # point on the whole towards its centroid
+    vote = np.bincount(labels, weights=np.where(f, -1.0, 1.0) * _rowdot(u, p - cen[labels]),
+                       minlength=ncomp)
+    f ^= (vote < 0)[labels]
 
     small = np.bincount(labels, minlength=ncomp)[labels] < MIN_COMPONENT
     f[small] = global_out[small]

@@ -61,3 +61,12 @@ def test_mls1_projection_moves_inward_by_h_r2_over_4(device):
     res = clcurv.curvature(s["points"], r, method="mls1", device=device)
     radial = np.linalg.norm(res.points, axis=1) - 2.0      # Theorem 5: -H r^2/4 = -0.005
     assert abs(np.mean(radial) / (-0.5 * r * r / 4) - 1) <= 0.03
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_open_noisy_cylinder_comes_out_outward(device, seed):
+    """The outward vote of the whole component, not of a rim point (where PCA normals of a
+    half-empty ball tilt), decides: an open noisy cylinder is oriented outward."""
+    s = shapes.cylinder(40_000, 1.0, 6.0, noise=0.05, seed=seed)
+    n = clcurv.normals(s["points"], 0.2, device=device)
+    assert np.mean(np.einsum("ij,ij->i", n, s["normals"]) > 0) >= 0.999
