@@ -23,7 +23,7 @@ opencl: $(VENV)/.installed
 	@$(PY) -c "import clcurv; print('OpenCL devices:'); [print('  ', d) for d in clcurv.devices()]"
 
 demo: setup
-	$(PY) -m clcurv.demo --output out/bunny_mls1.ply
+	$(VENV)/bin/clcurv demo --outdir out
 
 test: setup
 	$(PY) -m pytest -q

@@ -172,6 +172,7 @@ def devices_cmd(args, out=print):
 def demo_cmd(args, out=print):
     from clcurv.demo import sample_path
     outdir = Path(args.outdir)
+    outdir.mkdir(parents=True, exist_ok=True)
     ns = argparse.Namespace(input=str(sample_path()), output=str(outdir / "bunny_mls2.ply"),
                             method="mls2", radius="auto", scale_space=3, weights="uniform",
                             device=args.device, precision="float", fields=None, kernel="ball",
