@@ -12,7 +12,7 @@ def test_readme_python_example_runs():
     scope = {}
     exec(compile(block, "README.md", "exec"), scope)
     assert abs(np.nanmedian(scope["res"].mean) - 0.5) < 0.01
-    assert abs(np.nanmedian(scope["res"].k1) - 0.5) < 0.02
+    assert abs(np.nanmedian(scope["res"].gaussian) - 0.25) < 0.02
     assert np.linalg.norm(scope["smooth"], axis=1).mean() < 2.0      # MLS1 shrinks the sphere
     towards = np.array([0, 0, 10.0]) - scope["pts"]
     assert np.all(np.einsum("ij,ij->i", scope["n"], towards) > 0)        # facing the viewpoint
