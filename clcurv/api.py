@@ -105,7 +105,8 @@ def _empty(method, radius, weights):
         res.mean, res.points = z.copy(), z3.copy()
     if method in COVARIANCE_METHODS + ("mls2",):
         res.k1, res.k2, res.dir1, res.dir2 = z.copy(), z.copy(), z3.copy(), z3.copy()
-        res.eigenvalues = np.empty((0, 3 if method in ("3dcov", "mls2") else 2))
+        res.variation = None
+        res.eigenvalues = None if method == "mls2" else np.empty((0, 3 if method == "3dcov" else 2))
     if method == "mls2":
         res.gaussian = z.copy()
     return res
@@ -128,9 +129,16 @@ def _moment_result(method, r, weights, pts, raw, n, ref_normals):
     return res
 
 
-def _operator_result(method, r, weights, pts, raw, moments, n):
+def _oriented(pts, raw, how, ref_normals, vp, k):
+    """The PCA normals of ``raw`` (float64), oriented as ``how`` says."""
+    n = _f64(raw["normals"]).copy()
+    n[_flip(pts, n, how, ref_normals, vp, k)] *= -1
+    return n
+
+
+def _operator_result(method, r, weights, pts, raw, n):
     res = CurvatureResult(method, r, weights, raw["count"].astype(np.int64),
-                          raw["status"].astype(np.uint8), n, None, _f64(moments["variation"]))
+                          raw["status"].astype(np.uint8), n, None, None)
     res.k1, res.k2 = _f64(raw["k1"]), _f64(raw["k2"])
     res.dir1, res.dir2 = _f64(raw["dir1"]), _f64(raw["dir2"])
     if method == "mls2":
@@ -138,7 +146,6 @@ def _operator_result(method, r, weights, pts, raw, moments, n):
         res.points = pts + _f64(raw["shift"])
         res.mean = 0.5 * (res.k1 + res.k2)
         res.gaussian = res.k1 * res.k2
-        res.eigenvalues = _f64(moments["eigenvalues"])
     else:
         res.eigenvalues = _f64(raw["eigenvalues"])
     return res
@@ -253,22 +260,26 @@ def curvature(points, radius, *, method="mls1", weights="uniform", normals=None,
         res.info["iterations"] = iterations
         return res
     be = _backend(backend, pts, r, device, precision)
-    raw = be.moments(weights, refine=True)
-    n = _f64(raw["normals"]).copy()
-    n[_flip(pts, n, how, ref_normals, vp, orient_k)] *= -1
     if method in MOMENT_METHODS:
+        raw = be.moments(weights, refine=True)
+        n = _oriented(pts, raw, how, ref_normals, vp, orient_k)
         _warn_sparse(raw["status"], r)
         res = _moment_result(method, r, weights, pts, raw, n, ref_normals)
-    elif method in COVARIANCE_METHODS:
-        use = ref_normals if ref_normals is not None else n
-        op = be.covariances(use, method, weights)
-        _warn_sparse(op["status"], r)
-        res = _operator_result(method, r, weights, pts, op, raw, use)
     else:
-        use = ref_normals if ref_normals is not None else (n if how is not None else None)
-        op = be.mls2(use, weights, kernel, h)
-        _warn_sparse(op["status"], r, need=6)
-        res = _operator_result(method, r, weights, pts, op, raw, n)
+        # the normal-based operators and MLS2 need only oriented normals: with the user's
+        # normals no PCA pass is run at all
+        if ref_normals is not None:
+            use = ref_normals
+        elif how is None:
+            use = None                      # MLS2 with the solver's sign for v0
+        else:
+            use = _oriented(pts, be.moments(weights, refine=False), how, None, vp, orient_k)
+        if method in COVARIANCE_METHODS:
+            op = be.covariances(use, method, weights)
+        else:
+            op = be.mls2(use, weights, kernel, h)
+        _warn_sparse(op["status"], r, need=6 if method == "mls2" else 3)
+        res = _operator_result(method, r, weights, pts, op, use)
     res.info["orientation"] = how
     return res
 

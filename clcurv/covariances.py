@@ -13,7 +13,7 @@ import numpy as np
 
 from .grid import PAD
 from .moments import device_counts
-from .program import build, launch
+from .program import batches, build, launch
 
 COV_METHODS = {"2dcov1": 1, "2dcov2": 2, "3dcov": 3}
 
@@ -57,8 +57,8 @@ def device_covariances(cloud, radius, normals, method, *, weights="uniform"):
     """Run 2dcov1/2dcov2/3dcov with the oriented unit ``normals`` (N, 3), input order."""
     r = cloud.check_radius(radius)
     t0 = time.perf_counter()
-    prg = build(cloud.device, "covariances.cl",
-                dict(cloud.defines, COV_METHOD=COV_METHODS[method], DENSITY=int(weights == "density")))
+    defines = dict(cloud.defines, COV_METHOD=COV_METHODS[method], DENSITY=int(weights == "density"))
+    prg = build(cloud.device, "covariances.cl", defines)
     nx, ny, nz = upload_sorted(cloud, normals)
     wbuf = weight_buffer(cloud, r, weights)
     n, ne = cloud.n, 3 if method == "3dcov" else 2
@@ -66,7 +66,7 @@ def device_covariances(cloud, radius, normals, method, *, weights="uniform"):
                                   "eigenvalues": ((n, ne), cloud.dtype), "k": ((n, 2), cloud.dtype),
                                   "dir1": ((n, 3), cloud.dtype), "dir2": ((n, 3), cloud.dtype)})
     t1 = time.perf_counter()
-    launch(cloud.device, prg.covariance, n, cloud.x, cloud.y, cloud.z, nx, ny, nz, wbuf,
+    launch(cloud.device, prg.covariance, batches(n, defines), cloud.x, cloud.y, cloud.z, nx, ny, nz, wbuf,
            cloud.cell_of, cloud.ranges, cloud.order, np.uint32(n), cloud.real(r),
            bufs["count"], bufs["status"], bufs["eigenvalues"], bufs["k"], bufs["dir1"], bufs["dir2"])
     cloud.device.queue.finish()

@@ -42,7 +42,8 @@ class CurvatureResult:
     gaussian : (N,) float64 or None, Gaussian curvature K = k1 k2 (1/length^2), MLS2.
 
     For the covariance methods ``eigenvalues`` are those of the operator's covariance
-    (descending, count-normalised); for the others those of the PCA covariance (ascending).
+    (descending, count-normalised); for the PCA methods those of the PCA covariance
+    (ascending); MLS2 has none. ``variation`` is given by the PCA methods only.
     """
     method: str
     radius: float
@@ -50,8 +51,8 @@ class CurvatureResult:
     count: np.ndarray
     status: np.ndarray
     normals: np.ndarray
-    eigenvalues: np.ndarray
-    variation: np.ndarray
+    eigenvalues: np.ndarray | None
+    variation: np.ndarray | None
     mean: np.ndarray | None = None
     points: np.ndarray | None = None
     k1: np.ndarray | None = None

@@ -39,25 +39,20 @@ inline REAL2 invert_theorem1(REAL l1, REAL l2, REAL r)
     return (REAL2)(sqrt(fmax(u - m, (REAL)0) * (REAL)0.25), sqrt(fmax(v - m, (REAL)0) * (REAL)0.25));
 }
 
-__kernel void covariance(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
-                         __global const REAL *NX, __global const REAL *NY,
-                         __global const REAL *NZ, __global const REAL *W,
-                         __global const uint *cell_of, __global const uint2 *ranges,
-                         __global const uint *order, const uint n, const REAL r,
-                         __global uint *count, __global uchar *status,
-                         __global REAL *eigval, __global REAL *k12,
-                         __global REAL *dir1, __global REAL *dir2)
+/* Weighted covariance of the features f_i of the ball of sorted point g (see the top). */
+typedef struct {
+    uint count;
+    REAL c[6];                       /* aa ab ad bb bd dd (the 2D methods use aa ab bb) */
+} cov_t;
+
+inline cov_t cov_ball(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
+                      __global const REAL *NX, __global const REAL *NY, __global const REAL *NZ,
+                      __global const REAL *W, __global const uint2 *ranges, uint cell, REAL3 p,
+                      REAL3 nrm, REAL3 t1, REAL3 t2, REAL r2)
 {
-    const uint g = get_global_id(0);
-    if (g >= n) return;
-    const REAL3 p = (REAL3)(X[g], Y[g], Z[g]);
-    const REAL3 nrm = (REAL3)(NX[g], NY[g], NZ[g]);
-    REAL3 t1, t2;
-    tangent_frame(nrm, &t1, &t2);
-    const REAL r2 = r * r;
     REALV sc = 0, sw = 0, sa = 0, sb = 0, sd = 0, saa = 0, sab = 0, sad = 0, sbb = 0, sbd = 0, sdd = 0;
     REALV dx, dy, dz;
-    NEIGHBOR_CHUNKS_BEGIN(ranges, cell_of[g], i, end)
+    NEIGHBOR_CHUNKS_BEGIN(ranges, cell, i, end)
         const IREALV m = chunk_offsets(X, Y, Z, i, end, p, r2, &dx, &dy, &dz);
         const REALV w = chunk_weights(W, i, dx, dy, dz, m, (REAL)0);
         sc += select((REALV)0, (REALV)1, m);
@@ -86,41 +81,47 @@ __kernel void covariance(__global const REAL *X, __global const REAL *Y, __globa
         sd += wd; sad += wa * fd; sbd += wb * fd; sdd += wd * fd;
 #endif
     NEIGHBOR_CHUNKS_END
-    const uint c = (uint)hsum(sc);
+    cov_t o;
+    o.count = (uint)hsum(sc);
     const REAL iw = (REAL)1 / hsum(sw);
-    const REAL ma = hsum(sa) * iw, mb = hsum(sb) * iw;
-    const REAL caa = hsum(saa) * iw - ma * ma, cab = hsum(sab) * iw - ma * mb;
-    const REAL cbb = hsum(sbb) * iw - mb * mb;
-    REAL3 lam = (REAL3)(0);
-    REAL3 e1 = t1;
+    const REAL ma = hsum(sa) * iw, mb = hsum(sb) * iw, md = hsum(sd) * iw;
+    o.c[0] = hsum(saa) * iw - ma * ma; o.c[1] = hsum(sab) * iw - ma * mb;
+    o.c[2] = hsum(sad) * iw - ma * md; o.c[3] = hsum(sbb) * iw - mb * mb;
+    o.c[4] = hsum(sbd) * iw - mb * md; o.c[5] = hsum(sdd) * iw - md * md;
+    return o;
+}
+
+/* Eigenvalues (descending), magnitudes, directions and stores of one point. lam3/e3 are
+ * the 3dcov eigen decomposition (largest eigenvalue's vector e3), unused otherwise. */
+inline void cov_finish(cov_t cv, REAL3 nrm, REAL3 t1, REAL3 t2, REAL r, REAL3 lam3, REAL3 e3,
+                       size_t j, __global uint *count, __global uchar *status,
+                       __global REAL *eigval, __global REAL *k12, __global REAL *dir1,
+                       __global REAL *dir2)
+{
 #if COV_METHOD == 3
-    const REAL md = hsum(sd) * iw;
-    const REAL cad = hsum(sad) * iw - ma * md, cbd = hsum(sbd) * iw - mb * md;
-    const REAL cdd = hsum(sdd) * iw - md * md;
-    REAL3 w3, v0, v1, v2;
-    eig3_sym(caa, cab, cad, cbb, cbd, cdd, &w3, &v0, &v1, &v2);
-    lam = fmax((REAL3)(w3.z, w3.y, w3.x), (REAL3)0);     /* descending */
-    const REAL3 tang = v2 - dot(v2, nrm) * nrm;           /* largest, on the tangent plane */
-    e1 = length(tang) > (REAL)1e-3 ? normalize(tang) : t1;
+    REAL3 lam = fmax(lam3, (REAL3)0);
+    const REAL3 tang = e3 - dot(e3, nrm) * nrm;           /* largest, on the tangent plane */
+    REAL3 e1 = length(tang) > (REAL)1e-3 ? normalize(tang) : t1;
     REAL2 k = (REAL)2 / r * sqrt(lam.xy);
 #else
     REAL l1, l2;
     REAL2 ev;
-    eig2_sym(caa, cab, cbb, &l1, &l2, &ev);
-    lam = fmax((REAL3)(l1, l2, 0), (REAL3)0);
-    e1 = ev.x * t1 + ev.y * t2;
+    eig2_sym(cv.c[0], cv.c[1], cv.c[3], &l1, &l2, &ev);
+    REAL3 lam = fmax((REAL3)(l1, l2, 0), (REAL3)0);
+    REAL3 e1 = ev.x * t1 + ev.y * t2;
 #if COV_METHOD == 1
     REAL2 k = invert_theorem1(lam.x, lam.y, r);
 #else
     REAL2 k = (REAL)2 / r * sqrt(lam.xy);
 #endif
 #endif
+    /* a NaN normal in the ball makes the sums NaN (fmax above would hide it in lam) */
+    int finite = isfinite(nrm.x) && isfinite(nrm.y) && isfinite(nrm.z) && isfinite(e1.x);
+    for (int e = 0; e < 6; ++e) finite = finite && isfinite(cv.c[e]);
     uchar st = ST_OK;
-    if (c < 3) st = ST_TOO_FEW;
-    else if (!(isfinite(lam.x) && isfinite(lam.y) && isfinite(lam.z) && isfinite(e1.x)
-               && isfinite(nrm.x))) st = ST_DEGENERATE;
-    const size_t j = order[g];
-    count[j] = c;
+    if (cv.count < 3) st = ST_TOO_FEW;
+    else if (!finite) st = ST_DEGENERATE;
+    count[j] = cv.count;
     status[j] = st;
     const REAL nan = NAN;
     if (st != ST_OK) {
@@ -134,4 +135,61 @@ __kernel void covariance(__global const REAL *X, __global const REAL *Y, __globa
     k12[2 * j] = k.x; k12[2 * j + 1] = k.y;
     store3c(dir1, j, e1);
     store3c(dir2, j, st == ST_OK ? cross(nrm, e1) : (REAL3)(nan));
+}
+
+#define VSTOREV CAT(vstore, VW)
+
+/* One work-item per VW consecutive sorted points (global size >= ceil(n / VW)); 3dcov's VW
+ * eigen decompositions run at once in the vector lanes (eig3_sym_v). */
+__kernel void covariance(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
+                         __global const REAL *NX, __global const REAL *NY,
+                         __global const REAL *NZ, __global const REAL *W,
+                         __global const uint *cell_of, __global const uint2 *ranges,
+                         __global const uint *order, const uint n, const REAL r,
+                         __global uint *count, __global uchar *status,
+                         __global REAL *eigval, __global REAL *k12,
+                         __global REAL *dir1, __global REAL *dir2)
+{
+    const uint g0 = get_global_id(0) * VW;
+    if (g0 >= n) return;
+    const uint kn = min((uint)VW, n - g0);
+    cov_t cv[VW];
+    REAL cs[6][VW];
+    for (uint k = 0; k < VW; ++k) {
+        if (k < kn) {
+            const uint g = g0 + k;
+            const REAL3 nrm = (REAL3)(NX[g], NY[g], NZ[g]);
+            REAL3 t1, t2;
+            tangent_frame(nrm, &t1, &t2);
+            cv[k] = cov_ball(X, Y, Z, NX, NY, NZ, W, ranges, cell_of[g],
+                             (REAL3)(X[g], Y[g], Z[g]), nrm, t1, t2, r * r);
+        } else {
+            cv[k].count = 0;
+            for (int e = 0; e < 6; ++e) cv[k].c[e] = (REAL)(e == 0 || e == 3 || e == 5);
+        }
+        for (int e = 0; e < 6; ++e) cs[e][k] = isfinite(cv[k].c[e]) ? cv[k].c[e] : (REAL)0;
+    }
+    REAL l0[VW], l1[VW], l2[VW], ex[VW], ey[VW], ez[VW];
+#if COV_METHOD == 3
+    REALV w0, w1, w2;
+    eig3_v3_v e0, e1, e2;
+    eig3_sym_v(VLOADV(0, cs[0]), VLOADV(0, cs[1]), VLOADV(0, cs[2]),
+               VLOADV(0, cs[3]), VLOADV(0, cs[4]), VLOADV(0, cs[5]),
+               &w0, &w1, &w2, &e0, &e1, &e2);
+    VSTOREV(w0, 0, l0); VSTOREV(w1, 0, l1); VSTOREV(w2, 0, l2);
+    VSTOREV(e2.x, 0, ex); VSTOREV(e2.y, 0, ey); VSTOREV(e2.z, 0, ez);
+#endif
+    for (uint k = 0; k < kn; ++k) {
+        const uint g = g0 + k;
+        const REAL3 nrm = (REAL3)(NX[g], NY[g], NZ[g]);
+        REAL3 t1, t2;
+        tangent_frame(nrm, &t1, &t2);
+        REAL3 lam3 = (REAL3)(0), e3 = t1;
+#if COV_METHOD == 3
+        lam3 = (REAL3)(l2[k], l1[k], l0[k]);                             /* descending */
+        e3 = (REAL3)(ex[k], ey[k], ez[k]);
+#endif
+        cov_finish(cv[k], nrm, t1, t2, r, lam3, e3, order[g], count, status, eigval, k12,
+                   dir1, dir2);
+    }
 }

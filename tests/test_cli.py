@@ -26,7 +26,7 @@ def test_compute_on_bundled_sample_writes_fields(tmp_path):
     cloud = io.read(out)
     src = io.read(sample_path())
     np.testing.assert_array_equal(cloud.points, src.points)           # order and points kept
-    for name in ("mean_curvature", "gaussian_curvature", "k1", "k2", "surface_variation",
+    for name in ("mean_curvature", "gaussian_curvature", "k1", "k2", "dir1_x",
                  "neighbours", "status"):
         assert name in cloud.attributes, name
     ok = cloud.attributes["status"] == 0

@@ -241,3 +241,15 @@ def test_iterated_mls2_projection_matches_reference(device):
     np.testing.assert_allclose(got, ref, atol=2e-6)
     # fourth order: after 2 iterations the sphere keeps its radius to ~ 2 r^4 / (48 R^3)
     assert np.abs(np.linalg.norm(got, axis=1) - 2.0).max() < 1e-3
+
+
+@pytest.mark.parametrize("method", ["2dcov2", "3dcov"])
+def test_nan_normal_in_the_ball_gives_degenerate(device, method):
+    pts, nrm = bumpy(5000, seed=3)
+    nrm = nrm.copy()
+    nrm[0] = np.nan
+    got = device_covariances(DeviceCloud(pts, 0.1, device=device), 0.1, nrm, method)
+    near = np.linalg.norm(pts - pts[0], axis=1) < 0.1 * (1 - 1e-6)
+    far = np.linalg.norm(pts - pts[0], axis=1) > 0.1 * (1 + 1e-6)
+    assert (got["status"][near] == 2).all() and np.isnan(got["k1"][near]).all()
+    assert (got["status"][far] == 0).mean() > 0.99 and np.isfinite(got["k1"][far]).mean() > 0.99
