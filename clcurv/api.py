@@ -65,6 +65,18 @@ def _backend(backend, points, radius, device, precision):
     return _OpenCL(points, radius, device, precision)
 
 
+def _inputs(points, radius, weights, backend, orient, normals, viewpoint):
+    """Validated (points, radius, unit normals or None, viewpoint or None, orientation)."""
+    choice(weights, "weights", ("uniform", "density"))
+    choice(backend, "backend", ("opencl", "numpy"))
+    choice(orient, "orient", ORIENTS)
+    pts = as_points(points)
+    r = as_radius(radius)
+    ref = as_normals(normals, len(pts)) if normals is not None else None
+    vp = as_viewpoint(viewpoint) if viewpoint is not None else None
+    return pts, r, ref, vp, _orientation(orient, ref, vp)
+
+
 def _orientation(orient, normals, viewpoint):
     if orient == "auto":
         return "normals" if normals is not None else "viewpoint" if viewpoint is not None else "mst"
@@ -219,15 +231,9 @@ def curvature(points, radius, *, method="mls1", weights="uniform", normals=None,
     True
     """
     method = choice(method, "method", METHODS)
-    weights = choice(weights, "weights", ("uniform", "density"))
-    backend = choice(backend, "backend", ("opencl", "numpy"))
-    orient = choice(orient, "orient", ORIENTS)
     kernel = choice(kernel, "kernel", MLS_KERNELS)
-    pts = as_points(points)
-    r = as_radius(radius)
-    ref_normals = as_normals(normals, len(pts)) if normals is not None else None
-    vp = as_viewpoint(viewpoint) if viewpoint is not None else None
-    how = _orientation(orient, ref_normals, vp)
+    pts, r, ref_normals, vp, how = _inputs(points, radius, weights, backend, orient, normals,
+                                           viewpoint)
     if method in COVARIANCE_METHODS and how is None and ref_normals is None:
         raise ValueError(f"{method} needs consistently oriented normals: pass normals= or an orient")
     iterations = int(iterations)
@@ -326,14 +332,8 @@ def normals(points, radius, *, weights="uniform", normals=None, orient="auto", v
     oriented as ``orient`` says (outward by default on closed shapes), NaN where fewer than
     3 neighbours or a degenerate neighbourhood.
     """
-    weights = choice(weights, "weights", ("uniform", "density"))
-    backend = choice(backend, "backend", ("opencl", "numpy"))
-    orient = choice(orient, "orient", ORIENTS)
-    pts = as_points(points)
-    r = as_radius(radius)
-    ref_normals = as_normals(normals, len(pts)) if normals is not None else None
-    vp = as_viewpoint(viewpoint) if viewpoint is not None else None
-    how = _orientation(orient, ref_normals, vp)
+    pts, r, ref_normals, vp, how = _inputs(points, radius, weights, backend, orient, normals,
+                                           viewpoint)
     if len(pts) == 0:
         return np.empty((0, 3))
     raw = _backend(backend, pts, r, device, precision).moments(weights, refine=False)
