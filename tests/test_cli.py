@@ -92,3 +92,15 @@ def test_auto_radius_gives_about_30_neighbours():
     from scipy.spatial import cKDTree
     counts = np.array([len(x) for x in cKDTree(pts).query_ball_point(pts[::50], r)])
     assert 26 <= np.median(counts) <= 34
+
+
+def test_render_command_on_a_computed_file(tmp_path):
+    ply, png = tmp_path / "b.ply", tmp_path / "b.png"
+    assert run("compute", sample_path(), "-o", ply, "--method", "mls1", "-q").returncode == 0
+    p = run("render", ply, "--field", "mean_curvature", "--unit", "1/m", "-o", png)
+    assert p.returncode == 0, p.stderr
+    from matplotlib.image import imread
+    img = imread(str(png))
+    assert img.shape[0] > 300 and np.any(img[..., :3] < 0.9, axis=2).mean() > 0.1
+    p = run("render", ply, "--field", "no_such_field", "-o", png)
+    assert p.returncode == 2 and "no field 'no_such_field'" in p.stderr
