@@ -138,3 +138,17 @@ def test_huge_bounding_box_is_an_error_not_a_dense_grid(device):
     pts = np.array([[0.0, 0.0, 0.0], [1e9, 1e9, 1e9], [1.0, 0.0, 0.0]])
     with pytest.raises(ValueError, match="too large for cell size"):
         clcurv.curvature(pts, 1e-6, device=device)
+
+
+def test_large_lidar_tile_uses_a_sparse_grid(device):
+    """A 10 km x 10 km tile at r = 0.5 m: 2e4 x 2e4 cells in x, y, but memory O(N)."""
+    from clcurv.cloud import DeviceCloud
+    rng = np.random.default_rng(4)
+    centres = rng.uniform(0, 10_000, (200, 2))                 # 200 patches of 100 points
+    xy = (centres[:, None, :] + rng.uniform(-1, 1, (200, 100, 2))).reshape(-1, 2)
+    pts = np.column_stack([xy + [512_000.0, 4_870_000.0], rng.normal(100, 0.01, len(xy))])
+    cloud = DeviceCloud(pts, 0.5, device=device)
+    assert cloud.grid.dims[0] * cloud.grid.dims[1] > 3e8     # a dense grid would be huge
+    assert cloud.grid.ncells <= len(pts) and len(cloud.grid.cell_start) == cloud.grid.ncells + 1
+    res = clcurv.curvature(pts, 0.5, method="variation", orient=None, device=device)
+    assert res.valid.mean() > 0.95 and np.nanmedian(res.variation) < 1e-3   # flat patches
