@@ -35,14 +35,15 @@ inline REAL2 eigvec2(REAL s00, REAL s01, REAL s10, REAL s11, REAL lam)
            ? v / nv : (REAL2)(1, 0);
 }
 
-/* The fit, curvatures and stores of the sorted point g, once its PCA is known. */
-inline void mls2_point(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
-                       __global const REAL *NX, __global const REAL *NY, __global const REAL *NZ,
-                       __global const REAL *W, __global const uint2 *ranges, uint cell, uint g,
-                       const pca_batch_t *pb, uint k, REAL r, REAL ih2, int use_ref, size_t j,
-                       __global uint *count, __global uchar *status, __global REAL *shift,
-                       __global REAL *k12, __global REAL *dir1, __global REAL *dir2,
-                       __global REAL *normal)
+/* Frame and normal equations of the sorted point g (lane k), once its PCA is known: v0
+ * oriented by the reference normal, the tangent frame, Q - p, and sum w phi phi^T (packed)
+ * and sum w h phi for phi = (1, x, y, x^2, xy, y^2). Returns the status. */
+inline uchar mls2_system(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
+                         __global const REAL *NX, __global const REAL *NY,
+                         __global const REAL *NZ, __global const REAL *W,
+                         __global const uint2 *ranges, uint cell, uint g, const pca_batch_t *pb,
+                         uint k, REAL r, REAL ih2, int use_ref, REAL3 *v0_out, REAL3 *t1_out,
+                         REAL3 *t2_out, REAL3 *qo_out, REAL M[21], REAL b[6])
 {
     const REAL3 p = (REAL3)(X[g], Y[g], Z[g]);
     const REAL r2 = r * r, ir = (REAL)1 / r;
@@ -57,42 +58,53 @@ inline void mls2_point(__global const REAL *X, __global const REAL *Y, __global 
     REAL3 t1, t2;
     tangent_frame(v0, &t1, &t2);
     const REAL3 qo = dot(mu, v0) * v0;             /* Q - p */
-    const REAL3 c = qo;
-    REAL a[6] = {0, 0, 0, 0, 0, 0};
-    if (st == ST_OK) {
-        REALV s00 = 0, s10 = 0, s01 = 0, s20 = 0, s11 = 0, s02 = 0, s30 = 0, s21 = 0;
-        REALV s12 = 0, s03 = 0, s40 = 0, s31 = 0, s22 = 0, s13 = 0, s04 = 0;
-        REALV h0 = 0, hx = 0, hy = 0, hxx = 0, hxy = 0, hyy = 0;
-        REALV dx, dy, dz;
-        NEIGHBOR_CHUNKS_BEGIN(ranges, cell, i, end)
-            const IREALV m = chunk_offsets(X, Y, Z, i, end, p, r2, &dx, &dy, &dz);
-            const REALV w = chunk_weights(W, i, dx, dy, dz, m, ih2);
-            const REALV ex = dx - c.x, ey = dy - c.y, ez = dz - c.z;
-            const REALV x = (ex * t1.x + ey * t1.y + ez * t1.z) * ir;
-            const REALV y = (ex * t2.x + ey * t2.y + ez * t2.z) * ir;
-            const REALV h = ex * v0.x + ey * v0.y + ez * v0.z;
-            const REALV wx = w * x, wy = w * y, wxx = wx * x, wxy = wx * y, wyy = wy * y;
-            s00 += w; s10 += wx; s01 += wy; s20 += wxx; s11 += wxy; s02 += wyy;
-            s30 += wxx * x; s21 += wxx * y; s12 += wxy * y; s03 += wyy * y;
-            s40 += wxx * x * x; s31 += wxx * x * y; s22 += wxx * y * y;
-            s13 += wxy * y * y; s04 += wyy * y * y;
-            h0 += w * h; hx += wx * h; hy += wy * h; hxx += wxx * h; hxy += wxy * h; hyy += wyy * h;
-        NEIGHBOR_CHUNKS_END
-        const REAL S00 = hsum(s00), S10 = hsum(s10), S01 = hsum(s01), S20 = hsum(s20);
-        const REAL S11 = hsum(s11), S02 = hsum(s02), S30 = hsum(s30), S21 = hsum(s21);
-        const REAL S12 = hsum(s12), S03 = hsum(s03), S40 = hsum(s40), S31 = hsum(s31);
-        const REAL S22 = hsum(s22), S13 = hsum(s13), S04 = hsum(s04);
-        /* packed lower triangle of sum w phi phi^T, phi = (1, x, y, x^2, xy, y^2) */
-        REAL M[21] = {S00,
-                      S10, S20,
-                      S01, S11, S02,
-                      S20, S30, S21, S40,
-                      S11, S21, S12, S31, S22,
-                      S02, S12, S03, S22, S13, S04};
-        const REAL b[6] = {hsum(h0), hsum(hx), hsum(hy), hsum(hxx), hsum(hxy), hsum(hyy)};
-        if (!solve6(M, b, a)) st = ST_SINGULAR;
-    }
-    count[j] = pb->count[k];
+    *v0_out = v0; *t1_out = t1; *t2_out = t2; *qo_out = qo;
+    for (int e = 0; e < 21; ++e) M[e] = (REAL)(e == 0 || e == 2 || e == 5 || e == 9 || e == 14 || e == 20);
+    for (int e = 0; e < 6; ++e) b[e] = 0;           /* identity system for failed points */
+    if (st != ST_OK) return st;
+    /* x = <q - Q, t1> / r = (<d, t1> - <Q - p, t1>) / r, likewise y and h */
+    const REAL ct1 = dot(qo, t1), ct2 = dot(qo, t2), cv0 = dot(qo, v0);
+    const REAL3 u1 = t1 * ir, u2 = t2 * ir;
+    REALV s00 = 0, s10 = 0, s01 = 0, s20 = 0, s11 = 0, s02 = 0, s30 = 0, s21 = 0;
+    REALV s12 = 0, s03 = 0, s40 = 0, s31 = 0, s22 = 0, s13 = 0, s04 = 0;
+    REALV h0 = 0, hx = 0, hy = 0, hxx = 0, hxy = 0, hyy = 0;
+    REALV dx, dy, dz;
+    NEIGHBOR_CHUNKS_BEGIN(ranges, cell, i, end)
+        const IREALV m = chunk_offsets(X, Y, Z, i, end, p, r2, &dx, &dy, &dz);
+        const REALV w = chunk_weights(W, i, dx, dy, dz, m, ih2);
+        const REALV x = dx * u1.x + dy * u1.y + dz * u1.z - ct1 * ir;
+        const REALV y = dx * u2.x + dy * u2.y + dz * u2.z - ct2 * ir;
+        const REALV h = dx * v0.x + dy * v0.y + dz * v0.z - cv0;
+        const REALV wx = w * x, wy = w * y, wxx = wx * x, wxy = wx * y, wyy = wy * y;
+        s00 += w; s10 += wx; s01 += wy; s20 += wxx; s11 += wxy; s02 += wyy;
+        s30 += wxx * x; s21 += wxx * y; s12 += wxy * y; s03 += wyy * y;
+        s40 += wxx * x * x; s31 += wxx * x * y; s22 += wxx * y * y;
+        s13 += wxy * y * y; s04 += wyy * y * y;
+        h0 += w * h; hx += wx * h; hy += wy * h; hxx += wxx * h; hxy += wxy * h; hyy += wyy * h;
+    NEIGHBOR_CHUNKS_END
+    const REAL S00 = hsum(s00), S10 = hsum(s10), S01 = hsum(s01), S20 = hsum(s20);
+    const REAL S11 = hsum(s11), S02 = hsum(s02), S30 = hsum(s30), S21 = hsum(s21);
+    const REAL S12 = hsum(s12), S03 = hsum(s03), S40 = hsum(s40), S31 = hsum(s31);
+    const REAL S22 = hsum(s22), S13 = hsum(s13), S04 = hsum(s04);
+    const REAL packed[21] = {S00,
+                             S10, S20,
+                             S01, S11, S02,
+                             S20, S30, S21, S40,
+                             S11, S21, S12, S31, S22,
+                             S02, S12, S03, S22, S13, S04};
+    for (int e = 0; e < 21; ++e) M[e] = packed[e];
+    b[0] = hsum(h0); b[1] = hsum(hx); b[2] = hsum(hy);
+    b[3] = hsum(hxx); b[4] = hsum(hxy); b[5] = hsum(hyy);
+    return st;
+}
+
+/* Curvatures, directions, normal and stores from the fitted coefficients a. */
+inline void mls2_store(uchar st, const REAL a[6], REAL r, REAL3 v0, REAL3 t1, REAL3 t2, REAL3 qo,
+                       uint count_k, size_t j, __global uint *count, __global uchar *status,
+                       __global REAL *shift, __global REAL *k12, __global REAL *dir1,
+                       __global REAL *dir2, __global REAL *normal)
+{
+    count[j] = count_k;
     status[j] = st;
     if (st != ST_OK) {
         const REAL nan = NAN;
@@ -100,6 +112,7 @@ inline void mls2_point(__global const REAL *X, __global const REAL *Y, __global 
         put3(normal, j, (REAL3)(nan)); k12[2 * j] = nan; k12[2 * j + 1] = nan;
         return;
     }
+    const REAL ir = (REAL)1 / r;
     const REAL gx = a[1] * ir, gy = a[2] * ir;
     const REAL gxx = 2 * a[3] * ir * ir, gxy = a[4] * ir * ir, gyy = 2 * a[5] * ir * ir;
     const REAL q = 1 + gx * gx + gy * gy, iq = (REAL)1 / q, wn = rsqrt(q);
@@ -121,7 +134,9 @@ inline void mls2_point(__global const REAL *X, __global const REAL *Y, __global 
     put3(normal, j, nfit);
 }
 
-/* One work-item per VW consecutive sorted points (global size >= ceil(n / VW)). */
+/* One work-item per VW consecutive sorted points (global size >= ceil(n / VW)): PCA of the
+ * VW balls with one vectorised eigen solve, then each point's normal equations, then the VW
+ * 6x6 systems solved at once in the vector lanes, then the per-point curvatures. */
 __kernel void mls2(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
                    __global const REAL *NX, __global const REAL *NY, __global const REAL *NZ,
                    __global const REAL *W, __global const uint *cell_of,
@@ -136,9 +151,34 @@ __kernel void mls2(__global const REAL *X, __global const REAL *Y, __global cons
     const uint kn = min((uint)VW, n - g0);
     pca_batch_t pb;
     pca_batch(X, Y, Z, W, cell_of, ranges, g0, kn, r * r, ih2, &pb);
+    REAL Ml[21][VW], bl[6][VW];
+    REAL3 v0[VW], t1[VW], t2[VW], qo[VW];
+    uchar st[VW];
+    for (uint k = 0; k < VW; ++k) {
+        REAL M[21], b[6];
+        if (k < kn) {
+            const uint g = g0 + k;
+            st[k] = mls2_system(X, Y, Z, NX, NY, NZ, W, ranges, cell_of[g], g, &pb, k, r, ih2,
+                                use_ref, &v0[k], &t1[k], &t2[k], &qo[k], M, b);
+        } else {
+            for (int e = 0; e < 21; ++e) M[e] = (REAL)(e == 0 || e == 2 || e == 5 || e == 9 || e == 14 || e == 20);
+            for (int e = 0; e < 6; ++e) b[e] = 0;
+        }
+        for (int e = 0; e < 21; ++e) Ml[e][k] = M[e];
+        for (int e = 0; e < 6; ++e) bl[e][k] = b[e];
+    }
+    REALV Mv[21], bv[6], xv[6];
+    for (int e = 0; e < 21; ++e) Mv[e] = VLOADV(0, Ml[e]);
+    for (int e = 0; e < 6; ++e) bv[e] = VLOADV(0, bl[e]);
+    const IREALV ok = solve6_v(Mv, bv, xv);
+    REAL xl[6][VW];
+    IREAL okl[VW];
+    for (int e = 0; e < 6; ++e) VSTOREV(xv[e], 0, xl[e]);
+    CAT(vstore, VW)(ok, 0, okl);
     for (uint k = 0; k < kn; ++k) {
-        const uint g = g0 + k;
-        mls2_point(X, Y, Z, NX, NY, NZ, W, ranges, cell_of[g], g, &pb, k, r, ih2, use_ref,
-                   order[g], count, status, shift, k12, dir1, dir2, normal);
+        const REAL a[6] = {xl[0][k], xl[1][k], xl[2][k], xl[3][k], xl[4][k], xl[5][k]};
+        const uchar s = (st[k] == ST_OK && !okl[k]) ? ST_SINGULAR : st[k];
+        mls2_store(s, a, r, v0[k], t1[k], t2[k], qo[k], pb.count[k], order[g0 + k], count,
+                   status, shift, k12, dir1, dir2, normal);
     }
 }
