@@ -11,7 +11,7 @@ import time
 import numpy as np
 
 from .device import get_device
-from .grid import bin_points
+from .grid import PAD, bin_points
 from .program import build, launch, precision_defines
 from .validate import as_points, as_radius
 
@@ -95,3 +95,33 @@ class DeviceCloud:
 
     def empty(self, shape, dtype=None):
         return np.empty(shape, dtype=dtype or self.dtype)
+
+
+def upload_sorted(cloud, values):
+    """Upload per-point ``values`` (N, 3), input order, as three padded SoA buffers in the
+    cloud's sorted order and precision."""
+    import pyopencl as cl
+    out = []
+    for d in range(3):
+        col = np.zeros(cloud.n + PAD, dtype=cloud.dtype)
+        np.take(values[:, d], cloud.grid.order, out=col[:cloud.n])
+        out.append(cl.Buffer(cloud.device.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
+                             hostbuf=col))
+    return out
+
+
+def download(cloud, spec):
+    """Allocate device outputs from ``spec`` {name: (shape, dtype)}; return (host, buffers)."""
+    import pyopencl as cl
+    host = {k: np.empty(shape, dtype) for k, (shape, dtype) in spec.items()}
+    bufs = {k: cl.Buffer(cloud.device.context, cl.mem_flags.WRITE_ONLY, size=max(v.nbytes, 1))
+            for k, v in host.items()}
+    return host, bufs
+
+
+def fetch(cloud, host, bufs):
+    import pyopencl as cl
+    for k, v in host.items():
+        cl.enqueue_copy(cloud.device.queue, v, bufs[k])
+    cloud.device.queue.finish()
+    return host

@@ -11,46 +11,11 @@ import time
 
 import numpy as np
 
-from .grid import PAD
-from .moments import device_counts
+from .cloud import download, fetch, upload_sorted
+from .moments import weight_buffer
 from .program import batches, build, launch
 
 COV_METHODS = {"2dcov1": 1, "2dcov2": 2, "3dcov": 3}
-
-
-def upload_sorted(cloud, values):
-    """Upload per-point ``values`` (N, 3), input order, as three padded SoA buffers in the
-    cloud's sorted order and precision."""
-    import pyopencl as cl
-    out = []
-    for d in range(3):
-        col = np.zeros(cloud.n + PAD, dtype=cloud.dtype)
-        np.take(values[:, d], cloud.grid.order, out=col[:cloud.n])
-        out.append(cl.Buffer(cloud.device.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
-                             hostbuf=col))
-    return out
-
-
-def weight_buffer(cloud, radius, weights):
-    """The density weight buffer, or a placeholder the kernel does not read."""
-    return device_counts(cloud, radius)[1] if weights == "density" else cloud.x
-
-
-def download(cloud, spec):
-    """Allocate device outputs from ``spec`` {name: (shape, dtype)}; return (host, buffers)."""
-    import pyopencl as cl
-    host = {k: np.empty(shape, dtype) for k, (shape, dtype) in spec.items()}
-    bufs = {k: cl.Buffer(cloud.device.context, cl.mem_flags.WRITE_ONLY, size=max(v.nbytes, 1))
-            for k, v in host.items()}
-    return host, bufs
-
-
-def fetch(cloud, host, bufs):
-    import pyopencl as cl
-    for k, v in host.items():
-        cl.enqueue_copy(cloud.device.queue, v, bufs[k])
-    cloud.device.queue.finish()
-    return host
 
 
 def device_covariances(cloud, radius, normals, method, *, weights="uniform"):

@@ -11,7 +11,8 @@ import time
 
 import numpy as np
 
-from .covariances import download, fetch, upload_sorted, weight_buffer
+from .cloud import download, fetch, upload_sorted
+from .moments import weight_buffer
 from .program import batches, build, launch
 
 KERNELS = ("ball", "gaussian")

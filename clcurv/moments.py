@@ -31,6 +31,11 @@ def device_counts(cloud, radius):
     return counts, weights
 
 
+def weight_buffer(cloud, radius, weights):
+    """The density weight buffer, or a placeholder the kernel does not read."""
+    return device_counts(cloud, radius)[1] if weights == "density" else cloud.x
+
+
 def device_moments(cloud, radius, *, weights="uniform", refine=True):
     """Raw moments of N_r(p) for every point, in input order.
 
