@@ -105,22 +105,31 @@ def _fmt_count(n):
     return f"{n:,}"
 
 
-def _point_diameter_px(u, v, scale_px, n_total_drawn):
+def _point_diameter_px(u, v, scale_px, n_drawn):
     """Marker diameter (pixels) so that the projected points roughly tile the silhouette.
 
     The silhouette area is estimated on a coarse occupancy grid; about half of the points are
-    assumed on the visible side of a closed surface.
+    assumed on the visible side of a closed surface. The density used is the lower of that
+    average and the 25th percentile of the local densities on a finer grid (about 25 points a
+    cell), so that sparsely sampled parts (the middle of a projected sphere) are also closed.
     """
     if u.size == 0:
         return 2.0
+    du = max(float(np.ptp(u)), 1e-300) * scale_px
+    dv = max(float(np.ptp(v)), 1e-300) * scale_px
     bins = 48
-    du = max(float(np.ptp(u)), 1e-300)
-    dv = max(float(np.ptp(v)), 1e-300)
     h, _, _ = np.histogram2d(u, v, bins=bins)
-    occupied = np.count_nonzero(h) / (bins * bins)
-    area_px = max(occupied * du * dv * scale_px * scale_px, 1.0)
-    visible = max(0.5 * n_total_drawn, 1.0)
-    d = 1.5 * np.sqrt(area_px / visible)
+    area_px = max(np.count_nonzero(h) / (bins * bins) * du * dv, 1.0)
+    rho = 0.5 * n_drawn / area_px  # visible points per pixel
+    cell = np.sqrt(25.0 / rho) if rho > 0 else max(du, dv)
+    nu = int(np.clip(du / cell, 1, 512))
+    nv = int(np.clip(dv / cell, 1, 512))
+    if nu * nv >= 16:
+        h, _, _ = np.histogram2d(u, v, bins=(nu, nv))
+        counts = h[h > 0]
+        local = 0.5 * np.percentile(counts, 25) / (du * dv / (nu * nv))
+        rho = min(rho, max(local, 0.3 * rho))
+    d = 2.5 * np.sqrt(1.0 / max(rho, 1e-12))
     return float(np.clip(d, 0.9, 9.0))
 
 
@@ -268,7 +277,7 @@ def render(points, values, path, *, field="mean_curvature", unit="1/length unit"
     for u, v, _ in projections:
         if u.size:
             need = max(need, np.ptp(u) / inner_w, np.ptp(v) / inner_h)
-    units_per_inch = need * 1.06
+    units_per_inch = need * 1.08
     if not np.isfinite(units_per_inch) or units_per_inch <= 1e-300:
         units_per_inch = 1.0
     scale_px = dpi / units_per_inch  # pixels per data unit
@@ -301,17 +310,32 @@ def render(points, values, path, *, field="mean_curvature", unit="1/length unit"
                    marker="o", linewidths=0, edgecolors="none", plotnonfinite=True,
                    rasterized=True)
 
-    # --- colorbar ------------------------------------------------------------------------
-    cax = fig.add_axes(((fig_w - cbar_w + 0.12) / fig_w, (bottom_pad + 0.35) / fig_h,
-                        0.16 / fig_w, (panel_h - 0.85) / fig_h))
-    sm = ScalarMappable(norm=norm, cmap=cmap)
-    sm.set_array(np.array([]))
-    cb = fig.colorbar(sm, cax=cax, extend=extend)
+    # --- colorbar (and a grey "NaN" key when some values are NaN) --------------------------
+    cb_x = (fig_w - cbar_w + 0.12) / fig_w
+    cb_wf = 0.16 / fig_w
+    cb_y0, cb_h = bottom_pad + 0.6, panel_h - 1.1
     label = f"{field} [{unit}]" if unit else f"{field}"
-    cb.set_label(label, fontsize=9)
-    cb.ax.tick_params(labelsize=8)
-    cb.formatter.set_powerlimits((-3, 4))
-    cb.update_ticks()
+    cax = fig.add_axes((cb_x, cb_y0 / fig_h, cb_wf, cb_h / fig_h))
+    if finite.size:
+        sm = ScalarMappable(norm=norm, cmap=cmap)
+        sm.set_array(np.array([]))
+        cb = fig.colorbar(sm, cax=cax, extend=extend)
+        cb.set_label(label, fontsize=9)
+        cb.ax.tick_params(labelsize=8)
+        cb.formatter.set_powerlimits((-3, 4))
+        cb.update_ticks()
+    else:
+        cax.set_facecolor(_NAN_GREY)
+        cax.set_xticks([])
+        cax.set_yticks([])
+        cax.yaxis.set_label_position("right")
+        cax.set_ylabel(f"{label}: all NaN", fontsize=9)
+    if 0 < n_nan < n:
+        kax = fig.add_axes((cb_x, (bottom_pad + 0.1) / fig_h, cb_wf, 0.16 / fig_h))
+        kax.set_facecolor(_NAN_GREY)
+        kax.set_xticks([])
+        kax.set_yticks([])
+        kax.text(1.6, 0.5, "NaN", transform=kax.transAxes, fontsize=8, va="center")
 
     # --- caption -------------------------------------------------------------------------
     head = title if title is not None else field

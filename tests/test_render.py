@@ -1,54 +1,186 @@
-"""Pictures: the PNG has the stated size, is not blank, uses a diverging map for signed
-fields, subsamples large clouds, and survives an all-NaN field."""
+"""clcurv.render: PNGs of a cloud coloured by a field (matplotlib, Agg)."""
+from pathlib import Path
+
 import numpy as np
 import pytest
 
-matplotlib = pytest.importorskip("matplotlib", reason="matplotlib is an optional extra")
+pytest.importorskip("matplotlib", reason='rendering needs matplotlib: pip install "clcurv[render]"')
+
 from matplotlib.image import imread  # noqa: E402
 
-from clcurv import shapes  # noqa: E402
-from clcurv.render import render  # noqa: E402
+from clcurv.render import MissingMatplotlibError, render  # noqa: E402
+
+DPI = 60  # small pictures keep the tests fast; the size check is figsize * dpi all the same
 
 
-def pixels(path):
-    img = imread(str(path))
-    return img[..., :3] if img.ndim == 3 else img
+def sphere(n, seed=0, radius=1.0):
+    rng = np.random.default_rng(seed)
+    p = rng.normal(size=(n, 3))
+    return radius * p / np.linalg.norm(p, axis=1, keepdims=True)
 
 
-def test_signed_field_png_size_colours_and_content(tmp_path):
-    pts = shapes.sphere(20_000, 1.0, seed=1)["points"]
-    path = render(pts, pts[:, 2], tmp_path / "signed.png", field="mean_curvature", unit="1/m",
-                  dpi=80)
-    img = pixels(path)
-    assert img.shape[:2] == (round(4.5 * 80), round(12 * 80))          # figsize 12 x 4.5
-    nonwhite = np.any(img < 0.95, axis=2)
-    assert nonwhite.mean() > 0.15                                       # not blank
-    colours = np.unique((img[nonwhite] * 32).astype(int), axis=0)
-    assert len(colours) > 50
-    r, g, b = img[..., 0], img[..., 1], img[..., 2]
-    assert np.count_nonzero((r > 0.6) & (b < 0.4) & (g < 0.5)) > 500   # reddish (positive)
-    assert np.count_nonzero((b > 0.6) & (r < 0.4) & (g < 0.6)) > 500   # bluish (negative)
+@pytest.fixture
+def captions(monkeypatch):
+    """Every string passed to Figure.text during the test (the title and the caption)."""
+    import matplotlib.figure
+
+    texts = []
+    orig = matplotlib.figure.Figure.text
+
+    def spy(self, x, y, s, *a, **k):
+        texts.append(s)
+        return orig(self, x, y, s, *a, **k)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "text", spy)
+    return texts
 
 
-def test_unsigned_field_uses_a_sequential_map(tmp_path):
-    pts = shapes.sphere(20_000, 1.0, seed=2)["points"]
-    img = pixels(render(pts, np.abs(pts[:, 2]), tmp_path / "unsigned.png",
-                        field="surface_variation", unit="", dpi=60))
-    r, g, b = img[..., 0], img[..., 1], img[..., 2]
-    assert np.count_nonzero((r > 0.6) & (b < 0.4) & (g < 0.5)) < 50     # no diverging reds
+def load_rgb(path):
+    img = imread(path)
+    assert img.ndim == 3 and img.shape[2] in (3, 4)
+    rgb = img[..., :3]
+    if rgb.dtype != np.uint8:
+        rgb = np.round(rgb * 255).astype(np.uint8)
+    return rgb
 
 
-def test_large_cloud_is_subsampled_and_all_nan_still_renders(tmp_path):
-    pts = np.random.default_rng(3).normal(size=(300_000, 3))
-    p = render(pts, pts[:, 0], tmp_path / "big.png", max_points=50_000, dpi=50)
-    assert pixels(p).shape[0] == round(4.5 * 50)
-    p = render(pts[:1000], np.full(1000, np.nan), tmp_path / "nan.png", dpi=50)
-    img = pixels(p)
-    assert np.any(img < 0.95, axis=2).mean() > 0.01                     # grey points drawn
+def check_picture(path, n_views=3, dpi=DPI):
+    path = Path(path)
+    assert path.is_file() and path.stat().st_size > 0
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    rgb = load_rgb(path)
+    w_in, h_in = 3.7 * n_views + 0.9, 4.5
+    assert rgb.shape[:2] == (round(h_in * dpi), round(w_in * dpi))
+    non_white = np.any(rgb < 245, axis=2).mean()
+    assert non_white > 0.15, f"only {non_white:.1%} non-white pixels"
+    colours = np.unique(rgb.reshape(-1, 3), axis=0).shape[0]
+    return rgb, non_white, colours
 
 
-def test_bad_input():
-    with pytest.raises(ValueError, match=r"\(N, 3\)"):
-        render(np.zeros((5, 2)), np.zeros(5), "/tmp/x.png")
+def reddish(rgb):
+    r, g, b = (rgb[..., i].astype(int) for i in range(3))
+    return np.count_nonzero((r > 150) & (r - np.maximum(g, b) > 70))
+
+
+def bluish(rgb):
+    r, g, b = (rgb[..., i].astype(int) for i in range(3))
+    return np.count_nonzero((b > 120) & (b - np.maximum(r, g) > 40))
+
+
+def test_signed_sphere_has_red_and_blue(tmp_path):
+    p = sphere(20_000)
+    out = render(p, p[:, 2], tmp_path / "z.png", field="z", unit="m", dpi=DPI)
+    assert isinstance(out, Path) and out == tmp_path / "z.png"
+    rgb, non_white, colours = check_picture(out)
+    assert colours > 200, colours
+    assert reddish(rgb) > 500 and bluish(rgb) > 500, (reddish(rgb), bluish(rgb))
+
+
+def test_signed_autodetected_for_curvature_names(tmp_path):
+    p = sphere(5_000, seed=1)
+    v = 0.5 + p[:, 0]  # mostly positive: robust range may not straddle 0, name says signed
+    out = render(p, v, tmp_path / "h.png", field="mean_curvature", dpi=DPI)
+    rgb, _, _ = check_picture(out)
+    assert reddish(rgb) > 200 and bluish(rgb) > 50
+
+
+def test_unsigned_sphere_is_sequential(tmp_path):
+    p = sphere(20_000, seed=2)
+    out = render(p, np.abs(p[:, 2]), tmp_path / "absz.png", field="|z|", unit="m", dpi=DPI)
+    rgb, _, colours = check_picture(out)
+    assert colours > 200, colours
+    # viridis: dark purple to yellow, no red-dominated pixels
+    assert reddish(rgb) < 50, reddish(rgb)
+    # signed=False forces a sequential map even for values of both signs
+    out2 = render(p, p[:, 2], tmp_path / "z_seq.png", field="z", signed=False, dpi=DPI)
+    assert reddish(check_picture(out2)[0]) < 50
+
+
+def test_large_cloud_is_subsampled(tmp_path, captions):
+    rng = np.random.default_rng(3)
+    p = sphere(300_000, seed=3) * rng.uniform(0.98, 1.02, (300_000, 1))
+    v = p[:, 0] * p[:, 1]
+    out = render(p, v, tmp_path / "big.png", field="k1", max_points=200_000, dpi=DPI,
+                 views=("front", "iso"))
+    rgb, _, colours = check_picture(out, n_views=2)
+    assert colours > 200
+    assert "showing 200,000 of 300,000 points" in " ".join(captions), captions
+
+
+def test_subsample_caption_and_determinism(tmp_path, captions):
+    p = sphere(3_000, seed=4)
+    v = p[:, 2].copy()
+    v[:7] = np.nan
+    a = render(p, v, tmp_path / "a.png", max_points=1_000, dpi=DPI, seed=5)
+    caption = " ".join(captions)
+    assert "showing 1,000 of 3,000 points" in caption, caption
+    assert "7 NaN" in caption, caption
+    b = render(p, v, tmp_path / "b.png", max_points=1_000, dpi=DPI, seed=5)
+    assert np.array_equal(load_rgb(a), load_rgb(b))
+
+
+def test_all_nan_still_renders_grey(tmp_path, captions):
+    p = sphere(4_000, seed=6)
+    out = render(p, np.full(len(p), np.nan), tmp_path / "sub" / "nan.png", dpi=DPI)
+    assert out.is_file()
+    rgb = load_rgb(out)
+    grey = np.all(np.abs(rgb.astype(int) - 200) <= 3, axis=2).mean()
+    assert grey > 0.05, grey
+    assert "all 4,000 values are NaN" in " ".join(captions)
+
+
+def test_nan_points_and_bad_coordinates(tmp_path):
+    p = sphere(5_000, seed=7)
+    v = p[:, 1].copy()
+    v[::3] = np.nan
+    p[:10] = np.nan
+    check_picture(render(p, v, tmp_path / "mixed.png", dpi=DPI, views=("front", "side"),
+                         unit=None), n_views=2)
+
+
+@pytest.mark.parametrize("points, values", [
+    (np.zeros((10, 2)), np.zeros(10)),
+    (np.zeros(30), np.zeros(10)),
+    (np.zeros((10, 3)), np.zeros(9)),
+    (np.zeros((10, 3)), np.zeros((10, 2))),
+])
+def test_bad_shapes(tmp_path, points, values):
     with pytest.raises(ValueError):
-        render(np.zeros((5, 3)), np.zeros(4), "/tmp/x.png")
+        render(points, values, tmp_path / "bad.png")
+    assert not (tmp_path / "bad.png").exists()
+
+
+def test_bad_options(tmp_path):
+    p = sphere(100)
+    with pytest.raises(ValueError, match="unknown view"):
+        render(p, p[:, 0], tmp_path / "x.png", views=("front", "diagonal"))
+    with pytest.raises(ValueError, match="percentiles"):
+        render(p, p[:, 0], tmp_path / "x.png", percentiles=(98, 2))
+
+
+def test_missing_matplotlib_message(monkeypatch, tmp_path):
+    import builtins
+
+    real_import = builtins.__import__
+
+    def no_mpl(name, *a, **k):
+        if name == "matplotlib" or name.startswith("matplotlib."):
+            raise ImportError("No module named 'matplotlib'")
+        return real_import(name, *a, **k)
+
+    monkeypatch.setattr(builtins, "__import__", no_mpl)
+    p = sphere(100)
+    with pytest.raises(ImportError, match="pip install matplotlib") as exc:
+        render(p, p[:, 0], tmp_path / "x.png")
+    assert isinstance(exc.value, MissingMatplotlibError)
+    assert "clcurv[render]" in str(exc.value)
+
+
+def test_bunny_sample(tmp_path):
+    plyfile = pytest.importorskip("plyfile")
+    ply = Path(__file__).resolve().parents[1] / "clcurv" / "data" / "bunny.ply"
+    v = plyfile.PlyData.read(str(ply))["vertex"]
+    p = np.column_stack([v["x"], v["y"], v["z"]]).astype(np.float64)
+    out = render(p, p[:, 2], tmp_path / "bunny_z.png", field="z", unit="m", dpi=DPI)
+    rgb, non_white, colours = check_picture(out)
+    assert reddish(rgb) > 500 and bluish(rgb) > 500
