@@ -1,19 +1,32 @@
-"""clcurv benchmark: every OpenCL device against Open3D and the float64 NumPy reference.
+"""clcurv benchmark: every OpenCL device against Open3D, jakteristics and the float64 NumPy reference.
 
 Run from the repository root::
 
-    python -m bench.run                 # 1M points, ~30 and ~100 neighbours, 3 repeats
-    python -m bench.run --quick         # 100k points, smoke run
-    python -m bench.run --no-open3d
+    python -m bench.run                 # 100k and 1M points, ~30 and ~100 neighbours, 3 repeats
+    python -m bench.run --quick         # 100k points, ~30 neighbours: smoke run (< 1 min)
+    python -m bench.run --sizes 1M --neighbours 30
+    python -m bench.run --no-open3d --no-jakteristics
 
 The cloud is a uniform sample of the unit sphere (``clcurv.shapes.sphere``) in random order,
-plus a spatially sorted copy (k-d tree leaf order). Radii give ~k neighbours:
-r = sqrt(4 k / n) (area 4 pi, k = n pi r^2 / (4 pi)). Every timing is the minimum of
-``--repeats`` runs after an untimed warm-up (so program builds are cached), except where the
-table says otherwise. Each block (reference, clcurv per device and neighbour count, Open3D,
-orientation) runs between two checks that both cores are free (a PoCL kernel timed with 1 and
-2 threads); busy blocks are flagged. Prints a table, writes ``bench/results/bench-<devicekind>.json`` and
-``bench/results/bench.md``.
+plus a spatially sorted copy (k-d tree leaf order); its exact normals are the points. Radii
+give ~k neighbours: r = sqrt(4 k / n) (area 4 pi, k = n pi r^2 / (4 pi)). Every timing is the
+minimum of ``--repeats`` runs after an untimed warm-up (so program builds are cached), except
+where the table says otherwise.
+
+Measured, per device, size and neighbour count: the moment operators (variation, mls0, mls1,
+normals; ``orient=None``), the normal-based operators 2dcov1, 2dcov2, 3dcov and MLS2 with the
+exact normals given (``normals=``: the operator alone, no PCA pass) and MLS2 with
+``orient=None`` (its own PCA frame, solver's sign), each end to end and kernel only
+(``cloud.timings``); the MLS1 scale space (1 iteration end to end; 5 iterations with
+``scale_space.last_stats``) and the pipeline ``curvature(method="mls2", scale_space=5,
+normals=...)``. Peers: the NumPy reference of every operator (timed once on a polar cap of the
+same cloud, extrapolated linearly), Open3D ``estimate_normals``/``estimate_covariances`` and
+jakteristics ``compute_features``. Results are checked against the reference on the cap.
+
+Each block (reference, clcurv per device and column, Open3D, jakteristics, orientation) runs
+between two checks that both cores are free (a PoCL kernel timed with 1 and 2 threads); busy
+blocks are measured again, and flagged if still busy. Prints a table, writes
+``bench/results/bench-<devicekind>.json`` and ``bench/results/bench.md``.
 """
 from __future__ import annotations
 
@@ -34,23 +47,42 @@ from scipy.spatial import cKDTree
 import clcurv
 from clcurv import orient, reference, shapes
 from clcurv.cloud import DeviceCloud
+from clcurv.covariances import device_covariances
 from clcurv.grid import bin_points
+from clcurv.mls import device_mls2
 from clcurv.moments import device_moments
 
 RESULTS = Path(__file__).resolve().parent / "results"
 REPO = Path(__file__).resolve().parent.parent
 METHODS = ("variation", "mls0", "mls1")
+COV = ("2dcov1", "2dcov2", "3dcov")
+OPS = COV + ("mls2",)        # the normal-based operators and MLS2, timed with normals= given
+SS_ITERATIONS = 5         # scale-space iterations timed (and the pipeline's)
+JAK_FEATURES = ["nx", "ny", "nz", "surface_variation", "eigenvalue_sum", "number_of_neighbors"]
 STAGES = ("binning", "upload", "build", "cell_ranges", "build_moments", "kernel_moments", "download")
 
 COS_TOL = 1e-4            # normals: 1 - |cos| against the float64 reference (tests/test_moments.py)
 VAR_MEDIAN_TOL = 1e-3     # surface variation: median relative error against the reference
 THREADS_MIN_GAIN = 1.6    # two PoCL threads must be this much faster than one (quiet: ~2.0)
 AGREE_MIN = 0.998         # fraction of cap-interior points whose counts equal the reference's
+# float32 kernels vs float64 reference (tests/test_operators.py, tests/test_scale_space.py
+# assert these on the max over 15k-60k-point clouds; here, on ~100k cap points, the tolerance
+# applies to the 99.9th percentile, the max is listed: equal counts do not guarantee equal
+# neighbour sets when a neighbour sits at distance ~r)
+COV_K1_TOL = 1e-3         # covariance operators: |k1 - k1_ref| / k1_ref
+MLS2_K_TOL = 1e-3         # MLS2: |k - k_ref| / max(|k1_ref|, |k2_ref|), k1 and k2
+SS_TOL = 1e-5             # scale space: |position - reference| / r after 2 iterations
+SS_HOPS = 2.5             # cap interior for 2 iterations: balls of radius 2.5 r inside the cap
 
 E2E_VS_OPEN3D = 5.0       # targets
 KERNEL_MPTS_AT_30 = 5.0
 VS_REFERENCE = 50.0
 ORIENT_VS_OPEN3D = 10.0
+MLS2_VS_REFERENCE = 50.0  # MLS2 (normals=) e2e vs the NumPy reference's MLS2
+MLS2_VS_NORMALS = 2.0     # MLS2 (normals=) e2e time / clcurv.normals(orient=None) time, at most
+COV_VS_NORMALS = 1.5      # each covariance operator (normals=) time / clcurv.normals time, at most
+PIPELINE_MAX_S = 5.0      # scale_space=5 + MLS2 end to end at 1M / ~30, seconds
+SS_VS_OPEN3D = 5.0        # scale-space iteration points/s / Open3D estimate_normals points/s
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -258,19 +290,79 @@ def device_coordinates(pts, r):
     return out
 
 
-def bench_reference(pts, r, cap):
-    """The float64 NumPy reference on the cap (timed once; it is slow and deterministic).
+def exact_normals(pts):
+    """The exact outward normals of the unit-sphere sample."""
+    return pts / np.linalg.norm(pts, axis=1)[:, None]
 
-    Also run (untimed) on the float32-rounded coordinates the device works with: the
-    difference to that run is the kernels' own arithmetic error, the difference to the
-    float64 run includes the rounding of the input to float32."""
-    sub = pts[cap]
+
+def timed(fn):
     t0 = time.perf_counter()
-    ref = reference.moments(sub, r)
-    seconds = time.perf_counter() - t0
-    ref32 = reference.moments(device_coordinates(pts, r)[cap], r)
-    return {"points": len(sub), "seconds": seconds, "mpts": mpts(len(sub), seconds),
-            "mean_count": float(ref["count"].mean()), "result": ref, "result_f32_input": ref32}
+    out = fn()
+    return time.perf_counter() - t0, out
+
+
+def bench_reference(pts, r, cap, normals=None):
+    """The float64 NumPy reference of every operator on the cap (each timed once; it is slow
+    and deterministic): moments (variation, mls0, mls1 and normals are one pass), the three
+    covariance operators and MLS2 with the exact normals, and the MLS1 scale space
+    (2 iterations, timed: seconds per iteration = half).
+
+    Every operator also runs (untimed) on the float32-rounded coordinates the
+    device works with: the difference to that run is the kernels' own arithmetic error, the
+    difference to the float64 run includes the rounding of the input to float32."""
+    sub = pts[cap]
+    seconds, ref = timed(lambda: reference.moments(sub, r))
+    sub32 = device_coordinates(pts, r)[cap]
+    ref32 = reference.moments(sub32, r)
+    out = {"points": len(sub), "seconds": seconds, "mpts": mpts(len(sub), seconds),
+           "mean_count": float(ref["count"].mean()), "result": ref, "result_f32_input": ref32,
+           "op_seconds": {"moments": seconds}, "ops": {}}
+    if normals is None:
+        return out
+    nsub = normals[cap]
+    for m in COV:
+        out["op_seconds"][m], out["ops"][m] = timed(
+            lambda m=m: reference.covariance_ops(sub, r, nsub, m))
+    out["op_seconds"]["mls2"], out["ops"]["mls2"] = timed(lambda: reference.mls2(sub, r, nsub))
+    out["ops_f32_input"] = {m: reference.covariance_ops(sub32, r, nsub, m) for m in COV}
+    out["ops_f32_input"]["mls2"] = reference.mls2(sub32, r, nsub)
+    s, its = timed(lambda: reference.scale_space(sub, r, 2))
+    out["op_seconds"]["scale_space_iteration"] = s / 2
+    out["ops"]["scale_space_disp2"] = its[2] - sub
+    out["ops"]["scale_space_disp2_f32_input"] = reference.scale_space(sub32, r, 2)[2] - sub32
+    out["op_mpts"] = {k: mpts(len(sub), v) for k, v in out["op_seconds"].items()}
+    return out
+
+
+def ref_extrapolated(ref, op, n):
+    """Seconds the reference would take for ``op`` on n points (linear in the points)."""
+    return ref["op_seconds"][op] / ref["points"] * n
+
+
+def jakteristics_or_reason():
+    """(module, None), or (None, why it is not available)."""
+    try:
+        import jakteristics
+        return jakteristics, None
+    except Exception as exc:  # noqa: BLE001 - optional peer
+        return None, f"{type(exc).__name__}: {exc}"
+
+
+def bench_jakteristics(jak, clouds, r, repeats):
+    """jakteristics.compute_features (k-d tree build included, all cores) on both orders:
+    sorted min(repeats, 2) runs, random one run. Features: JAK_FEATURES."""
+    out = {"features": JAK_FEATURES, "threads_used": "num_threads=-1 (all)"}
+    for order, p in clouds.items():
+        reps = min(repeats, 2) if order == "sorted" else 1
+        call = lambda p=p: jak.compute_features(p, search_radius=r, feature_names=JAK_FEATURES)
+        best = math.inf
+        for _ in range(reps):
+            s, f = timed(call)
+            best = min(best, s)
+        out[order] = {"seconds": best, "runs": reps}
+        if order == "random":
+            out["mean_count"] = float(np.mean(f[:, JAK_FEATURES.index("number_of_neighbors")]))
+    return out
 
 
 def open3d_or_none():
@@ -417,29 +509,134 @@ def check_against_reference(results, ref, cap, interior, ref32):
     return out
 
 
-def clcurv_label(index, k):
-    return f"clcurv device {index} ~{k}"
+def bench_ops(pts, nrm, r, index, repeats, cap):
+    """2dcov1, 2dcov2, 3dcov and MLS2 with the exact normals (the operator alone), and MLS2
+    with orient=None (its own PCA frame), end to end; each kernel alone on one DeviceCloud
+    (``cloud.timings``). Returns (seconds, kernel seconds, cap slices of the results)."""
+    seconds, kept = {}, {}
+    for m in OPS:
+        call = lambda m=m: clcurv.curvature(pts, r, method=m, normals=nrm, device=index)
+        res = call()  # warm-up (builds the program)
+        kept[m] = {a: getattr(res, a)[cap] for a in ("count", "status", "k1", "k2")}
+        seconds[m] = timeit(call, repeats, warmup=0)
+    seconds["mls2_orient_none"] = timeit(
+        lambda: clcurv.curvature(pts, r, method="mls2", orient=None, device=index), repeats)
+    cloud = DeviceCloud(pts, r, device=index)
+    runs = {m: (lambda m=m: device_covariances(cloud, r, nrm, m), f"kernel_{m}") for m in COV}
+    runs["mls2"] = (lambda: device_mls2(cloud, r, nrm), "kernel_mls2")
+    runs["mls2_orient_none"] = (lambda: device_mls2(cloud, r, None), "kernel_mls2")
+    kernel, upload = {}, {}
+    for name, (fn, key) in runs.items():
+        best, up = math.inf, math.inf
+        for i in range(1 + repeats):
+            fn()
+            if i:
+                best, up = min(best, cloud.timings[key]), min(up, cloud.timings["upload_normals"])
+        kernel[name], upload[name] = best, up
+    return seconds, {"kernel": kernel, "upload_normals_and_build": upload}, kept
 
 
-def bench_device(info, clouds, radii, refs, caps, repeats, guard):
-    """All clcurv measurements on one device, per neighbour count."""
+def bench_scale_space(pts, nrm, r, index, repeats, cap, iterations=SS_ITERATIONS):
+    """MLS1 scale space: 1 iteration end to end; ``iterations`` iterations end to end with
+    ``last_stats`` (of the fastest run); the pipeline curvature(mls2, scale_space=iterations,
+    normals=exact). Also the displacement after 2 iterations on the cap (for the check)."""
+    ss = clcurv.scale_space
+    out = {"iterations": iterations,
+           "one_iteration_s": timeit(lambda: ss(pts, r, 1, device=index), repeats)}
+    best, stats = math.inf, None
+    for i in range(1 + repeats):
+        s, _ = timed(lambda: ss(pts, r, iterations, device=index))
+        if i and s < best:
+            best, stats = s, dict(ss.last_stats)
+    out.update(e2e_s=best, rebins=stats["rebins"], binning_s=stats["binning"],
+               steps_s=stats["steps"], per_iteration_s=(stats["binning"] + stats["steps"]) / iterations)
+    disp2 = ss(pts, r, 2, device=index)[cap] - pts[cap]
+    out["pipeline_s"] = timeit(lambda: clcurv.curvature(
+        pts, r, method="mls2", scale_space=iterations, normals=nrm, device=index), repeats)
+    return out, disp2
+
+
+def quantiles(err):
+    return {"median": float(np.median(err)), "p999": float(np.quantile(err, 0.999)),
+            "max": float(err.max())} if len(err) else {"median": math.nan, "p999": math.nan,
+                                                       "max": math.nan}
+
+
+def op_errors(d, rf, m):
+    """(points compared, {k: error quantiles}) of one operator against one reference run."""
+    same = (d["count"] == rf["count"]) & (d["status"] == 0) & (rf["status"] == 0)
+    if m == "mls2":
+        scale = np.maximum(np.abs(rf["k1"][same]), np.abs(rf["k2"][same]))
+        return same, {k: quantiles(np.abs(d[k][same] - rf[k][same]) / scale) for k in ("k1", "k2")}
+    return same, {"k1": quantiles(np.abs(d["k1"][same] - rf["k1"][same]) / np.abs(rf["k1"][same]))}
+
+
+def check_ops(kept, ref):
+    """Covariance operators' k1 (relative) and MLS2's k1, k2 (relative to max |k|) against the
+    float64 reference, on the cap points whose counts agree and whose status is OK in both;
+    and (information) against the reference run on the float32-rounded input."""
+    out = {}
+    for m in OPS:
+        same, err = op_errors(kept[m], ref["ops"][m], m)
+        c = {"compared": int(same.sum()), "of": len(same), **err,
+             "f32_input": op_errors(kept[m], ref["ops_f32_input"][m], m)[1]}
+        tol = MLS2_K_TOL if m == "mls2" else COV_K1_TOL
+        c["pass"] = bool(max(e["p999"] for k, e in err.items()) <= tol)
+        out[m] = c
+    return out
+
+
+def check_scale_space(disp2, ref, pts, cap, r):
+    """Positions after 2 iterations on the cap interior (balls of radius SS_HOPS r inside the
+    cap), |d| / r, against the float64 reference (and, for information, the reference run on
+    the float32-rounded input)."""
+    z = pts[cap, 2]
+    inner = z - SS_HOPS * r > z.min()
+    d64 = np.linalg.norm(disp2[inner] - ref["ops"]["scale_space_disp2"][inner], axis=1) / r
+    d32 = np.linalg.norm(disp2[inner] - ref["ops"]["scale_space_disp2_f32_input"][inner], axis=1) / r
+    out = {"compared": int(inner.sum()), "of": len(cap), "err": quantiles(d64),
+           "err_f32_input": quantiles(d32)}
+    out["pass"] = bool(out["err"]["p999"] <= SS_TOL)
+    return out
+
+
+def clcurv_label(index, cid):
+    return f"clcurv device {index} {cid}"
+
+
+def bench_device(info, cols, data, refs, repeats, guard):
+    """All clcurv measurements on one device, per column (size, neighbour count)."""
     log(f"device {info}: cold build (no PoCL cache, subprocess)")
     out = {"device": device_record(info), "cold_build_no_cache": cold_build(info.index), "k": {}}
-    k0 = next(iter(radii))
-    log(f"  first run in this process, ~{k0} neighbours (not repeated, not guarded)")
-    out["first_in_process"] = {"k": k0, **split_once(clouds["random"], radii[k0], info.index)}
-    for k, r in radii.items():
+    c0 = cols[0]
+    log(f"  first run in this process, {c0['id']} (not repeated, not guarded)")
+    out["first_in_process"] = {"k": c0["id"], **split_once(data[c0["n"]]["random"], c0["r"],
+                                                           info.index)}
+    for col in cols:
+        cid, r, d, cap = col["id"], col["r"], data[col["n"]], col["cap"]
+        pts, nrm = d["random"], d["normals"]
+
         def measure():
-            log(f"  ~{k} neighbours: stages, end to end")
-            return (bench_split(clouds["random"], r, info.index, repeats),
-                    *bench_e2e(clouds, r, info.index, repeats))
-        split, seconds, results = guard.block(clcurv_label(info.index, k), measure)
-        check = check_against_reference(results, refs[k]["result"], caps[k],
-                                        cap_interior(clouds["random"], caps[k], r),
-                                        refs[k]["result_f32_input"])
-        out["k"][k] = {"radius": r, "e2e_s": seconds, "split": split, "check": check,
-                       "threads": guard.gains(clcurv_label(info.index, k)),
-                       "mean_count": float(results["variation"].count.mean())}
+            log(f"  {cid}: stages, end to end")
+            split = bench_split(pts, r, info.index, repeats)
+            seconds, results = bench_e2e(d, r, info.index, repeats)
+            log(f"  {cid}: 2dcov1, 2dcov2, 3dcov, mls2")
+            op_s, kern, kept = bench_ops(pts, nrm, r, info.index, repeats, cap)
+            log(f"  {cid}: scale space, pipeline")
+            ss, disp2 = bench_scale_space(pts, nrm, r, info.index, repeats, cap)
+            return split, seconds, results, op_s, kern, kept, ss, disp2
+
+        split, seconds, results, op_s, kern, kept, ss, disp2 = guard.block(
+            clcurv_label(info.index, cid), measure)
+        ref = refs[cid]
+        check = check_against_reference(results, ref["result"], cap,
+                                        cap_interior(pts, cap, r), ref["result_f32_input"])
+        out["k"][cid] = {"n": col["n"], "neighbours": col["k"], "radius": r,
+                         "e2e_s": {**seconds, **op_s}, "split": split, "ops_kernel": kern,
+                         "scale_space": ss, "check": check, "check_ops": check_ops(kept, ref),
+                         "check_scale_space": check_scale_space(disp2, ref, pts, cap, r),
+                         "threads": guard.gains(clcurv_label(info.index, cid)),
+                         "mean_count": float(results["variation"].count.mean())}
     return out
 
 
@@ -449,43 +646,85 @@ def device_record(info):
 
 
 # ----------------------------------------------------------------------------- ratios, targets
-def ratios(n, dev_k, ref, o3d_k):
-    """Throughputs and ratios of one device at one neighbour count (None when not measured)."""
-    e2e = dev_k["e2e_s"]["variation"]
+def ratios(n, dev_k, ref, o3d_k, jak_k):
+    """Throughputs and ratios of one device in one column (None when not measured)."""
+    e = dev_k["e2e_s"]
+    e2e = e["variation"]
     o3d_normals = o3d_k["sorted"]["normals_s"] if o3d_k else None
-    return {"e2e_variation_mpts": mpts(n, e2e),
-            "kernel_mpts": mpts(n, dev_k["split"]["warm"]["kernel_moments"]),
-            "vs_open3d_normals_sorted": o3d_normals / e2e if o3d_normals else None,
-            "vs_reference": ref["seconds"] / ref["points"] * n / e2e,
-            "binning_over_kernel": (dev_k["split"]["warm"]["binning"]
-                                    / dev_k["split"]["warm"]["kernel_moments"])}
+    ss = dev_k["scale_space"]
+    out = {"e2e_variation_mpts": mpts(n, e2e),
+           "kernel_mpts": mpts(n, dev_k["split"]["warm"]["kernel_moments"]),
+           "vs_open3d_normals_sorted": o3d_normals / e2e if o3d_normals else None,
+           "vs_reference": ref["seconds"] / ref["points"] * n / e2e,
+           "binning_over_kernel": (dev_k["split"]["warm"]["binning"]
+                                   / dev_k["split"]["warm"]["kernel_moments"]),
+           "vs_jakteristics_sorted": jak_k["sorted"]["seconds"] / e2e if jak_k else None}
+    out["op_vs_reference"] = {m: ref_extrapolated(ref, m, n) / e[m] for m in OPS}
+    out["op_vs_reference"]["mls2_orient_none"] = ref_extrapolated(ref, "mls2", n) / e["mls2_orient_none"]
+    out["op_over_normals"] = {m: e[m] / e["normals"] for m in OPS + ("mls2_orient_none",)}
+    out["ss_iteration_vs_reference"] = ref_extrapolated(ref, "scale_space_iteration", n) / ss["per_iteration_s"]
+    out["ss_iteration_vs_open3d"] = (o3d_normals / ss["per_iteration_s"]) if o3d_normals else None
+    out["ss_one_iteration_e2e_vs_open3d"] = (o3d_normals / ss["one_iteration_s"]) if o3d_normals else None
+    return out
 
 
-def targets(dev, rat, orientation):
+def target_columns(cols):
+    """The columns the targets are evaluated at: those of the largest size."""
+    top = max(c["n"] for c in cols)
+    return [c for c in cols if c["n"] == top]
+
+
+def targets(dev, rat, orientation, cols):
     """(name, value, threshold, pass) rows; pass is None when the value was not measured."""
     rows = []
-    for k, ra in rat.items():
-        v = ra["vs_open3d_normals_sorted"]
-        rows.append((f"normals+variation e2e / Open3D estimate_normals (sorted), ~{k} nbrs",
+    tcols = [c["id"] for c in target_columns(cols)]
+    for cid in tcols:
+        v = rat[cid]["vs_open3d_normals_sorted"]
+        rows.append((f"normals+variation e2e / Open3D estimate_normals (sorted), {cid}",
                      v, f">= {E2E_VS_OPEN3D:g}x", None if v is None else v >= E2E_VS_OPEN3D))
-    k30 = min(rat, key=lambda k: abs(k - 30))
-    v = rat[k30]["kernel_mpts"]
-    rows.append((f"kernel-only M pts/s (curvature kernel, λ0 refined), ~{k30} nbrs", v, f">= {KERNEL_MPTS_AT_30:g}",
-                 v >= KERNEL_MPTS_AT_30))
-    for k, ra in rat.items():
-        v = ra["vs_reference"]
-        rows.append((f"e2e variation / NumPy reference, ~{k} nbrs", v, f">= {VS_REFERENCE:g}x",
+    c30 = min(tcols, key=lambda c: abs(dev["k"][c]["neighbours"] - 30))
+    v = rat[c30]["kernel_mpts"]
+    rows.append((f"kernel-only M pts/s (curvature kernel, λ0 refined), {c30}", v,
+                 f">= {KERNEL_MPTS_AT_30:g}", v >= KERNEL_MPTS_AT_30))
+    for cid in tcols:
+        v = rat[cid]["vs_reference"]
+        rows.append((f"e2e variation / NumPy reference, {cid}", v, f">= {VS_REFERENCE:g}x",
                      v >= VS_REFERENCE))
-    for k, ra in rat.items():
-        v = ra["binning_over_kernel"]
-        rows.append((f"binning / kernel time, ~{k} nbrs", v, "<= 1", v <= 1))
+    for cid in tcols:
+        v = rat[cid]["binning_over_kernel"]
+        rows.append((f"binning / kernel time, {cid}", v, "<= 1", v <= 1))
     v = (orientation["open3d_s"] / orientation["clcurv_s"]) if "open3d_s" in orientation else None
     rows.append((f"orientation (k=10, {orientation['points'] // 1000}k pts) / Open3D", v,
                  f">= {ORIENT_VS_OPEN3D:g}x", None if v is None else v >= ORIENT_VS_OPEN3D))
-    for k, d in dev["k"].items():
-        c = d["check"]
-        rows.append((f"accuracy vs reference (counts, normals, variation), ~{k} nbrs", None,
-                     "see table", c["pass"]))
+    for cid in tcols:
+        ra, K = rat[cid], dev["k"][cid]
+        v = ra["op_vs_reference"]["mls2"]
+        rows.append((f"MLS2 e2e (normals=) / NumPy reference MLS2, {cid}", v,
+                     f">= {MLS2_VS_REFERENCE:g}x", v >= MLS2_VS_REFERENCE))
+        v = ra["op_over_normals"]["mls2"]
+        rows.append((f"MLS2 e2e (normals=) time / clcurv.normals(orient=None) time, {cid}", v,
+                     f"<= {MLS2_VS_NORMALS:g}x", v <= MLS2_VS_NORMALS))
+        for m in COV:
+            v = ra["op_over_normals"][m]
+            rows.append((f"{m} e2e (normals=) time / clcurv.normals time, {cid}", v,
+                         f"<= {COV_VS_NORMALS:g}x", v <= COV_VS_NORMALS))
+        v = K["scale_space"]["pipeline_s"]
+        rows.append((f"pipeline scale_space={SS_ITERATIONS} + MLS2 e2e, seconds, {cid}", v,
+                     f"< {PIPELINE_MAX_S:g} s", v < PIPELINE_MAX_S))
+        v = ra["ss_iteration_vs_open3d"]
+        rows.append((f"scale-space iteration ((binning+steps)/{SS_ITERATIONS}) / Open3D "
+                     f"estimate_normals (sorted), {cid}", v, f">= {SS_VS_OPEN3D:g}x",
+                     None if v is None else v >= SS_VS_OPEN3D))
+        v = ra["ss_one_iteration_e2e_vs_open3d"]
+        rows.append((f"scale space, 1 iteration e2e / Open3D estimate_normals (sorted), {cid}",
+                     v, f">= {SS_VS_OPEN3D:g}x", None if v is None else v >= SS_VS_OPEN3D))
+    for cid, d in dev["k"].items():
+        rows.append((f"accuracy vs reference (counts, normals, variation), {cid}", None,
+                     "see table", d["check"]["pass"]))
+        rows.append((f"accuracy vs reference (2dcov1, 2dcov2, 3dcov k1; MLS2 k1, k2), {cid}", None,
+                     "see table", all(c["pass"] for c in d["check_ops"].values())))
+        rows.append((f"accuracy vs reference (scale space, 2 iterations), {cid}", None,
+                     "see table", d["check_scale_space"]["pass"]))
     return rows
 
 
@@ -498,72 +737,157 @@ def pass_fail(ok):
     return "n/a" if ok is None else "PASS" if ok else "FAIL"
 
 
-def device_rows(n, dev, refs, o3d, rat, ks):
-    """Table rows (label, one cell per neighbour count) for one device."""
+def device_rows(dev, refs, o3d, jak, rat, cols):
+    """Table rows (label, one cell per column) for one device."""
     K = dev["k"]
+    ids = [c["id"] for c in cols]
+    N = {c["id"]: c["n"] for c in cols}
     ms = lambda s: fmt(None if s is None else s * 1e3, ".1f")
-    rows = [("radius", [f"{K[k]['radius']:.5f}" for k in ks]),
-            ("mean neighbour count, point included", [f"{K[k]['mean_count']:.1f}" for k in ks]),
-            ("**end to end, orient=None, random order**", ["M pts/s (ms)"] * len(ks))]
+    blank = [""] * len(ids)
+    first_only = lambda s: [s] + [""] * (len(ids) - 1)
+
+    def e2e(key):
+        return [f"{mpts(N[c], K[c]['e2e_s'][key]):.2f} ({ms(K[c]['e2e_s'][key])})" for c in ids]
+
+    rows = [("radius", [f"{K[c]['radius']:.5f}" for c in ids]),
+            ("mean neighbour count, point included", [f"{K[c]['mean_count']:.1f}" for c in ids]),
+            ("**end to end, orient=None, random order**", ["M pts/s (ms)"] * len(ids))]
     for m in METHODS + ("normals",):
-        label = f"clcurv.curvature({m})" if m != "normals" else "clcurv.normals"
-        rows.append((label, [f"{mpts(n, K[k]['e2e_s'][m]):.2f} ({ms(K[k]['e2e_s'][m])})"
-                             for k in ks]))
+        rows.append((f"clcurv.curvature({m})" if m != "normals" else "clcurv.normals", e2e(m)))
     rows.append(("curvature(variation), sorted input (info)",
-                 [f"{mpts(n, K[k]['e2e_s']['variation_sorted_input']):.2f}" for k in ks]))
-    rows.append(("**stages, ms (min of warm runs)**", [""] * len(ks)))
+                 [f"{mpts(N[c], K[c]['e2e_s']['variation_sorted_input']):.2f}" for c in ids]))
+    rows.append(("**end to end, exact normals given (normals=: operator alone)**",
+                 ["M pts/s (ms)"] * len(ids)))
+    for m in OPS:
+        rows.append((f"clcurv.curvature({m}, normals=)", e2e(m)))
+    rows.append(("clcurv.curvature(mls2, orient=None) (its own PCA frame)", e2e("mls2_orient_none")))
+    rows.append(("**stages, ms (min of warm runs)**", blank))
     for st in STAGES:
-        rows.append((st, [ms(K[k]["split"]["warm"][st]) for k in ks]))
+        rows.append((st, [ms(K[c]["split"]["warm"][st]) for c in ids]))
     first = dev["first_in_process"]
-    rows.append((f"first run in process (~{first['k']}): build + build_moments + kernel",
-                 [f"{ms(first['build'])} + {ms(first['build_moments'])} + "
-                  f"{ms(first['kernel_moments'])}"] + [""] * (len(ks) - 1)))
+    rows.append((f"first run in process ({first['k']}): build + build_moments + kernel",
+                 first_only(f"{ms(first['build'])} + {ms(first['build_moments'])} + "
+                            f"{ms(first['kernel_moments'])}")))
     cold = dev["cold_build_no_cache"]
     if "error" not in cold:
         rows.append(("build + build_moments with PoCL's disk cache off",
-                     [f"{ms(cold['build'])} + {ms(cold['build_moments'])}"] + [""] * (len(ks) - 1)))
+                     first_only(f"{ms(cold['build'])} + {ms(cold['build_moments'])}")))
     rows.append(("host rest ≈ e2e variation − Σ warm stages (ms)",
-                 [ms(K[k]["e2e_s"]["variation"] - sum(K[k]["split"]["warm"].values()))
-                  for k in ks]))
+                 [ms(K[c]["e2e_s"]["variation"] - sum(K[c]["split"]["warm"].values()))
+                  for c in ids]))
     rows.append(("kernel-only M pts/s (λ0 refined, curvature / one pass, normals)",
-                 [f"{rat[k]['kernel_mpts']:.2f} / {mpts(n, K[k]['split']['kernel_single_pass_s']):.2f}"
-                  for k in ks]))
-    rows.append(("**peers, M pts/s**", [""] * len(ks)))
-    rows.append((f"NumPy reference (float64), {refs[ks[0]]['points'] // 1000}k-pt cap",
-                 [f"{refs[k]['mpts']:.4f}" for k in ks]))
+                 [f"{rat[c]['kernel_mpts']:.2f} / "
+                  f"{mpts(N[c], K[c]['split']['kernel_single_pass_s']):.2f}" for c in ids]))
+    rows.append(("**kernel only (cloud.timings), ms (M pts/s)**", blank))
+    for m in OPS + ("mls2_orient_none",):
+        label = f"kernel_{m}" if m != "mls2_orient_none" else "kernel_mls2, no normals"
+        rows.append((label, [f"{ms(K[c]['ops_kernel']['kernel'][m])} "
+                             f"({mpts(N[c], K[c]['ops_kernel']['kernel'][m]):.2f})" for c in ids]))
+    rows.append(("upload of the normals + program lookup, 2dcov2 / mls2 (ms)",
+                 [f"{ms(K[c]['ops_kernel']['upload_normals_and_build']['2dcov2'])} / "
+                  f"{ms(K[c]['ops_kernel']['upload_normals_and_build']['mls2'])}" for c in ids]))
+    rows.append(("**MLS1 scale space (clcurv.scale_space), ms**", blank))
+    S = {c: K[c]["scale_space"] for c in ids}
+    rows.append(("1 iteration end to end (M pts/s)",
+                 [f"{ms(S[c]['one_iteration_s'])} ({mpts(N[c], S[c]['one_iteration_s']):.2f})"
+                  for c in ids]))
+    rows.append((f"{SS_ITERATIONS} iterations end to end", [ms(S[c]["e2e_s"]) for c in ids]))
+    rows.append(("  of which binning (rebins) / steps (last_stats)",
+                 [f"{ms(S[c]['binning_s'])} ({S[c]['rebins']}) / {ms(S[c]['steps_s'])}"
+                  for c in ids]))
+    rows.append((f"per iteration, (binning + steps) / {SS_ITERATIONS} (M pts/s)",
+                 [f"{ms(S[c]['per_iteration_s'])} ({mpts(N[c], S[c]['per_iteration_s']):.2f})"
+                  for c in ids]))
+    rows.append((f"pipeline curvature(mls2, scale_space={SS_ITERATIONS}, normals=) e2e",
+                 [ms(S[c]["pipeline_s"]) for c in ids]))
+    rows.append(("**peers, M pts/s**", blank))
+    rows.append(("NumPy reference (float64) on a cap of", [f"{refs[c]['points']:,} pts" for c in ids]))
+    for op, label in (("moments", "moments (variation, mls0, mls1, normals)"),
+                      *((m, m) for m in OPS),
+                      ("scale_space_iteration", "MLS1 scale-space iteration")):
+        rows.append((f"  reference {label}", [f"{refs[c]['op_mpts'][op]:.4f}" for c in ids]))
     if o3d:
         for op in ("normals", "covariances"):
             rows.append((f"Open3D estimate_{op}, sorted / random",
-                         [f"{mpts(n, o3d[k]['sorted'][f'{op}_s']):.3f} / "
-                          f"{mpts(n, o3d[k]['random'][f'{op}_s']):.3f}" for k in ks]))
-    rows.append(("**ratios**", [""] * len(ks)))
+                         [f"{mpts(N[c], o3d[c]['sorted'][f'{op}_s']):.3f} / "
+                          f"{mpts(N[c], o3d[c]['random'][f'{op}_s']):.3f}" for c in ids]))
+    if jak:
+        rows.append(("jakteristics compute_features (6 features), sorted / random",
+                     [f"{mpts(N[c], jak[c]['sorted']['seconds']):.3f} / "
+                      f"{mpts(N[c], jak[c]['random']['seconds']):.3f}" for c in ids]))
+        rows.append(("  jakteristics mean number_of_neighbors",
+                     [f"{jak[c]['mean_count']:.1f}" for c in ids]))
+    rows.append(("**ratios**", blank))
     rows.append(("e2e variation / Open3D estimate_normals (sorted)",
-                 [fmt(rat[k]["vs_open3d_normals_sorted"], ".1f", "x") for k in ks]))
-    rows.append(("e2e variation / NumPy reference",
-                 [fmt(rat[k]["vs_reference"], ".0f", "x") for k in ks]))
-    rows.append(("binning / kernel", [fmt(rat[k]["binning_over_kernel"], ".2f") for k in ks]))
-    rows.append(("**accuracy vs reference on the cap**", [""] * len(ks)))
+                 [fmt(rat[c]["vs_open3d_normals_sorted"], ".1f", "x") for c in ids]))
+    if jak:
+        rows.append(("e2e variation / jakteristics (sorted)",
+                     [fmt(rat[c]["vs_jakteristics_sorted"], ".1f", "x") for c in ids]))
+    rows.append(("e2e variation / NumPy reference (extrapolated)",
+                 [fmt(rat[c]["vs_reference"], ".0f", "x") for c in ids]))
+    for m in OPS + ("mls2_orient_none",):
+        rows.append((f"e2e {m if m != 'mls2_orient_none' else 'mls2 orient=None'} / NumPy "
+                     f"reference {'mls2' if m == 'mls2_orient_none' else m} (extrapolated)",
+                     [fmt(rat[c]["op_vs_reference"][m], ".0f", "x") for c in ids]))
+    rows.append(("scale-space iteration / NumPy reference iteration",
+                 [fmt(rat[c]["ss_iteration_vs_reference"], ".0f", "x") for c in ids]))
+    for m in OPS + ("mls2_orient_none",):
+        rows.append((f"time {m if m != 'mls2_orient_none' else 'mls2 orient=None'} / time "
+                     f"clcurv.normals", [fmt(rat[c]["op_over_normals"][m], ".2f", "x") for c in ids]))
+    rows.append(("scale-space iteration / Open3D estimate_normals (sorted)",
+                 [fmt(rat[c]["ss_iteration_vs_open3d"], ".1f", "x") for c in ids]))
+    rows.append(("binning / kernel", [fmt(rat[c]["binning_over_kernel"], ".2f") for c in ids]))
+    rows.append(("**accuracy vs reference on the cap**", blank))
+    C = {c: K[c]["check"] for c in ids}
     rows.append((f"cap interior: counts equal to reference (>= {AGREE_MIN:.1%})",
-                 [f"{K[k]['check']['interior_counts_agree']:.3%} of {K[k]['check']['interior']} "
-                  f"{pass_fail(K[k]['check']['counts_pass'])}" for k in ks]))
+                 [f"{C[c]['interior_counts_agree']:.3%} of {C[c]['interior']} "
+                  f"{pass_fail(C[c]['counts_pass'])}" for c in ids]))
     rows.append(("cap points compared (equal counts, status ok)",
-                 [f"{K[k]['check']['compared']} of {K[k]['check']['of']}" for k in ks]))
+                 [f"{C[c]['compared']} of {C[c]['of']}" for c in ids]))
     rows.append((f"normals 1−|cos| worst (curv / normals), tol {COS_TOL:g}",
-                 [f"{K[k]['check']['curvature_cos_worst']:.1e} / "
-                  f"{K[k]['check']['normals_cos_worst']:.1e} "
-                  f"{pass_fail(K[k]['check']['normals_pass'])}" for k in ks]))
+                 [f"{C[c]['curvature_cos_worst']:.1e} / {C[c]['normals_cos_worst']:.1e} "
+                  f"{pass_fail(C[c]['normals_pass'])}" for c in ids]))
     rows.append((f"variation rel. error median (p99.9), tol {VAR_MEDIAN_TOL:g}",
-                 [f"{K[k]['check']['variation_rel_median']:.1e} "
-                  f"({K[k]['check']['variation_rel_p999']:.1e}) "
-                  f"{pass_fail(K[k]['check']['variation_pass'])}" for k in ks]))
+                 [f"{C[c]['variation_rel_median']:.1e} ({C[c]['variation_rel_p999']:.1e}) "
+                  f"{pass_fail(C[c]['variation_pass'])}" for c in ids]))
     rows.append(("same vs reference on the float32 input (kernel arithmetic only)",
-                 [f"{K[k]['check']['variation_rel_median_f32_input']:.1e} "
-                  f"({K[k]['check']['variation_rel_p999_f32_input']:.1e})" for k in ks]))
-    rows.append(("**cores free? 2-thread gain of a PoCL spin kernel, before / after**",
-                 [""] * len(ks)))
-    rows.append(("clcurv block", [K[k]["threads"] for k in ks]))
+                 [f"{C[c]['variation_rel_median_f32_input']:.1e} "
+                  f"({C[c]['variation_rel_p999_f32_input']:.1e})" for c in ids]))
+    q = lambda e: f"{e['median']:.1e} / {e['p999']:.1e} / {e['max']:.1e}"
+    for m in COV:
+        rows.append((f"{m} k1 rel. error median / p99.9 / max, tol p99.9 <= {COV_K1_TOL:g}",
+                     [f"{q(K[c]['check_ops'][m]['k1'])} {pass_fail(K[c]['check_ops'][m]['pass'])}"
+                      for c in ids]))
+    rows.append(("  same vs reference on the float32 input, 2dcov1 / 2dcov2 / 3dcov p99.9",
+                 [" / ".join(f"{K[c]['check_ops'][m]['f32_input']['k1']['p999']:.1e}" for m in COV)
+                  for c in ids]))
+    rows.append(("  points compared (equal counts, status ok), 2dcov2",
+                 [f"{K[c]['check_ops']['2dcov2']['compared']} of {K[c]['check_ops']['2dcov2']['of']}"
+                  for c in ids]))
+    for k in ("k1", "k2"):
+        rows.append((f"mls2 {k} |err|/max|k| median / p99.9 / max, tol p99.9 <= {MLS2_K_TOL:g}",
+                     [f"{q(K[c]['check_ops']['mls2'][k])} "
+                      f"{pass_fail(K[c]['check_ops']['mls2']['pass'])}" for c in ids]))
+    rows.append(("  same vs reference on the float32 input, k1 / k2 p99.9 (max)",
+                 [" / ".join(f"{K[c]['check_ops']['mls2']['f32_input'][k]['p999']:.1e} "
+                             f"({K[c]['check_ops']['mls2']['f32_input'][k]['max']:.1e})"
+                             for k in ("k1", "k2")) for c in ids]))
+    rows.append(("  points compared (equal counts, status ok), mls2",
+                 [f"{K[c]['check_ops']['mls2']['compared']} of {K[c]['check_ops']['mls2']['of']}"
+                  for c in ids]))
+    SC = {c: K[c]["check_scale_space"] for c in ids}
+    rows.append((f"scale space, 2 iterations: |d|/r median / p99.9 / max, tol p99.9 <= {SS_TOL:g}",
+                 [f"{q(SC[c]['err'])} {pass_fail(SC[c]['pass'])}" for c in ids]))
+    rows.append(("  same vs reference on the float32 input (kernel arithmetic only)",
+                 [q(SC[c]["err_f32_input"]) for c in ids]))
+    rows.append((f"  cap interior compared (balls of {SS_HOPS:g} r inside the cap)",
+                 [f"{SC[c]['compared']} of {SC[c]['of']}" for c in ids]))
+    rows.append(("**cores free? 2-thread gain of a PoCL spin kernel, before / after**", blank))
+    rows.append(("clcurv block", [K[c]["threads"] for c in ids]))
     if o3d:
-        rows.append(("Open3D block", [o3d[k]["threads"] for k in ks]))
+        rows.append(("Open3D block", [o3d[c]["threads"] for c in ids]))
+    if jak:
+        rows.append(("jakteristics block", [jak[c]["threads"] for c in ids]))
     return rows
 
 
@@ -573,7 +897,7 @@ def render_text(header, rows):
     lines = [header[0].ljust(w0) + "".join(c.rjust(x) for c, x in zip(header[1], w))]
     for label, cells in rows:
         if label.startswith("**"):
-            lines.append(label.strip("*"))
+            lines.append(label.strip("*").ljust(w0) + "".join(c.rjust(x) for c, x in zip(cells, w)))
             continue
         lines.append(("  " + label).ljust(w0) + "".join(c.rjust(x) for c, x in zip(cells, w)))
     return "\n".join(lines)
@@ -602,21 +926,27 @@ def target_lines(rows):
     return out
 
 
-def summary_text(env, args, threads):
+def summary_text(env, args, threads, jak_note):
     plats = "; ".join(f"{k}: {v}" for k, v in env["platforms"].items())
     return "\n".join([
-        f"clcurv {env['clcurv']} benchmark, {env['date']}: unit sphere, n = {args.n:,}, "
-        f"min of {args.repeats} repeats after a warm-up",
-        f"CPU {env['cpu']} ({env['cpus']} logical, {' '.join(env['cpu_flags'])}), Python {env['python']}, numpy {env['numpy']}, "
-        f"pyopencl {env['pyopencl']}, open3d {env['open3d'] or 'not available'}",
+        f"clcurv {env['clcurv']} benchmark, {env['date']}: unit sphere, n = "
+        f"{', '.join(f'{n:,}' for n in args.sizes)}, ~{', ~'.join(map(str, args.neighbours))} "
+        f"neighbours, min of {args.repeats} repeats after a warm-up",
+        f"CPU {env['cpu']} ({env['cpus']} logical, {' '.join(env['cpu_flags'])}), Python "
+        f"{env['python']}, numpy {env['numpy']}, pyopencl {env['pyopencl']}, open3d "
+        f"{env['open3d'] or 'not available'}, jakteristics {env.get('jakteristics') or 'not available'}",
         f"OpenCL platforms: {plats}",
+        *([f"jakteristics skipped: {jak_note}"] if jak_note else []),
         "thread checks (PoCL spin kernel, 1 vs 2 threads; BUSY when 2 threads are less than "
         f"x{THREADS_MIN_GAIN} faster):",
         *("  " + describe_threads(check, when) for when, check in threads.items()),
-        "Ratios use clcurv on the random-order cloud and Open3D on the spatially sorted copy "
-        "(Open3D is several times slower on random order; both orders are listed). The NumPy "
-        "reference runs once on a polar cap of the same cloud at the same radius (same "
-        "neighbour counts); its points/s is extrapolated linearly to n."])
+        "Ratios use clcurv on the random-order cloud and Open3D / jakteristics on the spatially "
+        "sorted copy (they are several times slower on random order; both orders are listed). "
+        "The NumPy reference runs each operator once on a polar cap of the same cloud at the "
+        "same radius (same neighbour counts); its points/s is extrapolated linearly to n. "
+        "Normal-based operators get the exact sphere normals (normals=). jakteristics computes "
+        f"{', '.join(JAK_FEATURES)} (its k-d tree build included, all cores). Targets are "
+        "evaluated at the largest size."])
 
 
 def orientation_text(o):
@@ -631,26 +961,47 @@ def orientation_text(o):
 
 
 # ----------------------------------------------------------------------------- main
+def parse_size(text):
+    """'100k', '1M', '250000' -> int."""
+    t = text.strip().lower().replace("_", "").replace(",", "")
+    mult = {"k": 1_000, "m": 1_000_000}.get(t[-1:], 1)
+    return int(float(t[:-1] if mult > 1 else t) * mult)
+
+
+def size_label(n):
+    if n >= 1_000_000 and n % 100_000 == 0:
+        return f"{n / 1e6:g}M"
+    if n >= 1_000 and n % 1_000 == 0:
+        return f"{n // 1000}k"
+    return str(n)
+
+
 def parse_args(argv=None):
     ap = argparse.ArgumentParser(prog="python -m bench.run", description=__doc__.split("\n")[0])
-    ap.add_argument("--n", type=int, default=1_000_000, help="points (default 1,000,000)")
+    ap.add_argument("--sizes", type=parse_size, nargs="+", default=[100_000, 1_000_000],
+                    metavar="N", help="cloud sizes (e.g. 100k 1M; default 100k 1M)")
+    ap.add_argument("--n", type=parse_size, default=None, help="one size (same as --sizes N)")
     ap.add_argument("--neighbours", type=int, nargs="+", default=[30, 100])
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--ref-points", type=int, default=100_000,
                     help="points of the NumPy reference subsample (at most n/4)")
     ap.add_argument("--orient-points", type=int, default=100_000)
-    ap.add_argument("--quick", action="store_true", help="n=100k, 2 repeats, 20k-point subsamples")
+    ap.add_argument("--quick", action="store_true",
+                    help="100k points, ~30 neighbours, 1 repeat, 20k-point subsamples (< 1 min)")
     ap.add_argument("--no-open3d", action="store_true")
+    ap.add_argument("--no-jakteristics", action="store_true")
     ap.add_argument("--wait-quiet", type=float, default=60, metavar="SECONDS",
                     help="before each block, wait up to this long for both cores to be free")
     ap.add_argument("--retries", type=int, default=2,
                     help="measure a block again (up to this many times) when the cores were busy")
     args = ap.parse_args(argv)
+    if args.n is not None:
+        args.sizes = [args.n]
     if args.quick:
-        args.n, args.repeats = 100_000, 2
+        args.sizes, args.neighbours, args.repeats = [100_000], [30], 1
         args.ref_points, args.orient_points = 20_000, 20_000
         args.wait_quiet, args.retries = min(args.wait_quiet, 15), min(args.retries, 1)
-    args.ref_points = min(args.ref_points, args.n // 4)
+    args.sizes = sorted(set(args.sizes))
     return args
 
 
@@ -659,51 +1010,73 @@ def main(argv=None):
     env = environment()
     guard = Guard(args.wait_quiet, args.retries)
     o3d = None if args.no_open3d else open3d_or_none()
+    jak, jak_note = (None, "--no-jakteristics") if args.no_jakteristics else jakteristics_or_reason()
+    if jak is not None:
+        import importlib.metadata
+        try:
+            env["jakteristics"] = importlib.metadata.version("jakteristics")
+        except importlib.metadata.PackageNotFoundError:
+            env["jakteristics"] = getattr(jak, "__version__", "?")
+    elif not args.no_jakteristics:
+        log(f"jakteristics not available ({jak_note}): skipped (pip install jakteristics)")
     infos = clcurv.devices()
     if not infos:
         raise SystemExit("no OpenCL device: " + clcurv.device.APT_HINT)
 
-    pts, sorted_pts = make_clouds(args.n)
-    clouds = {"random": pts, "sorted": sorted_pts}
-    ks = list(args.neighbours)
-    radii = {k: radius_for(k, args.n) for k in ks}
-    caps = {k: cap_indices(pts, args.ref_points) for k in ks}
-    refs = {k: guard.block(f"NumPy reference ~{k}",
-                           lambda k=k: bench_reference(pts, radii[k], caps[k])) for k in ks}
+    data, cols = {}, []
+    for n in args.sizes:
+        pts, sorted_pts = make_clouds(n)
+        data[n] = {"random": pts, "sorted": sorted_pts, "normals": exact_normals(pts)}
+        for k in args.neighbours:
+            r = radius_for(k, n)
+            cols.append({"id": f"{size_label(n)} ~{k}", "n": n, "k": k, "r": r,
+                         "cap": cap_indices(pts, min(args.ref_points, n // 4))})
+    refs = {c["id"]: guard.block(f"NumPy reference {c['id']}", lambda c=c: bench_reference(
+        data[c["n"]]["random"], c["r"], c["cap"], data[c["n"]]["normals"])) for c in cols}
 
-    devs = [bench_device(info, clouds, radii, refs, caps, args.repeats, guard) for info in infos]
+    devs = [bench_device(info, cols, data, refs, args.repeats, guard) for info in infos]
 
-    o3d_res = {}
-    if o3d is not None:
-        for k in ks:
-            label = f"Open3D ~{k}"
-            o3d_res[k] = guard.block(label, lambda k=k: bench_open3d(o3d, clouds, radii[k],
-                                                                    args.repeats))
-            o3d_res[k]["threads"] = guard.gains(label)
+    o3d_res, jak_res = {}, {}
+    for c in cols:
+        clouds = {"random": data[c["n"]]["random"], "sorted": data[c["n"]]["sorted"]}
+        if o3d is not None:
+            label = f"Open3D {c['id']}"
+            o3d_res[c["id"]] = guard.block(label, lambda: bench_open3d(o3d, clouds, c["r"],
+                                                                       args.repeats))
+            o3d_res[c["id"]]["threads"] = guard.gains(label)
+        if jak is not None:
+            label = f"jakteristics {c['id']}"
+            jak_res[c["id"]] = guard.block(label, lambda: bench_jakteristics(jak, clouds, c["r"],
+                                                                             args.repeats))
+            jak_res[c["id"]]["threads"] = guard.gains(label)
     orientation = guard.block("orientation", lambda: bench_orientation(
         o3d, args.orient_points, infos[0].index))
 
-    report(args, env, guard, ks, refs, o3d_res, orientation, devs)
+    report(args, env, guard, cols, refs, o3d_res, jak_res, jak_note, orientation, devs)
 
 
-def report(args, env, guard, ks, refs, o3d_res, orientation, devs):
+def report(args, env, guard, cols, refs, o3d_res, jak_res, jak_note, orientation, devs):
     """Print the tables and write JSON (one file per device kind) and bench.md."""
     RESULTS.mkdir(parents=True, exist_ok=True)
     threads = guard.checks
-    text = [summary_text(env, args, threads), orientation_text(orientation)]
+    text = [summary_text(env, args, threads, jak_note), orientation_text(orientation)]
     if guard.busy():
         text.append(f"WARNING: cores were busy around: {', '.join(guard.busy())}; their figures "
                     "are pessimistic and ratios involving them are unreliable: rerun on a quiet "
                     "machine")
     md = ["# clcurv benchmark", "", "```", *text, "```"]
     kinds_seen = {}
+    ids = [c["id"] for c in cols]
     for dev in devs:
-        rat = {k: ratios(args.n, dev["k"][k], refs[k], o3d_res.get(k)) for k in ks}
+        rat = {c["id"]: ratios(c["n"], dev["k"][c["id"]], refs[c["id"]], o3d_res.get(c["id"]),
+                               jak_res.get(c["id"])) for c in cols}
         d = dev["device"]
-        title = f"[{d['index']}] {d['name']} — {d['platform']}, driver {d['driver']}, {d['version']}"
-        header = (f"n = {args.n:,}", [f"~{k} nbrs" for k in ks])
-        rows = device_rows(args.n, dev, refs, o3d_res, rat, ks)
-        tgt = target_lines(targets(dev, rat, orientation))
+        title = (f"[{d['index']}] {d['name']} — {d['platform']} "
+                 f"({env['platforms'].get(d['platform'], '?')}), driver {d['driver']}, "
+                 f"{d['version']}, {d['compute_units']} compute units")
+        header = ("n, neighbours", ids)
+        rows = device_rows(dev, refs, o3d_res, jak_res, rat, cols)
+        tgt = target_lines(targets(dev, rat, orientation, cols))
         text += ["", title, render_text(header, rows), "", "targets", render_targets(tgt)]
         md += ["", f"## {title}", "", render_markdown(header, rows), "",
                "| target | value | threshold | result |", "|---|---:|---|---|"]
@@ -713,9 +1086,11 @@ def report(args, env, guard, ks, refs, o3d_res, orientation, devs):
         suffix = kind if kinds_seen[kind] == 1 else f"{kind}{kinds_seen[kind]}"
         write_json(RESULTS / f"bench-{suffix}.json", {
             "args": vars(args), "env": env, "threads": threads, "device": dev,
-            "reference": {k: {x: v for x, v in refs[k].items() if not x.startswith("result")}
-                          for k in ks},
-            "open3d": o3d_res, "orientation": orientation, "ratios": rat,
+            "columns": [{x: v for x, v in c.items() if x != "cap"} for c in cols],
+            "reference": {c: {x: v for x, v in refs[c].items()
+                              if not x.startswith("result") and not x.startswith("ops")} for c in ids},
+            "open3d": o3d_res, "jakteristics": jak_res or {"skipped": jak_note},
+            "orientation": orientation, "ratios": rat,
             "targets": [dict(zip(("name", "value", "threshold", "result"), t)) for t in tgt]})
     print("\n".join(text))
     (RESULTS / "bench.md").write_text("\n".join(md) + "\n")
@@ -726,6 +1101,8 @@ def write_json(path, obj):
     def default(o):
         if isinstance(o, np.generic):
             return o.item()
+        if isinstance(o, np.ndarray):
+            return o.tolist()
         raise TypeError(type(o).__name__)
     path.write_text(json.dumps(obj, indent=1, default=default, allow_nan=True) + "\n")
 
