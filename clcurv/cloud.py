@@ -101,10 +101,11 @@ def upload_sorted(cloud, values):
     """Upload per-point ``values`` (N, 3), input order, as three padded SoA buffers in the
     cloud's sorted order and precision."""
     import pyopencl as cl
+    rows = np.take(values, cloud.grid.order, axis=0)      # one contiguous row gather
     out = []
     for d in range(3):
         col = np.zeros(cloud.n + PAD, dtype=cloud.dtype)
-        np.take(values[:, d], cloud.grid.order, out=col[:cloud.n])
+        col[:cloud.n] = rows[:, d]
         out.append(cl.Buffer(cloud.device.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
                              hostbuf=col))
     return out

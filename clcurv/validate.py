@@ -45,10 +45,12 @@ def as_normals(normals, n):
     arr = as_points(normals, "normals")
     if len(arr) != n:
         raise ValueError(f"normals must have one row per point: {len(arr)} rows for {n} points")
-    norm = np.linalg.norm(arr, axis=1)
+    norm = np.sqrt(np.einsum("ij,ij->i", arr, arr))
     if n and not (norm > 0).all():
         raise ValueError(f"normals has {int((norm <= 0).sum())} zero-length row(s)")
-    return arr / norm[:, None] if n else arr
+    if n:
+        arr = arr / norm[:, None]
+    return arr
 
 
 def as_viewpoint(viewpoint):
