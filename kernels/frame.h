@@ -21,7 +21,11 @@ inline void tangent_frame(REAL3 n, REAL3 *t1, REAL3 *t2)
 inline void eig2_sym(REAL a, REAL b, REAL c, REAL *l1, REAL *l2, REAL2 *e1)
 {
     const REAL h = (REAL)0.5 * (a - c);
-    const REAL rad = hypot(h, b);
+    /* hypot without the library call (slow on PoCL): scaled so that tiny entries (2dcov1's
+       are ~ r^6 k^2) cannot underflow when squared */
+    const REAL big = fmax(fabs(h), fabs(b));
+    const REAL ib = big > 0 ? (REAL)1 / big : (REAL)0;
+    const REAL rad = big * sqrt((h * ib) * (h * ib) + (b * ib) * (b * ib));
     const REAL m = (REAL)0.5 * (a + c);
     *l1 = m + rad;
     *l2 = m - rad;

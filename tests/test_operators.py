@@ -253,3 +253,17 @@ def test_nan_normal_in_the_ball_gives_degenerate(device, method):
     far = np.linalg.norm(pts - pts[0], axis=1) > 0.1 * (1 + 1e-6)
     assert (got["status"][near] == 2).all() and np.isnan(got["k1"][near]).all()
     assert (got["status"][far] == 0).mean() > 0.99 and np.isfinite(got["k1"][far]).mean() > 0.99
+
+
+@pytest.mark.parametrize("method", COV + ("mls2",))
+def test_tiny_units_give_the_same_curvatures(device, method):
+    """The same torus in metres and in 'kilometres' (x 1e-3): 2dcov1's covariances are
+    ~ r^6 k^2 (1e-25 here), which must not underflow in float32 closed forms."""
+    s = shapes.torus(60000, 2.0, 0.5, seed=41)
+    a = clcurv.curvature(s["points"], 0.1, method=method, normals=s["normals"], device=device)
+    b = clcurv.curvature(s["points"] * 1e-3, 0.1e-3, method=method, normals=s["normals"],
+                         device=device)
+    ok = a.valid & b.valid & (a.count == b.count)     # scaling moves boundary ties
+    assert ok.mean() > 0.99
+    np.testing.assert_allclose(b.k1[ok] * 1e-3, a.k1[ok], rtol=1e-3, atol=1e-3 * np.abs(a.k1).max())
+    np.testing.assert_allclose(b.k2[ok] * 1e-3, a.k2[ok], rtol=1e-3, atol=1e-3 * np.abs(a.k1).max())
