@@ -139,6 +139,7 @@ def compute(args, out=print):
         if k in SIGNED or k == "surface_variation":
             out(f"  {k:<20} {_range(v)}")
     out(f"wrote {args.output}: {', '.join((['nx ny nz'] if write_normals is not None else []) + list(fields))}")
+    res.info["input_points"] = pts
     return res
 
 
@@ -186,15 +187,10 @@ def demo_cmd(args, out=print):
     except ImportError:
         out("matplotlib is not installed: no picture (pip install matplotlib)")
         return res
-    png = render(res_points(ns), res.mean, outdir / "bunny_mean_curvature.png",
+    png = render(res.info["input_points"], res.mean, outdir / "bunny_mean_curvature.png",
                  field="mean_curvature", unit="1/m")
     out(f"wrote {png}")
     return res
-
-
-def res_points(ns):
-    from clcurv import io
-    return io.read(ns.input).points
 
 
 def build_parser():
