@@ -111,18 +111,44 @@ def upload_sorted(cloud, values):
     return out
 
 
-def download(cloud, spec):
-    """Allocate device outputs from ``spec`` {name: (shape, dtype)}; return (host, buffers)."""
-    import pyopencl as cl
-    host = {k: np.empty(shape, dtype) for k, (shape, dtype) in spec.items()}
-    bufs = {k: cl.Buffer(cloud.device.context, cl.mem_flags.WRITE_ONLY, size=max(v.nbytes, 1))
-            for k, v in host.items()}
-    return host, bufs
+RECORD = 16      # REALs per point of a kernel's output record (kernels/common.h RECORD_WIDTH)
 
 
-def fetch(cloud, host, bufs):
+def record_buffer(cloud):
+    """A device buffer for one output record per point. On a CPU device it is allocated in
+    host-visible memory so that :func:`fetch_records` maps it instead of copying it."""
     import pyopencl as cl
-    for k, v in host.items():
-        cl.enqueue_copy(cloud.device.queue, v, bufs[k])
-    cloud.device.queue.finish()
-    return host
+    flags = cl.mem_flags.WRITE_ONLY
+    if cloud.device.info.kind == "cpu":
+        flags |= cl.mem_flags.ALLOC_HOST_PTR
+    size = cloud.n * RECORD * np.dtype(cloud.dtype).itemsize
+    return cl.Buffer(cloud.device.context, flags, size=max(size, 1))
+
+
+def fetch_records(cloud, buf):
+    """The (N, RECORD) records of ``buf`` in the cloud's precision: mapped (zero-copy) on a
+    CPU device, copied otherwise. Views into it stay valid as long as they are referenced."""
+    import pyopencl as cl
+    shape = (cloud.n, RECORD)
+    if cloud.device.info.kind == "cpu":
+        rec, ev = cl.enqueue_map_buffer(cloud.device.queue, buf, cl.map_flags.READ, 0, shape,
+                                        cloud.dtype)
+        ev.wait()
+        return rec
+    rec = np.empty(shape, cloud.dtype)
+    cl.enqueue_copy(cloud.device.queue, rec, buf)
+    return rec
+
+
+def record_fields(rec, layout):
+    """Split records into named views: ``layout`` maps a name to a column or a column slice;
+    the names 'count' (uint bits) and 'status' (small integer) are decoded."""
+    out = {}
+    for name, col in layout.items():
+        if name == "count":
+            out[name] = rec.view(np.uint32 if rec.dtype == np.float32 else np.uint64)[:, col]
+        elif name == "status":
+            out[name] = rec[:, col].astype(np.uint8)
+        else:
+            out[name] = rec[:, col]
+    return out

@@ -11,11 +11,13 @@ import time
 
 import numpy as np
 
-from .cloud import download, fetch, upload_sorted
+from .cloud import fetch_records, record_buffer, record_fields, upload_sorted
 from .moments import weight_buffer
 from .program import batches, build, launch
 
 COV_METHODS = {"2dcov1": 1, "2dcov2": 2, "3dcov": 3}
+# fields of the covariance kernel's output record (kernels/covariances.cl)
+LAYOUT = {"k1": 3, "k2": 4, "dir1": slice(5, 8), "dir2": slice(8, 11), "count": 11, "status": 12}
 
 
 def device_covariances(cloud, radius, normals, method, *, weights="uniform"):
@@ -27,17 +29,12 @@ def device_covariances(cloud, radius, normals, method, *, weights="uniform"):
     nx, ny, nz = upload_sorted(cloud, normals)
     wbuf = weight_buffer(cloud, r, weights)
     n, ne = cloud.n, 3 if method == "3dcov" else 2
-    host, bufs = download(cloud, {"count": (n, np.uint32), "status": (n, np.uint8),
-                                  "eigenvalues": ((n, ne), cloud.dtype), "k": ((n, 2), cloud.dtype),
-                                  "dir1": ((n, 3), cloud.dtype), "dir2": ((n, 3), cloud.dtype)})
+    rec = record_buffer(cloud)
     t1 = time.perf_counter()
     launch(cloud.device, prg.covariance, batches(n, defines), cloud.x, cloud.y, cloud.z, nx, ny, nz, wbuf,
-           cloud.cell_of, cloud.ranges, cloud.order, np.uint32(n), cloud.real(r),
-           bufs["count"], bufs["status"], bufs["eigenvalues"], bufs["k"], bufs["dir1"], bufs["dir2"])
+           cloud.cell_of, cloud.ranges, cloud.order, np.uint32(n), cloud.real(r), rec)
     cloud.device.queue.finish()
     t2 = time.perf_counter()
-    out = fetch(cloud, host, bufs)
-    k = out.pop("k")
-    out["k1"], out["k2"] = k[:, 0], k[:, 1]
+    out = record_fields(fetch_records(cloud, rec), dict(LAYOUT, eigenvalues=slice(0, ne)))
     cloud.timings.update({f"kernel_{method}": t2 - t1, "upload_normals": t1 - t0})
     return out

@@ -11,11 +11,14 @@ import time
 
 import numpy as np
 
-from .cloud import download, fetch, upload_sorted
+from .cloud import fetch_records, record_buffer, record_fields, upload_sorted
 from .moments import weight_buffer
 from .program import batches, build, launch
 
 KERNELS = ("ball", "gaussian")
+# fields of the MLS2 kernel's output record (kernels/mls2.cl)
+LAYOUT = {"shift": slice(0, 3), "k1": 3, "k2": 4, "dir1": slice(5, 8), "dir2": slice(8, 11),
+          "normals": slice(11, 14), "count": 14, "status": 15}
 
 
 def device_mls2(cloud, radius, reference_normals=None, *, weights="uniform", kernel="ball", h=None):
@@ -35,19 +38,13 @@ def device_mls2(cloud, radius, reference_normals=None, *, weights="uniform", ker
     nx, ny, nz = upload_sorted(cloud, reference_normals) if use_ref else (cloud.x,) * 3
     wbuf = weight_buffer(cloud, r, weights)
     n = cloud.n
-    host, bufs = download(cloud, {"count": (n, np.uint32), "status": (n, np.uint8),
-                                  "shift": ((n, 3), cloud.dtype), "k": ((n, 2), cloud.dtype),
-                                  "dir1": ((n, 3), cloud.dtype), "dir2": ((n, 3), cloud.dtype),
-                                  "normals": ((n, 3), cloud.dtype)})
+    rec = record_buffer(cloud)
     t1 = time.perf_counter()
     launch(cloud.device, prg.mls2, batches(n, defines), cloud.x, cloud.y, cloud.z, nx, ny, nz, wbuf, cloud.cell_of,
            cloud.ranges, cloud.order, np.uint32(n), cloud.real(r), cloud.real(1.0 / (h * h)),
-           np.int32(use_ref), bufs["count"], bufs["status"], bufs["shift"], bufs["k"],
-           bufs["dir1"], bufs["dir2"], bufs["normals"])
+           np.int32(use_ref), rec)
     cloud.device.queue.finish()
     t2 = time.perf_counter()
-    out = fetch(cloud, host, bufs)
-    k = out.pop("k")
-    out["k1"], out["k2"] = k[:, 0], k[:, 1]
+    out = record_fields(fetch_records(cloud, rec), LAYOUT)
     cloud.timings.update(kernel_mls2=t2 - t1, upload_normals=t1 - t0)
     return out

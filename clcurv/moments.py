@@ -10,7 +10,12 @@ import time
 
 import numpy as np
 
+from .cloud import fetch_records, record_buffer, record_fields
 from .program import batches, build, launch
+
+# fields of the moments kernel's output record (kernels/moments.cl)
+LAYOUT = {"normals": slice(0, 3), "eigenvalues": slice(3, 6), "variation": 6,
+          "shift": slice(7, 10), "count": 10, "status": 11}
 
 
 def _launch(cloud, kernel, *args):
@@ -45,29 +50,21 @@ def device_moments(cloud, radius, *, weights="uniform", refine=True):
     cloud's precision; rows with status != 0 are NaN. ``refine`` recomputes lambda0 in a
     second pass (needed for ``variation`` and ``eigenvalues`` in float32).
     """
-    import pyopencl as cl
     r = cloud.check_radius(radius)
     density = weights == "density"
     t0 = time.perf_counter()
     defines = dict(cloud.defines, DENSITY=int(density), REFINE_L0=int(refine))
     prg = build(cloud.device, "moments.cl", defines)
-    q, ctx, n = cloud.device.queue, cloud.device.context, cloud.n
+    q, n = cloud.device.queue, cloud.n
     t1 = time.perf_counter()
     wbuf = device_counts(cloud, r)[1] if density else cloud.x
-    out = {"count": np.empty(n, np.uint32), "status": np.empty(n, np.uint8),
-           "normals": cloud.empty((n, 3)), "eigenvalues": cloud.empty((n, 3)),
-           "variation": cloud.empty(n), "shift": cloud.empty((n, 3))}
-    bufs = {k: cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, size=max(v.nbytes, 1)) for k, v in out.items()}
+    rec = record_buffer(cloud)
     # one work-item per VW consecutive points (the eigen decompositions run VW lanes at once)
     launch(cloud.device, prg.moments, batches(n, defines), cloud.x, cloud.y, cloud.z, wbuf,
-           cloud.cell_of, cloud.ranges, cloud.order, np.uint32(n), cloud.real(r * r),
-           bufs["count"], bufs["status"], bufs["normals"], bufs["eigenvalues"],
-           bufs["variation"], bufs["shift"])
+           cloud.cell_of, cloud.ranges, cloud.order, np.uint32(n), cloud.real(r * r), rec)
     q.finish()
     t2 = time.perf_counter()
-    for k, v in out.items():
-        cl.enqueue_copy(q, v, bufs[k])
-    q.finish()
+    out = record_fields(fetch_records(cloud, rec), LAYOUT)
     t3 = time.perf_counter()
     cloud.timings.update(build_moments=t1 - t0, kernel_moments=t2 - t1, download=t3 - t2)
     return out

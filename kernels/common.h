@@ -36,6 +36,19 @@
 #define IREALV CAT(IREAL, VW)   /* VW lanes of comparison masks */
 #define VLOADV CAT(vload, VW)
 
+/* Per-point output records: RECORD_WIDTH REALs per point (the field layout is the kernel's,
+ * mirrored in its host module), written with one vector store at the point's *input* index.
+ * A point's outputs then share one cache line (float32) instead of costing a cache miss per
+ * output array on a scattered write. Integer fields keep their bits (UINT_AS_REAL). */
+#define RECORD_WIDTH 16
+#define REAL16 CAT(REAL, 16)
+#if REAL_IS_DOUBLE
+#define UINT_AS_REAL(u) as_double((ulong)(u))
+#else
+#define UINT_AS_REAL(u) as_float((uint)(u))
+#endif
+#define STORE_RECORD(rec, j, out) vstore16((rec), (j), (out))
+
 /* Per-point status codes (mirrored in clcurv/result.py). */
 #define ST_OK 0
 #define ST_TOO_FEW 1      /* fewer neighbours than the operator needs */

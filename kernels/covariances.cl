@@ -8,9 +8,9 @@
  * weights, the paper's count normalisation). The 3D normals are accumulated relative to n
  * (a shift leaves a covariance unchanged and keeps float32 sums small).
  *
- * Outputs per point (input order): count, status, eigenvalues (descending; 2 or 3), the
- * curvature magnitudes k1 >= k2 >= 0 (1/length) and the unit tangent directions dir1, dir2
- * (dir2 = n x dir1). A NaN normal anywhere in the ball gives status DEGENERATE.
+ * Outputs per point (input order, one record): count, status, eigenvalues (descending; 2
+ * or 3), the curvature magnitudes k1 >= k2 >= 0 (1/length) and the unit tangent directions
+ * dir1, dir2 (dir2 = n x dir1). A NaN normal anywhere in the ball gives status DEGENERATE.
  */
 #include "common.h"
 #include "neighbors.h"
@@ -21,11 +21,6 @@
 #ifndef COV_METHOD
 #define COV_METHOD 2
 #endif
-
-inline void store3c(__global REAL *a, size_t j, REAL3 v)
-{
-    a[3 * j] = v.x; a[3 * j + 1] = v.y; a[3 * j + 2] = v.z;
-}
 
 /* |k1| >= |k2| from 2dcov1's count-normalised eigenvalues (Theorem 1), keeping the root
  * m+ of m = (k1 + k2)^2 (the k1 k2 >= 0 solution whenever one exists), as
@@ -39,16 +34,12 @@ inline REAL2 invert_theorem1(REAL l1, REAL l2, REAL r)
     return (REAL2)(sqrt(fmax(u - m, (REAL)0) * (REAL)0.25), sqrt(fmax(v - m, (REAL)0) * (REAL)0.25));
 }
 
-/* Weighted covariance of the features f_i of the ball of sorted point g (see the top). */
-typedef struct {
-    uint count;
-    REAL c[6];                       /* aa ab ad bb bd dd (the 2D methods use aa ab bb) */
-} cov_t;
-
-inline cov_t cov_ball(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
+/* Weighted covariance c = aa ab ad bb bd dd (the 2D methods use aa ab bb) of the features
+ * f_i of the ball of sorted point g (see the top); returns the neighbour count. */
+inline uint cov_ball(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
                       __global const REAL *NX, __global const REAL *NY, __global const REAL *NZ,
                       __global const REAL *W, __global const uint2 *ranges, uint cell, REAL3 p,
-                      REAL3 nrm, REAL3 t1, REAL3 t2, REAL r2)
+                      REAL3 nrm, REAL3 t1, REAL3 t2, REAL r2, REAL c[6])
 {
     REALV sc = 0, sw = 0, sa = 0, sb = 0, sd = 0, saa = 0, sab = 0, sad = 0, sbb = 0, sbd = 0, sdd = 0;
     REALV dx, dy, dz;
@@ -81,22 +72,18 @@ inline cov_t cov_ball(__global const REAL *X, __global const REAL *Y, __global c
         sd += wd; sad += wa * fd; sbd += wb * fd; sdd += wd * fd;
 #endif
     NEIGHBOR_CHUNKS_END
-    cov_t o;
-    o.count = (uint)hsum(sc);
     const REAL iw = (REAL)1 / hsum(sw);
     const REAL ma = hsum(sa) * iw, mb = hsum(sb) * iw, md = hsum(sd) * iw;
-    o.c[0] = hsum(saa) * iw - ma * ma; o.c[1] = hsum(sab) * iw - ma * mb;
-    o.c[2] = hsum(sad) * iw - ma * md; o.c[3] = hsum(sbb) * iw - mb * mb;
-    o.c[4] = hsum(sbd) * iw - mb * md; o.c[5] = hsum(sdd) * iw - md * md;
-    return o;
+    c[0] = hsum(saa) * iw - ma * ma; c[1] = hsum(sab) * iw - ma * mb;
+    c[2] = hsum(sad) * iw - ma * md; c[3] = hsum(sbb) * iw - mb * mb;
+    c[4] = hsum(sbd) * iw - mb * md; c[5] = hsum(sdd) * iw - md * md;
+    return (uint)hsum(sc);
 }
 
-/* Eigenvalues (descending), magnitudes, directions and stores of one point. lam3/e3 are
+/* Eigenvalues (descending), magnitudes, directions and the record of one point. lam3/e3 are
  * the 3dcov eigen decomposition (largest eigenvalue's vector e3), unused otherwise. */
-inline void cov_finish(cov_t cv, REAL3 nrm, REAL3 t1, REAL3 t2, REAL r, REAL3 lam3, REAL3 e3,
-                       size_t j, __global uint *count, __global uchar *status,
-                       __global REAL *eigval, __global REAL *k12, __global REAL *dir1,
-                       __global REAL *dir2)
+inline void cov_finish(uint count, int finite, REAL a, REAL b, REAL c, REAL3 nrm, REAL3 t1,
+                       REAL3 t2, REAL r, REAL3 lam3, REAL3 e3, size_t j, __global REAL *out)
 {
 #if COV_METHOD == 3
     REAL3 lam = fmax(lam3, (REAL3)0);
@@ -106,7 +93,7 @@ inline void cov_finish(cov_t cv, REAL3 nrm, REAL3 t1, REAL3 t2, REAL r, REAL3 la
 #else
     REAL l1, l2;
     REAL2 ev;
-    eig2_sym(cv.c[0], cv.c[1], cv.c[3], &l1, &l2, &ev);
+    eig2_sym(a, b, c, &l1, &l2, &ev);
     REAL3 lam = fmax((REAL3)(l1, l2, 0), (REAL3)0);
     REAL3 e1 = ev.x * t1 + ev.y * t2;
 #if COV_METHOD == 1
@@ -116,25 +103,26 @@ inline void cov_finish(cov_t cv, REAL3 nrm, REAL3 t1, REAL3 t2, REAL r, REAL3 la
 #endif
 #endif
     /* a NaN normal in the ball makes the sums NaN (fmax above would hide it in lam) */
-    int finite = isfinite(nrm.x) && isfinite(nrm.y) && isfinite(nrm.z) && isfinite(e1.x);
-    for (int e = 0; e < 6; ++e) finite = finite && isfinite(cv.c[e]);
+    finite = finite && isfinite(nrm.x) && isfinite(nrm.y) && isfinite(nrm.z) && isfinite(e1.x);
     uchar st = ST_OK;
-    if (cv.count < 3) st = ST_TOO_FEW;
+    if (count < 3) st = ST_TOO_FEW;
     else if (!finite) st = ST_DEGENERATE;
-    count[j] = cv.count;
-    status[j] = st;
-    const REAL nan = NAN;
-    if (st != ST_OK) {
-        lam = (REAL3)(nan); k = (REAL2)(nan); e1 = (REAL3)(nan);
-    }
+    /* record: eigenvalues (descending; the 2D methods leave the third NaN) | k1 k2 | dir1 xyz |
+       dir2 xyz | count | status */
+    REAL16 rec = (REAL16)(NAN);
+    if (st == ST_OK) {
 #if COV_METHOD == 3
-    store3c(eigval, j, lam);
+        rec.s012 = lam;
 #else
-    eigval[2 * j] = lam.x; eigval[2 * j + 1] = lam.y;
+        rec.s01 = lam.xy;
 #endif
-    k12[2 * j] = k.x; k12[2 * j + 1] = k.y;
-    store3c(dir1, j, e1);
-    store3c(dir2, j, st == ST_OK ? cross(nrm, e1) : (REAL3)(nan));
+        rec.s34 = k;
+        rec.s567 = e1;
+        rec.s89a = cross(nrm, e1);
+    }
+    rec.sb = UINT_AS_REAL(count);
+    rec.sc = (REAL)st;
+    STORE_RECORD(rec, j, out);
 }
 
 #define VSTOREV CAT(vstore, VW)
@@ -146,28 +134,31 @@ __kernel void covariance(__global const REAL *X, __global const REAL *Y, __globa
                          __global const REAL *NZ, __global const REAL *W,
                          __global const uint *cell_of, __global const uint2 *ranges,
                          __global const uint *order, const uint n, const REAL r,
-                         __global uint *count, __global uchar *status,
-                         __global REAL *eigval, __global REAL *k12,
-                         __global REAL *dir1, __global REAL *dir2)
+                         __global REAL *out)
 {
     const uint g0 = get_global_id(0) * VW;
     if (g0 >= n) return;
     const uint kn = min((uint)VW, n - g0);
-    cov_t cv[VW];
+    uint cnt[VW];
+    int fin[VW];
     REAL cs[6][VW];
     for (uint k = 0; k < VW; ++k) {
+        REAL c[6] = {1, 0, 0, 1, 0, 1};              /* unused lane: the identity */
+        cnt[k] = 0;
         if (k < kn) {
             const uint g = g0 + k;
             const REAL3 nrm = (REAL3)(NX[g], NY[g], NZ[g]);
             REAL3 t1, t2;
             tangent_frame(nrm, &t1, &t2);
-            cv[k] = cov_ball(X, Y, Z, NX, NY, NZ, W, ranges, cell_of[g],
-                             (REAL3)(X[g], Y[g], Z[g]), nrm, t1, t2, r * r);
-        } else {
-            cv[k].count = 0;
-            for (int e = 0; e < 6; ++e) cv[k].c[e] = (REAL)(e == 0 || e == 3 || e == 5);
+            cnt[k] = cov_ball(X, Y, Z, NX, NY, NZ, W, ranges, cell_of[g],
+                              (REAL3)(X[g], Y[g], Z[g]), nrm, t1, t2, r * r, c);
         }
-        for (int e = 0; e < 6; ++e) cs[e][k] = isfinite(cv[k].c[e]) ? cv[k].c[e] : (REAL)0;
+        int f = 1;
+        for (int e = 0; e < 6; ++e) {
+            f = f && isfinite(c[e]);
+            cs[e][k] = isfinite(c[e]) ? c[e] : (REAL)0;
+        }
+        fin[k] = f;
     }
     REAL l0[VW], l1[VW], l2[VW], ex[VW], ey[VW], ez[VW];
 #if COV_METHOD == 3
@@ -189,7 +180,7 @@ __kernel void covariance(__global const REAL *X, __global const REAL *Y, __globa
         lam3 = (REAL3)(l2[k], l1[k], l0[k]);                             /* descending */
         e3 = (REAL3)(ex[k], ey[k], ez[k]);
 #endif
-        cov_finish(cv[k], nrm, t1, t2, r, lam3, e3, order[g], count, status, eigval, k12,
-                   dir1, dir2);
+        cov_finish(cnt[k], fin[k], cs[0][k], cs[1][k], cs[3][k], nrm, t1, t2, r, lam3, e3,
+                   order[g], out);
     }
 }

@@ -9,8 +9,8 @@
  * I^-1 II of the graph at the origin, negated to clcurv's convention (outward normal, a
  * sphere is positive), k1 >= k2; directions mapped to 3D through (1, 0, gx), (0, 1, gy).
  *
- * Outputs (input order): count, status, shift = projection - p, k1 k2, dir1, dir2 (= normal
- * x dir1), the fitted unit normal.
+ * Outputs (input order, one record per point): count, status, shift = projection - p, k1 k2,
+ * dir1, dir2 (= normal x dir1), the fitted unit normal.
  */
 #include "common.h"
 #include "neighbors.h"
@@ -18,11 +18,6 @@
 #include "pca.h"
 #include "frame.h"
 #include "solve6.h"
-
-inline void put3(__global REAL *a, size_t j, REAL3 v)
-{
-    a[3 * j] = v.x; a[3 * j + 1] = v.y; a[3 * j + 2] = v.z;
-}
 
 /* Unit eigenvector (in the parameter plane) of the 2x2 matrix s for its eigenvalue lam. */
 inline REAL2 eigvec2(REAL s00, REAL s01, REAL s10, REAL s11, REAL lam)
@@ -62,8 +57,9 @@ inline uchar mls2_system(__global const REAL *X, __global const REAL *Y, __globa
     for (int e = 0; e < 21; ++e) M[e] = (REAL)(e == 0 || e == 2 || e == 5 || e == 9 || e == 14 || e == 20);
     for (int e = 0; e < 6; ++e) b[e] = 0;           /* identity system for failed points */
     if (st != ST_OK) return st;
-    /* x = <q - Q, t1> / r = (<d, t1> - <Q - p, t1>) / r, likewise y and h */
-    const REAL ct1 = dot(qo, t1), ct2 = dot(qo, t2), cv0 = dot(qo, v0);
+    /* x = <q - Q, t1> / r = <d, t1> / r (Q - p is along v0), likewise y;
+       h = <d, v0> - <Q - p, v0> */
+    const REAL cv0 = dot(qo, v0);
     const REAL3 u1 = t1 * ir, u2 = t2 * ir;
     REALV s00 = 0, s10 = 0, s01 = 0, s20 = 0, s11 = 0, s02 = 0, s30 = 0, s21 = 0;
     REALV s12 = 0, s03 = 0, s40 = 0, s31 = 0, s22 = 0, s13 = 0, s04 = 0;
@@ -72,14 +68,14 @@ inline uchar mls2_system(__global const REAL *X, __global const REAL *Y, __globa
     NEIGHBOR_CHUNKS_BEGIN(ranges, cell, i, end)
         const IREALV m = chunk_offsets(X, Y, Z, i, end, p, r2, &dx, &dy, &dz);
         const REALV w = chunk_weights(W, i, dx, dy, dz, m, ih2);
-        const REALV x = dx * u1.x + dy * u1.y + dz * u1.z - ct1 * ir;
-        const REALV y = dx * u2.x + dy * u2.y + dz * u2.z - ct2 * ir;
+        const REALV x = dx * u1.x + dy * u1.y + dz * u1.z;
+        const REALV y = dx * u2.x + dy * u2.y + dz * u2.z;
         const REALV h = dx * v0.x + dy * v0.y + dz * v0.z - cv0;
-        const REALV wx = w * x, wy = w * y, wxx = wx * x, wxy = wx * y, wyy = wy * y;
+        const REALV xx = x * x, xy = x * y, yy = y * y;
+        const REALV wx = w * x, wy = w * y, wxx = w * xx, wxy = w * xy, wyy = w * yy;
         s00 += w; s10 += wx; s01 += wy; s20 += wxx; s11 += wxy; s02 += wyy;
         s30 += wxx * x; s21 += wxx * y; s12 += wxy * y; s03 += wyy * y;
-        s40 += wxx * x * x; s31 += wxx * x * y; s22 += wxx * y * y;
-        s13 += wxy * y * y; s04 += wyy * y * y;
+        s40 += wxx * xx; s31 += wxx * xy; s22 += wxx * yy; s13 += wxy * yy; s04 += wyy * yy;
         h0 += w * h; hx += wx * h; hy += wy * h; hxx += wxx * h; hxy += wxy * h; hyy += wyy * h;
     NEIGHBOR_CHUNKS_END
     const REAL S00 = hsum(s00), S10 = hsum(s10), S01 = hsum(s01), S20 = hsum(s20);
@@ -98,18 +94,16 @@ inline uchar mls2_system(__global const REAL *X, __global const REAL *Y, __globa
     return st;
 }
 
-/* Curvatures, directions, normal and stores from the fitted coefficients a. */
+/* Curvatures, directions, normal and the record of one point from the fitted coefficients a.
+ * Record: shift xyz | k1 k2 | dir1 xyz | dir2 xyz | normal xyz | count | status. */
 inline void mls2_store(uchar st, const REAL a[6], REAL r, REAL3 v0, REAL3 t1, REAL3 t2, REAL3 qo,
-                       uint count_k, size_t j, __global uint *count, __global uchar *status,
-                       __global REAL *shift, __global REAL *k12, __global REAL *dir1,
-                       __global REAL *dir2, __global REAL *normal)
+                       uint count_k, size_t j, __global REAL *out)
 {
-    count[j] = count_k;
-    status[j] = st;
+    REAL16 rec = (REAL16)(NAN);
+    rec.se = UINT_AS_REAL(count_k);
+    rec.sf = (REAL)st;
     if (st != ST_OK) {
-        const REAL nan = NAN;
-        put3(shift, j, (REAL3)(nan)); put3(dir1, j, (REAL3)(nan)); put3(dir2, j, (REAL3)(nan));
-        put3(normal, j, (REAL3)(nan)); k12[2 * j] = nan; k12[2 * j + 1] = nan;
+        STORE_RECORD(rec, j, out);
         return;
     }
     const REAL ir = (REAL)1 / r;
@@ -126,13 +120,14 @@ inline void mls2_store(uchar st, const REAL a[6], REAL r, REAL3 v0, REAL3 t1, RE
     const REAL2 e = eigvec2(S00, S01, S10, S11, lo);
     const REAL3 nfit = (v0 - gx * t1 - gy * t2) * wn;
     const REAL3 d1 = normalize(e.x * (t1 + gx * v0) + e.y * (t2 + gy * v0));
-    put3(shift, j, qo + a[0] * v0);
-    k12[2 * j] = -lo;
-    k12[2 * j + 1] = -(hmean + disc);
-    put3(dir1, j, d1);
-    put3(dir2, j, cross(nfit, d1));
-    put3(normal, j, nfit);
+    rec.s012 = qo + a[0] * v0;
+    rec.s34 = (REAL2)(-lo, -(hmean + disc));
+    rec.s567 = d1;
+    rec.s89a = cross(nfit, d1);
+    rec.sbcd = nfit;
+    STORE_RECORD(rec, j, out);
 }
+
 
 /* One work-item per VW consecutive sorted points (global size >= ceil(n / VW)): PCA of the
  * VW balls with one vectorised eigen solve, then each point's normal equations, then the VW
@@ -142,9 +137,7 @@ __kernel void mls2(__global const REAL *X, __global const REAL *Y, __global cons
                    __global const REAL *W, __global const uint *cell_of,
                    __global const uint2 *ranges, __global const uint *order, const uint n,
                    const REAL r, const REAL ih2, const int use_ref,
-                   __global uint *count, __global uchar *status, __global REAL *shift,
-                   __global REAL *k12, __global REAL *dir1, __global REAL *dir2,
-                   __global REAL *normal)
+                   __global REAL *out)
 {
     const uint g0 = get_global_id(0) * VW;
     if (g0 >= n) return;
@@ -178,7 +171,6 @@ __kernel void mls2(__global const REAL *X, __global const REAL *Y, __global cons
     for (uint k = 0; k < kn; ++k) {
         const REAL a[6] = {xl[0][k], xl[1][k], xl[2][k], xl[3][k], xl[4][k], xl[5][k]};
         const uchar s = (st[k] == ST_OK && !okl[k]) ? ST_SINGULAR : st[k];
-        mls2_store(s, a, r, v0[k], t1[k], t2[k], qo[k], pb.count[k], order[g0 + k], count,
-                   status, shift, k12, dir1, dir2, normal);
+        mls2_store(s, a, r, v0[k], t1[k], t2[k], qo[k], pb.count[k], order[g0 + k], out);
     }
 }

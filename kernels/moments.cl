@@ -38,11 +38,6 @@ __kernel void count_neighbors(__global const REAL *X, __global const REAL *Y,
     weight[g] = (REAL)1 / (REAL)c;
 }
 
-inline void store3(__global REAL *a, size_t j, REAL3 v)
-{
-    a[3 * j] = v.x; a[3 * j + 1] = v.y; a[3 * j + 2] = v.z;
-}
-
 /* Per point: count, PCA normal v0 (unoriented), ascending eigenvalues of the weighted
  * covariance, surface variation l0/(l0+l1+l2), barycenter shift o - p, status.
  *
@@ -55,9 +50,7 @@ __kernel void moments(__global const REAL *X, __global const REAL *Y, __global c
                       __global const REAL *W, __global const uint *cell_of,
                       __global const uint2 *ranges, __global const uint *order,
                       const uint n, const REAL r2,
-                      __global uint *count, __global uchar *status,
-                      __global REAL *normal, __global REAL *eigval,
-                      __global REAL *variation, __global REAL *shift)
+                      __global REAL *out)
 {
     const uint g0 = get_global_id(0) * VW;
     if (g0 >= n) return;
@@ -96,18 +89,16 @@ __kernel void moments(__global const REAL *X, __global const REAL *Y, __global c
             lam.x = hsum(s0) * pb.iw[k];
         }
 #endif
-        const size_t j = order[g];
-        count[j] = c;
-        status[j] = st;
-        if (st != ST_OK) {
-            const REAL nan3 = NAN;
-            store3(normal, j, (REAL3)nan3); store3(eigval, j, (REAL3)nan3);
-            store3(shift, j, (REAL3)nan3); variation[j] = nan3;
-            continue;
+        /* record: normal xyz | eigenvalues (ascending) | variation | shift xyz | count | status */
+        REAL16 rec = (REAL16)(NAN);
+        if (st == ST_OK) {
+            rec.s012 = v0;
+            rec.s345 = lam;
+            rec.s6 = lam.x / (lam.x + lam.y + lam.z);
+            rec.s789 = mu;
         }
-        store3(normal, j, v0);
-        store3(eigval, j, lam);
-        store3(shift, j, mu);
-        variation[j] = lam.x / (lam.x + lam.y + lam.z);
+        rec.sa = UINT_AS_REAL(c);
+        rec.sb = (REAL)st;
+        STORE_RECORD(rec, order[g], out);
     }
 }

@@ -19,16 +19,20 @@
 #define DEGENERATE_RATIO 1e-5f
 #endif
 
+/* PCA of VW consecutive points, lane k for point g0 + k (k < kn). */
 typedef struct {
-    uint count;
-    REAL iw;                         /* 1 / sum of weights */
-    REAL3 mu;                        /* o - p */
-    REAL c[6];                       /* centred covariance xx xy xz yy yz zz */
-} pca_t;
+    uint count[VW];
+    REAL iw[VW], mux[VW], muy[VW], muz[VW];
+    REAL l0[VW], l1[VW], l2[VW];     /* ascending, clamped at 0 */
+    REAL v0x[VW], v0y[VW], v0z[VW];  /* eigenvector of l0: the unoriented PCA normal */
+} pca_batch_t;
 
-inline pca_t pca_ball(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
-                      __global const REAL *W, __global const uint2 *ranges, uint cell,
-                      REAL3 p, REAL r2, REAL ih2)
+/* The sums of the ball of p into lane k of b (count, 1/sum w, mu = o - p) and the centred
+ * covariance xx xy xz yy yz zz into cov[.][k]. (Results go through arrays, not a returned
+ * struct: PoCL spills struct copies in the work-item loop at a large cost.) */
+inline void pca_ball(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
+                     __global const REAL *W, __global const uint2 *ranges, uint cell,
+                     REAL3 p, REAL r2, REAL ih2, pca_batch_t *b, uint k, REAL cov[6][VW])
 {
     REALV sc = 0, sw = 0, sx = 0, sy = 0, sz = 0;
     REALV sxx = 0, sxy = 0, sxz = 0, syy = 0, syz = 0, szz = 0;
@@ -44,31 +48,23 @@ inline pca_t pca_ball(__global const REAL *X, __global const REAL *Y, __global c
         sxx += wx * dx; sxy += wx * dy; sxz += wx * dz;
         syy += wy * dy; syz += wy * dz; szz += wz * dz;
     NEIGHBOR_CHUNKS_END
-    pca_t r;
     const REAL wsum = hsum(sw);
 #if DENSITY || GAUSSIAN
-    r.count = (uint)hsum(sc);
+    b->count[k] = (uint)hsum(sc);
 #else
-    r.count = (uint)wsum;            /* w = 1: the sum of the weights is the count (exact) */
+    b->count[k] = (uint)wsum;        /* w = 1: the sum of the weights is the count (exact) */
 #endif
-    r.iw = (REAL)1 / wsum;
-    r.mu = (REAL3)(hsum(sx), hsum(sy), hsum(sz)) * r.iw;
-    r.c[0] = hsum(sxx) * r.iw - r.mu.x * r.mu.x;
-    r.c[1] = hsum(sxy) * r.iw - r.mu.x * r.mu.y;
-    r.c[2] = hsum(sxz) * r.iw - r.mu.x * r.mu.z;
-    r.c[3] = hsum(syy) * r.iw - r.mu.y * r.mu.y;
-    r.c[4] = hsum(syz) * r.iw - r.mu.y * r.mu.z;
-    r.c[5] = hsum(szz) * r.iw - r.mu.z * r.mu.z;
-    return r;
+    const REAL iw = (REAL)1 / wsum;
+    const REAL3 mu = (REAL3)(hsum(sx), hsum(sy), hsum(sz)) * iw;
+    b->iw[k] = iw;
+    b->mux[k] = mu.x; b->muy[k] = mu.y; b->muz[k] = mu.z;
+    cov[0][k] = hsum(sxx) * iw - mu.x * mu.x;
+    cov[1][k] = hsum(sxy) * iw - mu.x * mu.y;
+    cov[2][k] = hsum(sxz) * iw - mu.x * mu.z;
+    cov[3][k] = hsum(syy) * iw - mu.y * mu.y;
+    cov[4][k] = hsum(syz) * iw - mu.y * mu.z;
+    cov[5][k] = hsum(szz) * iw - mu.z * mu.z;
 }
-
-/* PCA of VW consecutive points, lane k for point g0 + k (k < kn). */
-typedef struct {
-    uint count[VW];
-    REAL iw[VW], mux[VW], muy[VW], muz[VW];
-    REAL l0[VW], l1[VW], l2[VW];     /* ascending, clamped at 0 */
-    REAL v0x[VW], v0y[VW], v0z[VW];  /* eigenvector of l0: the unoriented PCA normal */
-} pca_batch_t;
 
 #define VSTOREV CAT(vstore, VW)
 
@@ -81,11 +77,8 @@ inline void pca_batch(__global const REAL *X, __global const REAL *Y, __global c
     for (uint k = 0; k < VW; ++k) {
         if (k < kn) {
             const uint g = g0 + k;
-            const pca_t pc = pca_ball(X, Y, Z, W, ranges, cell_of[g], (REAL3)(X[g], Y[g], Z[g]),
-                                      r2, ih2);
-            for (int e = 0; e < 6; ++e) cov[e][k] = pc.c[e];
-            b->count[k] = pc.count; b->iw[k] = pc.iw;
-            b->mux[k] = pc.mu.x; b->muy[k] = pc.mu.y; b->muz[k] = pc.mu.z;
+            pca_ball(X, Y, Z, W, ranges, cell_of[g], (REAL3)(X[g], Y[g], Z[g]), r2, ih2, b, k,
+                     cov);
         } else {                     /* unused lane: the identity */
             for (int e = 0; e < 6; ++e) cov[e][k] = (REAL)(e == 0 || e == 3 || e == 5);
             b->count[k] = 0;
