@@ -143,7 +143,7 @@ def _moment_result(method, r, weights, pts, raw, n, ref_normals):
 
 def _oriented(pts, raw, how, ref_normals, vp, k):
     """The PCA normals of ``raw`` (float64), oriented as ``how`` says."""
-    n = _f64(raw["normals"]).copy()
+    n = np.array(raw["normals"], dtype=np.float64, copy=None)   # the backends' arrays are fresh
     n[_flip(pts, n, how, ref_normals, vp, k)] *= -1
     return n
 
@@ -337,7 +337,7 @@ def normals(points, radius, *, weights="uniform", normals=None, orient="auto", v
     if len(pts) == 0:
         return np.empty((0, 3))
     raw = _backend(backend, pts, r, device, precision).moments(weights, refine=False)
-    n = _f64(raw["normals"]).copy()
+    n = np.array(raw["normals"], dtype=np.float64, copy=None)   # the backends' arrays are fresh
     _warn_sparse(raw["status"], r)
     n[_flip(pts, n, how, ref_normals, vp, orient_k)] *= -1
     return n

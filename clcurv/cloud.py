@@ -99,15 +99,16 @@ class DeviceCloud:
 
 def upload_sorted(cloud, values):
     """Upload per-point ``values`` (N, 3), input order, as three padded SoA buffers in the
-    cloud's sorted order and precision."""
+    cloud's sorted order and precision (cast on the host, gathered on the device)."""
     import pyopencl as cl
-    rows = np.take(values, cloud.grid.order, axis=0)      # one contiguous row gather
-    out = []
-    for d in range(3):
-        col = np.zeros(cloud.n + PAD, dtype=cloud.dtype)
-        col[:cloud.n] = rows[:, d]
-        out.append(cl.Buffer(cloud.device.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
-                             hostbuf=col))
+    rows = np.ascontiguousarray(values, dtype=cloud.dtype)
+    ctx, mf = cloud.device.context, cl.mem_flags
+    src = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=rows)
+    size = (cloud.n + PAD) * np.dtype(cloud.dtype).itemsize
+    out = [cl.Buffer(ctx, mf.READ_WRITE, size=size) for _ in range(3)]
+    prg = build(cloud.device, "records.cl", cloud.defines)
+    launch(cloud.device, prg.gather_sorted, cloud.n + PAD, src, cloud.order, np.uint32(cloud.n),
+           np.uint32(PAD), *out)
     return out
 
 
@@ -115,40 +116,57 @@ RECORD = 16      # REALs per point of a kernel's output record (kernels/common.h
 
 
 def record_buffer(cloud):
-    """A device buffer for one output record per point. On a CPU device it is allocated in
-    host-visible memory so that :func:`fetch_records` maps it instead of copying it."""
+    """A device buffer for one output record per point."""
     import pyopencl as cl
+    size = cloud.n * RECORD * np.dtype(cloud.dtype).itemsize
+    return cl.Buffer(cloud.device.context, cl.mem_flags.READ_WRITE, size=max(size, 1))
+
+
+def _host_array(cloud, buf, shape, dtype):
+    """``buf`` on the host: mapped (zero-copy) on a CPU device, copied otherwise."""
+    import pyopencl as cl
+    q = cloud.device.queue
+    if cloud.device.info.kind == "cpu":
+        arr, ev = cl.enqueue_map_buffer(q, buf, cl.map_flags.READ, 0, shape, dtype)
+        ev.wait()
+        return arr
+    arr = np.empty(shape, dtype)
+    cl.enqueue_copy(q, arr, buf)
+    return arr
+
+
+def fetch_records(cloud, rec, layout):
+    """The fields of the records ``rec`` (input order) as host arrays.
+
+    ``layout`` maps a name to a record column or a slice of columns, and must name 'count'
+    (stored as uint bits) and 'status' (a small integer). Real fields come back as float64
+    (N,) or (N, width) arrays, 'count' as int64 and 'status' as uint8. The device splits the
+    records into contiguous per-field arrays first (records.cl), so the host only casts.
+    """
+    import pyopencl as cl
+    n, ctx = cloud.n, cloud.device.context
+    real = [(k, v) for k, v in layout.items() if k not in ("count", "status")]
+    if len(real) > 6:
+        raise ValueError("split_records takes at most 6 real fields")
+    defines = dict(cloud.defines, NF=len(real), COUNT_COL=layout["count"],
+                   STATUS_COL=layout["status"])
+    spans = []
+    for k, (name, col) in enumerate(real):
+        a, b = (col, col + 1) if isinstance(col, int) else (col.start, col.stop)
+        defines[f"S{k}"], defines[f"W{k}"] = a, b - a
+        spans.append((name, (n,) if isinstance(col, int) else (n, b - a)))
+    prg = build(cloud.device, "records.cl", defines)
     flags = cl.mem_flags.WRITE_ONLY
     if cloud.device.info.kind == "cpu":
         flags |= cl.mem_flags.ALLOC_HOST_PTR
-    size = cloud.n * RECORD * np.dtype(cloud.dtype).itemsize
-    return cl.Buffer(cloud.device.context, flags, size=max(size, 1))
-
-
-def fetch_records(cloud, buf):
-    """The (N, RECORD) records of ``buf`` in the cloud's precision: mapped (zero-copy) on a
-    CPU device, copied otherwise. Views into it stay valid as long as they are referenced."""
-    import pyopencl as cl
-    shape = (cloud.n, RECORD)
-    if cloud.device.info.kind == "cpu":
-        rec, ev = cl.enqueue_map_buffer(cloud.device.queue, buf, cl.map_flags.READ, 0, shape,
-                                        cloud.dtype)
-        ev.wait()
-        return rec
-    rec = np.empty(shape, cloud.dtype)
-    cl.enqueue_copy(cloud.device.queue, rec, buf)
-    return rec
-
-
-def record_fields(rec, layout):
-    """Split records into named views: ``layout`` maps a name to a column or a column slice;
-    the names 'count' (uint bits) and 'status' (small integer) are decoded."""
-    out = {}
-    for name, col in layout.items():
-        if name == "count":
-            out[name] = rec.view(np.uint32 if rec.dtype == np.float32 else np.uint64)[:, col]
-        elif name == "status":
-            out[name] = rec[:, col].astype(np.uint8)
-        else:
-            out[name] = rec[:, col]
-    return out
+    item = np.dtype(cloud.dtype).itemsize
+    new = lambda nbytes: cl.Buffer(ctx, flags, size=max(nbytes, 1))
+    outs = [new(int(np.prod(shape)) * item) for _, shape in spans]
+    outs += [outs[0] if outs else rec] * (6 - len(outs))       # unused placeholders
+    count, status = new(4 * n), new(n)
+    launch(cloud.device, prg.split_records, n, rec, np.uint32(n), *outs, count, status)
+    fields = {name: _host_array(cloud, buf, shape, cloud.dtype).astype(np.float64)
+              for (name, shape), buf in zip(spans, outs)}
+    fields["count"] = _host_array(cloud, count, (n,), np.uint32).astype(np.int64)
+    fields["status"] = _host_array(cloud, status, (n,), np.uint8)
+    return fields

@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 
-from .cloud import fetch_records, record_buffer, record_fields, upload_sorted
+from .cloud import fetch_records, record_buffer, upload_sorted
 from .moments import weight_buffer
 from .program import batches, build, launch
 
@@ -35,6 +35,6 @@ def device_covariances(cloud, radius, normals, method, *, weights="uniform"):
            cloud.cell_of, cloud.ranges, cloud.order, np.uint32(n), cloud.real(r), rec)
     cloud.device.queue.finish()
     t2 = time.perf_counter()
-    out = record_fields(fetch_records(cloud, rec), dict(LAYOUT, eigenvalues=slice(0, ne)))
+    out = fetch_records(cloud, rec, dict(LAYOUT, eigenvalues=slice(0, ne)))
     cloud.timings.update({f"kernel_{method}": t2 - t1, "upload_normals": t1 - t0})
     return out

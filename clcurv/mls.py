@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 
-from .cloud import fetch_records, record_buffer, record_fields, upload_sorted
+from .cloud import fetch_records, record_buffer, upload_sorted
 from .moments import weight_buffer
 from .program import batches, build, launch
 
@@ -45,6 +45,6 @@ def device_mls2(cloud, radius, reference_normals=None, *, weights="uniform", ker
            np.int32(use_ref), rec)
     cloud.device.queue.finish()
     t2 = time.perf_counter()
-    out = record_fields(fetch_records(cloud, rec), LAYOUT)
+    out = fetch_records(cloud, rec, LAYOUT)
     cloud.timings.update(kernel_mls2=t2 - t1, upload_normals=t1 - t0)
     return out

@@ -10,7 +10,7 @@ import time
 
 import numpy as np
 
-from .cloud import fetch_records, record_buffer, record_fields
+from .cloud import fetch_records, record_buffer
 from .program import batches, build, launch
 
 # fields of the moments kernel's output record (kernels/moments.cl)
@@ -44,10 +44,10 @@ def weight_buffer(cloud, radius, weights):
 def device_moments(cloud, radius, *, weights="uniform", refine=True):
     """Raw moments of N_r(p) for every point, in input order.
 
-    Returns a dict: ``count`` (N,) uint32, ``status`` (N,) uint8, ``normals`` (N, 3) unit,
+    Returns a dict: ``count`` (N,) int64, ``status`` (N,) uint8, ``normals`` (N, 3) unit,
     unoriented, ``eigenvalues`` (N, 3) ascending, of the weighted covariance
-    sum w (q - o)(q - o)^T / sum w, ``variation`` (N,), ``shift`` (N, 3) = o - p, all in the
-    cloud's precision; rows with status != 0 are NaN. ``refine`` recomputes lambda0 in a
+    sum w (q - o)(q - o)^T / sum w, ``variation`` (N,), ``shift`` (N, 3) = o - p, computed in
+    the cloud's precision and returned as float64; rows with status != 0 are NaN. ``refine`` recomputes lambda0 in a
     second pass (needed for ``variation`` and ``eigenvalues`` in float32).
     """
     r = cloud.check_radius(radius)
@@ -64,7 +64,7 @@ def device_moments(cloud, radius, *, weights="uniform", refine=True):
            cloud.cell_of, cloud.ranges, cloud.order, np.uint32(n), cloud.real(r * r), rec)
     q.finish()
     t2 = time.perf_counter()
-    out = record_fields(fetch_records(cloud, rec), LAYOUT)
+    out = fetch_records(cloud, rec, LAYOUT)
     t3 = time.perf_counter()
     cloud.timings.update(build_moments=t1 - t0, kernel_moments=t2 - t1, download=t3 - t2)
     return out

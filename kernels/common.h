@@ -37,9 +37,10 @@
 #define VLOADV CAT(vload, VW)
 
 /* Per-point output records: RECORD_WIDTH REALs per point (the field layout is the kernel's,
- * mirrored in its host module), written with one vector store at the point's *input* index.
- * A point's outputs then share one cache line (float32) instead of costing a cache miss per
- * output array on a scattered write. Integer fields keep their bits (UINT_AS_REAL). */
+ * mirrored in its host module), written with one vector store at the point's input index:
+ * one cache line per point in float32, where a scattered store per output array costs a
+ * cache miss each. records.cl:split_records turns them into per-field arrays. Integer
+ * fields keep their bits (UINT_AS_REAL). */
 #define RECORD_WIDTH 16
 #define REAL16 CAT(REAL, 16)
 #if REAL_IS_DOUBLE

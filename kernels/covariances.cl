@@ -8,7 +8,7 @@
  * weights, the paper's count normalisation). The 3D normals are accumulated relative to n
  * (a shift leaves a covariance unchanged and keeps float32 sums small).
  *
- * Outputs per point (input order, one record): count, status, eigenvalues (descending; 2
+ * Outputs per point (one record, input order): count, status, eigenvalues (descending; 2
  * or 3), the curvature magnitudes k1 >= k2 >= 0 (1/length) and the unit tangent directions
  * dir1, dir2 (dir2 = n x dir1). A NaN normal anywhere in the ball gives status DEGENERATE.
  */

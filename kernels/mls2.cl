@@ -9,7 +9,7 @@
  * I^-1 II of the graph at the origin, negated to clcurv's convention (outward normal, a
  * sphere is positive), k1 >= k2; directions mapped to 3D through (1, 0, gx), (0, 1, gy).
  *
- * Outputs (input order, one record per point): count, status, shift = projection - p, k1 k2,
+ * Outputs (one record per point, input order): count, status, shift = projection - p, k1 k2,
  * dir1, dir2 (= normal x dir1), the fitted unit normal.
  */
 #include "common.h"

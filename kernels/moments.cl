@@ -2,8 +2,8 @@
  *
  * count_neighbors: one work-item per sorted point; moments: one work-item per VW
  * consecutive sorted points (see there). Offsets are taken relative to the query point p,
- * so the sums are small numbers and large coordinates do not matter. Outputs are
- * scattered to the input order through `order`.
+ * so the sums are small numbers and large coordinates do not matter. Outputs are one
+ * record per point at its input index (common.h).
  *
  * Build options: DENSITY (0|1) weights w(q) = 1/#N_r(q) read from W;
  *                REFINE_L0 (0|1) second pass giving lambda0 = sum w <q - o, v0>^2 / sum w
