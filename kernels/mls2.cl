@@ -58,12 +58,15 @@ inline uchar mls2_system(__global const REAL *X, __global const REAL *Y, __globa
     for (int e = 0; e < 6; ++e) b[e] = 0;           /* identity system for failed points */
     if (st != ST_OK) return st;
     /* x = <q - Q, t1> / r = <d, t1> / r (Q - p is along v0), likewise y;
-       h = <d, v0> - <Q - p, v0> */
+       h = <d, v0> - <Q - p, v0>. The moments of degree <= 2 follow from the PCA sums
+       (W = sum w, mu, centred covariance C; S = W (C + mu mu^T) = sum w d d^T):
+         sum w = W, sum w x = W <mu, t1> / r, sum w x y = t1^T S t2 / r^2 (likewise xx, yy),
+         sum w h = 0, sum w h x = W v0^T C t1 / r (likewise y);
+       only those of degree 3 and 4 need the second pass. */
     const REAL cv0 = dot(qo, v0);
     const REAL3 u1 = t1 * ir, u2 = t2 * ir;
-    REALV s00 = 0, s10 = 0, s01 = 0, s20 = 0, s11 = 0, s02 = 0, s30 = 0, s21 = 0;
-    REALV s12 = 0, s03 = 0, s40 = 0, s31 = 0, s22 = 0, s13 = 0, s04 = 0;
-    REALV h0 = 0, hx = 0, hy = 0, hxx = 0, hxy = 0, hyy = 0;
+    REALV s30 = 0, s21 = 0, s12 = 0, s03 = 0, s40 = 0, s31 = 0, s22 = 0, s13 = 0, s04 = 0;
+    REALV hxx = 0, hxy = 0, hyy = 0;
     REALV dx, dy, dz;
     NEIGHBOR_CHUNKS_BEGIN(ranges, cell, i, end)
         const IREALV m = chunk_offsets(X, Y, Z, i, end, p, r2, &dx, &dy, &dz);
@@ -72,16 +75,26 @@ inline uchar mls2_system(__global const REAL *X, __global const REAL *Y, __globa
         const REALV y = dx * u2.x + dy * u2.y + dz * u2.z;
         const REALV h = dx * v0.x + dy * v0.y + dz * v0.z - cv0;
         const REALV xx = x * x, xy = x * y, yy = y * y;
-        const REALV wx = w * x, wy = w * y, wxx = w * xx, wxy = w * xy, wyy = w * yy;
-        s00 += w; s10 += wx; s01 += wy; s20 += wxx; s11 += wxy; s02 += wyy;
+        const REALV wxx = w * xx, wxy = w * xy, wyy = w * yy;
         s30 += wxx * x; s21 += wxx * y; s12 += wxy * y; s03 += wyy * y;
         s40 += wxx * xx; s31 += wxx * xy; s22 += wxx * yy; s13 += wxy * yy; s04 += wyy * yy;
-        h0 += w * h; hx += wx * h; hy += wy * h; hxx += wxx * h; hxy += wxy * h; hyy += wyy * h;
+        hxx += wxx * h; hxy += wxy * h; hyy += wyy * h;
     NEIGHBOR_CHUNKS_END
-    const REAL S00 = hsum(s00), S10 = hsum(s10), S01 = hsum(s01), S20 = hsum(s20);
-    const REAL S11 = hsum(s11), S02 = hsum(s02), S30 = hsum(s30), S21 = hsum(s21);
-    const REAL S12 = hsum(s12), S03 = hsum(s03), S40 = hsum(s40), S31 = hsum(s31);
-    const REAL S22 = hsum(s22), S13 = hsum(s13), S04 = hsum(s04);
+    const REAL sw = (REAL)1 / pb->iw[k];
+    const REAL c0 = pb->c[0][k], c1 = pb->c[1][k], c2 = pb->c[2][k];
+    const REAL c3 = pb->c[3][k], c4 = pb->c[4][k], c5 = pb->c[5][k];
+    const REAL3 C1 = (REAL3)(c0 * t1.x + c1 * t1.y + c2 * t1.z, c1 * t1.x + c3 * t1.y + c4 * t1.z,
+                             c2 * t1.x + c4 * t1.y + c5 * t1.z);
+    const REAL3 C2 = (REAL3)(c0 * t2.x + c1 * t2.y + c2 * t2.z, c1 * t2.x + c3 * t2.y + c4 * t2.z,
+                             c2 * t2.x + c4 * t2.y + c5 * t2.z);
+    const REAL m1 = dot(mu, t1), m2 = dot(mu, t2), ir2 = ir * ir;
+    const REAL S00 = sw, S10 = sw * m1 * ir, S01 = sw * m2 * ir;
+    const REAL S20 = sw * (dot(t1, C1) + m1 * m1) * ir2;
+    const REAL S11 = sw * (dot(t2, C1) + m1 * m2) * ir2;
+    const REAL S02 = sw * (dot(t2, C2) + m2 * m2) * ir2;
+    const REAL S30 = hsum(s30), S21 = hsum(s21), S12 = hsum(s12), S03 = hsum(s03);
+    const REAL S40 = hsum(s40), S31 = hsum(s31), S22 = hsum(s22), S13 = hsum(s13);
+    const REAL S04 = hsum(s04);
     const REAL packed[21] = {S00,
                              S10, S20,
                              S01, S11, S02,
@@ -89,7 +102,7 @@ inline uchar mls2_system(__global const REAL *X, __global const REAL *Y, __globa
                              S11, S21, S12, S31, S22,
                              S02, S12, S03, S22, S13, S04};
     for (int e = 0; e < 21; ++e) M[e] = packed[e];
-    b[0] = hsum(h0); b[1] = hsum(hx); b[2] = hsum(hy);
+    b[0] = 0; b[1] = sw * dot(v0, C1) * ir; b[2] = sw * dot(v0, C2) * ir;
     b[3] = hsum(hxx); b[4] = hsum(hxy); b[5] = hsum(hyy);
     return st;
 }

@@ -25,14 +25,15 @@ typedef struct {
     REAL iw[VW], mux[VW], muy[VW], muz[VW];
     REAL l0[VW], l1[VW], l2[VW];     /* ascending, clamped at 0 */
     REAL v0x[VW], v0y[VW], v0z[VW];  /* eigenvector of l0: the unoriented PCA normal */
+    REAL c[6][VW];                   /* centred covariance xx xy xz yy yz zz */
 } pca_batch_t;
 
-/* The sums of the ball of p into lane k of b (count, 1/sum w, mu = o - p) and the centred
- * covariance xx xy xz yy yz zz into cov[.][k]. (Results go through arrays, not a returned
- * struct: PoCL spills struct copies in the work-item loop at a large cost.) */
+/* The sums of the ball of p into lane k of b: count, 1/sum w, mu = o - p and the centred
+ * covariance. (Results go through arrays, not a returned struct: PoCL spills struct
+ * copies in the work-item loop at a large cost.) */
 inline void pca_ball(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
                      __global const REAL *W, __global const uint2 *ranges, uint cell,
-                     REAL3 p, REAL r2, REAL ih2, pca_batch_t *b, uint k, REAL cov[6][VW])
+                     REAL3 p, REAL r2, REAL ih2, pca_batch_t *b, uint k)
 {
     REALV sc = 0, sw = 0, sx = 0, sy = 0, sz = 0;
     REALV sxx = 0, sxy = 0, sxz = 0, syy = 0, syz = 0, szz = 0;
@@ -58,12 +59,12 @@ inline void pca_ball(__global const REAL *X, __global const REAL *Y, __global co
     const REAL3 mu = (REAL3)(hsum(sx), hsum(sy), hsum(sz)) * iw;
     b->iw[k] = iw;
     b->mux[k] = mu.x; b->muy[k] = mu.y; b->muz[k] = mu.z;
-    cov[0][k] = hsum(sxx) * iw - mu.x * mu.x;
-    cov[1][k] = hsum(sxy) * iw - mu.x * mu.y;
-    cov[2][k] = hsum(sxz) * iw - mu.x * mu.z;
-    cov[3][k] = hsum(syy) * iw - mu.y * mu.y;
-    cov[4][k] = hsum(syz) * iw - mu.y * mu.z;
-    cov[5][k] = hsum(szz) * iw - mu.z * mu.z;
+    b->c[0][k] = hsum(sxx) * iw - mu.x * mu.x;
+    b->c[1][k] = hsum(sxy) * iw - mu.x * mu.y;
+    b->c[2][k] = hsum(sxz) * iw - mu.x * mu.z;
+    b->c[3][k] = hsum(syy) * iw - mu.y * mu.y;
+    b->c[4][k] = hsum(syz) * iw - mu.y * mu.z;
+    b->c[5][k] = hsum(szz) * iw - mu.z * mu.z;
 }
 
 #define VSTOREV CAT(vstore, VW)
@@ -73,21 +74,19 @@ inline void pca_batch(__global const REAL *X, __global const REAL *Y, __global c
                       __global const uint2 *ranges, uint g0, uint kn, REAL r2, REAL ih2,
                       pca_batch_t *b)
 {
-    REAL cov[6][VW];
     for (uint k = 0; k < VW; ++k) {
         if (k < kn) {
             const uint g = g0 + k;
-            pca_ball(X, Y, Z, W, ranges, cell_of[g], (REAL3)(X[g], Y[g], Z[g]), r2, ih2, b, k,
-                     cov);
+            pca_ball(X, Y, Z, W, ranges, cell_of[g], (REAL3)(X[g], Y[g], Z[g]), r2, ih2, b, k);
         } else {                     /* unused lane: the identity */
-            for (int e = 0; e < 6; ++e) cov[e][k] = (REAL)(e == 0 || e == 3 || e == 5);
+            for (int e = 0; e < 6; ++e) b->c[e][k] = (REAL)(e == 0 || e == 3 || e == 5);
             b->count[k] = 0;
         }
     }
     REALV w0, w1, w2;
     eig3_v3_v e0, e1, e2;
-    eig3_sym_v(VLOADV(0, cov[0]), VLOADV(0, cov[1]), VLOADV(0, cov[2]),
-               VLOADV(0, cov[3]), VLOADV(0, cov[4]), VLOADV(0, cov[5]),
+    eig3_sym_v(VLOADV(0, b->c[0]), VLOADV(0, b->c[1]), VLOADV(0, b->c[2]),
+               VLOADV(0, b->c[3]), VLOADV(0, b->c[4]), VLOADV(0, b->c[5]),
                &w0, &w1, &w2, &e0, &e1, &e2);
     VSTOREV(fmax(w0, (REALV)0), 0, b->l0);
     VSTOREV(fmax(w1, (REALV)0), 0, b->l1);
