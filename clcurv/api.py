@@ -65,14 +65,15 @@ def _backend(backend, points, radius, device, precision):
     return _OpenCL(points, radius, device, precision)
 
 
-def _inputs(points, radius, weights, backend, orient, normals, viewpoint):
-    """Validated (points, radius, unit normals or None, viewpoint or None, orientation)."""
+def _inputs(points, radius, weights, backend, orient, normals, viewpoint, unit=True):
+    """Validated (points, radius, normals or None (unit if ``unit``), viewpoint or None,
+    orientation)."""
     choice(weights, "weights", ("uniform", "density"))
     choice(backend, "backend", ("opencl", "numpy"))
     choice(orient, "orient", ORIENTS)
     pts = as_points(points)
     r = as_radius(radius)
-    ref = as_normals(normals, len(pts)) if normals is not None else None
+    ref = as_normals(normals, len(pts), unit) if normals is not None else None
     vp = as_viewpoint(viewpoint) if viewpoint is not None else None
     return pts, r, ref, vp, _orientation(orient, ref, vp)
 
@@ -155,7 +156,7 @@ def _operator_result(method, r, weights, pts, raw, n):
     res.dir1, res.dir2 = _f64(raw["dir1"]), _f64(raw["dir2"])
     if method == "mls2":
         res.normals = _f64(raw["normals"])
-        res.points = pts + _f64(raw["shift"])
+        res.points = np.add(pts, raw["shift"], out=raw["shift"])      # a fresh float64 array
         res.mean = 0.5 * (res.k1 + res.k2)
         res.gaussian = res.k1 * res.k2
     else:
@@ -232,8 +233,10 @@ def curvature(points, radius, *, method="mls1", weights="uniform", normals=None,
     """
     method = choice(method, "method", METHODS)
     kernel = choice(kernel, "kernel", MLS_KERNELS)
+    # the normal-based operators and MLS0 use the normals' values; the others only their sign
+    unit = method in COVARIANCE_METHODS + ("mls0",)
     pts, r, ref_normals, vp, how = _inputs(points, radius, weights, backend, orient, normals,
-                                           viewpoint)
+                                           viewpoint, unit)
     if method in COVARIANCE_METHODS and how is None and ref_normals is None:
         raise ValueError(f"{method} needs consistently oriented normals: pass normals= or an orient")
     iterations = int(iterations)
@@ -307,7 +310,7 @@ def project(points, radius, *, iterations=1, method="mls2", weights="uniform", n
     iterations = int(iterations)
     if iterations < 0:
         raise ValueError(f"iterations must be >= 0, got {iterations}")
-    ref = as_normals(normals, len(pts)) if normals is not None else None
+    ref = as_normals(normals, len(pts), unit=False) if normals is not None else None
     how = orient
     for _ in range(iterations):
         if len(pts) == 0:
@@ -333,7 +336,7 @@ def normals(points, radius, *, weights="uniform", normals=None, orient="auto", v
     3 neighbours or a degenerate neighbourhood.
     """
     pts, r, ref_normals, vp, how = _inputs(points, radius, weights, backend, orient, normals,
-                                           viewpoint)
+                                           viewpoint, unit=False)     # they only orient
     if len(pts) == 0:
         return np.empty((0, 3))
     raw = _backend(backend, pts, r, device, precision).moments(weights, refine=False)

@@ -40,16 +40,24 @@ def as_radius(radius):
     return r
 
 
-def as_normals(normals, n):
-    """Unit float64 (n, 3) normals from user input; zero or non-finite rows raise."""
+def as_normals(normals, n, unit=True):
+    """Float64 (n, 3) normals from user input; zero or non-finite rows raise ValueError.
+
+    With ``unit=False`` (the caller only uses their direction's sign) rows are left at
+    their length unless a length is outside [1e-15, 1e15], where the whole array is
+    normalised so that a cast to float32 cannot overflow or underflow.
+    """
     arr = as_points(normals, "normals")
     if len(arr) != n:
         raise ValueError(f"normals must have one row per point: {len(arr)} rows for {n} points")
+    if not n:
+        return arr
     norm = np.sqrt(np.einsum("ij,ij->i", arr, arr))
-    if n and not (norm > 0).all():
+    lo, hi = norm.min(), norm.max()
+    if not lo > 0:
         raise ValueError(f"normals has {int((norm <= 0).sum())} zero-length row(s)")
-    if n:
-        arr = arr / norm[:, None]
+    if unit or lo < 1e-15 or hi > 1e15:
+        arr = arr * (1.0 / norm)[:, None]
     return arr
 
 

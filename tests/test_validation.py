@@ -152,3 +152,21 @@ def test_large_lidar_tile_uses_a_sparse_grid(device):
     assert cloud.grid.ncells <= len(pts) and len(cloud.grid.cell_start) == cloud.grid.ncells + 1
     res = clcurv.curvature(pts, 0.5, method="variation", orient=None, device=device)
     assert res.valid.mean() > 0.95 and np.nanmedian(res.variation) < 1e-3   # flat patches
+
+
+def test_normals_length_does_not_matter(device):
+    """Normals of any length (1e-60 .. 1e60 per row: beyond float32) give the results of the
+    unit ones: MLS2 and the moment methods use only their sign, the others normalise them."""
+    pts = bumpy_surface(3000, seed=5)
+    unit = clcurv.normals(pts, 0.12, orient=None, device=device)
+    unit[:, 2] = np.abs(unit[:, 2])
+    ok = np.isfinite(unit).all(axis=1)
+    pts, unit = pts[ok], unit[ok]
+    scale = np.geomspace(1e-60, 1e60, len(pts))[np.random.default_rng(0).permutation(len(pts))]
+    for method in ("mls2", "mls0", "mls1", "2dcov2"):
+        a = clcurv.curvature(pts, 0.12, method=method, normals=unit, device=device)
+        b = clcurv.curvature(pts, 0.12, method=method, normals=unit * scale[:, None],
+                             device=device)
+        np.testing.assert_allclose(b.mean if b.mean is not None else b.k1,
+                                   a.mean if a.mean is not None else a.k1, rtol=1e-6, atol=1e-9,
+                                   err_msg=method)
