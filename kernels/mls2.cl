@@ -19,15 +19,27 @@
 #include "frame.h"
 #include "solve6.h"
 
-/* Unit eigenvector (in the parameter plane) of the 2x2 matrix s for its eigenvalue lam. */
-inline REAL2 eigvec2(REAL s00, REAL s01, REAL s10, REAL s11, REAL lam)
+/* Unit eigenvectors (ex, ey) (in the parameter plane) of the VW 2x2 matrices s for their
+ * eigenvalues lam; (1, 0) where the matrix is a multiple of the identity. */
+inline void eigvec2_v(REALV s00, REALV s01, REALV s10, REALV s11, REALV lam, REALV *ex,
+                      REALV *ey)
 {
-    const REAL2 a = (REAL2)(s01, lam - s00), b = (REAL2)(lam - s11, s10);
-    const REAL na = dot(a, a), nb = dot(b, b);
-    const REAL2 v = na >= nb ? a : b;
-    const REAL nv = sqrt(fmax(na, nb));
-    return nv > (REAL)1e-12 * (fabs(s00) + fabs(s11) + fabs(s01) + fabs(s10)) && nv > 0
-           ? v / nv : (REAL2)(1, 0);
+    const REALV ax = s01, ay = lam - s00, bx = lam - s11, by = s10;
+    const REALV na = ax * ax + ay * ay, nb = bx * bx + by * by;
+    const IREALV use_a = isgreaterequal(na, nb);
+    const REALV nv = sqrt(fmax(na, nb));
+    const IREALV ok = isgreater(nv, (REAL)1e-12 * (fabs(s00) + fabs(s11) + fabs(s01) + fabs(s10)))
+                      & isgreater(nv, (REALV)0);
+    const REALV inv = (REAL)1 / select((REALV)1, nv, ok);
+    *ex = select((REALV)1, select(bx, ax, use_a) * inv, ok);
+    *ey = select((REALV)0, select(by, ay, use_a) * inv, ok);
+}
+
+/* Lane k of the packed 6x6 systems: the identity, right-hand side 0. */
+inline void identity_system(REAL M[21][VW], REAL b[6][VW], uint k)
+{
+    for (int e = 0; e < 21; ++e) M[e][k] = (REAL)(e == 0 || e == 2 || e == 5 || e == 9 || e == 14 || e == 20);
+    for (int e = 0; e < 6; ++e) b[e][k] = 0;
 }
 
 /* Frame and normal equations of the sorted point g (lane k), once its PCA is known: v0
@@ -37,8 +49,8 @@ inline uchar mls2_system(__global const REAL *X, __global const REAL *Y, __globa
                          __global const REAL *NX, __global const REAL *NY,
                          __global const REAL *NZ, __global const REAL *W,
                          __global const uint2 *ranges, uint cell, uint g, const pca_batch_t *pb,
-                         uint k, REAL r, REAL ih2, int use_ref, REAL3 *v0_out, REAL3 *t1_out,
-                         REAL3 *t2_out, REAL3 *qo_out, REAL M[21], REAL b[6])
+                         uint k, REAL r, REAL ih2, int use_ref, REAL fr[12][VW],
+                         REAL M[21][VW], REAL b[6][VW])
 {
     const REAL3 p = (REAL3)(X[g], Y[g], Z[g]);
     const REAL r2 = r * r, ir = (REAL)1 / r;
@@ -53,10 +65,13 @@ inline uchar mls2_system(__global const REAL *X, __global const REAL *Y, __globa
     REAL3 t1, t2;
     tangent_frame(v0, &t1, &t2);
     const REAL3 qo = dot(mu, v0) * v0;             /* Q - p */
-    *v0_out = v0; *t1_out = t1; *t2_out = t2; *qo_out = qo;
-    for (int e = 0; e < 21; ++e) M[e] = (REAL)(e == 0 || e == 2 || e == 5 || e == 9 || e == 14 || e == 20);
-    for (int e = 0; e < 6; ++e) b[e] = 0;           /* identity system for failed points */
-    if (st != ST_OK) return st;
+    const REAL frame[12] = {v0.x, v0.y, v0.z, t1.x, t1.y, t1.z, t2.x, t2.y, t2.z,
+                            qo.x, qo.y, qo.z};
+    for (int e = 0; e < 12; ++e) fr[e][k] = frame[e];
+    if (st != ST_OK) {                              /* identity system for failed points */
+        identity_system(M, b, k);
+        return st;
+    }
     /* x = <q - Q, t1> / r = <d, t1> / r (Q - p is along v0), likewise y;
        h = <d, v0> - <Q - p, v0>. The moments of degree <= 2 follow from the PCA sums
        (W = sum w, mu, centred covariance C; S = W (C + mu mu^T) = sum w d d^T):
@@ -101,46 +116,48 @@ inline uchar mls2_system(__global const REAL *X, __global const REAL *Y, __globa
                              S20, S30, S21, S40,
                              S11, S21, S12, S31, S22,
                              S02, S12, S03, S22, S13, S04};
-    for (int e = 0; e < 21; ++e) M[e] = packed[e];
-    b[0] = 0; b[1] = sw * dot(v0, C1) * ir; b[2] = sw * dot(v0, C2) * ir;
-    b[3] = hsum(hxx); b[4] = hsum(hxy); b[5] = hsum(hyy);
+    for (int e = 0; e < 21; ++e) M[e][k] = packed[e];
+    const REAL rhs[6] = {0, sw * dot(v0, C1) * ir, sw * dot(v0, C2) * ir,
+                         hsum(hxx), hsum(hxy), hsum(hyy)};
+    for (int e = 0; e < 6; ++e) b[e][k] = rhs[e];
     return st;
 }
 
-/* Curvatures, directions, normal and the record of one point from the fitted coefficients a.
- * Record: shift xyz | k1 k2 | dir1 xyz | dir2 xyz | normal xyz | count | status. */
-inline void mls2_store(uchar st, const REAL a[6], REAL r, REAL3 v0, REAL3 t1, REAL3 t2, REAL3 qo,
-                       uint count_k, size_t j, __global REAL *out)
+/* Curvatures, directions and normals of the VW lanes from the fitted coefficients a and
+ * the frames fr (v0, t1, t2, Q - p), into o[14][VW]: shift xyz | k1 k2 | dir1 xyz |
+ * dir2 xyz | normal xyz (the record's first 14 columns). */
+inline void mls2_finish_v(const REALV a[6], REAL fr[12][VW], REAL r, REAL o[14][VW])
 {
-    REAL16 rec = (REAL16)(NAN);
-    rec.se = UINT_AS_REAL(count_k);
-    rec.sf = (REAL)st;
-    if (st != ST_OK) {
-        STORE_RECORD(rec, j, out);
-        return;
-    }
+    const REALV v0x = VLOADV(0, fr[0]), v0y = VLOADV(0, fr[1]), v0z = VLOADV(0, fr[2]);
+    const REALV t1x = VLOADV(0, fr[3]), t1y = VLOADV(0, fr[4]), t1z = VLOADV(0, fr[5]);
+    const REALV t2x = VLOADV(0, fr[6]), t2y = VLOADV(0, fr[7]), t2z = VLOADV(0, fr[8]);
     const REAL ir = (REAL)1 / r;
-    const REAL gx = a[1] * ir, gy = a[2] * ir;
-    const REAL gxx = 2 * a[3] * ir * ir, gxy = a[4] * ir * ir, gyy = 2 * a[5] * ir * ir;
-    const REAL q = 1 + gx * gx + gy * gy, iq = (REAL)1 / q, wn = rsqrt(q);
-    const REAL Lxx = gxx * wn, Lxy = gxy * wn, Lyy = gyy * wn;          /* II */
-    const REAL i00 = (1 + gy * gy) * iq, i01 = -gx * gy * iq, i11 = (1 + gx * gx) * iq;  /* I^-1 */
-    const REAL S00 = i00 * Lxx + i01 * Lxy, S01 = i00 * Lxy + i01 * Lyy;
-    const REAL S10 = i01 * Lxx + i11 * Lxy, S11 = i01 * Lxy + i11 * Lyy;
-    const REAL hmean = (REAL)0.5 * (S00 + S11);
-    const REAL disc = sqrt(fmax(hmean * hmean - (S00 * S11 - S01 * S10), (REAL)0));
-    const REAL lo = hmean - disc;                    /* -> k1 = -lo (the largest k) */
-    const REAL2 e = eigvec2(S00, S01, S10, S11, lo);
-    const REAL3 nfit = (v0 - gx * t1 - gy * t2) * wn;
-    const REAL3 d1 = normalize(e.x * (t1 + gx * v0) + e.y * (t2 + gy * v0));
-    rec.s012 = qo + a[0] * v0;
-    rec.s34 = (REAL2)(-lo, -(hmean + disc));
-    rec.s567 = d1;
-    rec.s89a = cross(nfit, d1);
-    rec.sbcd = nfit;
-    STORE_RECORD(rec, j, out);
+    const REALV gx = a[1] * ir, gy = a[2] * ir;
+    const REALV gxx = 2 * a[3] * (ir * ir), gxy = a[4] * (ir * ir), gyy = 2 * a[5] * (ir * ir);
+    const REALV q = 1 + gx * gx + gy * gy, iq = (REAL)1 / q, wn = rsqrt(q);
+    const REALV Lxx = gxx * wn, Lxy = gxy * wn, Lyy = gyy * wn;                 /* II */
+    const REALV i00 = (1 + gy * gy) * iq, i01 = -gx * gy * iq, i11 = (1 + gx * gx) * iq;  /* I^-1 */
+    const REALV S00 = i00 * Lxx + i01 * Lxy, S01 = i00 * Lxy + i01 * Lyy;
+    const REALV S10 = i01 * Lxx + i11 * Lxy, S11 = i01 * Lxy + i11 * Lyy;
+    const REALV hmean = (REAL)0.5 * (S00 + S11);
+    const REALV disc = sqrt(fmax(hmean * hmean - (S00 * S11 - S01 * S10), (REALV)0));
+    const REALV lo = hmean - disc;                   /* -> k1 = -lo (the largest k) */
+    REALV ex, ey;
+    eigvec2_v(S00, S01, S10, S11, lo, &ex, &ey);
+    /* fitted normal (v0 - gx t1 - gy t2) / |.| and dir1 ~ ex (t1 + gx v0) + ey (t2 + gy v0) */
+    const REALV nx = (v0x - gx * t1x - gy * t2x) * wn;
+    const REALV ny = (v0y - gx * t1y - gy * t2y) * wn;
+    const REALV nz = (v0z - gx * t1z - gy * t2z) * wn;
+    REALV dx = ex * (t1x + gx * v0x) + ey * (t2x + gy * v0x);
+    REALV dy = ex * (t1y + gx * v0y) + ey * (t2y + gy * v0y);
+    REALV dz = ex * (t1z + gx * v0z) + ey * (t2z + gy * v0z);
+    const REALV id = rsqrt(dx * dx + dy * dy + dz * dz);
+    dx *= id; dy *= id; dz *= id;
+    const REALV out[14] = {VLOADV(0, fr[9]) + a[0] * v0x, VLOADV(0, fr[10]) + a[0] * v0y,
+                           VLOADV(0, fr[11]) + a[0] * v0z, -lo, -(hmean + disc), dx, dy, dz,
+                           ny * dz - nz * dy, nz * dx - nx * dz, nx * dy - ny * dx, nx, ny, nz};
+    for (int e = 0; e < 14; ++e) VSTOREV(out[e], 0, o[e]);
 }
-
 
 /* One work-item per VW consecutive sorted points (global size >= ceil(n / VW)): PCA of the
  * VW balls with one vectorised eigen solve, then each point's normal equations, then the VW
@@ -157,33 +174,38 @@ __kernel void mls2(__global const REAL *X, __global const REAL *Y, __global cons
     const uint kn = min((uint)VW, n - g0);
     pca_batch_t pb;
     pca_batch(X, Y, Z, W, cell_of, ranges, g0, kn, r * r, ih2, &pb);
-    REAL Ml[21][VW], bl[6][VW];
-    REAL3 v0[VW], t1[VW], t2[VW], qo[VW];
+    REAL Ml[21][VW], bl[6][VW], fr[12][VW];
     uchar st[VW];
     for (uint k = 0; k < VW; ++k) {
-        REAL M[21], b[6];
         if (k < kn) {
             const uint g = g0 + k;
             st[k] = mls2_system(X, Y, Z, NX, NY, NZ, W, ranges, cell_of[g], g, &pb, k, r, ih2,
-                                use_ref, &v0[k], &t1[k], &t2[k], &qo[k], M, b);
+                                use_ref, fr, Ml, bl);
         } else {
-            for (int e = 0; e < 21; ++e) M[e] = (REAL)(e == 0 || e == 2 || e == 5 || e == 9 || e == 14 || e == 20);
-            for (int e = 0; e < 6; ++e) b[e] = 0;
+            identity_system(Ml, bl, k);
+            for (int e = 0; e < 12; ++e) fr[e][k] = (REAL)(e == 0 || e == 4 || e == 8);
         }
-        for (int e = 0; e < 21; ++e) Ml[e][k] = M[e];
-        for (int e = 0; e < 6; ++e) bl[e][k] = b[e];
     }
     REALV Mv[21], bv[6], xv[6];
     for (int e = 0; e < 21; ++e) Mv[e] = VLOADV(0, Ml[e]);
     for (int e = 0; e < 6; ++e) bv[e] = VLOADV(0, bl[e]);
     const IREALV ok = solve6_v(Mv, bv, xv);
-    REAL xl[6][VW];
     IREAL okl[VW];
-    for (int e = 0; e < 6; ++e) VSTOREV(xv[e], 0, xl[e]);
     CAT(vstore, VW)(ok, 0, okl);
+    REAL o[14][VW];
+    mls2_finish_v(xv, fr, r, o);
+    /* the records: shift xyz | k1 k2 | dir1 xyz | dir2 xyz | normal xyz | count | status */
     for (uint k = 0; k < kn; ++k) {
-        const REAL a[6] = {xl[0][k], xl[1][k], xl[2][k], xl[3][k], xl[4][k], xl[5][k]};
         const uchar s = (st[k] == ST_OK && !okl[k]) ? ST_SINGULAR : st[k];
-        mls2_store(s, a, r, v0[k], t1[k], t2[k], qo[k], pb.count[k], order[g0 + k], out);
+        REAL16 rec = (REAL16)(NAN);
+        if (s == ST_OK) {
+            rec.s0123 = (CAT(REAL, 4))(o[0][k], o[1][k], o[2][k], o[3][k]);
+            rec.s4567 = (CAT(REAL, 4))(o[4][k], o[5][k], o[6][k], o[7][k]);
+            rec.s89ab = (CAT(REAL, 4))(o[8][k], o[9][k], o[10][k], o[11][k]);
+            rec.scd = (REAL2)(o[12][k], o[13][k]);
+        }
+        rec.se = UINT_AS_REAL(pb.count[k]);
+        rec.sf = (REAL)s;
+        STORE_RECORD(rec, order[g0 + k], out);
     }
 }
