@@ -122,11 +122,12 @@ def record_buffer(cloud):
     return cl.Buffer(cloud.device.context, cl.mem_flags.READ_WRITE, size=max(size, 1))
 
 
-def _host_array(cloud, buf, shape, dtype):
-    """``buf`` on the host: mapped (zero-copy) on a CPU device, copied otherwise."""
+def _host_array(cloud, buf, shape, dtype, mapped=None):
+    """``buf`` on the host: mapped (zero-copy) on a CPU device, copied otherwise (``mapped``
+    overrides the choice)."""
     import pyopencl as cl
     q = cloud.device.queue
-    if cloud.device.info.kind == "cpu":
+    if cloud.device.info.kind == "cpu" if mapped is None else mapped:
         arr, ev = cl.enqueue_map_buffer(q, buf, cl.map_flags.READ, 0, shape, dtype)
         ev.wait()
         return arr
@@ -135,7 +136,7 @@ def _host_array(cloud, buf, shape, dtype):
     return arr
 
 
-def fetch_records(cloud, rec, layout):
+def fetch_records(cloud, rec, layout, mapped=None):
     """The fields of the records ``rec`` (input order) as host arrays.
 
     ``layout`` maps a name to a record column or a slice of columns, and must name 'count'
@@ -165,8 +166,8 @@ def fetch_records(cloud, rec, layout):
     outs += [outs[0] if outs else rec] * (6 - len(outs))       # unused placeholders
     count, status = new(4 * n), new(n)
     launch(cloud.device, prg.split_records, n, rec, np.uint32(n), *outs, count, status)
-    fields = {name: _host_array(cloud, buf, shape, cloud.dtype).astype(np.float64)
+    fields = {name: _host_array(cloud, buf, shape, cloud.dtype, mapped).astype(np.float64)
               for (name, shape), buf in zip(spans, outs)}
-    fields["count"] = _host_array(cloud, count, (n,), np.uint32).astype(np.int64)
-    fields["status"] = _host_array(cloud, status, (n,), np.uint8)
+    fields["count"] = _host_array(cloud, count, (n,), np.uint32, mapped).astype(np.int64)
+    fields["status"] = _host_array(cloud, status, (n,), np.uint8, mapped).copy()
     return fields
