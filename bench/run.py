@@ -283,10 +283,10 @@ def cap_interior(pts, cap, r):
 
 # ----------------------------------------------------------------------------- peers
 def device_coordinates(pts, r):
-    """The float32 coordinates the device sees (centred in float64, then cast), input order."""
+    """The positions the device's float32 (cell-relative) coordinates represent, input order."""
     g = bin_points(pts, r, np.float32)
     out = np.empty((len(pts), 3))
-    out[g.order] = np.stack([g.x[:len(pts)], g.y[:len(pts)], g.z[:len(pts)]], axis=1)
+    out[g.order] = g.positions()
     return out
 
 

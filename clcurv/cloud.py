@@ -55,8 +55,15 @@ class DeviceCloud:
         ctx, q = self.device.context, self.device.queue
         mf = cl.mem_flags
         up = lambda a: cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a)
-        self.x, self.y, self.z = up(g.x), up(g.y), up(g.z)
-        self.cell_of = up(g.cell_of)
+        self.y, self.z = up(g.y), up(g.z)
+        # x: the host's copy, then two more made by grid.cl:expand_x (neighbors.h)
+        m, item = len(g.x), np.dtype(self.dtype).itemsize
+        self.x = cl.Buffer(ctx, mf.READ_WRITE, size=3 * m * item)
+        cl.enqueue_copy(q, self.x, g.x)
+        for a in (1, 2):                           # the pads of the other copies
+            cl.enqueue_fill_buffer(q, self.x, self.dtype(0), (a * m + self.n) * item,
+                                   (m - self.n) * item)
+        self.cell_of = cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=g.cell_of)
         self.order = up(g.order.astype(np.uint32))
         keys = up(g.keys)
         cell_start = up(g.cell_start)
@@ -70,14 +77,16 @@ class DeviceCloud:
         nx, ny, nz = g.dims
         launch(self.device, prg.cell_ranges, g.ncells, keys, np.uint32(g.ncells), cell_start,
                np.int64(nx), np.int64(ny), np.int64(nz), self.ranges)
+        launch(self.device, prg.expand_x, self.n, keys, np.int64(nx), np.uint32(self.n),
+               self.real(self.cell), self.x, self.cell_of)
         q.finish()
         self.timings["cell_ranges"] = time.perf_counter() - t3
 
     def _check_memory(self):
         info = self.device.info
         item = np.dtype(self.dtype).itemsize
-        biggest = max(self.grid.ncells * 9 * 8, 3 * self.n * item)
-        total = (3 * item + 8) * self.n + self.grid.ncells * (9 * 8 + 12) + 6 * self.n * item
+        biggest = max(self.grid.ncells * 9 * 8, 3 * self.n * item, RECORD * self.n * item)
+        total = (5 * item + 8) * self.n + self.grid.ncells * (9 * 8 + 12) + RECORD * self.n * item
         if biggest > info.max_alloc or total > info.global_mem:
             raise DeviceMemoryError(
                 f"{self.n} points need about {total / 2**20:.0f} MiB on {info.name} "
@@ -92,6 +101,12 @@ class DeviceCloud:
 
     def real(self, value):
         return self.dtype(value)
+
+    def ball(self, radius):
+        """The kernels' REAL2 geometry (r^2, cell) (neighbors.h)."""
+        import pyopencl.cltypes as ct
+        make = ct.make_double2 if self.dtype == np.float64 else ct.make_float2
+        return make(radius * radius, self.cell)
 
     def empty(self, shape, dtype=None):
         return np.empty(shape, dtype=dtype or self.dtype)

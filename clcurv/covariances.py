@@ -32,7 +32,8 @@ def device_covariances(cloud, radius, normals, method, *, weights="uniform"):
     rec = record_buffer(cloud)
     t1 = time.perf_counter()
     launch(cloud.device, prg.covariance, batches(n, defines), cloud.x, cloud.y, cloud.z, nx, ny, nz, wbuf,
-           cloud.cell_of, cloud.ranges, cloud.order, np.uint32(n), cloud.real(r), rec)
+           cloud.cell_of, cloud.ranges, cloud.order, np.uint32(n), cloud.real(r), cloud.ball(r),
+           rec)
     cloud.device.queue.finish()
     t2 = time.perf_counter()
     out = fetch_records(cloud, rec, dict(LAYOUT, eigenvalues=slice(0, ne)))

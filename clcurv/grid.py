@@ -1,8 +1,7 @@
 """Host binning of a point cloud into a sparse uniform grid.
 
-Points are centred in float64 (on the midpoint of their bounding box) *before* any cast
-to the device precision, so georeferenced coordinates (UTM, state plane, ...) keep their
-digits. They are binned into cubic cells of size ``cell >= radius``; the cell key is
+Points are binned into cubic cells of size ``cell >= radius`` from the corner ``origin`` of
+their bounding box; the cell key is
 ``(iz * ny + iy) * nx + ix`` (x fastest, so the three cells ix-1..ix+1 of a row have
 consecutive keys). Only occupied cells are stored: memory is O(N) whatever the bounding box.
 
@@ -10,7 +9,13 @@ Points of one cell keep their input order (a stable sort), so the layout, and ev
 computed on it, does not depend on numpy's sort algorithm.
 
 Device layout (sorted by cell key):
-  ``x, y, z``      coordinates relative to ``center``, padded with ``PAD`` zeros
+  ``x, y, z``      coordinates relative to the corner of the point's cell, computed in
+                   float64 before the cast to the device precision, padded with ``PAD``
+                   zeros. Values lie in [0, cell) whatever the cloud's extent or offset
+                   (UTM, state plane, ...), so offsets between neighbours keep the device
+                   precision relative to the radius. On the device (grid.cl:expand_x) x
+                   becomes three copies relative to 3-cell blocks and ``cell_of`` gets the
+                   alignment of each point's rows in its top bits (kernels/neighbors.h).
   ``order``        sorted position -> input index
   ``keys``         sorted unique int64 keys of the occupied cells
   ``cell_start``   CSR start of each occupied cell in the sorted points (ncells + 1)
@@ -24,12 +29,14 @@ import numpy as np
 
 PAD = 16          # padding of the coordinate arrays: the widest vector load reads past the end
 MAX_KEY = 2 ** 62
+CELL_BITS = 30    # cell_of = alignment << CELL_BITS | occupied-cell id (kernels/neighbors.h)
+CELL_MASK = (1 << CELL_BITS) - 1
 
 
 @dataclass
 class Grid:
     n: int
-    center: np.ndarray      # (3,) float64
+    origin: np.ndarray      # (3,) float64: the corner of cell (0, 0, 0)
     cell: float             # cell size, same unit as the points
     dims: tuple             # (nx, ny, nz)
     order: np.ndarray       # (N,) int64
@@ -43,6 +50,19 @@ class Grid:
     @property
     def ncells(self):
         return len(self.keys)
+
+    def cell_index(self):
+        """(N, 3) int64 cell coordinates (ix, iy, iz) of the sorted points."""
+        nx, ny, _ = self.dims
+        k = self.keys[self.cell_of]
+        return np.stack([k % nx, (k // nx) % ny, k // (nx * ny)], axis=1)
+
+    def positions(self):
+        """(N, 3) float64 positions that the stored coordinates represent, sorted order (the
+        input up to the rounding of the cell-relative values to the device precision)."""
+        ijk = self.cell_index()
+        rel = np.stack([c[:self.n] for c in (self.x, self.y, self.z)], axis=1)
+        return self.origin + ijk * self.cell + rel
 
 
 def _cell_coords(col, lo, inv_cell):
@@ -92,7 +112,6 @@ def bin_points(points, cell, dtype=np.float32):
     points = np.ascontiguousarray(points, dtype=np.float64)
     n = len(points)
     lo, hi = _bounding_box(points)
-    center = 0.5 * (lo + hi)
     inv = 1.0 / cell
     dims = np.floor((hi - lo) * inv).astype(np.int64) + 1
     box = float(dims[0]) * float(dims[1]) * float(dims[2])
@@ -100,31 +119,40 @@ def bin_points(points, cell, dtype=np.float32):
         raise ValueError(f"bounding box {hi - lo} is too large for cell size {cell}: "
                          "more than 2^62 cells; use a larger radius or split the cloud")
     nx, ny, nz = (int(d) for d in dims)
-    key = _cell_coords(points[:, 2], lo[2], inv)
-    key *= ny
-    key += _cell_coords(points[:, 1], lo[1], inv)
-    key *= nx
-    key += _cell_coords(points[:, 0], lo[0], inv)
+    key, i = np.empty(n, np.int64), np.empty(n, np.int64)
+    rel = np.empty((3, n), dtype)
+    u = np.empty(n)                               # float64 scratch, reused for every axis
+    for d, m in ((2, nz), (1, ny), (0, nx)):
+        np.subtract(points[:, d], lo[d], out=u)
+        u *= inv                                  # >= 0: position in cells
+        np.copyto(i, u, casting="unsafe")         # the cell (truncation = floor)
+        if d == 2:
+            key[:] = i
+        else:
+            key *= m
+            key += i
+        # (u - i) * cell: the rounding of u costs 1e-16 x the extent, far below the cast
+        np.subtract(u, i, out=u)
+        np.multiply(u, cell, out=rel[d], casting="same_kind")
     order, skey = _sort_keys(key, box)
     new_cell = np.empty(n, dtype=bool)
     new_cell[0] = True
     np.not_equal(skey[1:], skey[:-1], out=new_cell[1:])
     starts = np.flatnonzero(new_cell)
+    if len(starts) > CELL_MASK:
+        raise ValueError(f"{len(starts)} occupied cells: at most {CELL_MASK}; "
+                         "use a larger radius or split the cloud")
     cell_start = np.empty(len(starts) + 1, dtype=np.uint32)
     cell_start[:-1] = starts
     cell_start[-1] = n
     cell_of = np.cumsum(new_cell, dtype=np.uint32)
     cell_of -= 1
-    # centre and cast each column (a sequential pass), then gather the 4- or 8-byte values in
-    # sorted order: cheaper than gathering 24-byte float64 rows (np.take(points, order, 0))
     coords = []
-    col = np.empty(n, dtype=dtype)
-    for d in range(3):
-        np.subtract(points[:, d], center[d], out=col, casting="unsafe")
+    for d in range(3):                            # gather the 4- or 8-byte values in order
         c = np.empty(n + PAD, dtype=dtype)
         c[n:] = 0
-        np.take(col, order, out=c[:n])
+        np.take(rel[d], order, out=c[:n])
         coords.append(c)
-    return Grid(n=n, center=center, cell=float(cell), dims=(nx, ny, nz), order=order,
+    return Grid(n=n, origin=lo, cell=float(cell), dims=(nx, ny, nz), order=order,
                 x=coords[0], y=coords[1], z=coords[2], keys=skey[starts],
                 cell_start=cell_start, cell_of=cell_of)

@@ -41,7 +41,8 @@ def device_mls2(cloud, radius, reference_normals=None, *, weights="uniform", ker
     rec = record_buffer(cloud)
     t1 = time.perf_counter()
     launch(cloud.device, prg.mls2, batches(n, defines), cloud.x, cloud.y, cloud.z, nx, ny, nz, wbuf, cloud.cell_of,
-           cloud.ranges, cloud.order, np.uint32(n), cloud.real(r), cloud.real(1.0 / (h * h)),
+           cloud.ranges, cloud.order, np.uint32(n), cloud.real(r), cloud.ball(r),
+           cloud.real(1.0 / (h * h)),
            np.int32(use_ref), rec)
     cloud.device.queue.finish()
     t2 = time.perf_counter()

@@ -32,7 +32,7 @@ def device_counts(cloud, radius):
     counts = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, size=4 * cloud.n)
     weights = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, size=np.dtype(cloud.dtype).itemsize * (cloud.n + 16))
     _launch(cloud, prg.count_neighbors, cloud.x, cloud.y, cloud.z, cloud.cell_of, cloud.ranges,
-            np.uint32(cloud.n), cloud.real(r * r), counts, weights)
+            np.uint32(cloud.n), cloud.ball(r), counts, weights)
     return counts, weights
 
 
@@ -61,7 +61,7 @@ def device_moments(cloud, radius, *, weights="uniform", refine=True):
     rec = record_buffer(cloud)
     # one work-item per VW consecutive points (the eigen decompositions run VW lanes at once)
     launch(cloud.device, prg.moments, batches(n, defines), cloud.x, cloud.y, cloud.z, wbuf,
-           cloud.cell_of, cloud.ranges, cloud.order, np.uint32(n), cloud.real(r * r), rec)
+           cloud.cell_of, cloud.ranges, cloud.order, np.uint32(n), cloud.ball(r), rec)
     q.finish()
     t2 = time.perf_counter()
     out = fetch_records(cloud, rec, LAYOUT)

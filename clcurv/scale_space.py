@@ -29,6 +29,16 @@ def _buffers(cloud, host_arrays):
             for a in host_arrays]
 
 
+def _copies(cloud, buffers):
+    """Device copies of device buffers."""
+    import pyopencl as cl
+    out = []
+    for b in buffers:
+        out.append(cl.Buffer(cloud.device.context, cl.mem_flags.READ_WRITE, size=b.size))
+        cl.enqueue_copy(cloud.device.queue, out[-1], b)
+    return out
+
+
 class _DeviceState:
     """One binning of the current positions, with ping-pong and displacement buffers."""
 
@@ -40,8 +50,8 @@ class _DeviceState:
         ctx = c.device.context
         # c.x, c.y, c.z keep the binned positions B; the iterates live in ping/pong, whose
         # padding is zeroed (vector loads read it, masked, and NaN garbage would leak)
-        self.ping = _buffers(c, (g.x, g.y, g.z))
-        self.pong = _buffers(c, (g.x, g.y, g.z))
+        self.ping = _copies(c, (c.x, c.y, c.z))
+        self.pong = _copies(c, (c.x, c.y, c.z))
         d = [np.zeros(g.n + PAD, c.dtype) for _ in range(3)]
         for k in range(3):
             d[k][:g.n] = disp[g.order, k]
@@ -68,7 +78,7 @@ class _DeviceState:
         """One MLS1 iteration; returns the largest drift from the binned positions."""
         import pyopencl as cl
         c = self.cloud
-        n, r2 = np.uint32(c.n), c.real(radius * radius)
+        n, r2 = np.uint32(c.n), c.ball(radius)
         defines = dict(c.defines, DENSITY=int(density))
         if density:
             m = build(c.device, "moments.cl", c.defines)

@@ -32,6 +32,7 @@
 
 #define REAL2 CAT(REAL, 2)
 #define REAL3 CAT(REAL, 3)
+#define REAL4 CAT(REAL, 4)
 #define REALV CAT(REAL, VW)     /* VW lanes of REAL */
 #define IREALV CAT(IREAL, VW)   /* VW lanes of comparison masks */
 #define VLOADV CAT(vload, VW)

@@ -39,12 +39,12 @@ inline REAL2 invert_theorem1(REAL l1, REAL l2, REAL r)
 inline uint cov_ball(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
                       __global const REAL *NX, __global const REAL *NY, __global const REAL *NZ,
                       __global const REAL *W, __global const uint2 *ranges, uint cell, REAL3 p,
-                      REAL3 nrm, REAL3 t1, REAL3 t2, REAL r2, REAL c[6])
+                      REAL3 nrm, REAL3 t1, REAL3 t2, REAL2 ball, REAL c[6])
 {
     REALV sc = 0, sw = 0, sa = 0, sb = 0, sd = 0, saa = 0, sab = 0, sad = 0, sbb = 0, sbd = 0, sdd = 0;
     REALV dx, dy, dz;
-    NEIGHBOR_CHUNKS_BEGIN(ranges, cell, i, end)
-        const IREALV m = chunk_offsets(X, Y, Z, i, end, p, r2, &dx, &dy, &dz);
+    NEIGHBOR_CHUNKS_BEGIN(ranges, cell, p, ball, i, end, pr)
+        const IREALV m = chunk_offsets(X, Y, Z, i, end, pr, ball, &dx, &dy, &dz);
         const REALV w = chunk_weights(W, i, dx, dy, dz, m, (REAL)0);
         sc += select((REALV)0, (REALV)1, m);
 #if COV_METHOD == 1
@@ -134,6 +134,7 @@ __kernel void covariance(__global const REAL *X, __global const REAL *Y, __globa
                          __global const REAL *NZ, __global const REAL *W,
                          __global const uint *cell_of, __global const uint2 *ranges,
                          __global const uint *order, const uint n, const REAL r,
+                         const REAL2 ball,
                          __global REAL *out)
 {
     const uint g0 = get_global_id(0) * VW;
@@ -150,8 +151,10 @@ __kernel void covariance(__global const REAL *X, __global const REAL *Y, __globa
             const REAL3 nrm = (REAL3)(NX[g], NY[g], NZ[g]);
             REAL3 t1, t2;
             tangent_frame(nrm, &t1, &t2);
-            cnt[k] = cov_ball(X, Y, Z, NX, NY, NZ, W, ranges, cell_of[g],
-                              (REAL3)(X[g], Y[g], Z[g]), nrm, t1, t2, r * r, c);
+            const uint co = cell_of[g];
+            __global const REAL *XA = x_rows(X, co, n);
+            cnt[k] = cov_ball(XA, Y, Z, NX, NY, NZ, W, ranges, co & CELL_MASK,
+                              (REAL3)(XA[g], Y[g], Z[g]), nrm, t1, t2, ball, c);
         }
         int f = 1;
         for (int e = 0; e < 6; ++e) {

@@ -49,11 +49,11 @@ inline uchar mls2_system(__global const REAL *X, __global const REAL *Y, __globa
                          __global const REAL *NX, __global const REAL *NY,
                          __global const REAL *NZ, __global const REAL *W,
                          __global const uint2 *ranges, uint cell, uint g, const pca_batch_t *pb,
-                         uint k, REAL r, REAL ih2, int use_ref, REAL fr[12][VW],
+                         uint k, REAL r, REAL ih2, REAL2 ball, int use_ref, REAL fr[12][VW],
                          REAL M[21][VW], REAL b[6][VW])
 {
     const REAL3 p = (REAL3)(X[g], Y[g], Z[g]);
-    const REAL r2 = r * r, ir = (REAL)1 / r;
+    const REAL ir = (REAL)1 / r;
     REAL3 v0 = (REAL3)(pb->v0x[k], pb->v0y[k], pb->v0z[k]);
     const REAL3 mu = (REAL3)(pb->mux[k], pb->muy[k], pb->muz[k]);
     uchar st = pca_status(pb, k, 6);
@@ -83,8 +83,8 @@ inline uchar mls2_system(__global const REAL *X, __global const REAL *Y, __globa
     REALV s30 = 0, s21 = 0, s12 = 0, s03 = 0, s40 = 0, s31 = 0, s22 = 0, s13 = 0, s04 = 0;
     REALV hxx = 0, hxy = 0, hyy = 0;
     REALV dx, dy, dz;
-    NEIGHBOR_CHUNKS_BEGIN(ranges, cell, i, end)
-        const IREALV m = chunk_offsets(X, Y, Z, i, end, p, r2, &dx, &dy, &dz);
+    NEIGHBOR_CHUNKS_BEGIN(ranges, cell, p, ball, i, end, pr)
+        const IREALV m = chunk_offsets(X, Y, Z, i, end, pr, ball, &dx, &dy, &dz);
         const REALV w = chunk_weights(W, i, dx, dy, dz, m, ih2);
         const REALV x = dx * u1.x + dy * u1.y + dz * u1.z;
         const REALV y = dx * u2.x + dy * u2.y + dz * u2.z;
@@ -166,21 +166,22 @@ __kernel void mls2(__global const REAL *X, __global const REAL *Y, __global cons
                    __global const REAL *NX, __global const REAL *NY, __global const REAL *NZ,
                    __global const REAL *W, __global const uint *cell_of,
                    __global const uint2 *ranges, __global const uint *order, const uint n,
-                   const REAL r, const REAL ih2, const int use_ref,
+                   const REAL r, const REAL2 ball, const REAL ih2, const int use_ref,
                    __global REAL *out)
 {
     const uint g0 = get_global_id(0) * VW;
     if (g0 >= n) return;
     const uint kn = min((uint)VW, n - g0);
     pca_batch_t pb;
-    pca_batch(X, Y, Z, W, cell_of, ranges, g0, kn, r * r, ih2, &pb);
+    pca_batch(X, Y, Z, W, cell_of, ranges, n, g0, kn, ball, ih2, &pb);
     REAL Ml[21][VW], bl[6][VW], fr[12][VW];
     uchar st[VW];
     for (uint k = 0; k < VW; ++k) {
         if (k < kn) {
             const uint g = g0 + k;
-            st[k] = mls2_system(X, Y, Z, NX, NY, NZ, W, ranges, cell_of[g], g, &pb, k, r, ih2,
-                                use_ref, fr, Ml, bl);
+            const uint co = cell_of[g];
+            st[k] = mls2_system(x_rows(X, co, n), Y, Z, NX, NY, NZ, W, ranges, co & CELL_MASK, g,
+                                &pb, k, r, ih2, ball, use_ref, fr, Ml, bl);
         } else {
             identity_system(Ml, bl, k);
             for (int e = 0; e < 12; ++e) fr[e][k] = (REAL)(e == 0 || e == 4 || e == 8);
@@ -199,9 +200,9 @@ __kernel void mls2(__global const REAL *X, __global const REAL *Y, __global cons
         const uchar s = (st[k] == ST_OK && !okl[k]) ? ST_SINGULAR : st[k];
         REAL16 rec = (REAL16)(NAN);
         if (s == ST_OK) {
-            rec.s0123 = (CAT(REAL, 4))(o[0][k], o[1][k], o[2][k], o[3][k]);
-            rec.s4567 = (CAT(REAL, 4))(o[4][k], o[5][k], o[6][k], o[7][k]);
-            rec.s89ab = (CAT(REAL, 4))(o[8][k], o[9][k], o[10][k], o[11][k]);
+            rec.s0123 = (REAL4)(o[0][k], o[1][k], o[2][k], o[3][k]);
+            rec.s4567 = (REAL4)(o[4][k], o[5][k], o[6][k], o[7][k]);
+            rec.s89ab = (REAL4)(o[8][k], o[9][k], o[10][k], o[11][k]);
             rec.scd = (REAL2)(o[12][k], o[13][k]);
         }
         rec.se = UINT_AS_REAL(pb.count[k]);

@@ -21,16 +21,18 @@
 /* #N_r(p) for every sorted point, and the density weight 1 / #N_r(p). */
 __kernel void count_neighbors(__global const REAL *X, __global const REAL *Y,
                               __global const REAL *Z, __global const uint *cell_of,
-                              __global const uint2 *ranges, const uint n, const REAL r2,
+                              __global const uint2 *ranges, const uint n, const REAL2 ball,
                               __global uint *count, __global REAL *weight)
 {
     const uint g = get_global_id(0);
     if (g >= n) return;
-    const REAL3 p = (REAL3)(X[g], Y[g], Z[g]);
+    const uint co = cell_of[g];
+    __global const REAL *XA = x_rows(X, co, n);
+    const REAL3 p = (REAL3)(XA[g], Y[g], Z[g]);
     REALV cnt = 0;
     REALV dx, dy, dz;
-    NEIGHBOR_CHUNKS_BEGIN(ranges, cell_of[g], i, end)
-        const IREALV m = chunk_offsets(X, Y, Z, i, end, p, r2, &dx, &dy, &dz);
+    NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, ball, i, end, pr)
+        const IREALV m = chunk_offsets(XA, Y, Z, i, end, pr, ball, &dx, &dy, &dz);
         cnt += select((REALV)0, (REALV)1, m);
     NEIGHBOR_CHUNKS_END
     const uint c = (uint)hsum(cnt);
@@ -49,7 +51,7 @@ __kernel void count_neighbors(__global const REAL *X, __global const REAL *Y,
 __kernel void moments(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
                       __global const REAL *W, __global const uint *cell_of,
                       __global const uint2 *ranges, __global const uint *order,
-                      const uint n, const REAL r2,
+                      const uint n, const REAL2 ball,
                       __global REAL *out)
 {
     const uint g0 = get_global_id(0) * VW;
@@ -58,7 +60,7 @@ __kernel void moments(__global const REAL *X, __global const REAL *Y, __global c
 
     /* 1-2. neighbour sums point by point, VW eigen decompositions at once */
     pca_batch_t pb;
-    pca_batch(X, Y, Z, W, cell_of, ranges, g0, kn, r2, (REAL)0, &pb);
+    pca_batch(X, Y, Z, W, cell_of, ranges, n, g0, kn, ball, (REAL)0, &pb);
 
     /* 3. per point: status, lambda0 refinement, stores */
     for (uint k = 0; k < kn; ++k) {
@@ -70,14 +72,16 @@ __kernel void moments(__global const REAL *X, __global const REAL *Y, __global c
         const uchar st = pca_status(&pb, k, 3);
 #if REFINE_L0
         if (st == ST_OK) {
-            const REAL3 p = (REAL3)(X[g], Y[g], Z[g]);
+            const uint co = cell_of[g];
+            __global const REAL *XA = x_rows(X, co, n);
+            const REAL3 p = (REAL3)(XA[g], Y[g], Z[g]);
             /* h = <q - o, v0> = <q - p, v0> - <o - p, v0>: both terms are heights above the
                tangent plane, small on a smooth surface, so the split costs no accuracy */
             const REAL h0 = dot(mu, v0);
             REALV s0 = 0;
             REALV dx, dy, dz;
-            NEIGHBOR_CHUNKS_BEGIN(ranges, cell_of[g], i, end)
-                const IREALV m = chunk_offsets(X, Y, Z, i, end, p, r2, &dx, &dy, &dz);
+            NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, ball, i, end, pr)
+                const IREALV m = chunk_offsets(XA, Y, Z, i, end, pr, ball, &dx, &dy, &dz);
                 const REALV h = dx * v0.x + dy * v0.y + dz * v0.z - h0;
 #if DENSITY
                 s0 += chunk_weights(W, i, dx, dy, dz, m, (REAL)0) * h * h;

@@ -1,18 +1,42 @@
 /* neighbors.h -- the fixed-order walk over the candidates of one query point.
  *
  * The sorted points of the 27 cells around the query's cell form 9 contiguous index
- * ranges (one per (dz, dy) row of three cells, computed by grid.cl:cell_ranges). The walk
- * visits the ranges in order and each range VW points at a time; the arrays are padded
- * so a vector load may read past the end. Lanes past the range end or outside the open
- * ball |q - p| < r are masked out. The order is fixed, so results are bit-reproducible.
+ * ranges, one per row j of three cells (cx - 1 .. cx + 1, cy + dy, cz + dz) with
+ * (dz, dy) = (j / 3 - 1, j % 3 - 1) (grid.cl:cell_ranges; an empty row is (0, 0)). The walk
+ * visits the rows in order and each range VW points at a time; the arrays are padded so a
+ * vector load may read past the end. Lanes past the range end or outside the open ball
+ * |q - p| < r are masked out. The order is fixed, so results are bit-reproducible.
  *
- *   NEIGHBOR_CHUNKS_BEGIN(ranges, cell, i, end)
- *       ... body using the chunk [i, i + VW) clipped to end ...
+ * Coordinates are stored relative to their cell (grid.py), so offsets q - p are small
+ * numbers known to the device precision whatever the cloud's extent or offset: y and z
+ * from the corner of the point's cell, so that in row j q_y - p_y = Y - (p_y - dy c)
+ * (likewise z); x three times, from the corner of the point's block of three cells along
+ * x in the alignments a = 0, 1, 2 (blocks starting at cell indices = a mod 3). The rows of
+ * a point in cell cx lie in one block of alignment (cx - 1) mod 3, kept in the top bits of
+ * cell_of: with that copy of x, q_x - p_x = X - p_x exactly as well.
+ *
+ *   const uint co = cell_of[g];
+ *   __global const REAL *XA = x_rows(X, co, n);         the point's x copy
+ *   p = (XA[g], Y[g], Z[g]); cell = co & CELL_MASK;
+ *   NEIGHBOR_CHUNKS_BEGIN(ranges, cell, p, ball, i, end, pr)
+ *       ... chunk_offsets(XA, Y, Z, i, end, pr, ball, &dx, &dy, &dz) for [i, i + VW) ...
  *   NEIGHBOR_CHUNKS_END
+ *
+ * with REAL2 ball = (r^2, c).
  */
 #ifndef CLCURV_NEIGHBORS_H
 #define CLCURV_NEIGHBORS_H
 #include "common.h"
+
+#define PAD 16                   /* zero padding of each coordinate array (grid.py PAD) */
+#define CELL_BITS 30             /* cell_of = alignment << CELL_BITS | cell id */
+#define CELL_MASK 0x3fffffffu
+
+/* The copy of x that sorted point g's rows use (co = cell_of[g]). */
+inline __global const REAL *x_rows(__global const REAL *X, uint co, uint n)
+{
+    return X + (size_t)(co >> CELL_BITS) * (n + PAD);
+}
 
 #if VW == 2
 #define LANES ((IREALV)(0, 1))
@@ -26,24 +50,28 @@
 #error "VW must be 2, 4, 8 or 16"
 #endif
 
-#define NEIGHBOR_CHUNKS_BEGIN(ranges, cell, i, end)                      \
-    for (int nb_row = 0; nb_row < 9; ++nb_row) {                          \
-        const uint2 nb_se = (ranges)[(size_t)(cell) * 9 + nb_row];        \
+#define NEIGHBOR_CHUNKS_BEGIN(ranges, cell, p, ball, i, end, pr)         \
+    for (int nb_z = 0; nb_z < 3; ++nb_z)                                  \
+    for (int nb_y = 0; nb_y < 3; ++nb_y) {                                \
+        const uint2 nb_se = (ranges)[(size_t)(cell) * 9 + nb_z * 3 + nb_y]; \
         const uint end = nb_se.y;                                         \
+        const REAL3 pr = (REAL3)((p).x, (p).y + (REAL)(1 - nb_y) * (ball).y, \
+                                 (p).z + (REAL)(1 - nb_z) * (ball).y);    \
         for (uint i = nb_se.x; i < end; i += VW) {
 #define NEIGHBOR_CHUNKS_END }}
 
-/* Offsets q - p of the chunk starting at i and the mask of lanes that are neighbours. */
+/* Offsets q - p of the chunk starting at i (pr: the query point as seen from the chunk's
+ * row, see the top) and the mask of lanes that are neighbours. */
 inline IREALV chunk_offsets(__global const REAL *X, __global const REAL *Y,
-                            __global const REAL *Z, uint i, uint end, REAL3 p, REAL r2,
+                            __global const REAL *Z, uint i, uint end, REAL3 pr, REAL2 ball,
                             REALV *dx, REALV *dy, REALV *dz)
 {
-    *dx = VLOADV(0, X + i) - p.x;
-    *dy = VLOADV(0, Y + i) - p.y;
-    *dz = VLOADV(0, Z + i) - p.z;
+    *dx = VLOADV(0, X + i) - pr.x;
+    *dy = VLOADV(0, Y + i) - pr.y;
+    *dz = VLOADV(0, Z + i) - pr.z;
     const REALV d2 = (*dx) * (*dx) + (*dy) * (*dy) + (*dz) * (*dz);
     const IREALV live = LANES < (IREALV)((IREAL)(end - i));
-    return live & isless(d2, (REALV)r2);
+    return live & isless(d2, (REALV)ball.x);
 }
 
 /* Sum of the lanes in a fixed order (pairwise), so the result is reproducible. */

@@ -33,13 +33,13 @@ typedef struct {
  * copies in the work-item loop at a large cost.) */
 inline void pca_ball(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
                      __global const REAL *W, __global const uint2 *ranges, uint cell,
-                     REAL3 p, REAL r2, REAL ih2, pca_batch_t *b, uint k)
+                     REAL3 p, REAL2 ball, REAL ih2, pca_batch_t *b, uint k)
 {
     REALV sc = 0, sw = 0, sx = 0, sy = 0, sz = 0;
     REALV sxx = 0, sxy = 0, sxz = 0, syy = 0, syz = 0, szz = 0;
     REALV dx, dy, dz;
-    NEIGHBOR_CHUNKS_BEGIN(ranges, cell, i, end)
-        const IREALV m = chunk_offsets(X, Y, Z, i, end, p, r2, &dx, &dy, &dz);
+    NEIGHBOR_CHUNKS_BEGIN(ranges, cell, p, ball, i, end, pr)
+        const IREALV m = chunk_offsets(X, Y, Z, i, end, pr, ball, &dx, &dy, &dz);
         const REALV w = chunk_weights(W, i, dx, dy, dz, m, ih2);
 #if DENSITY || GAUSSIAN
         sc += select((REALV)0, (REALV)1, m);
@@ -71,13 +71,17 @@ inline void pca_ball(__global const REAL *X, __global const REAL *Y, __global co
 
 inline void pca_batch(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
                       __global const REAL *W, __global const uint *cell_of,
-                      __global const uint2 *ranges, uint g0, uint kn, REAL r2, REAL ih2,
+                      __global const uint2 *ranges, uint n, uint g0, uint kn, REAL2 ball,
+                      REAL ih2,
                       pca_batch_t *b)
 {
     for (uint k = 0; k < VW; ++k) {
         if (k < kn) {
             const uint g = g0 + k;
-            pca_ball(X, Y, Z, W, ranges, cell_of[g], (REAL3)(X[g], Y[g], Z[g]), r2, ih2, b, k);
+            const uint co = cell_of[g];
+            __global const REAL *XA = x_rows(X, co, n);
+            pca_ball(XA, Y, Z, W, ranges, co & CELL_MASK, (REAL3)(XA[g], Y[g], Z[g]), ball, ih2,
+                     b, k);
         } else {                     /* unused lane: the identity */
             for (int e = 0; e < 6; ++e) b->c[e][k] = (REAL)(e == 0 || e == 3 || e == 5);
             b->count[k] = 0;

@@ -17,7 +17,7 @@
 /* One work-item per VW consecutive sorted points (global size >= ceil(n / VW)). */
 __kernel void mls1_step(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
                         __global const REAL *W, __global const uint *cell_of,
-                        __global const uint2 *ranges, const uint n, const REAL r2,
+                        __global const uint2 *ranges, const uint n, const REAL2 ball,
                         __global const REAL *BX, __global const REAL *BY, __global const REAL *BZ,
                         __global REAL *XN, __global REAL *YN, __global REAL *ZN,
                         __global REAL *DX, __global REAL *DY, __global REAL *DZ,
@@ -27,7 +27,7 @@ __kernel void mls1_step(__global const REAL *X, __global const REAL *Y, __global
     if (g0 >= n) return;
     const uint kn = min((uint)VW, n - g0);
     pca_batch_t pb;
-    pca_batch(X, Y, Z, W, cell_of, ranges, g0, kn, r2, (REAL)0, &pb);
+    pca_batch(X, Y, Z, W, cell_of, ranges, n, g0, kn, ball, (REAL)0, &pb);
     for (uint k = 0; k < kn; ++k) {
         const uint g = g0 + k;
         REAL3 move = (REAL3)(0);
@@ -35,8 +35,12 @@ __kernel void mls1_step(__global const REAL *X, __global const REAL *Y, __global
             const REAL3 v0 = (REAL3)(pb.v0x[k], pb.v0y[k], pb.v0z[k]);
             move = dot((REAL3)(pb.mux[k], pb.muy[k], pb.muz[k]), v0) * v0;
         }
-        const REAL3 q = (REAL3)(X[g], Y[g], Z[g]) + move;
-        XN[g] = q.x; YN[g] = q.y; ZN[g] = q.z;
+        const REAL3 q = (REAL3)(X[g], Y[g], Z[g]) + move;       /* x in alignment 0 */
+        for (uint a = 0; a < 3; ++a) {                          /* every copy of x moves */
+            const size_t ga = (size_t)a * (n + PAD) + g;
+            XN[ga] = X[ga] + move.x;
+        }
+        YN[g] = q.y; ZN[g] = q.z;
         DX[g] += move.x; DY[g] += move.y; DZ[g] += move.z;
         drift[g] = length(q - (REAL3)(BX[g], BY[g], BZ[g]));
     }

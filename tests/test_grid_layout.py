@@ -32,10 +32,15 @@ def test_bin_points_layout(name):
     assert np.array_equal(g.keys[g.cell_of], key[g.order])
     assert np.array_equal(g.cell_start[:-1], np.searchsorted(key[g.order], g.keys))
     assert g.cell_start[-1] == len(pts)
-    want = (pts[g.order] - g.center).astype(np.float32)
+    # coordinates relative to the corner of the point's cell (float64, then cast)
+    n = len(pts)
+    rel = ((pts - lo) - ijk * cell)[g.order]
     for d, c in enumerate((g.x, g.y, g.z)):
-        assert np.array_equal(c[:len(pts)], want[:, d])
-        assert not c[len(pts):].any() and len(c) == len(pts) + G.PAD
+        np.testing.assert_allclose(c[:n], rel[:, d], rtol=0, atol=2e-7 * cell)
+        assert not c[n:].any() and len(c) == n + G.PAD
+    assert rel.min() >= -1e-9 * cell and rel.max() <= cell * (1 + 1e-9)
+    assert np.array_equal(g.cell_index(), ijk[g.order])
+    np.testing.assert_allclose(g.positions(), pts[g.order], rtol=0, atol=1e-6 * cell)
 
 
 def test_sort_keys_fallback_when_key_and_index_do_not_fit():
@@ -75,11 +80,32 @@ def test_cell_ranges_brute_force(name, device):
             for dy in (-1, 0, 1):
                 y, z = iy[ci] + dy, iz[ci] + dz
                 if not (0 <= y < ny and 0 <= z < nz):
+                    want.append((0, 0))
                     continue
                 row = (z * ny + y) * nx
                 a = np.searchsorted(g.keys, row + max(ix[ci] - 1, 0))
                 b = np.searchsorted(g.keys, row + min(ix[ci] + 1, nx - 1) + 1)
-                if b > a:
-                    want.append((g.cell_start[a], g.cell_start[b]))
-        want += [(0, 0)] * (9 - len(want))          # non-empty ranges first, in row order
+                want.append((g.cell_start[a], g.cell_start[b]) if b > a else (0, 0))
         assert np.array_equal(got[ci], np.array(want, np.uint32)), ci
+
+
+@pytest.mark.parametrize("name", list(clouds()))
+def test_device_x_copies_and_row_alignment(name, device):
+    """grid.cl:expand_x: copy a of x is relative to the point's 3-cell block starting at an
+    index = a mod 3; cell_of's top bits hold the alignment (ix - 1) mod 3 of its rows."""
+    pts, cell = clouds()[name]
+    c = DeviceCloud(pts, cell, device=device)
+    g, n, m = c.grid, len(pts), len(pts) + G.PAD
+    x = np.empty(3 * m, np.float32)
+    co = np.empty(n, np.uint32)
+    cl.enqueue_copy(c.device.queue, x, c.x)
+    cl.enqueue_copy(c.device.queue, co, c.cell_of)
+    ix = g.cell_index()[:, 0]
+    assert np.array_equal(co & G.CELL_MASK, g.cell_of)
+    assert np.array_equal(co >> G.CELL_BITS, (ix - 1) % 3)
+    x0 = g.positions()[:, 0] - g.origin[0]
+    for a in range(3):
+        block = (ix - a) // 3 * 3 + a
+        np.testing.assert_allclose(x[a * m:a * m + n], x0 - block * cell, rtol=0,
+                                   atol=4e-7 * cell)
+        assert not x[a * m + n:(a + 1) * m].any()
