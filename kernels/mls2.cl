@@ -140,7 +140,10 @@ inline void mls2_finish_v(const REALV a[6], REAL fr[12][VW], REAL r, REAL o[14][
     const REALV S00 = i00 * Lxx + i01 * Lxy, S01 = i00 * Lxy + i01 * Lyy;
     const REALV S10 = i01 * Lxx + i11 * Lxy, S11 = i01 * Lxy + i11 * Lyy;
     const REALV hmean = (REAL)0.5 * (S00 + S11);
-    const REALV disc = sqrt(fmax(hmean * hmean - (S00 * S11 - S01 * S10), (REALV)0));
+    /* the discriminant from differences: hmean^2 - det cancels at umbilics (k1 = k2) and
+       left sqrt(eps) x H there in float32 */
+    const REALV hd = (REAL)0.5 * (S00 - S11);
+    const REALV disc = sqrt(fmax(hd * hd + S01 * S10, (REALV)0));
     const REALV lo = hmean - disc;                   /* -> k1 = -lo (the largest k) */
     REALV ex, ey;
     eigvec2_v(S00, S01, S10, S11, lo, &ex, &ey);

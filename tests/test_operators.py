@@ -106,6 +106,21 @@ def test_kernels_match_reference_on_torus(device, method):
         check_cov(s["points"], s["normals"], 0.1, method, "uniform", device)
 
 
+def test_mls2_float32_at_umbilics(device):
+    """On a sphere every point is umbilic (k1 = k2): the shape operator's eigenvalues must
+    come from a discriminant without cancellation (hmean^2 - det left sqrt(eps) ~ 4e-4 x H
+    in float32). Tolerance: 1e-4 x H for every point, 2e-5 at the 99th percentile."""
+    s = shapes.sphere(30000, 1.0, seed=3)
+    pts, nrm, r = s["points"], s["normals"], 0.06
+    got = device_mls2(DeviceCloud(pts, r, device=device), r, nrm)
+    ref = reference.mls2(pts, r, nrm)
+    ok = (got["count"] == ref["count"]) & (ref["status"] == 0)
+    assert ok.mean() > 0.998
+    for k in ("k1", "k2"):
+        err = np.abs(got[k][ok] - ref[k][ok])          # H = 1
+        assert err.max() <= 1e-4 and np.percentile(err, 99) <= 2e-5, f"{k}: {worst(err)}"
+
+
 # ---------------------------------------------------------------- analytic limits
 SAMPLES = {
     "sphere": lambda n: shapes.sphere(n, 2.0, seed=31),
