@@ -25,9 +25,10 @@ class _OpenCL:
         self.cloud = DeviceCloud(points, radius, device=device, precision=precision)
         self.radius = radius
 
-    def moments(self, weights, refine):
+    def moments(self, weights, refine, fields=None):
         from .moments import device_moments
-        return device_moments(self.cloud, self.radius, weights=weights, refine=refine)
+        return device_moments(self.cloud, self.radius, weights=weights, refine=refine,
+                              fields=fields)
 
     def covariances(self, normals, method, weights):
         from .covariances import device_covariances
@@ -45,7 +46,7 @@ class _NumPy:
         from . import reference
         self.ref, self.points, self.radius = reference, points, radius
 
-    def moments(self, weights, refine):
+    def moments(self, weights, refine, fields=None):
         return self.ref.moments(self.points, self.radius, weights=weights)
 
     def covariances(self, normals, method, weights):
@@ -282,7 +283,8 @@ def curvature(points, radius, *, method="mls1", weights="uniform", normals=None,
         elif how is None:
             use = None                      # MLS2 with the solver's sign for v0
         else:
-            use = _oriented(pts, be.moments(weights, refine=False), how, None, vp, orient_k)
+            use = _oriented(pts, be.moments(weights, refine=False, fields=("normals",)), how,
+                            None, vp, orient_k)
         if method in COVARIANCE_METHODS:
             op = be.covariances(use, method, weights)
         else:
@@ -339,7 +341,8 @@ def normals(points, radius, *, weights="uniform", normals=None, orient="auto", v
                                            viewpoint, unit=False)     # they only orient
     if len(pts) == 0:
         return np.empty((0, 3))
-    raw = _backend(backend, pts, r, device, precision).moments(weights, refine=False)
+    raw = _backend(backend, pts, r, device, precision).moments(weights, refine=False,
+                                                               fields=("normals",))
     n = np.array(raw["normals"], dtype=np.float64, copy=None)   # the backends' arrays are fresh
     _warn_sparse(raw["status"], r)
     n[_flip(pts, n, how, ref_normals, vp, orient_k)] *= -1

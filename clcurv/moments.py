@@ -41,14 +41,16 @@ def weight_buffer(cloud, radius, weights):
     return device_counts(cloud, radius)[1] if weights == "density" else cloud.x
 
 
-def device_moments(cloud, radius, *, weights="uniform", refine=True):
+def device_moments(cloud, radius, *, weights="uniform", refine=True, fields=None):
     """Raw moments of N_r(p) for every point, in input order.
 
     Returns a dict: ``count`` (N,) int64, ``status`` (N,) uint8, ``normals`` (N, 3) unit,
     unoriented, ``eigenvalues`` (N, 3) ascending, of the weighted covariance
     sum w (q - o)(q - o)^T / sum w, ``variation`` (N,), ``shift`` (N, 3) = o - p, computed in
     the cloud's precision and returned as float64; rows with status != 0 are NaN. ``refine`` recomputes lambda0 in a
-    second pass (needed for ``variation`` and ``eigenvalues`` in float32).
+    second pass (needed for ``variation`` and ``eigenvalues`` in float32). ``fields``, a
+    subset of the names, limits what is brought back to the host (``count`` and ``status``
+    always are).
     """
     r = cloud.check_radius(radius)
     density = weights == "density"
@@ -64,7 +66,8 @@ def device_moments(cloud, radius, *, weights="uniform", refine=True):
            cloud.cell_of, cloud.ranges, cloud.order, np.uint32(n), cloud.ball(r), rec)
     q.finish()
     t2 = time.perf_counter()
-    out = fetch_records(cloud, rec, LAYOUT)
+    keep = set(LAYOUT) if fields is None else set(fields) | {"count", "status"}
+    out = fetch_records(cloud, rec, {k: v for k, v in LAYOUT.items() if k in keep})
     t3 = time.perf_counter()
     cloud.timings.update(build_moments=t1 - t0, kernel_moments=t2 - t1, download=t3 - t2)
     return out

@@ -101,3 +101,14 @@ def test_deterministic_bit_identical(device):
             for _ in range(2)]
     for name, arr in runs[0].arrays().items():
         np.testing.assert_array_equal(arr, runs[1].arrays()[name], err_msg=name)
+
+
+def test_fields_subset_is_the_same_numbers(device):
+    """``fields=`` only limits what comes back: the same normals, counts and statuses."""
+    pts = bumpy_surface(5000, seed=4)
+    cloud = DeviceCloud(pts, 0.1, device=device)
+    full = device_moments(cloud, 0.1, refine=False)
+    part = device_moments(cloud, 0.1, refine=False, fields=("normals",))
+    assert set(part) == {"normals", "count", "status"}
+    for k in part:
+        np.testing.assert_array_equal(part[k], full[k])
