@@ -181,8 +181,24 @@ def fetch_records(cloud, rec, layout, mapped=None):
     outs += [outs[0] if outs else rec] * (6 - len(outs))       # unused placeholders
     count, status = new(4 * n), new(n)
     launch(cloud.device, prg.split_records, n, rec, np.uint32(n), *outs, count, status)
-    fields = {name: _host_array(cloud, buf, shape, cloud.dtype, mapped).astype(np.float64)
-              for (name, shape), buf in zip(spans, outs)}
-    fields["count"] = _host_array(cloud, count, (n,), np.uint32, mapped).astype(np.int64)
-    fields["status"] = _host_array(cloud, status, (n,), np.uint8, mapped).copy()
-    return fields
+    host = [(name, _host_array(cloud, buf, shape, cloud.dtype, mapped), np.float64)
+            for (name, shape), buf in zip(spans, outs)]
+    host += [("count", _host_array(cloud, count, (n,), np.uint32, mapped), np.int64),
+             ("status", _host_array(cloud, status, (n,), np.uint8, mapped), np.uint8)]
+    # the casts (numpy releases the GIL) run on the host's cores while the device is idle
+    casts = _pool().map(lambda h: h[1].astype(h[2]), host)
+    return {h[0]: a for h, a in zip(host, casts)}
+
+
+_POOL = None
+
+
+def _pool():
+    """A small thread pool for host-side array conversions."""
+    global _POOL
+    if _POOL is None:
+        import os
+        from concurrent.futures import ThreadPoolExecutor
+        _POOL = ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1),
+                                   thread_name_prefix="clcurv-host")
+    return _POOL
