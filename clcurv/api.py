@@ -66,17 +66,34 @@ def _backend(backend, points, radius, device, precision):
     return _OpenCL(points, radius, device, precision)
 
 
-def _inputs(points, radius, weights, backend, orient, normals, viewpoint, unit=True):
+DEFER_MIN = 100_000     # from this size, user normals are checked while the cloud is binned
+
+
+def _inputs(points, radius, weights, backend, orient, normals, viewpoint, unit=True,
+            defer=False):
     """Validated (points, radius, normals or None (unit if ``unit``), viewpoint or None,
-    orientation)."""
+    orientation). With ``defer`` (and a large cloud on the OpenCL backend) the normals come
+    as a future of that result, checked on a host thread while the caller bins the cloud;
+    :func:`_resolved` gives the array or raises the check's error."""
     choice(weights, "weights", ("uniform", "density"))
     choice(backend, "backend", ("opencl", "numpy"))
     choice(orient, "orient", ORIENTS)
     pts = as_points(points)
     r = as_radius(radius)
-    ref = as_normals(normals, len(pts), unit) if normals is not None else None
+    ref = None
+    if normals is not None:
+        if defer and backend == "opencl" and len(pts) >= DEFER_MIN:
+            from .cloud import host_pool
+            ref = host_pool().submit(as_normals, normals, len(pts), unit)
+        else:
+            ref = as_normals(normals, len(pts), unit)
     vp = as_viewpoint(viewpoint) if viewpoint is not None else None
     return pts, r, ref, vp, _orientation(orient, ref, vp)
+
+
+def _resolved(normals):
+    """The normals of :func:`_inputs`, waiting for a deferred check."""
+    return normals.result() if hasattr(normals, "result") else normals
 
 
 def _orientation(orient, normals, viewpoint):
@@ -237,7 +254,7 @@ def curvature(points, radius, *, method="mls1", weights="uniform", normals=None,
     # the normal-based operators and MLS0 use the normals' values; the others only their sign
     unit = method in COVARIANCE_METHODS + ("mls0",)
     pts, r, ref_normals, vp, how = _inputs(points, radius, weights, backend, orient, normals,
-                                           viewpoint, unit)
+                                           viewpoint, unit, defer=True)
     if method in COVARIANCE_METHODS and how is None and ref_normals is None:
         raise ValueError(f"{method} needs consistently oriented normals: pass normals= or an orient")
     iterations = int(iterations)
@@ -247,6 +264,8 @@ def curvature(points, radius, *, method="mls1", weights="uniform", normals=None,
     scale_space = int(scale_space)
     if scale_space < 0:
         raise ValueError(f"scale_space must be >= 0, got {scale_space}")
+    if len(pts) == 0 or scale_space or iterations:
+        ref_normals = _resolved(ref_normals)
     if len(pts) == 0:
         return _empty(method, r, weights)
     if scale_space:
@@ -269,7 +288,8 @@ def curvature(points, radius, *, method="mls1", weights="uniform", normals=None,
                         precision=precision, backend=backend)
         res.info["iterations"] = iterations
         return res
-    be = _backend(backend, pts, r, device, precision)
+    be = _backend(backend, pts, r, device, precision)      # bins while the normals are checked
+    ref_normals = _resolved(ref_normals)
     if method in MOMENT_METHODS:
         raw = be.moments(weights, refine=True)
         n = _oriented(pts, raw, how, ref_normals, vp, orient_k)

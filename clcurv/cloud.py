@@ -186,15 +186,16 @@ def fetch_records(cloud, rec, layout, mapped=None):
     host += [("count", _host_array(cloud, count, (n,), np.uint32, mapped), np.int64),
              ("status", _host_array(cloud, status, (n,), np.uint8, mapped), np.uint8)]
     # the casts (numpy releases the GIL) run on the host's cores while the device is idle
-    casts = _pool().map(lambda h: h[1].astype(h[2]), host)
+    casts = host_pool().map(lambda h: h[1].astype(h[2]), host)
     return {h[0]: a for h, a in zip(host, casts)}
 
 
 _POOL = None
 
 
-def _pool():
-    """A small thread pool for host-side array conversions."""
+def host_pool():
+    """A small thread pool for host-side numpy work (checks, conversions) that can run
+    beside other host work (numpy releases the GIL)."""
     global _POOL
     if _POOL is None:
         import os

@@ -170,3 +170,20 @@ def test_normals_length_does_not_matter(device):
         np.testing.assert_allclose(b.mean if b.mean is not None else b.k1,
                                    a.mean if a.mean is not None else a.k1, rtol=1e-6, atol=1e-9,
                                    err_msg=method)
+
+
+def test_bad_normals_of_a_large_cloud_still_raise(device):
+    """From api.DEFER_MIN points the normals are checked on a host thread while the cloud
+    is binned: their errors must still reach the caller, before any result."""
+    from clcurv.api import DEFER_MIN
+    pts = bumpy_surface(DEFER_MIN, seed=8)
+    nrm = np.tile([0.0, 0.0, 1.0], (DEFER_MIN, 1))
+    nrm[123] = np.nan
+    with pytest.raises(ValueError, match="NaN or Inf"):
+        clcurv.curvature(pts, 0.02, method="2dcov2", normals=nrm, device=device)
+    nrm[123] = 0.0
+    with pytest.raises(ValueError, match="zero-length"):
+        clcurv.curvature(pts, 0.02, method="mls2", normals=nrm, device=device)
+    nrm[123] = (0.0, 0.0, 1.0)
+    res = clcurv.curvature(pts, 0.02, method="2dcov2", normals=nrm * 3.0, device=device)
+    np.testing.assert_allclose(res.normals[:5], np.tile([0.0, 0.0, 1.0], (5, 1)))
