@@ -65,13 +65,6 @@ class Grid:
         return self.origin + ijk * self.cell + rel
 
 
-def _cell_coords(col, lo, inv_cell):
-    """Integer cell coordinate along one axis (values are >= 0, so truncation is floor)."""
-    t = col - lo
-    t *= inv_cell
-    return t.astype(np.int64)
-
-
 def _bounding_box(points):
     """Per-column min and max of a C-contiguous (N, 3) array. ``points.min(axis=0)`` runs a
     3-wide inner loop (about 30x slower); blocks of 1024 rows reduce at full SIMD width."""
