@@ -190,7 +190,8 @@ def curvature(points, radius, *, method="mls1", weights="uniform", normals=None,
     Parameters
     ----------
     points : (N, 3) array_like of real numbers
-        The raw cloud. Any finite coordinates; georeferenced ones are centred in float64.
+        The raw cloud. Any finite coordinates; they are stored relative to their grid cell
+        (computed in float64), so georeferenced ones lose no precision.
     radius : float
         Ball radius, in the points' length unit (about 30 neighbours is a good start).
     method : str

@@ -26,7 +26,8 @@ class DeviceCloud:
     Parameters
     ----------
     points : (N, 3) array_like, any real dtype
-        Coordinates; centred in float64 on the host before the cast to ``precision``.
+        Coordinates; made relative to their grid cell in float64 on the host before the
+        cast to ``precision`` (clcurv.grid).
     cell : float
         Cell size, same length unit as the points; operators accept radii <= cell.
     device : None, int or str
