@@ -124,7 +124,7 @@ def upload_sorted(cloud, values):
     out = [cl.Buffer(ctx, mf.READ_WRITE, size=size) for _ in range(3)]
     prg = build(cloud.device, "records.cl", cloud.defines)
     launch(cloud.device, prg.gather_sorted, cloud.n + PAD, src, cloud.order, np.uint32(cloud.n),
-           np.uint32(PAD), *out)
+           *out)
     return out
 
 

@@ -43,11 +43,14 @@
  * cache miss each. records.cl:split_records turns them into per-field arrays. Integer
  * fields keep their bits (UINT_AS_REAL). */
 #define RECORD_WIDTH 16
+#define PAD 16                   /* zero padding of each per-point array (grid.py PAD) */
 #define REAL16 CAT(REAL, 16)
 #if REAL_IS_DOUBLE
 #define UINT_AS_REAL(u) as_double((ulong)(u))
+#define REAL_AS_UINT(x) ((uint)as_ulong(x))
 #else
 #define UINT_AS_REAL(u) as_float((uint)(u))
+#define REAL_AS_UINT(x) as_uint(x)
 #endif
 #define STORE_RECORD(rec, j, out) vstore16((rec), (j), (out))
 

@@ -28,7 +28,6 @@
 #define CLCURV_NEIGHBORS_H
 #include "common.h"
 
-#define PAD 16                   /* zero padding of each coordinate array (grid.py PAD) */
 #define CELL_BITS 30             /* cell_of = alignment << CELL_BITS | cell id */
 #define CELL_MASK 0x3fffffffu
 

@@ -13,11 +13,6 @@
 #ifndef NF
 #define NF 0
 #endif
-#if REAL_IS_DOUBLE
-#define REAL_AS_UINT(x) ((uint)as_ulong(x))
-#else
-#define REAL_AS_UINT(x) as_uint(x)
-#endif
 #define SPLIT(k) for (int c = 0; c < W##k; ++c) o##k[(size_t)j * W##k + c] = v[S##k + c];
 
 #ifdef COUNT_COL
@@ -55,13 +50,12 @@ __kernel void split_records(__global const REAL *rec, const uint n, __global REA
 }
 #endif
 
-/* Sorted SoA columns (padded: entries n .. n + pad - 1 are 0) of input-order rows V (n, 3). */
+/* Sorted SoA columns (padded: entries n .. n + PAD - 1 are 0) of input-order rows V (n, 3). */
 __kernel void gather_sorted(__global const REAL *V, __global const uint *order, const uint n,
-                            const uint pad, __global REAL *OX, __global REAL *OY,
-                            __global REAL *OZ)
+                            __global REAL *OX, __global REAL *OY, __global REAL *OZ)
 {
     const uint s = get_global_id(0);
-    if (s >= n + pad) return;
+    if (s >= n + PAD) return;
     const REAL3 v = s < n ? vload3(order[s], V) : (REAL3)(0);
     OX[s] = v.x; OY[s] = v.y; OZ[s] = v.z;
 }
