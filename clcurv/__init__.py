@@ -4,14 +4,17 @@
 Reference: J. Digne, J.-M. Morel, *Numerical analysis of differential operators on raw point
 clouds*, Numerische Mathematik 127 (2014), DOI 10.1007/s00211-013-0584-y.
 """
-from .api import curvature, normals, project, METHODS
-from .scale_space import scale_space
+from .api import curvature, normals, project
+from .operators import METHODS, OPERATORS
+from .smoothing import scale_space
 from .cloud import DeviceCloud
 from .device import devices, get_device, NoDeviceError
 from .program import BuildError, PrecisionError
 from .result import CurvatureResult
-from . import shapes
+from . import data, io, render, shapes
 
 __version__ = "0.1.0"
-__all__ = ["curvature", "normals", "project", "scale_space", "METHODS", "DeviceCloud", "devices", "get_device",
-           "NoDeviceError", "BuildError", "PrecisionError", "CurvatureResult", "shapes", "__version__"]
+__all__ = ["curvature", "normals", "project", "scale_space", "METHODS", "OPERATORS",
+           "DeviceCloud", "devices", "get_device", "NoDeviceError", "BuildError",
+           "PrecisionError", "CurvatureResult", "data", "io", "render", "shapes",
+           "__version__"]

@@ -7,66 +7,58 @@ import warnings
 import numpy as np
 
 from . import orient as _orient
-from .result import CurvatureResult, OK, TOO_FEW
+from .constants import TOO_FEW
+from .operators import METHODS, OPERATORS, PCA
+from .result import CurvatureResult
 from .validate import as_normals, as_points, as_radius, as_viewpoint, choice
 
-MOMENT_METHODS = ("variation", "mls0", "mls1")
-COVARIANCE_METHODS = ("2dcov1", "2dcov2", "3dcov")
-METHODS = MOMENT_METHODS + COVARIANCE_METHODS + ("mls2",)
 ORIENTS = ("auto", "mst", "viewpoint", "normals", None)
 MLS_KERNELS = ("ball", "gaussian")
 
 
-class _OpenCL:
-    """The kernels, on one DeviceCloud binned once for every pass of a call."""
+class _Run:
+    """Where a call's operators run: the kernels on one DeviceCloud binned once for every
+    pass of the call, or (backend='numpy') the float64 reference on the same points."""
 
-    def __init__(self, points, radius, device, precision):
-        from .cloud import DeviceCloud
-        self.cloud = DeviceCloud(points, radius, device=device, precision=precision)
-        self.radius = radius
+    def __init__(self, backend, points, radius, device, precision, cloud=None):
+        self.backend, self.points, self.radius = backend, points, radius
+        self.cloud = None
+        if backend == "opencl":
+            from .cloud import DeviceCloud
+            self.cloud = cloud if cloud is not None else DeviceCloud(
+                points, radius, device=device, precision=precision)
 
-    def moments(self, weights, refine, fields=None):
-        from .moments import device_moments
-        return device_moments(self.cloud, self.radius, weights=weights, refine=refine,
-                              fields=fields)
+    def operator(self, op, normals=None, weights="uniform", kernel="ball", h=None):
+        """The raw fields of ``op`` (a clcurv.operators.Operator); ``h`` defaults to r / 2
+        for ``kernel='gaussian'``."""
+        if self.cloud is None:
+            opts = {"kernel": kernel, "h": h} if "kernel" in op.options else {}
+            return op.reference(self.points, self.radius, normals, weights, **opts)
+        from .driver import run_kernel
+        if kernel == "gaussian" and h is None:
+            h = self.radius / 2
+        return run_kernel(op.kernel, self.cloud, self.radius, normals=normals, weights=weights,
+                          h=h if kernel == "gaussian" else None)
 
-    def covariances(self, normals, method, weights):
-        from .covariances import device_covariances
-        return device_covariances(self.cloud, self.radius, normals, method, weights=weights)
-
-    def mls2(self, normals, weights, kernel, h):
-        from .mls import device_mls2
-        return device_mls2(self.cloud, self.radius, normals, weights=weights, kernel=kernel, h=h)
-
-
-class _NumPy:
-    """The float64 reference (clcurv.reference), same interface as :class:`_OpenCL`."""
-
-    def __init__(self, points, radius):
-        from . import reference
-        self.ref, self.points, self.radius = reference, points, radius
-
-    def moments(self, weights, refine, fields=None):
-        return self.ref.moments(self.points, self.radius, weights=weights)
-
-    def covariances(self, normals, method, weights):
-        return self.ref.covariance_ops(self.points, self.radius, normals, method, weights=weights)
-
-    def mls2(self, normals, weights, kernel, h):
-        if normals is None:
-            raise ValueError("backend='numpy' MLS2 needs oriented normals (orient must not be None)")
-        out = self.ref.mls2(self.points, self.radius, normals, weights=weights, kernel=kernel, h=h)
-        out["shift"] = out.pop("points") - self.points
-        return out
-
-
-def _backend(backend, points, radius, device, precision):
-    if backend == "numpy":
-        return _NumPy(points, radius)
-    return _OpenCL(points, radius, device, precision)
+    def pca_normals(self, weights):
+        """Unoriented PCA normals (and count, status) only: the orientation pass."""
+        if self.cloud is None:
+            from . import reference
+            return reference.moments(self.points, self.radius, weights=weights)
+        from .driver import run_kernel
+        return run_kernel(PCA, self.cloud, self.radius, weights=weights, fields=("normals",),
+                          defines={"REFINE_L0": 0})
 
 
 DEFER_MIN = 100_000     # from this size, user normals are checked while the cloud is binned
+
+
+def _cloud_points(points):
+    """(points, DeviceCloud or None): a DeviceCloud is accepted for its points and binning."""
+    from .cloud import DeviceCloud
+    if isinstance(points, DeviceCloud):
+        return points.points, points
+    return points, None
 
 
 def _inputs(points, radius, weights, backend, orient, normals, viewpoint, unit=True,
@@ -116,48 +108,12 @@ def _flip(points, n, how, normals, viewpoint, k):
     return np.zeros(len(n), dtype=bool)
 
 
-def _warn_sparse(status, radius, need=3):
+def _warn_sparse(status, radius, need):
     few = np.count_nonzero(status == TOO_FEW)
     if few > len(status) // 2:
         warnings.warn(f"{few} of {len(status)} points have fewer than {need} neighbours within "
                       f"radius {radius}: their outputs are NaN; the radius is probably too small",
                       RuntimeWarning, stacklevel=3)
-
-
-def _f64(a):
-    return None if a is None else np.asarray(a, dtype=np.float64)
-
-
-def _empty(method, radius, weights):
-    z, z3 = np.empty(0), np.empty((0, 3))
-    res = CurvatureResult(method, radius, weights, np.empty(0, np.int64), np.empty(0, np.uint8),
-                          z3, z3.copy(), z.copy())
-    if method in ("mls0", "mls1", "mls2"):
-        res.mean, res.points = z.copy(), z3.copy()
-    if method in COVARIANCE_METHODS + ("mls2",):
-        res.k1, res.k2, res.dir1, res.dir2 = z.copy(), z.copy(), z3.copy(), z3.copy()
-        res.variation = None
-        res.eigenvalues = None if method == "mls2" else np.empty((0, 3 if method == "3dcov" else 2))
-    if method == "mls2":
-        res.gaussian = z.copy()
-    return res
-
-
-def _moment_result(method, r, weights, pts, raw, n, ref_normals):
-    status = raw["status"].astype(np.uint8)
-    res = CurvatureResult(method, r, weights, raw["count"].astype(np.int64), status, n,
-                          _f64(raw["eigenvalues"]), _f64(raw["variation"]))
-    shift = _f64(raw["shift"])
-    if method == "mls0":
-        nref = ref_normals if ref_normals is not None else n
-        res.mean = -4.0 * np.einsum("ij,ij->i", shift, nref) / (r * r)
-        res.mean[status != OK] = np.nan
-        res.points = pts + shift
-    elif method == "mls1":
-        along = np.einsum("ij,ij->i", shift, n)
-        res.mean = -4.0 * along / (r * r)
-        res.points = pts + along[:, None] * n
-    return res
 
 
 def _oriented(pts, raw, how, ref_normals, vp, k):
@@ -167,34 +123,57 @@ def _oriented(pts, raw, how, ref_normals, vp, k):
     return n
 
 
-def _operator_result(method, r, weights, pts, raw, n):
-    res = CurvatureResult(method, r, weights, raw["count"].astype(np.int64),
-                          raw["status"].astype(np.uint8), n, None, None)
-    res.k1, res.k2 = _f64(raw["k1"]), _f64(raw["k2"])
-    res.dir1, res.dir2 = _f64(raw["dir1"]), _f64(raw["dir2"])
-    if method == "mls2":
-        res.normals = _f64(raw["normals"])
-        res.points = np.add(pts, raw["shift"], out=raw["shift"])      # a fresh float64 array
-        res.mean = 0.5 * (res.k1 + res.k2)
-        res.gaussian = res.k1 * res.k2
-    else:
-        res.eigenvalues = _f64(raw["eigenvalues"])
-    return res
+def _result(op, r, weights, count, status, attrs):
+    """A CurvatureResult of ``op`` from its finished attributes (float64 arrays)."""
+    attrs = {k: (None if v is None else np.asarray(v, dtype=np.float64))
+             for k, v in attrs.items()}
+    return CurvatureResult(op.name, r, weights, np.asarray(count, dtype=np.int64),
+                           np.asarray(status, dtype=np.uint8), attrs.pop("normals"),
+                           attrs.pop("eigenvalues", None), attrs.pop("variation", None), **attrs)
+
+
+def _empty(op, r, weights):
+    attrs = {o.name: np.empty((0,) if o.width == 1 else (0, o.width)) for o in op.outputs}
+    return _result(op, r, weights, np.empty(0), np.empty(0), attrs)
+
+
+def _check_options(op, kernel, h, projections):
+    """The method-specific options: given to a method that ignores them, they raise."""
+    given = {"kernel": kernel is not None, "h": h is not None, "projections": projections != 0}
+    extra = [k for k, v in given.items() if v and k not in op.options]
+    if extra:
+        raise ValueError(f"{', '.join(extra)} {'is' if len(extra) == 1 else 'are'} not an "
+                         f"option of method={op.name!r} (only of "
+                         f"{', '.join(repr(m) for m, o in OPERATORS.items() if extra[0] in o.options)})")
+    kernel = choice("ball" if kernel is None else kernel, "kernel", MLS_KERNELS)
+    if h is not None:
+        if kernel != "gaussian":
+            raise ValueError("h is the width of kernel='gaussian'")
+        h = float(h)
+        if not (h > 0 and np.isfinite(h)):
+            raise ValueError(f"h must be a positive finite number, got {h}")
+    projections = int(projections)
+    if projections < 0:
+        raise ValueError(f"projections must be >= 0, got {projections}")
+    return kernel, h, projections
 
 
 def curvature(points, radius, *, method="mls1", weights="uniform", normals=None, orient="auto",
-              viewpoint=None, orient_k=10, kernel="ball", h=None, iterations=0, scale_space=0,
+              viewpoint=None, orient_k=10, kernel=None, h=None, projections=0, scale_space=0,
               device=None, precision="float", backend="opencl"):
     """Differential operators on the ball N_r(p) = {q : |q - p| < radius} of every point.
 
     Parameters
     ----------
-    points : (N, 3) array_like of real numbers
+    points : (N, 3) array_like of real numbers, or a DeviceCloud
         The raw cloud. Any finite coordinates; they are stored relative to their grid cell
-        (computed in float64), so georeferenced ones lose no precision.
+        (computed in float64), so georeferenced ones lose no precision. A
+        :class:`~clcurv.DeviceCloud` (binned once, cell >= radius) is reused as it is, so
+        several operators can run on one binning.
     radius : float
         Ball radius, in the points' length unit (about 30 neighbours is a good start).
     method : str
+        One of :data:`clcurv.METHODS` (the registry, :mod:`clcurv.operators`):
         'variation': surface variation l0/(l0+l1+l2) (Pauly et al.; Theorem 4 of Digne &
         Morel: r^2/16 ((k1^2+k2^2)/2 - k1 k2/3)), unsigned.
         'mls0': barycenter shift o - p; ``mean`` = H = 4 <p - o, n> / r^2 (Lemma 2) with n
@@ -219,15 +198,27 @@ def curvature(points, radius, *, method="mls1", weights="uniform", normals=None,
         else ``viewpoint`` when given, else 'mst': Hoppe's minimum-spanning-tree propagation
         over the ``orient_k``-nearest-neighbour graph with the outward choice at the point
         farthest from each component's centroid (closed shapes come out outward).
-        None keeps the PCA sign (arbitrary per point; not allowed for the 2dcov/3dcov methods,
-        which need consistent normals).
+        None keeps the PCA sign (arbitrary per point; not allowed for the 2dcov/3dcov methods
+        without ``normals``, since they need normals that agree within each ball).
     viewpoint : 3 floats, optional
         Scanner position: normals are turned towards it.
-    kernel : {'ball', 'gaussian'}
-        MLS2 weights: uniform in the ball, or exp(-|q - p|^2 / h^2) (h = radius/2 by default).
-    iterations : int
-        MLS2 only: project the cloud this many times by MLS2 first (neighbourhoods recomputed
-        each time, see :func:`project`), then evaluate; values refer to the input indices.
+    orient_k : int
+        Neighbours per point of the 'mst' propagation graph (default 10).
+    kernel : {'ball', 'gaussian'}, optional
+        MLS2 only: neighbour weights uniform in the ball (default), or
+        exp(-|q - p|^2 / h^2).
+    h : float, optional
+        MLS2 with ``kernel='gaussian'`` only: the Gaussian's width, in the points' unit
+        (default radius / 2).
+    projections : int
+        MLS2 only: project the cloud this many times by MLS2 first (neighbourhoods
+        recomputed each time, see :func:`project`), then evaluate; values refer to the
+        input indices. Default 0.
+    scale_space : int
+        Run this many MLS1 scale-space steps (:func:`clcurv.scale_space`) at ``radius``
+        first and evaluate the operator on the smoothed cloud: the paper's recommended
+        pipeline. ``points`` of the result are then the smoothed positions (or the
+        operator's projection of them). Default 0.
     device : None, int or str
         OpenCL device (see :func:`clcurv.devices`); default ``CLCURV_DEVICE`` or a GPU or PoCL.
     precision : {'float', 'double'}
@@ -239,8 +230,9 @@ def curvature(points, radius, *, method="mls1", weights="uniform", normals=None,
     -------
     CurvatureResult
         Arrays in input order. Sign convention: outward normals, sphere of radius R has
-        H = k1 = k2 = +1/R. Points with too few neighbours (status 1: < 3, or < 6 for MLS2),
-        a degenerate neighbourhood (2) or a singular fit (3) get NaN.
+        H = k1 = k2 = +1/R. Points with too few neighbours (status 1: fewer than the
+        method's minimum, 3, or 6 for MLS2), a degenerate neighbourhood (2) or a singular
+        fit (3) get NaN.
 
     Examples
     --------
@@ -250,53 +242,43 @@ def curvature(points, radius, *, method="mls1", weights="uniform", normals=None,
     >>> bool(abs(np.nanmedian(res.k2) - 0.5) < 0.01)
     True
     """
-    method = choice(method, "method", METHODS)
-    kernel = choice(kernel, "kernel", MLS_KERNELS)
-    # the normal-based operators and MLS0 use the normals' values; the others only their sign
-    unit = method in COVARIANCE_METHODS + ("mls0",)
+    op = OPERATORS[choice(method, "method", METHODS)]
+    kernel, h, projections = _check_options(op, kernel, h, projections)
+    points, cloud = _cloud_points(points)
     pts, r, ref_normals, vp, how = _inputs(points, radius, weights, backend, orient, normals,
-                                           viewpoint, unit, defer=True)
-    if method in COVARIANCE_METHODS and how is None and ref_normals is None:
+                                           viewpoint, unit=op.normals == "values", defer=True)
+    if op.kernel.reads_normals and op.normals == "values" and how is None and ref_normals is None:
         raise ValueError(f"{method} needs consistently oriented normals: pass normals= or an orient")
-    iterations = int(iterations)
-    if iterations < 0 or (iterations and method != "mls2"):
-        raise ValueError("iterations must be >= 0 and is for method='mls2' "
-                         "(use clcurv.scale_space for MLS1)")
     scale_space = int(scale_space)
     if scale_space < 0:
         raise ValueError(f"scale_space must be >= 0, got {scale_space}")
-    if len(pts) == 0 or scale_space or iterations:
+    if len(pts) == 0 or scale_space or projections:
         ref_normals = _resolved(ref_normals)
     if len(pts) == 0:
-        return _empty(method, r, weights)
+        return _empty(op, r, weights)
+    same = dict(method=method, weights=weights, viewpoint=vp, orient_k=orient_k, device=device,
+                precision=precision, backend=backend)
+    mls = dict(kernel=kernel if "kernel" in op.options else None, h=h)
     if scale_space:
-        from .scale_space import scale_space as _smooth
-        smoothed = _smooth(pts, r, scale_space, weights=weights, device=device,
-                           precision=precision, backend=backend)
-        res = curvature(smoothed, r, method=method, weights=weights, normals=ref_normals,
-                        orient=orient, viewpoint=vp, orient_k=orient_k, kernel=kernel, h=h,
-                        iterations=iterations, device=device, precision=precision, backend=backend)
+        from .smoothing import scale_space as smooth
+        smoothed = smooth(pts, r, scale_space, weights=weights, device=device,
+                          precision=precision, backend=backend)
+        res = curvature(smoothed, r, normals=ref_normals, orient=orient,
+                        projections=projections, **same, **mls)
         if res.points is None:
             res.points = smoothed
         res.info["scale_space"] = scale_space
         return res
-    if iterations:
-        moved = project(pts, r, iterations=iterations, weights=weights, normals=ref_normals,
+    if projections:
+        moved = project(pts, r, projections=projections, weights=weights, normals=ref_normals,
                         orient=orient, viewpoint=vp, orient_k=orient_k, kernel=kernel, h=h,
                         device=device, precision=precision, backend=backend)
-        res = curvature(moved, r, method=method, weights=weights, orient=orient if orient != "normals" else "mst",
-                        viewpoint=vp, orient_k=orient_k, kernel=kernel, h=h, device=device,
-                        precision=precision, backend=backend)
-        res.info["iterations"] = iterations
+        res = curvature(moved, r, orient=orient if orient != "normals" else "mst", **same, **mls)
+        res.info["projections"] = projections
         return res
-    be = _backend(backend, pts, r, device, precision)      # bins while the normals are checked
+    run = _Run(backend, pts, r, device, precision, cloud)   # bins while the normals are checked
     ref_normals = _resolved(ref_normals)
-    if method in MOMENT_METHODS:
-        raw = be.moments(weights, refine=True)
-        n = _oriented(pts, raw, how, ref_normals, vp, orient_k)
-        _warn_sparse(raw["status"], r)
-        res = _moment_result(method, r, weights, pts, raw, n, ref_normals)
-    else:
+    if op.kernel.reads_normals:
         # the normal-based operators and MLS2 need only oriented normals: with the user's
         # normals no PCA pass is run at all
         if ref_normals is not None:
@@ -304,38 +286,40 @@ def curvature(points, radius, *, method="mls1", weights="uniform", normals=None,
         elif how is None:
             use = None                      # MLS2 with the solver's sign for v0
         else:
-            use = _oriented(pts, be.moments(weights, refine=False, fields=("normals",)), how,
-                            None, vp, orient_k)
-        if method in COVARIANCE_METHODS:
-            op = be.covariances(use, method, weights)
-        else:
-            op = be.mls2(use, weights, kernel, h)
-        _warn_sparse(op["status"], r, need=6 if method == "mls2" else 3)
-        res = _operator_result(method, r, weights, pts, op, use)
+            use = _oriented(pts, run.pca_normals(weights), how, None, vp, orient_k)
+        raw = run.operator(op, use, weights, kernel, h)
+    else:
+        raw = run.operator(op, weights=weights)
+        use = _oriented(pts, raw, how, ref_normals, vp, orient_k)
+    _warn_sparse(raw["status"], r, op.min_count)
+    res = _result(op, r, weights, raw["count"], raw["status"],
+                  op.finish(raw, pts, r, use, ref_normals))
     res.info["orientation"] = how
     return res
 
 
-def project(points, radius, *, iterations=1, method="mls2", weights="uniform", normals=None,
-            orient="auto", viewpoint=None, orient_k=10, kernel="ball", h=None, device=None,
+def project(points, radius, *, projections=1, method="mls2", weights="uniform", normals=None,
+            orient="auto", viewpoint=None, orient_k=10, kernel=None, h=None, device=None,
             precision="float", backend="opencl"):
     """Iterated MLS2 projection: every point is replaced by its MLS2 projection, all together,
-    ``iterations`` times, neighbourhoods recomputed on the moved cloud each time.
+    ``projections`` times, neighbourhoods recomputed on the moved cloud each time.
 
-    The fit's normals are oriented at the first iteration as ``orient`` says and then
-    propagated: each iteration's PCA normals are oriented to agree with the previous
-    iteration's fitted normals. Points whose fit fails (status != 0) stay where they are for
-    that iteration. Returns the moved (N, 3) float64 points in input order. Iterated MLS2 is
-    not a scale space (Digne & Morel): use :func:`clcurv.scale_space` (MLS1) to smooth.
+    The other parameters are those of :func:`curvature`. The fit's normals are oriented at
+    the first projection as ``orient`` says and then propagated: each projection's PCA
+    normals are oriented to agree with the previous one's fitted normals. Points whose fit
+    fails (status != 0) stay where they are for that projection. Returns the moved (N, 3)
+    float64 points in input order. Iterated MLS2 is not a scale space (Digne & Morel): use
+    :func:`clcurv.scale_space` (MLS1) to smooth.
     """
     choice(method, "method", ("mls2",))
+    points, _ = _cloud_points(points)
     pts = as_points(points).copy()
-    iterations = int(iterations)
-    if iterations < 0:
-        raise ValueError(f"iterations must be >= 0, got {iterations}")
+    projections = int(projections)
+    if projections < 0:
+        raise ValueError(f"projections must be >= 0, got {projections}")
     ref = as_normals(normals, len(pts), unit=False) if normals is not None else None
     how = orient
-    for _ in range(iterations):
+    for _ in range(projections):
         if len(pts) == 0:
             break
         res = curvature(pts, radius, method="mls2", weights=weights, normals=ref, orient=how,
@@ -354,17 +338,15 @@ def normals(points, radius, *, weights="uniform", normals=None, orient="auto", v
             orient_k=10, device=None, precision="float", backend="opencl"):
     """Unit PCA normals (eigenvector of the smallest covariance eigenvalue of N_r(p)).
 
-    Same parameters as :func:`curvature`. Returns an (N, 3) float64 array in input order,
-    oriented as ``orient`` says (outward by default on closed shapes), NaN where fewer than
-    3 neighbours or a degenerate neighbourhood.
+    Same parameters as :func:`curvature` (``points`` may be a DeviceCloud). Returns an
+    (N, 3) float64 array in input order, oriented as ``orient`` says (outward by default
+    on closed shapes), NaN where fewer than 3 neighbours or a degenerate neighbourhood.
     """
+    points, cloud = _cloud_points(points)
     pts, r, ref_normals, vp, how = _inputs(points, radius, weights, backend, orient, normals,
                                            viewpoint, unit=False)     # they only orient
     if len(pts) == 0:
         return np.empty((0, 3))
-    raw = _backend(backend, pts, r, device, precision).moments(weights, refine=False,
-                                                               fields=("normals",))
-    n = np.array(raw["normals"], dtype=np.float64, copy=None)   # the backends' arrays are fresh
-    _warn_sparse(raw["status"], r)
-    n[_flip(pts, n, how, ref_normals, vp, orient_k)] *= -1
-    return n
+    raw = _Run(backend, pts, r, device, precision, cloud).pca_normals(weights)
+    _warn_sparse(raw["status"], r, PCA.min_count)
+    return _oriented(pts, raw, how, ref_normals, vp, orient_k)

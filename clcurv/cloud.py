@@ -10,8 +10,9 @@ import time
 
 import numpy as np
 
+from .constants import PAD, RECORD_WIDTH as RECORD
 from .device import get_device
-from .grid import PAD, bin_points
+from .grid import bin_points
 from .program import build, launch, precision_defines
 from .validate import as_points, as_radius
 
@@ -34,11 +35,15 @@ class DeviceCloud:
         See :func:`clcurv.device.get_device`.
     precision : {'float', 'double'}
         Device arithmetic; 'double' needs cl_khr_fp64.
+
+    A DeviceCloud can be passed to :func:`clcurv.curvature` and :func:`clcurv.normals` in
+    place of the points: the cloud is then binned once for several operators (at any radius
+    <= ``cell``), on its own device and precision. ``points`` keeps the float64 input.
     """
 
     def __init__(self, points, cell, *, device=None, precision="float"):
         import pyopencl as cl
-        points = as_points(points)
+        self.points = points = as_points(points)
         self.cell = as_radius(cell)
         self.device = get_device(device)
         self.defines = precision_defines(self.device, precision)
@@ -109,9 +114,6 @@ class DeviceCloud:
         make = ct.make_double2 if self.dtype == np.float64 else ct.make_float2
         return make(radius * radius, self.cell)
 
-    def empty(self, shape, dtype=None):
-        return np.empty(shape, dtype=dtype or self.dtype)
-
 
 def upload_sorted(cloud, values):
     """Upload per-point ``values`` (N, 3), input order, as three padded SoA buffers in the
@@ -122,13 +124,10 @@ def upload_sorted(cloud, values):
     src = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=rows)
     size = (cloud.n + PAD) * np.dtype(cloud.dtype).itemsize
     out = [cl.Buffer(ctx, mf.READ_WRITE, size=size) for _ in range(3)]
-    prg = build(cloud.device, "records.cl", cloud.defines)
+    prg = build(cloud.device, "gather.cl", cloud.defines)
     launch(cloud.device, prg.gather_sorted, cloud.n + PAD, src, cloud.order, np.uint32(cloud.n),
            *out)
     return out
-
-
-RECORD = 16      # REALs per point of a kernel's output record (kernels/common.h RECORD_WIDTH)
 
 
 def record_buffer(cloud):
@@ -165,8 +164,8 @@ def fetch_records(cloud, rec, layout, mapped=None):
     real = [(k, v) for k, v in layout.items() if k not in ("count", "status")]
     if len(real) > 6:
         raise ValueError("split_records takes at most 6 real fields")
-    defines = dict(cloud.defines, NF=len(real), COUNT_COL=layout["count"],
-                   STATUS_COL=layout["status"])
+    defines = dict(cloud.defines, NF=len(real), COL_COUNT=layout["count"],
+                   COL_STATUS=layout["status"])
     spans = []
     for k, (name, col) in enumerate(real):
         a, b = (col, col + 1) if isinstance(col, int) else (col.start, col.stop)

@@ -27,10 +27,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-PAD = 16          # padding of the coordinate arrays: the widest vector load reads past the end
+from .constants import CELL_BITS, CELL_MASK, PAD   # noqa: F401 (CELL_BITS: grid users)
+
 MAX_KEY = 2 ** 62
-CELL_BITS = 30    # cell_of = alignment << CELL_BITS | occupied-cell id (kernels/neighbors.h)
-CELL_MASK = (1 << CELL_BITS) - 1
 
 
 @dataclass

@@ -1,13 +1,16 @@
 """Load the OpenCL sources in ``kernels/`` and build them once per (context, file, options).
 
-Programs are built with ``-I <kernels dir>`` so that ``#include "common.h"`` works, and
-with ``-D`` options for precision and vector width. Built programs are kept in memory;
-a failed build raises :class:`BuildError` carrying the compiler log.
+Programs are built with ``-I <kernels dir>`` so that ``#include "common.h"`` works, with
+the host's constants (:func:`clcurv.constants.kernel_defines`) and ``-D`` options for
+precision, vector width and the operator's own defines. Built programs are memoised per
+(context, file, options); a failed build raises :class:`BuildError` carrying the log.
 """
 from __future__ import annotations
 
 import threading
 from pathlib import Path
+
+from .constants import kernel_defines
 
 
 class BuildError(RuntimeError):
@@ -63,7 +66,7 @@ def build(device, filename, defines=None):
     (kernel arguments are per kernel object); building is.
     """
     import pyopencl as cl
-    defines = dict(defines or {})
+    defines = dict(kernel_defines(), **(defines or {}))
     key = (device.context.int_ptr, filename, tuple(sorted(defines.items())))
     with _lock:
         prg = _cache.get(key)

@@ -5,13 +5,7 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
-# Per-point status codes (mirrored in kernels/common.h).
-OK = 0
-TOO_FEW = 1        # fewer neighbours than the operator needs (3 for PCA, 6 for MLS2)
-DEGENERATE = 2     # covariance of rank < 2: collinear or coincident neighbours
-SINGULAR = 3       # a least-squares system could not be solved
-STATUS_NAMES = {OK: "ok", TOO_FEW: "too few neighbours", DEGENERATE: "degenerate neighbourhood",
-                SINGULAR: "singular fit"}
+from .constants import DEGENERATE, OK, SINGULAR, TOO_FEW   # noqa: F401 (the status codes)
 
 
 @dataclass
@@ -29,10 +23,17 @@ class CurvatureResult:
     method, radius, weights : the call's parameters.
     count : (N,) int64, #N_r(p), the point itself included.
     status : (N,) uint8, 0 ok, 1 too few neighbours, 2 degenerate, 3 singular fit.
-    normals : (N, 3) float64 unit PCA normals (or fitted normals for MLS2).
-    eigenvalues : (N, 3) float64, ascending, of the weighted covariance of N_r(p)
-        (area^2 units, count-normalised).
-    variation : (N,) float64, surface variation l0 / (l0 + l1 + l2), in [0, 1/3].
+    normals : (N, 3) float64 unit normals: the PCA normals ('variation', 'mls0', 'mls1'),
+        the normals the operator used (covariance methods), the fitted normals (MLS2).
+    eigenvalues : float64 or None, per method (clcurv.operators lists them):
+        'variation', 'mls0', 'mls1': (N, 3), ascending l0 <= l1 <= l2, of the weighted PCA
+        covariance sum w (q - o)(q - o)^T / sum w (length^2);
+        '2dcov1': (N, 2), descending, of the count-normalised covariance of
+        <d, n>(<d, t1>, <d, t2>) (length^4); '2dcov2': (N, 2), descending, of the tangent
+        projections of the neighbours' unit normals (unitless); '3dcov': (N, 3),
+        descending, of the neighbours' unit normals (unitless); 'mls2': None.
+    variation : (N,) float64 or None, surface variation l0 / (l0 + l1 + l2), in [0, 1/3]
+        (the PCA methods).
     mean : (N,) float64 or None, signed mean curvature H (1/length).
     points : (N, 3) float64 or None, the projected positions (MLS0 barycenter, MLS1 point
         projected on the regression plane, MLS2 projection).
@@ -40,10 +41,6 @@ class CurvatureResult:
         MLS2, magnitudes (>= 0) for 2dcov1, 2dcov2 and 3dcov.
     dir1, dir2 : (N, 3) float64 or None, unit principal directions (tangent, orthogonal).
     gaussian : (N,) float64 or None, Gaussian curvature K = k1 k2 (1/length^2), MLS2.
-
-    For the covariance methods ``eigenvalues`` are those of the operator's covariance
-    (descending, count-normalised); for the PCA methods those of the PCA covariance
-    (ascending); MLS2 has none. ``variation`` is given by the PCA methods only.
     """
     method: str
     radius: float

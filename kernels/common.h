@@ -3,15 +3,18 @@
  * Build options (set by clcurv/program.py, never by editing a kernel):
  *   -D REAL_IS_DOUBLE=0|1   scalar type REAL = float or double (double needs cl_khr_fp64)
  *   -D VW=2|4|8|16          width of the explicit vectors used in neighbour loops
+ * and the host's constants, defined once in clcurv/constants.py (kernel_defines): PAD,
+ * RECORD_WIDTH, CELL_BITS, CELL_MASK, the status codes ST_* and the minimum neighbour
+ * counts MIN_COUNT_PCA, MIN_COUNT_MLS2. No kernel defines or defaults any of them.
  */
 #ifndef CLCURV_COMMON_H
 #define CLCURV_COMMON_H
 
-#ifndef REAL_IS_DOUBLE
-#define REAL_IS_DOUBLE 0
-#endif
-#ifndef VW
-#define VW 8
+#if !defined(REAL_IS_DOUBLE) || !defined(VW) || !defined(PAD) || !defined(RECORD_WIDTH) \
+    || !defined(CELL_BITS) || !defined(CELL_MASK) || !defined(ST_OK) || !defined(ST_TOO_FEW) \
+    || !defined(ST_DEGENERATE) || !defined(ST_SINGULAR) || !defined(MIN_COUNT_PCA) \
+    || !defined(MIN_COUNT_MLS2)
+#error "clcurv kernels take their constants from the host: build them with clcurv.program.build"
 #endif
 
 #define CAT_(a, b) a##b
@@ -21,13 +24,9 @@
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #define REAL double
 #define IREAL long             /* integer type of a REAL comparison result */
-#define REAL_EPS DBL_EPSILON
-#define REAL_MAX DBL_MAX
 #else
 #define REAL float
 #define IREAL int
-#define REAL_EPS FLT_EPSILON
-#define REAL_MAX FLT_MAX
 #endif
 
 #define REAL2 CAT(REAL, 2)
@@ -37,14 +36,13 @@
 #define IREALV CAT(IREAL, VW)   /* VW lanes of comparison masks */
 #define VLOADV CAT(vload, VW)
 
-/* Per-point output records: RECORD_WIDTH REALs per point (the field layout is the kernel's,
- * mirrored in its host module), written with one vector store at the point's input index:
- * one cache line per point in float32, where a scattered store per output array costs a
- * cache miss each. records.cl:split_records turns them into per-field arrays. Integer
- * fields keep their bits (UINT_AS_REAL). */
-#define RECORD_WIDTH 16
-#define PAD 16                   /* zero padding of each per-point array (grid.py PAD) */
-#define REAL16 CAT(REAL, 16)
+/* Per-point output records: RECORD_WIDTH REALs per point, written with one vector store at
+ * the point's input index: one cache line per point in float32, where a scattered store per
+ * output array costs a cache miss each. records.cl:split_records turns them into per-field
+ * arrays. The columns are the operator's (clcurv/operators.py), given as -D COL_<FIELD>
+ * options; integer fields keep their bits (UINT_AS_REAL). A record is a private array:
+ *   REAL rec[RECORD_WIDTH]; record_clear(rec); REC_SET3(rec, COL_NORMALS, v0); ...
+ *   REC_STORE(rec, j, out); */
 #if REAL_IS_DOUBLE
 #define UINT_AS_REAL(u) as_double((ulong)(u))
 #define REAL_AS_UINT(x) ((uint)as_ulong(x))
@@ -52,12 +50,29 @@
 #define UINT_AS_REAL(u) as_float((uint)(u))
 #define REAL_AS_UINT(x) as_uint(x)
 #endif
-#define STORE_RECORD(rec, j, out) vstore16((rec), (j), (out))
+#if RECORD_WIDTH != 16
+#error "records are stored with vstore16"
+#endif
+inline void record_clear(REAL *rec)
+{
+    for (int c = 0; c < RECORD_WIDTH; ++c) rec[c] = NAN;
+}
+#define REC_SET2(rec, col, v) { (rec)[(col)] = (v).x; (rec)[(col) + 1] = (v).y; }
+#define REC_SET3(rec, col, v) { (rec)[(col)] = (v).x; (rec)[(col) + 1] = (v).y; (rec)[(col) + 2] = (v).z; }
+/* count and status, the two columns every record has */
+#define REC_COUNT_STATUS(rec, count, status) \
+    { (rec)[COL_COUNT] = UINT_AS_REAL(count); (rec)[COL_STATUS] = (REAL)(status); }
+#define REC_STORE(rec, j, out) vstore16(vload16(0, (rec)), (j), (out))
 
-/* Per-point status codes (mirrored in clcurv/result.py). */
-#define ST_OK 0
-#define ST_TOO_FEW 1      /* fewer neighbours than the operator needs */
-#define ST_DEGENERATE 2   /* covariance of rank < 2 (collinear or coincident points) */
-#define ST_SINGULAR 3     /* a least-squares system could not be solved */
+/* The arguments of every operator kernel, in the order clcurv/driver.py passes them: the
+ * sorted coordinates (neighbors.h), the sorted reference normals NX, NY, NZ (unused by the
+ * moments), the density weights W (read when DENSITY), the grid, order (sorted -> input
+ * index), the ball (r^2, cell), par = (r, 1 / h^2, 0, 0) and the records. */
+#define OPERATOR_ARGS                                                                  \
+    __global const REAL *X, __global const REAL *Y, __global const REAL *Z,            \
+    __global const REAL *NX, __global const REAL *NY, __global const REAL *NZ,         \
+    __global const REAL *W, __global const uint *cell_of, __global const uint2 *ranges, \
+    __global const uint *order, const uint n, const REAL2 ball, const REAL4 par,       \
+    __global REAL *out
 
 #endif

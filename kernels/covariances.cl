@@ -11,6 +11,9 @@
  * Outputs per point (one record, input order): count, status, eigenvalues (descending; 2
  * or 3), the curvature magnitudes k1 >= k2 >= 0 (1/length) and the unit tangent directions
  * dir1, dir2 (dir2 = n x dir1). A NaN normal anywhere in the ball gives status DEGENERATE.
+ * Build options: COV_METHOD, DENSITY, MIN_COUNT and the record columns COL_EIGENVALUES (2,
+ * or 3 for 3dcov), COL_K1, COL_K2, COL_DIR1 (3), COL_DIR2 (3), COL_COUNT, COL_STATUS
+ * (clcurv/operators.py).
  */
 #include "common.h"
 #include "neighbors.h"
@@ -18,8 +21,10 @@
 #include "frame.h"
 #include "eig3.h"
 
-#ifndef COV_METHOD
-#define COV_METHOD 2
+#if !defined(COV_METHOD) || !defined(MIN_COUNT) || !defined(COL_EIGENVALUES) \
+    || !defined(COL_K1) || !defined(COL_K2) || !defined(COL_DIR1) || !defined(COL_DIR2) \
+    || !defined(COL_COUNT) || !defined(COL_STATUS)
+#error "covariances.cl needs COV_METHOD, MIN_COUNT and its record columns (clcurv/operators.py)"
 #endif
 
 /* |k1| >= |k2| from 2dcov1's count-normalised eigenvalues (Theorem 1), keeping the root
@@ -105,38 +110,34 @@ inline void cov_finish(uint count, int finite, REAL a, REAL b, REAL c, REAL3 nrm
     /* a NaN normal in the ball makes the sums NaN (fmax above would hide it in lam) */
     finite = finite && isfinite(nrm.x) && isfinite(nrm.y) && isfinite(nrm.z) && isfinite(e1.x);
     uchar st = ST_OK;
-    if (count < 3) st = ST_TOO_FEW;
+    if (count < MIN_COUNT) st = ST_TOO_FEW;
     else if (!finite) st = ST_DEGENERATE;
-    /* record: eigenvalues (descending; the 2D methods leave the third NaN) | k1 k2 | dir1 xyz |
-       dir2 xyz | count | status */
-    REAL16 rec = (REAL16)(NAN);
+    /* record: eigenvalues (descending; 2, or 3 for 3dcov) | k1 k2 | dir1 | dir2 | count |
+       status */
+    REAL rec[RECORD_WIDTH];
+    record_clear(rec);
     if (st == ST_OK) {
 #if COV_METHOD == 3
-        rec.s012 = lam;
+        REC_SET3(rec, COL_EIGENVALUES, lam);
 #else
-        rec.s01 = lam.xy;
+        REC_SET2(rec, COL_EIGENVALUES, lam);
 #endif
-        rec.s34 = k;
-        rec.s567 = e1;
-        rec.s89a = cross(nrm, e1);
+        rec[COL_K1] = k.x;
+        rec[COL_K2] = k.y;
+        REC_SET3(rec, COL_DIR1, e1);
+        REC_SET3(rec, COL_DIR2, cross(nrm, e1));
     }
-    rec.sb = UINT_AS_REAL(count);
-    rec.sc = (REAL)st;
-    STORE_RECORD(rec, j, out);
+    REC_COUNT_STATUS(rec, count, st);
+    REC_STORE(rec, j, out);
 }
 
 #define VSTOREV CAT(vstore, VW)
 
 /* One work-item per VW consecutive sorted points (global size >= ceil(n / VW)); 3dcov's VW
  * eigen decompositions run at once in the vector lanes (eig3_sym_v). */
-__kernel void covariance(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
-                         __global const REAL *NX, __global const REAL *NY,
-                         __global const REAL *NZ, __global const REAL *W,
-                         __global const uint *cell_of, __global const uint2 *ranges,
-                         __global const uint *order, const uint n, const REAL r,
-                         const REAL2 ball,
-                         __global REAL *out)
+__kernel void covariance(OPERATOR_ARGS)
 {
+    const REAL r = par.x;
     const uint g0 = get_global_id(0) * VW;
     if (g0 >= n) return;
     const uint kn = min((uint)VW, n - g0);

@@ -11,6 +11,9 @@
  *
  * Outputs (one record per point, input order): count, status, shift = projection - p, k1 k2,
  * dir1, dir2 (= normal x dir1), the fitted unit normal.
+ * Build options: REF_NORMALS (0|1: NX, NY, NZ orient v0), DENSITY, GAUSSIAN (par.y = 1 / h^2),
+ * MIN_COUNT and the record columns COL_SHIFT (3), COL_K1, COL_K2, COL_DIR1 (3), COL_DIR2 (3),
+ * COL_NORMALS (3), COL_COUNT, COL_STATUS (clcurv/operators.py).
  */
 #include "common.h"
 #include "neighbors.h"
@@ -18,6 +21,12 @@
 #include "pca.h"
 #include "frame.h"
 #include "solve6.h"
+
+#if !defined(REF_NORMALS) || !defined(MIN_COUNT) || !defined(COL_SHIFT) || !defined(COL_K1) \
+    || !defined(COL_K2) || !defined(COL_DIR1) || !defined(COL_DIR2) || !defined(COL_NORMALS) \
+    || !defined(COL_COUNT) || !defined(COL_STATUS)
+#error "mls2.cl needs REF_NORMALS, MIN_COUNT and its record columns (clcurv/operators.py)"
+#endif
 
 /* Unit eigenvectors (ex, ey) (in the parameter plane) of the VW 2x2 matrices s for their
  * eigenvalues lam; (1, 0) where the matrix is a multiple of the identity. */
@@ -49,15 +58,15 @@ inline uchar mls2_system(__global const REAL *X, __global const REAL *Y, __globa
                          __global const REAL *NX, __global const REAL *NY,
                          __global const REAL *NZ, __global const REAL *W,
                          __global const uint2 *ranges, uint cell, uint g, const pca_batch_t *pb,
-                         uint k, REAL r, REAL ih2, REAL2 ball, int use_ref, REAL fr[12][VW],
+                         uint k, REAL r, REAL ih2, REAL2 ball, REAL fr[12][VW],
                          REAL M[21][VW], REAL b[6][VW])
 {
     const REAL3 p = (REAL3)(X[g], Y[g], Z[g]);
     const REAL ir = (REAL)1 / r;
     REAL3 v0 = (REAL3)(pb->v0x[k], pb->v0y[k], pb->v0z[k]);
     const REAL3 mu = (REAL3)(pb->mux[k], pb->muy[k], pb->muz[k]);
-    uchar st = pca_status(pb, k, 6);
-    if (use_ref) {
+    uchar st = pca_status(pb, k, MIN_COUNT);
+    if (REF_NORMALS) {
         const REAL s = dot(v0, (REAL3)(NX[g], NY[g], NZ[g]));
         if (!(s != 0)) st = st == ST_OK ? ST_DEGENERATE : st;   /* also NaN */
         if (s < 0) v0 = -v0;
@@ -165,13 +174,9 @@ inline void mls2_finish_v(const REALV a[6], REAL fr[12][VW], REAL r, REAL o[14][
 /* One work-item per VW consecutive sorted points (global size >= ceil(n / VW)): PCA of the
  * VW balls with one vectorised eigen solve, then each point's normal equations, then the VW
  * 6x6 systems solved at once in the vector lanes, then the per-point curvatures. */
-__kernel void mls2(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
-                   __global const REAL *NX, __global const REAL *NY, __global const REAL *NZ,
-                   __global const REAL *W, __global const uint *cell_of,
-                   __global const uint2 *ranges, __global const uint *order, const uint n,
-                   const REAL r, const REAL2 ball, const REAL ih2, const int use_ref,
-                   __global REAL *out)
+__kernel void mls2(OPERATOR_ARGS)
 {
+    const REAL r = par.x, ih2 = par.y;
     const uint g0 = get_global_id(0) * VW;
     if (g0 >= n) return;
     const uint kn = min((uint)VW, n - g0);
@@ -184,7 +189,7 @@ __kernel void mls2(__global const REAL *X, __global const REAL *Y, __global cons
             const uint g = g0 + k;
             const uint co = cell_of[g];
             st[k] = mls2_system(x_rows(X, co, n), Y, Z, NX, NY, NZ, W, ranges, co & CELL_MASK, g,
-                                &pb, k, r, ih2, ball, use_ref, fr, Ml, bl);
+                                &pb, k, r, ih2, ball, fr, Ml, bl);
         } else {
             identity_system(Ml, bl, k);
             for (int e = 0; e < 12; ++e) fr[e][k] = (REAL)(e == 0 || e == 4 || e == 8);
@@ -198,18 +203,20 @@ __kernel void mls2(__global const REAL *X, __global const REAL *Y, __global cons
     CAT(vstore, VW)(ok, 0, okl);
     REAL o[14][VW];
     mls2_finish_v(xv, fr, r, o);
-    /* the records: shift xyz | k1 k2 | dir1 xyz | dir2 xyz | normal xyz | count | status */
+    /* the records: shift | k1 k2 | dir1 | dir2 | normal | count | status */
     for (uint k = 0; k < kn; ++k) {
         const uchar s = (st[k] == ST_OK && !okl[k]) ? ST_SINGULAR : st[k];
-        REAL16 rec = (REAL16)(NAN);
+        REAL rec[RECORD_WIDTH];
+        record_clear(rec);
         if (s == ST_OK) {
-            rec.s0123 = (REAL4)(o[0][k], o[1][k], o[2][k], o[3][k]);
-            rec.s4567 = (REAL4)(o[4][k], o[5][k], o[6][k], o[7][k]);
-            rec.s89ab = (REAL4)(o[8][k], o[9][k], o[10][k], o[11][k]);
-            rec.scd = (REAL2)(o[12][k], o[13][k]);
+            REC_SET3(rec, COL_SHIFT, (REAL3)(o[0][k], o[1][k], o[2][k]));
+            rec[COL_K1] = o[3][k];
+            rec[COL_K2] = o[4][k];
+            REC_SET3(rec, COL_DIR1, (REAL3)(o[5][k], o[6][k], o[7][k]));
+            REC_SET3(rec, COL_DIR2, (REAL3)(o[8][k], o[9][k], o[10][k]));
+            REC_SET3(rec, COL_NORMALS, (REAL3)(o[11][k], o[12][k], o[13][k]));
         }
-        rec.se = UINT_AS_REAL(pb.count[k]);
-        rec.sf = (REAL)s;
-        STORE_RECORD(rec, order[g0 + k], out);
+        REC_COUNT_STATUS(rec, pb.count[k], s);
+        REC_STORE(rec, order[g0 + k], out);
     }
 }

@@ -1,44 +1,26 @@
-/* moments.cl -- neighbour counts and the PCA moments of the ball N_r(p) around each point.
+/* moments.cl -- the PCA moments of the ball N_r(p) around each point (surface variation,
+ * MLS0, MLS1 and clcurv.normals).
  *
- * count_neighbors: one work-item per sorted point; moments: one work-item per VW
- * consecutive sorted points (see there). Offsets are taken relative to the query point p,
- * so the sums are small numbers and large coordinates do not matter. Outputs are one
- * record per point at its input index (common.h).
+ * One work-item per VW consecutive sorted points (see there). Offsets are taken relative to
+ * the query point p, so the sums are small numbers and large coordinates do not matter.
+ * Outputs are one record per point at its input index (common.h).
  *
  * Build options: DENSITY (0|1) weights w(q) = 1/#N_r(q) read from W;
  *                REFINE_L0 (0|1) second pass giving lambda0 = sum w <q - o, v0>^2 / sum w
- *                directly (float32 otherwise loses ~2 digits of lambda0 on smooth surfaces).
+ *                directly (float32 otherwise loses ~2 digits of lambda0 on smooth surfaces);
+ *                MIN_COUNT and the record columns COL_NORMALS (3), COL_EIGENVALUES (3),
+ *                COL_VARIATION, COL_SHIFT (3), COL_COUNT, COL_STATUS (clcurv/operators.py).
  */
 #include "common.h"
 #include "neighbors.h"
 #include "weights.h"
 #include "pca.h"
 
-#ifndef REFINE_L0
-#define REFINE_L0 1
+#if !defined(REFINE_L0) || !defined(MIN_COUNT) || !defined(COL_NORMALS) \
+    || !defined(COL_EIGENVALUES) || !defined(COL_VARIATION) || !defined(COL_SHIFT) \
+    || !defined(COL_COUNT) || !defined(COL_STATUS)
+#error "moments.cl needs REFINE_L0, MIN_COUNT and its record columns (clcurv/operators.py)"
 #endif
-
-/* #N_r(p) for every sorted point, and the density weight 1 / #N_r(p). */
-__kernel void count_neighbors(__global const REAL *X, __global const REAL *Y,
-                              __global const REAL *Z, __global const uint *cell_of,
-                              __global const uint2 *ranges, const uint n, const REAL2 ball,
-                              __global uint *count, __global REAL *weight)
-{
-    const uint g = get_global_id(0);
-    if (g >= n) return;
-    const uint co = cell_of[g];
-    __global const REAL *XA = x_rows(X, co, n);
-    const REAL3 p = (REAL3)(XA[g], Y[g], Z[g]);
-    REALV cnt = 0;
-    REALV dx, dy, dz;
-    NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, ball, i, end, pr)
-        const IREALV m = chunk_offsets(XA, Y, Z, i, end, pr, ball, &dx, &dy, &dz);
-        cnt += select((REALV)0, (REALV)1, m);
-    NEIGHBOR_CHUNKS_END
-    const uint c = (uint)hsum(cnt);
-    count[g] = c;
-    weight[g] = (REAL)1 / (REAL)c;
-}
 
 /* Per point: count, PCA normal v0 (unoriented), ascending eigenvalues of the weighted
  * covariance, surface variation l0/(l0+l1+l2), barycenter shift o - p, status.
@@ -48,11 +30,7 @@ __kernel void count_neighbors(__global const REAL *X, __global const REAL *Y,
  * covariances are decomposed at once by eig3_sym_v (one per vector lane: a scalar
  * eig3_sym per point cost more than all the neighbour loops together), then the lambda0
  * refinement and the stores run per point again. */
-__kernel void moments(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
-                      __global const REAL *W, __global const uint *cell_of,
-                      __global const uint2 *ranges, __global const uint *order,
-                      const uint n, const REAL2 ball,
-                      __global REAL *out)
+__kernel void moments(OPERATOR_ARGS)
 {
     const uint g0 = get_global_id(0) * VW;
     if (g0 >= n) return;
@@ -69,7 +47,7 @@ __kernel void moments(__global const REAL *X, __global const REAL *Y, __global c
         REAL3 lam = (REAL3)(pb.l0[k], pb.l1[k], pb.l2[k]);
         const REAL3 v0 = (REAL3)(pb.v0x[k], pb.v0y[k], pb.v0z[k]);
         const REAL3 mu = (REAL3)(pb.mux[k], pb.muy[k], pb.muz[k]);
-        const uchar st = pca_status(&pb, k, 3);
+        const uchar st = pca_status(&pb, k, MIN_COUNT);
 #if REFINE_L0
         if (st == ST_OK) {
             const uint co = cell_of[g];
@@ -93,16 +71,16 @@ __kernel void moments(__global const REAL *X, __global const REAL *Y, __global c
             lam.x = hsum(s0) * pb.iw[k];
         }
 #endif
-        /* record: normal xyz | eigenvalues (ascending) | variation | shift xyz | count | status */
-        REAL16 rec = (REAL16)(NAN);
+        /* record: normal | eigenvalues (ascending) | variation | shift o - p | count | status */
+        REAL rec[RECORD_WIDTH];
+        record_clear(rec);
         if (st == ST_OK) {
-            rec.s012 = v0;
-            rec.s345 = lam;
-            rec.s6 = lam.x / (lam.x + lam.y + lam.z);
-            rec.s789 = mu;
+            REC_SET3(rec, COL_NORMALS, v0);
+            REC_SET3(rec, COL_EIGENVALUES, lam);
+            rec[COL_VARIATION] = lam.x / (lam.x + lam.y + lam.z);
+            REC_SET3(rec, COL_SHIFT, mu);
         }
-        rec.sa = UINT_AS_REAL(c);
-        rec.sb = (REAL)st;
-        STORE_RECORD(rec, order[g], out);
+        REC_COUNT_STATUS(rec, c, st);
+        REC_STORE(rec, order[g], out);
     }
 }

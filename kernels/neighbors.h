@@ -28,8 +28,7 @@
 #define CLCURV_NEIGHBORS_H
 #include "common.h"
 
-#define CELL_BITS 30             /* cell_of = alignment << CELL_BITS | cell id */
-#define CELL_MASK 0x3fffffffu
+/* CELL_BITS, CELL_MASK (host constants): cell_of = alignment << CELL_BITS | cell id */
 
 /* The copy of x that sorted point g's rows use (co = cell_of[g]). */
 inline __global const REAL *x_rows(__global const REAL *X, uint co, uint n)

@@ -1,21 +1,18 @@
-/* records.cl -- per-point data between the kernels' layouts and the host's arrays.
- *
- * split_records: the operator kernels write one record of RECORD_WIDTH REALs per point at
- * its input index (one cache line per point: a scattered store per output array would cost
- * a miss each); this splits the records into contiguous input-order arrays, one per field,
- * so the host gets ready columns without a strided pass over all records per field.
- * gather_sorted: input-order rows (user normals) to padded sorted SoA columns. */
+/* records.cl -- split_records: the operator kernels write one record of RECORD_WIDTH REALs
+ * per point at its input index (one cache line per point: a scattered store per output
+ * array would cost a miss each); this splits the records into contiguous input-order
+ * arrays, one per field, so the host gets ready columns without a strided pass over all
+ * records per field. */
 #include "common.h"
 
-/* Field layout of split_records, set by build options (clcurv/cloud.py:fetch_records):
- * NF real fields, field k = columns S<k> .. S<k> + W<k> - 1 of the record; COUNT_COL (uint
- * bits) and STATUS_COL (a small integer). */
-#ifndef NF
-#define NF 0
+/* Field layout, set by build options (clcurv/cloud.py:fetch_records): NF real fields,
+ * field k = columns S<k> .. S<k> + W<k> - 1 of the record; COL_COUNT (uint bits) and
+ * COL_STATUS (a small integer). */
+#if !defined(NF) || !defined(COL_COUNT) || !defined(COL_STATUS)
+#error "records.cl needs NF, COL_COUNT and COL_STATUS (clcurv/cloud.py:fetch_records)"
 #endif
 #define SPLIT(k) for (int c = 0; c < W##k; ++c) o##k[(size_t)j * W##k + c] = v[S##k + c];
 
-#ifdef COUNT_COL
 /* Records (input order, sequential) to contiguous per-field arrays: every read and write
  * is sequential. */
 __kernel void split_records(__global const REAL *rec, const uint n, __global REAL *o0,
@@ -45,17 +42,6 @@ __kernel void split_records(__global const REAL *rec, const uint n, __global REA
 #if NF > 5
     SPLIT(5)
 #endif
-    count[j] = REAL_AS_UINT(v[COUNT_COL]);
-    status[j] = (uchar)v[STATUS_COL];
-}
-#endif
-
-/* Sorted SoA columns (padded: entries n .. n + PAD - 1 are 0) of input-order rows V (n, 3). */
-__kernel void gather_sorted(__global const REAL *V, __global const uint *order, const uint n,
-                            __global REAL *OX, __global REAL *OY, __global REAL *OZ)
-{
-    const uint s = get_global_id(0);
-    if (s >= n + PAD) return;
-    const REAL3 v = s < n ? vload3(order[s], V) : (REAL3)(0);
-    OX[s] = v.x; OY[s] = v.y; OZ[s] = v.z;
+    count[j] = REAL_AS_UINT(v[COL_COUNT]);
+    status[j] = (uchar)v[COL_STATUS];
 }

@@ -31,7 +31,7 @@ __kernel void mls1_step(__global const REAL *X, __global const REAL *Y, __global
     for (uint k = 0; k < kn; ++k) {
         const uint g = g0 + k;
         REAL3 move = (REAL3)(0);
-        if (pca_status(&pb, k, 3) == ST_OK) {
+        if (pca_status(&pb, k, MIN_COUNT_PCA) == ST_OK) {
             const REAL3 v0 = (REAL3)(pb.v0x[k], pb.v0y[k], pb.v0z[k]);
             move = dot((REAL3)(pb.mux[k], pb.muy[k], pb.muz[k]), v0) * v0;
         }

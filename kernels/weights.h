@@ -5,11 +5,8 @@
 #ifndef CLCURV_WEIGHTS_H
 #define CLCURV_WEIGHTS_H
 #include "common.h"
-#ifndef DENSITY
-#define DENSITY 0
-#endif
-#ifndef GAUSSIAN
-#define GAUSSIAN 0
+#if !defined(DENSITY) || !defined(GAUSSIAN)
+#error "weights.h needs DENSITY and GAUSSIAN (clcurv/driver.py)"
 #endif
 
 inline REALV chunk_weights(__global const REAL *W, uint i, REALV dx, REALV dy, REALV dz,

@@ -5,7 +5,10 @@ import sys
 import pytest
 
 import clcurv
+from clcurv.operators import program_variants
 from clcurv.program import BuildError, build, kernels_dir
+
+GRID = {"REAL_IS_DOUBLE": 0, "VW": 8}
 
 
 def test_devices_listed_with_capabilities():
@@ -31,22 +34,28 @@ def test_device_selection_by_index_name_and_env(monkeypatch):
 
 
 def test_program_built_once_per_options(device):
-    a = build(device, "moments.cl", {"REAL_IS_DOUBLE": 0, "VW": 8})
-    b = build(device, "moments.cl", {"VW": 8, "REAL_IS_DOUBLE": 0})
-    c = build(device, "moments.cl", {"REAL_IS_DOUBLE": 0, "VW": 4})
+    a = build(device, "grid.cl", {"REAL_IS_DOUBLE": 0, "VW": 8})
+    b = build(device, "grid.cl", {"VW": 8, "REAL_IS_DOUBLE": 0})
+    c = build(device, "grid.cl", {"REAL_IS_DOUBLE": 0, "VW": 4})
     assert a is b and a is not c
 
 
 def test_build_error_carries_the_log(device):
     with pytest.raises(BuildError, match="VW must be 2, 4, 8 or 16"):
-        build(device, "moments.cl", {"REAL_IS_DOUBLE": 0, "VW": 3})
+        build(device, "grid.cl", {"REAL_IS_DOUBLE": 0, "VW": 3})
 
 
 def test_every_kernel_builds_in_both_precisions(device):
-    for path in sorted(kernels_dir().glob("*.cl")):
-        build(device, path.name, {"REAL_IS_DOUBLE": 0, "VW": 8})
-        if device.info.fp64:
-            build(device, path.name, {"REAL_IS_DOUBLE": 1, "VW": 4})
+    """Every program clcurv builds (clcurv.operators.program_variants), with every optional
+    branch on, covers every kernel file and builds in float and (where the device has
+    fp64) double."""
+    variants = program_variants(GRID)
+    assert {f for f, _ in variants} == {p.name for p in kernels_dir().glob("*.cl")}
+    for name, defines in variants:
+        build(device, name, defines)
+    if device.info.fp64:
+        for name, defines in program_variants({"REAL_IS_DOUBLE": 1, "VW": 4}):
+            build(device, name, defines)
 
 
 def test_no_platform_gives_the_apt_command(tmp_path):

@@ -11,13 +11,15 @@ ROOT = Path(__file__).resolve().parent.parent
 
 CHECK = r"""
 import sys, pathlib, clcurv
+from clcurv.operators import program_variants
 from clcurv.program import kernels_dir, build
 kd = kernels_dir()
 assert str(kd).startswith(sys.argv[1]), f"kernels found at {kd}, not in the installed copy"
 dev = clcurv.get_device()
-names = sorted(p.name for p in kd.glob("*.cl"))
-for name in names:
-    build(dev, name, {"REAL_IS_DOUBLE": 0, "VW": 8})
+variants = program_variants({"REAL_IS_DOUBLE": 0, "VW": 8})
+names = sorted({name for name, _ in variants})
+for name, defines in variants:
+    build(dev, name, defines)
 res = clcurv.curvature(clcurv.shapes.sphere(20000, 2.0)["points"], 0.3, method="mls1")
 import numpy as np
 print("OK", len(names), round(float(np.median(res.mean)), 2))

@@ -16,7 +16,8 @@ import pytest
 import clcurv
 from clcurv import reference
 from clcurv.cloud import DeviceCloud
-from clcurv.moments import device_moments
+from clcurv.driver import run_kernel
+from clcurv.operators import PCA
 
 from conftest import bumpy_surface, worst
 
@@ -28,7 +29,7 @@ AGREE_MIN = 0.998   # fraction of points whose counts agree with the reference
 
 def check_moments(points, radius, weights, device, precision="float"):
     cloud = DeviceCloud(points, radius, device=device, precision=precision)
-    got = device_moments(cloud, radius, weights=weights)
+    got = run_kernel(PCA, cloud, radius, weights=weights)
     ref = reference.moments(points, radius, weights=weights)
     same = got["count"] == ref["count"]
     assert same.mean() >= AGREE_MIN, f"counts differ on {np.count_nonzero(~same)} points"
@@ -74,7 +75,7 @@ def test_double_precision_matches_reference_tightly(device):
         pytest.skip(f"{device.info.name} has no cl_khr_fp64")
     pts = bumpy_surface(5000, seed=3)
     cloud = DeviceCloud(pts, 0.1, device=device, precision="double")
-    got = device_moments(cloud, 0.1)
+    got = run_kernel(PCA, cloud, 0.1)
     ref = reference.moments(pts, 0.1)
     ok = (got["count"] == ref["count"]) & (ref["status"] == 0)
     assert ok.mean() > 0.999
@@ -107,8 +108,8 @@ def test_fields_subset_is_the_same_numbers(device):
     """``fields=`` only limits what comes back: the same normals, counts and statuses."""
     pts = bumpy_surface(5000, seed=4)
     cloud = DeviceCloud(pts, 0.1, device=device)
-    full = device_moments(cloud, 0.1, refine=False)
-    part = device_moments(cloud, 0.1, refine=False, fields=("normals",))
+    full = run_kernel(PCA, cloud, 0.1, defines={"REFINE_L0": 0})
+    part = run_kernel(PCA, cloud, 0.1, defines={"REFINE_L0": 0}, fields=("normals",))
     assert set(part) == {"normals", "count", "status"}
     for k in part:
         np.testing.assert_array_equal(part[k], full[k])

@@ -22,9 +22,18 @@ import pytest
 import clcurv
 from clcurv import reference, shapes
 from clcurv.cloud import DeviceCloud
-from clcurv.covariances import device_covariances
-from clcurv.mls import device_mls2
-from clcurv.result import SINGULAR, TOO_FEW
+from clcurv.constants import SINGULAR, TOO_FEW
+from clcurv.driver import run_kernel
+from clcurv.operators import OPERATORS
+
+
+def device_covariances(cloud, r, normals, method, weights="uniform"):
+    return run_kernel(OPERATORS[method].kernel, cloud, r, normals=normals, weights=weights)
+
+
+def device_mls2(cloud, r, normals, weights="uniform", kernel="ball"):
+    return run_kernel(OPERATORS["mls2"].kernel, cloud, r, normals=normals, weights=weights,
+                      h=r / 2 if kernel == "gaussian" else None)
 
 from conftest import worst
 
@@ -251,7 +260,7 @@ def test_mls2_too_few_or_collinear_is_nan(device):
 
 def test_iterated_mls2_projection_matches_reference(device):
     s = shapes.sphere(8000, 2.0, seed=37)
-    got = clcurv.project(s["points"], 0.5, iterations=2, normals=s["normals"], device=device)
+    got = clcurv.project(s["points"], 0.5, projections=2, normals=s["normals"], device=device)
     ref = reference.mls2_iterate(s["points"], 0.5, s["normals"], 2)["points"]
     np.testing.assert_allclose(got, ref, atol=2e-6)
     # fourth order: after 2 iterations the sphere keeps its radius to ~ 2 r^4 / (48 R^3)

@@ -115,7 +115,7 @@ def test_table8_times(res):
 def test_mls2_iteration_is_clcurv_project():
     s = clcurv.shapes.sphere(4000, 1.0, noise=0.01, seed=5)
     _, iterates = paper.mls2_iterates(s["points"], 0.3, 2, s["normals"])
-    ref = clcurv.project(s["points"], 0.3, iterations=2, normals=s["normals"])
+    ref = clcurv.project(s["points"], 0.3, projections=2, normals=s["normals"])
     np.testing.assert_allclose(iterates[2], ref, rtol=0, atol=1e-12)
     assert np.abs(iterates[2] - s["points"]).max() > 0   # the projection moved the points
 

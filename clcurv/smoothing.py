@@ -14,7 +14,7 @@ import time
 import numpy as np
 
 from .cloud import DeviceCloud
-from .grid import PAD
+from .constants import PAD
 from .program import batches, build, launch
 from .validate import as_points, as_radius, choice
 
@@ -79,9 +79,9 @@ class _DeviceState:
         import pyopencl as cl
         c = self.cloud
         n, r2 = np.uint32(c.n), c.ball(radius)
-        defines = dict(c.defines, DENSITY=int(density))
+        defines = dict(c.defines, DENSITY=int(density), GAUSSIAN=0)
         if density:
-            m = build(c.device, "moments.cl", c.defines)
+            m = build(c.device, "density.cl", c.defines)
             launch(c.device, m.count_neighbors, c.n, *self.ping, c.cell_of, c.ranges, n, r2,
                    self.counts, self.weights)
         prg = build(c.device, "scale_space.cl", defines)
@@ -95,58 +95,67 @@ class _DeviceState:
         return float(bm.max()) if len(bm) else 0.0
 
 
-def scale_space(points, radius, iterations, *, weights="uniform", return_iterates=False,
-                device=None, precision="float", backend="opencl", progress=None):
-    """MLS1 scale space: ``iterations`` MLS1 projections of the whole cloud at ``radius``.
+def scale_space(points, radius, steps, *, weights="uniform", return_iterates=False,
+                return_stats=False, device=None, precision="float", backend="opencl",
+                progress=None):
+    """MLS1 scale space: ``steps`` MLS1 projections of the whole cloud at ``radius``.
 
     Each iteration moves every point p to p' = p - <p - o, v0> v0 (o the weighted barycenter
     of its ball N_r(p) = {q : |q - p| < r}, v0 the PCA normal), all points together, the
     neighbourhoods recomputed on the moved cloud. This is a discrete mean curvature motion:
-    one iteration moves a point by about H r^2 / 4 along the inward normal of a convex shape;
-    N iterations at r act roughly like one at sqrt(N) r. Points with fewer than 3 neighbours
-    or a degenerate ball stay where they are for that iteration.
+    one step moves a point by about H r^2 / 4 along the inward normal of a convex shape;
+    N steps at r act roughly like one at sqrt(N) r. Points with fewer than 3 neighbours
+    or a degenerate ball stay where they are for that step.
 
     Parameters
     ----------
     points : (N, 3) array_like
     radius : float, same length unit as the points
-    iterations : int >= 0
+    steps : int >= 0
     weights : {'uniform', 'density'}
     return_iterates : bool
-        Also return every iterate (a list of N+1 arrays, the input first).
+        Return every iterate (a list of steps + 1 arrays, the input first) instead of the
+        last.
+    return_stats : bool
+        Also return a dict of statistics of the device run: ``rebins`` (re-binnings on the
+        host because a point drifted more than MARGIN r), ``binning`` and ``steps``
+        (seconds); empty for the NumPy backend.
     backend : {'opencl', 'numpy'}
         'numpy' runs the float64 reference (clcurv.reference.scale_space).
     progress : callable, optional
-        Called with no argument after each iteration (e.g. a tqdm bar's ``update``).
+        Called with no argument after each step (e.g. a tqdm bar's ``update``).
 
     Returns
     -------
-    (N, 3) float64 smoothed points in input order (or the list of iterates).
+    (N, 3) float64 smoothed points in input order (or the list of iterates), and the
+    stats dict when ``return_stats``.
     """
     pts = as_points(points)
     r = as_radius(radius)
     weights = choice(weights, "weights", ("uniform", "density"))
     choice(backend, "backend", ("opencl", "numpy"))
-    iterations = int(iterations)
-    if iterations < 0:
-        raise ValueError(f"iterations must be >= 0, got {iterations}")
+    steps = int(steps)
+    if steps < 0:
+        raise ValueError(f"steps must be >= 0, got {steps}")
+    stats = {}
+    done = (lambda out: (out, stats)) if return_stats else (lambda out: out)
     if backend == "numpy":
         from .reference import scale_space as ref
-        its = ref(pts, r, iterations, weights=weights)
-        return its if return_iterates else its[-1]
+        its = ref(pts, r, steps, weights=weights)
+        return done(its if return_iterates else its[-1])
     iterates = [pts.copy()]
-    if len(pts) == 0 or iterations == 0:
-        return iterates if return_iterates else pts.copy()
+    if len(pts) == 0 or steps == 0:
+        return done(iterates if return_iterates else pts.copy())
     disp = np.zeros_like(pts)
     state = _DeviceState(pts, disp, r, device, precision)
-    stats = {"rebins": 0, "binning": state.cloud.timings["binning"], "steps": 0.0}
-    for it in range(iterations):
+    stats.update(rebins=0, binning=state.cloud.timings["binning"], steps=0.0)
+    for it in range(steps):
         t = time.perf_counter()
         drift = state.step(r, weights == "density")
         stats["steps"] += time.perf_counter() - t
         if progress is not None:
             progress()
-        last = it == iterations - 1
+        last = it == steps - 1
         if return_iterates or last or drift > MARGIN * r:
             disp = state.displacement()
             if return_iterates:
@@ -155,5 +164,4 @@ def scale_space(points, radius, iterations, *, weights="uniform", return_iterate
             state = _DeviceState(pts, disp, r, device, precision)
             stats["rebins"] += 1
             stats["binning"] += state.cloud.timings["binning"]
-    scale_space.last_stats = stats
-    return iterates if return_iterates else pts + disp
+    return done(iterates if return_iterates else pts + disp)
