@@ -1,0 +1,281 @@
+"""What the format modules of :mod:`clcurv.io` share.
+
+* :class:`Format`, the declaration each format module makes (``FORMAT``) and the registry in
+  ``clcurv/io/__init__.py`` is built from;
+* :class:`Cloud`, the result of :func:`clcurv.io.read`, and the errors;
+* reading helpers: :func:`_finish` (drops rows with non-finite coordinates and builds the
+  Cloud), :func:`_split_named` (columns by name: x y z, normals ``nx ny nz`` /
+  ``normal_x ...``, attributes), :func:`_split_positional` (headerless tables: columns 0-2
+  are x y z, 3-5 normals when exactly 6 columns of unit vectors), :func:`_native`,
+  :func:`_struct_columns` and :func:`_quiet`;
+* writing helpers: :func:`_check_points`, :func:`_check_normals`, :func:`_check_fields`
+  (names ``[A-Za-z_][A-Za-z0-9_.-]*``, not reserved for coordinates or normals, shape
+  ``(N,)``, numeric; bool becomes uint8) and :func:`_int_as` (the integer type a format
+  stores an integer field in).
+"""
+from __future__ import annotations
+
+import re
+import warnings
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+_NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_.\-]*$")
+_RESERVED = {"x", "y", "z", "nx", "ny", "nz", "normal_x", "normal_y", "normal_z"}
+_NORMAL_NAMES = (("nx", "ny", "nz"), ("normal_x", "normal_y", "normal_z"))
+
+
+# --------------------------------------------------------------------------- registry entry
+
+@dataclass(frozen=True)
+class Format:
+    """A file format, as its module declares it (``FORMAT = Format(...)``).
+
+    Attributes
+    ----------
+    reads : dict of str -> str
+        Extensions read (lower case, with the dot) -> description used in messages.
+    read : callable
+        ``read(path: Path) -> Cloud``; raises :class:`ReadError` or any exception (which
+        :func:`clcurv.io.read` turns into :class:`CorruptFileError`).
+    writes : dict of str -> str
+        Extensions written -> description; empty for a read-only format.
+    write : callable or None
+        ``write(path, points, fields, normals, like)`` with checked arguments: points
+        ``(N, 3)`` float64, fields from :func:`_check_fields`, normals ``(N, 3)`` or None.
+    """
+
+    reads: dict
+    read: Callable
+    writes: dict = field(default_factory=dict)
+    write: Callable | None = None
+
+
+# --------------------------------------------------------------------------- errors
+
+class ReadError(Exception):
+    """A point cloud file could not be read. The message starts with the file name."""
+
+
+class MissingFileError(ReadError, FileNotFoundError):
+    """The file does not exist."""
+
+
+class UnknownFormatError(ReadError, ValueError):
+    """The extension is not one of :data:`READ_FORMATS`."""
+
+
+class CorruptFileError(ReadError, ValueError):
+    """The file exists but its content is not what its extension promises."""
+
+
+class MissingDependencyError(ReadError, ImportError):
+    """An optional package needed for this format is missing (raised by read and write)."""
+
+
+class WriteError(ValueError):
+    """:func:`write` was given arguments it cannot write (shape, name, format...)."""
+
+
+# --------------------------------------------------------------------------- Cloud
+
+@dataclass(repr=False, eq=False)
+class Cloud:
+    """A point cloud read from a file.
+
+    Attributes
+    ----------
+    points : (N, 3) ndarray of float64
+        Finite coordinates, in file order.
+    normals : (N, 3) ndarray of float64 or None
+        Normals stored in the file, if any (may contain NaN).
+    attributes : dict of str -> ndarray
+        Other per-point values (intensity, classification, red/green/blue, confidence, ...),
+        each with first dimension N, in the file's dtype (text formats: float64).
+    header : object or None
+        Format-specific information: the ``laspy.LasHeader`` for LAS/LAZ (used by
+        ``write(..., like=cloud)``), a dict for PLY/PCD, extra non-per-point arrays for NPZ.
+    dropped : int
+        Number of rows dropped because x, y or z was not finite.
+    path : pathlib.Path or None
+        The file read.
+    format : str or None
+        ``'ply'``, ``'pcd'``, ``'las'``, ``'laz'``, ``'text'``, ``'npy'`` or ``'npz'``.
+    """
+
+    points: np.ndarray
+    normals: np.ndarray | None = None
+    attributes: dict = field(default_factory=dict)
+    header: object = None
+    dropped: int = 0
+    path: Path | None = None
+    format: str | None = None
+
+    def __len__(self):
+        return len(self.points)
+
+    def __repr__(self):
+        return (f"Cloud({len(self.points)} points, normals={self.normals is not None}, "
+                f"attributes={list(self.attributes)}, dropped={self.dropped}, "
+                f"format={self.format!r}, path={str(self.path)!r})")
+
+
+# --------------------------------------------------------------------------- reading
+
+def _finish(path, fmt, points, normals=None, attributes=None, header=None):
+    """Build a Cloud, dropping rows with non-finite coordinates."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    attributes = dict(attributes or {})
+    keep = np.isfinite(points).all(axis=1)
+    dropped = int(keep.size - np.count_nonzero(keep))
+    if dropped:
+        points = points[keep]
+        normals = None if normals is None else np.asarray(normals)[keep]
+        attributes = {k: np.asarray(v)[keep] for k, v in attributes.items()}
+    points = np.ascontiguousarray(points)
+    if normals is not None:
+        normals = np.ascontiguousarray(normals, dtype=np.float64).reshape(-1, 3)
+    attributes = {k: np.ascontiguousarray(v) for k, v in attributes.items()}
+    return Cloud(points, normals, attributes, header, dropped, path, fmt)
+
+
+def _native(a):
+    """A writable, native-byte-order copy of ``a``."""
+    a = np.asarray(a)
+    return a.astype(a.dtype.newbyteorder("="), copy=True)
+
+
+def _struct_columns(rec):
+    """Name -> native copy of each non-object field of the structured array ``rec``."""
+    return {name: _native(rec[name]) for name in rec.dtype.names if rec.dtype[name] != object}
+
+
+@contextmanager
+def _quiet():
+    """Silence warnings (``np.loadtxt`` on an empty body, plyfile on empty elements)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        yield
+
+
+def _find(names, wanted):
+    """Index of ``wanted`` in ``names``: exact match first, then case-insensitive."""
+    if wanted in names:
+        return names.index(wanted)
+    lower = [n.lower() for n in names]
+    return lower.index(wanted) if wanted in lower else None
+
+
+def _stack(columns, names, triple):
+    """The (N, 3) float64 stack of the columns named ``triple`` and the names used, or
+    (None, None) when one of the three is missing."""
+    idx = [_find(names, c) for c in triple]
+    if None in idx:
+        return None, None
+    used = [names[i] for i in idx]
+    return np.column_stack([np.asarray(columns[n], dtype=np.float64) for n in used]), used
+
+
+def _split_named(path, fmt, columns, header=None, points=None):
+    """Split named per-point columns into points, normals and attributes.
+
+    ``columns`` maps names to arrays of first dimension N; x, y, z are required unless
+    ``points`` is given.
+    """
+    names = list(columns)
+    used = set()
+    if points is None:
+        points, xyz = _stack(columns, names, "xyz")
+        if points is None:
+            raise CorruptFileError(f"{path}: columns {names} have no x, y and z; expected "
+                                   "columns named x, y and z")
+        used.update(xyz)
+    normals = None
+    for triple in _NORMAL_NAMES:
+        normals, nxyz = _stack(columns, names, triple)
+        if normals is not None:
+            used.update(nxyz)
+            break
+    attributes = {n: columns[n] for n in names if n not in used}
+    return _finish(path, fmt, points, normals, attributes, header)
+
+
+def _looks_like_normals(a):
+    """True when every finite row of the (N, 3) array ``a`` is a unit vector (1e-3)."""
+    a = np.asarray(a, dtype=np.float64)
+    a = a[np.isfinite(a).all(axis=1)]
+    if len(a) == 0:
+        return False
+    return bool(np.all(np.abs(np.linalg.norm(a, axis=1) - 1.0) <= 1e-3))
+
+
+def _split_positional(path, fmt, table, header=None):
+    """Columns 0-2 are x y z; 3-5 are normals if exactly 6 columns of unit vectors."""
+    table = np.asarray(table)
+    if table.ndim != 2 or table.shape[1] < 3:
+        raise CorruptFileError(f"{path}: expected at least 3 columns (x y z), got an array "
+                               f"of shape {table.shape}")
+    normals = None
+    first_attr = 3
+    if table.shape[1] == 6 and _looks_like_normals(table[:, 3:6]):
+        normals, first_attr = table[:, 3:6], 6
+    attributes = {f"col{j}": table[:, j] for j in range(first_attr, table.shape[1])}
+    return _finish(path, fmt, table[:, :3], normals, attributes, header)
+
+
+# --------------------------------------------------------------------------- writing
+
+def _check_points(path, points):
+    """``points`` as a C-contiguous (N, 3) float64 array, or WriteError."""
+    pts = np.asarray(points)
+    if pts.dtype.kind not in "fiu" or pts.ndim != 2 or pts.shape[1] != 3:
+        raise WriteError(f"{path}: points must be a real (N, 3) array, got shape {pts.shape} "
+                         f"dtype {pts.dtype}")
+    return np.ascontiguousarray(pts, dtype=np.float64)
+
+
+def _check_normals(path, normals, n):
+    """``normals`` as a real (n, 3) array (dtype kept), None if None, or WriteError."""
+    if normals is None:
+        return None
+    normals = np.asarray(normals)
+    if normals.shape != (n, 3) or normals.dtype.kind not in "fiu":
+        raise WriteError(f"{path}: normals must be a real ({n}, 3) array, got shape "
+                         f"{normals.shape} dtype {normals.dtype}")
+    return normals
+
+
+def _check_fields(path, fields, n):
+    """The fields as name -> numeric (n,) arrays (bool as uint8), or WriteError."""
+    out = {}
+    for name, values in (fields or {}).items():
+        if not isinstance(name, str) or not _NAME_RE.match(name):
+            raise WriteError(f"{path}: field name {name!r} must match [A-Za-z_][A-Za-z0-9_.-]*")
+        if name.lower() in _RESERVED:
+            raise WriteError(f"{path}: field name {name!r} is reserved for coordinates or "
+                             "normals")
+        a = np.asarray(values)
+        if a.shape != (n,):
+            raise WriteError(f"{path}: field {name!r} must have shape ({n},), got {a.shape}")
+        if a.dtype.kind == "b":
+            a = a.astype(np.uint8)
+        if a.dtype.kind not in "fiu":
+            raise WriteError(f"{path}: field {name!r} must be numeric, got dtype {a.dtype}")
+        out[name] = a
+    return out
+
+
+def _int_as(path, name, a, allowed):
+    """The dtype for integer field ``a``: its own if in ``allowed``, else the 32-bit type of
+    the same signedness when the values fit (int64 -> int32, uint64 -> uint32)."""
+    if a.dtype in allowed:
+        return a.dtype
+    dt = np.dtype(np.int32 if a.dtype.kind == "i" else np.uint32)
+    if a.size == 0 or (a.min() >= np.iinfo(dt).min and a.max() <= np.iinfo(dt).max):
+        return dt
+    raise WriteError(f"{path}: integer field {name!r} ({a.dtype}) has values outside the "
+                     f"range of {dt}, the widest integer type of this format")

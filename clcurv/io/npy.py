@@ -1,0 +1,80 @@
+"""NumPy files: ``.npy`` (read) and ``.npz`` (read and write); no pickles.
+
+Reading
+-------
+* **NPY**: an ``(N, >=3)`` numeric array, with the rule of headerless text (columns 0-2 are
+  x y z; columns 3-5 are the normals when there are exactly 6 columns of unit vectors;
+  otherwise columns 3, 4, ... are attributes ``col3``, ``col4``, ...), or a 1-D structured
+  array whose field names follow the rule of named columns (x y z required, ``nx ny nz`` /
+  ``normal_x...`` normals, other fields attributes in their dtype). ``Cloud.format`` is
+  ``'npy'``.
+* **NPZ**: key ``points`` (N, 3) numeric is required, ``normals`` (N, 3) optional; other
+  arrays whose first dimension is N are attributes, the rest go into ``Cloud.header`` (a
+  dict, or None when there are none). ``Cloud.format`` is ``'npz'``.
+
+Writing
+-------
+NPZ only (uncompressed ``np.savez``): ``points`` (float64), ``normals`` and each field by
+name, dtypes unchanged; fields may not be named ``points`` or ``normals``.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ._common import (CorruptFileError, Format, WriteError, _finish, _split_named,
+                      _split_positional, _struct_columns)
+
+
+# --------------------------------------------------------------------------- read
+
+def _read_npy(path):
+    a = np.load(path, allow_pickle=False)
+    if a.dtype.names:
+        if a.ndim != 1:
+            raise CorruptFileError(f"{path}: expected a 1-D structured array, got shape "
+                                   f"{a.shape}")
+        return _split_named(path, "npy", _struct_columns(a))
+    if a.dtype.kind not in "fiu" or a.ndim != 2 or a.shape[1] < 3:
+        raise CorruptFileError(f"{path}: expected an (N, 3) or (N, >=3) numeric array, got "
+                               f"shape {a.shape} dtype {a.dtype}")
+    return _split_positional(path, "npy", a.astype(np.float64))
+
+
+def _read_npz(path):
+    with np.load(path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    pts = arrays.pop("points", None)
+    if pts is None or pts.ndim != 2 or pts.shape[1] != 3 or pts.dtype.kind not in "fiu":
+        raise CorruptFileError(f"{path}: expected a numeric 'points' array of shape (N, 3); "
+                               f"keys: {list(arrays) + (['points'] if pts is not None else [])}")
+    n = len(pts)
+    normals = arrays.pop("normals", None)
+    if normals is not None and normals.shape != (n, 3):
+        raise CorruptFileError(f"{path}: 'normals' has shape {normals.shape}, expected "
+                               f"{(n, 3)}")
+    attributes = {k: v for k, v in arrays.items() if v.ndim >= 1 and len(v) == n}
+    extra = {k: v for k, v in arrays.items() if k not in attributes}
+    return _finish(path, "npz", pts, normals, attributes, extra or None)
+
+
+def read(path):
+    return _read_npz(path) if path.suffix.lower() == ".npz" else _read_npy(path)
+
+
+# --------------------------------------------------------------------------- write
+
+def write(path, pts, fields, normals, like):
+    clash = {"points", "normals"} & set(fields)
+    if clash:
+        raise WriteError(f"{path}: field names {sorted(clash)} are reserved in NPZ")
+    arrays = {"points": pts}
+    if normals is not None:
+        arrays["normals"] = np.asarray(normals)
+    arrays.update(fields)
+    with open(path, "wb") as f:
+        np.savez(f, **arrays)
+
+
+FORMAT = Format(reads={".npy": "NumPy array (N, >=3)",
+                       ".npz": "NumPy archive (points, normals, ...)"},
+                read=read, writes={".npz": "NumPy archive"}, write=write)

@@ -1,0 +1,153 @@
+"""PLY (``.ply``): ascii, binary little-endian or binary big-endian.
+
+Reading
+-------
+Only the ``vertex`` element is read; other elements (faces, range grids, triangle strips)
+are skipped and list properties of the vertex are ignored. ``x y z`` are the points,
+``nx ny nz`` or ``normal_x normal_y normal_z`` (case-insensitive) the normals, every other
+scalar property an attribute in its file dtype. ``Cloud.header`` is a dict: ``format``,
+``elements`` (name -> count), ``comments`` and ``obj_info``.
+
+plyfile parses ascii rows one by one in Python (seconds for the Stanford scans with their
+faces or range grids). When the vertex element comes first and has only scalar properties
+(the usual case), its rows alone are parsed with NumPy (``frombuffer`` for binary,
+``loadtxt`` for ascii) from the header parsed here; otherwise plyfile reads the whole file.
+
+Writing
+-------
+Binary little-endian, vertex element only, comment ``written by clcurv``: ``x y z`` as
+``double`` (float32 would lose the digits of georeferenced coordinates), ``nx ny nz`` as
+``float``, then each field as a ``float`` property, or an integer property of the same type
+for integer fields (int64/uint64 as int32/uint32 when in range, bool as uchar). NaN is
+written as NaN. CloudCompare and MeshLab show the extra properties as scalar fields.
+"""
+from __future__ import annotations
+
+import io
+import re
+
+import numpy as np
+
+from ._common import CorruptFileError, Format, _int_as, _quiet, _split_named, _struct_columns
+
+_TYPES = {"char": "i1", "uchar": "u1", "int8": "i1", "uint8": "u1", "short": "i2",
+          "ushort": "u2", "int16": "i2", "uint16": "u2", "int": "i4", "uint": "u4",
+          "int32": "i4", "uint32": "u4", "float": "f4", "float32": "f4",
+          "double": "f8", "float64": "f8"}
+_INTS = [np.dtype(t) for t in ("i1", "u1", "i2", "u2", "i4", "u4")]
+
+
+# --------------------------------------------------------------------------- read
+
+def _parse_header(raw, path):
+    """Parse a PLY header: (format, preamble lines, [[name, count, lines]], body offset)."""
+    m = re.search(rb"end_header[ \t]*\r?\n", raw[:1 << 20])
+    if not raw.startswith(b"ply") or m is None:
+        raise CorruptFileError(f"{path}: not a PLY file (expected a 'ply' magic line and an "
+                               "'end_header' line)")
+    lines = raw[:m.end()].decode("ascii", errors="replace").splitlines()
+    preamble, elements, fmt = [], [], None
+    for line in lines[1:]:
+        tok = line.split()
+        if not tok or tok[0] == "end_header":
+            continue
+        if tok[0] == "format":
+            fmt = tok[1] if len(tok) > 1 else None
+            preamble.append(line)
+        elif tok[0] == "element":
+            if len(tok) != 3 or not tok[2].isdigit():
+                raise CorruptFileError(f"{path}: bad PLY header line {line!r}")
+            elements.append([tok[1], int(tok[2]), [line]])
+        elif tok[0] == "property" and elements:
+            elements[-1][2].append(line)
+        else:
+            preamble.append(line)
+    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        raise CorruptFileError(f"{path}: unknown PLY format {fmt!r}; expected ascii, "
+                               "binary_little_endian or binary_big_endian")
+    return fmt, preamble, elements, m.end()
+
+
+def _preamble_values(preamble, keyword):
+    """The text after ``keyword`` on each preamble line starting with it."""
+    return [ln.split(None, 1)[1] if " " in ln else ""
+            for ln in preamble if ln.split()[0] == keyword]
+
+
+def _binary_vertices(raw, start, n, props, fmt, path):
+    order = "<" if fmt == "binary_little_endian" else ">"
+    dtype = np.dtype([(p[2], order + _TYPES[p[1]]) for p in props])
+    if len(raw) - start < n * dtype.itemsize:
+        raise CorruptFileError(f"{path}: PLY vertex data is truncated ({len(raw) - start} "
+                               f"bytes, expected {n * dtype.itemsize} for {n} vertices)")
+    return _struct_columns(np.frombuffer(raw, dtype=dtype, count=n, offset=start))
+
+
+def _ascii_vertices(raw, start, n, props, path):
+    """One vertex per line."""
+    dtype = np.dtype([(p[2], _TYPES[p[1]]) for p in props])
+    with _quiet():  # loadtxt warns on an empty body
+        v = np.loadtxt(io.StringIO(raw[start:].decode("ascii", errors="replace")),
+                       dtype=dtype, ndmin=1, max_rows=n, comments=None)
+    if len(v) != n:
+        raise CorruptFileError(f"{path}: PLY header says {n} vertices but the ascii data "
+                               f"has {len(v)} lines")
+    return _struct_columns(v)
+
+
+def _vertex_columns(raw, path):
+    """Columns of the PLY vertex element and the header dict (see the module docstring)."""
+    import plyfile
+    fmt, preamble, elements, start = _parse_header(raw, path)
+    counts = {e[0]: e[1] for e in elements}
+    header = {"format": fmt, "elements": counts,
+              "comments": _preamble_values(preamble, "comment"),
+              "obj_info": _preamble_values(preamble, "obj_info")}
+    if "vertex" not in counts:
+        raise CorruptFileError(f"{path}: PLY file has no 'vertex' element (elements: "
+                               f"{list(counts)})")
+    _, n, block = elements[0]
+    props = [ln.split() for ln in block[1:]]
+    simple = elements[0][0] == "vertex" and all(
+        len(p) == 3 and p[1] in _TYPES for p in props)
+    if simple and fmt != "ascii":
+        return _binary_vertices(raw, start, n, props, fmt, path), header
+    if simple:
+        return _ascii_vertices(raw, start, n, props, path), header
+    with _quiet():  # plyfile warns on empty ascii elements
+        ply = plyfile.PlyData.read(io.BytesIO(raw))
+    return _struct_columns(ply["vertex"].data), header
+
+
+def read(path):
+    columns, header = _vertex_columns(path.read_bytes(), path)
+    return _split_named(path, "ply", columns, header)
+
+
+# --------------------------------------------------------------------------- write
+
+def _vertex_dtype(path, fields, with_normals):
+    spec = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
+    if with_normals:
+        spec += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
+    for name, a in fields.items():
+        dt = np.dtype("<f4") if a.dtype.kind == "f" else _int_as(path, name, a, _INTS)
+        spec.append((name, dt.newbyteorder("<")))
+    return spec
+
+
+def write(path, pts, fields, normals, like):
+    import plyfile
+    rec = np.empty(len(pts), dtype=_vertex_dtype(path, fields, normals is not None))
+    rec["x"], rec["y"], rec["z"] = pts.T
+    if normals is not None:
+        rec["nx"], rec["ny"], rec["nz"] = np.asarray(normals, dtype=np.float64).T
+    for name, a in fields.items():
+        rec[name] = a
+    el = plyfile.PlyElement.describe(rec, "vertex")
+    plyfile.PlyData([el], text=False, byte_order="<", comments=["written by clcurv"]
+                    ).write(str(path))
+
+
+FORMAT = Format(reads={".ply": "PLY (ascii or binary; the vertex element of a mesh)"},
+                read=read, writes={".ply": "binary little-endian PLY"}, write=write)

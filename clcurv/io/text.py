@@ -1,0 +1,129 @@
+"""Text tables: ``.xyz``, ``.xyzn``, ``.txt``, ``.csv`` and ``.asc`` (read); ``.csv``, ``.txt``
+and ``.xyz`` (write).
+
+Reading
+-------
+Comma-, semicolon- or whitespace-separated (from the first data line); lines starting with
+``#`` or ``//`` are comments, except a header. A header is the first non-blank line that is
+not all numbers, is not a comment, or is a comment naming x, y and z (its ``#`` or ``//`` is
+stripped, so CloudCompare's ``//X,Y,Z,...`` works); columns named x, y, z are then required,
+``nx ny nz`` / ``normal_x...`` are normals, other columns are attributes by name (float64).
+Without a header, columns 0-2 are x, y, z; if there are **exactly 6 columns and columns 3-5
+are unit vectors** (| |n| - 1 | <= 1e-3 on every row where they are finite) they are the
+normals; otherwise columns 3, 4, ... are attributes ``col3``, ``col4``, ...
+``Cloud.format`` is ``'text'``; there is no header object.
+
+Writing
+-------
+A header line ``x,y,z[,nx,ny,nz][,fields...]`` (space-separated for .txt/.xyz), then points
+with ``%.17g`` (float64 round-trips exactly), normals and float fields with ``%.9g`` (exact
+for float32), integer fields with ``%d``; NaN as ``nan``. Lines end with ``\\n``.
+"""
+from __future__ import annotations
+
+import re
+
+import numpy as np
+
+from ._common import CorruptFileError, Format, _quiet, _split_named, _split_positional
+
+_COMMENTS = ("#", "//")
+
+
+# --------------------------------------------------------------------------- read
+
+def _is_number(tok):
+    try:
+        float(tok)
+        return True
+    except ValueError:
+        return False
+
+
+def _scan(path):
+    """(header names or None, lines to skip before the data, first data line or None)."""
+    names, skip, first_data = None, 0, None
+    with open(path, "r", encoding="utf-8", errors="replace") as f:
+        for i, line in enumerate(f):
+            s = line.strip()
+            if not s:
+                continue
+            stripped = s.lstrip("#/").strip() if s.startswith(_COMMENTS) else s
+            toks = [t for t in re.split(r"[,;\s]+", stripped) if t]
+            if toks and all(_is_number(t) for t in toks):
+                if s.startswith(_COMMENTS):
+                    continue  # a commented-out data row
+                first_data, skip = s, i
+                break
+            if s.startswith(_COMMENTS) and not {"x", "y", "z"} <= {t.lower() for t in toks}:
+                continue  # an ordinary comment
+            if names is None:
+                names, skip = toks, i + 1
+            else:
+                raise CorruptFileError(f"{path}: line {i + 1} is not numeric: {s[:80]!r} "
+                                       "(expected one header line, then numbers)")
+    return names, skip, first_data
+
+
+def _load(path, names, skip, first_data):
+    """The numeric table after the header, (0, len(names)) when there is no data row."""
+    if first_data is None:  # header only, or empty
+        if names is None:
+            raise CorruptFileError(f"{path}: no data (expected lines of x y z ...)")
+        return np.empty((0, len(names)))
+    delim = "," if "," in first_data else (";" if ";" in first_data else None)
+    with _quiet():
+        return np.loadtxt(path, dtype=np.float64, delimiter=delim, skiprows=skip,
+                          comments=list(_COMMENTS), ndmin=2, encoding="utf-8")
+
+
+def read(path):
+    names, skip, first_data = _scan(path)
+    table = _load(path, names, skip, first_data)
+    if names is None:
+        return _split_positional(path, "text", table)
+    if table.shape[1] != len(names):
+        raise CorruptFileError(f"{path}: header names {len(names)} columns {names} but the "
+                               f"data has {table.shape[1]}")
+    if len(set(names)) != len(names):
+        raise CorruptFileError(f"{path}: header has duplicate column names {names}")
+    return _split_named(path, "text", {n: table[:, j] for j, n in enumerate(names)})
+
+
+# --------------------------------------------------------------------------- write
+
+def _columns(pts, fields, normals):
+    """(names, columns, printf formats) in file order."""
+    names = ["x", "y", "z"]
+    cols, fmts = [pts[:, 0], pts[:, 1], pts[:, 2]], ["%.17g"] * 3
+    if normals is not None:
+        nrm = np.asarray(normals, dtype=np.float64)
+        names += ["nx", "ny", "nz"]
+        cols += [nrm[:, 0], nrm[:, 1], nrm[:, 2]]
+        fmts += ["%.9g"] * 3
+    for name, a in fields.items():
+        names.append(name)
+        cols.append(a)
+        fmts.append("%.9g" if a.dtype.kind == "f" else "%d")
+    return names, cols, fmts
+
+
+def write(path, pts, fields, normals, like):
+    delim = "," if path.suffix.lower() == ".csv" else " "
+    names, cols, fmts = _columns(pts, fields, normals)
+    rec = np.empty(len(pts), dtype=[(f"f{i}", c.dtype) for i, c in enumerate(cols)])
+    for i, c in enumerate(cols):
+        rec[f"f{i}"] = c
+    with open(path, "w", encoding="utf-8", newline="\n") as f:
+        f.write(delim.join(names) + "\n")
+        np.savetxt(f, rec, fmt=fmts, delimiter=delim)
+
+
+FORMAT = Format(
+    reads={".xyz": "text (x y z ...)", ".xyzn": "text (x y z nx ny nz)",
+           ".txt": "text (x y z ...)", ".csv": "text (x,y,z,...)", ".asc": "text (x y z ...)"},
+    read=read,
+    writes={".csv": "comma-separated text with a header line",
+            ".txt": "space-separated text with a header line",
+            ".xyz": "space-separated text with a header line"},
+    write=write)
