@@ -273,7 +273,7 @@ OPERATORS = {op.name: op for op in (
          "eigenvalues (descending) of the count-normalised covariance of the neighbours' "
          "unit normals"),
     Operator("mls2", "weighted quadric fit in the PCA frame; shape operator",
-             "Theorem 6 (operator 7)", MLS2,
+             "operator 7, a fourth-order projection", MLS2,
              (_MEAN, Output("gaussian", 1, "1/length^2", "Gaussian curvature K = k1 k2",
                             signed=True, file="gaussian_curvature"),
               Output("k1", 1, "1/length", "signed principal curvature, k1 >= k2", signed=True,
