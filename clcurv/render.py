@@ -38,12 +38,17 @@ from pathlib import Path
 
 import numpy as np
 
+from .operators import OPERATORS, signed_file_fields
+
 __all__ = ["render", "MissingMatplotlibError", "VIEWS", "SIGNED_FIELDS"]
 
 #: Field names treated as signed (diverging colormap) when ``signed=None`` and the values
-#: take both signs.
-SIGNED_FIELDS = frozenset({"mean_curvature", "gaussian_curvature", "k1", "k2", "mean",
-                           "gaussian", "h", "k"})
+#: take both signs: the file fields and result attributes of the registry's signed outputs
+#: (``mean_curvature``/``mean`` H, ``gaussian_curvature``/``gaussian`` K, ``k1``, ``k2``)
+#: and the usual symbols ``h`` and ``k`` of H and K.
+SIGNED_FIELDS = frozenset(signed_file_fields()
+                          | {o.name for op in OPERATORS.values() for o in op.outputs if o.signed}
+                          | {"h", "k"})
 
 _S3 = 1.0 / np.sqrt(3.0)
 _S2 = 1.0 / np.sqrt(2.0)

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from clcurv import cli, io
-from clcurv.demo import sample_path
+from clcurv import cli, io, job
+from clcurv.data import sample_path
 
 DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
 
@@ -69,6 +69,12 @@ def test_devices_lists_the_default():
     (["compute", "{sample}", "-o", "{tmp}/x.ply", "--fields", "nonsense"], 2, "unknown field"),
     (["compute", "{sample}", "-o", "{tmp}/x.ply", "--device", "no-such-gpu"], 4, "no OpenCL device"),
     (["compute", "{sample}", "-o", "{tmp}/x.ply", "--method", "mls9"], 2, "invalid choice"),
+    (["compute", "{sample}", "-o", "{tmp}/x.ply", "--method", "3dcov", "--kernel", "gaussian"],
+     2, "--kernel is an option of --method mls2 only"),
+    (["compute", "{sample}", "-o", "{tmp}/x.ply", "--method", "mls1", "--projections", "1"],
+     2, "--projections is an option of --method mls2 only"),
+    (["compute", "{sample}", "-o", "{tmp}/x.ply", "--method", "mls2", "--h", "0.01"],
+     2, "kernel='gaussian'"),
 ])
 def test_bad_arguments_exit_codes(tmp_path, args, code, msg):
     args = [a.format(sample=sample_path(), tmp=tmp_path) for a in args]
@@ -88,7 +94,7 @@ def test_no_opencl_platform_names_the_apt_command(tmp_path):
 
 def test_auto_radius_gives_about_30_neighbours():
     pts = io.read(sample_path()).points
-    r = cli.auto_radius(pts)
+    r = job.auto_radius(pts)
     from scipy.spatial import cKDTree
     counts = np.array([len(x) for x in cKDTree(pts).query_ball_point(pts[::50], r)])
     assert 26 <= np.median(counts) <= 34
@@ -104,3 +110,57 @@ def test_render_command_on_a_computed_file(tmp_path):
     assert img.shape[0] > 300 and np.any(img[..., :3] < 0.9, axis=2).mean() > 0.1
     p = run("render", ply, "--field", "no_such_field", "-o", png)
     assert p.returncode == 2 and "no field 'no_such_field'" in p.stderr
+
+
+#: the file fields of each method, in the order ``clcurv compute`` wrote them before the
+#: operator registry (the registry's output order must keep it)
+DIRS = [f"dir{i}_{a}" for i in "12" for a in "xyz"]
+FILE_FIELDS = {
+    "variation": ["surface_variation"],
+    "mls0": ["mean_curvature", "surface_variation"],
+    "mls1": ["mean_curvature", "surface_variation"],
+    "2dcov1": ["k1", "k2", *DIRS], "2dcov2": ["k1", "k2", *DIRS], "3dcov": ["k1", "k2", *DIRS],
+    "mls2": ["mean_curvature", "gaussian_curvature", "k1", "k2", *DIRS],
+}
+
+
+@pytest.fixture(scope="module")
+def sphere_points():
+    import clcurv
+    return clcurv.shapes.sphere(3000, 1.0)["points"]
+
+
+@pytest.mark.parametrize("method", sorted(FILE_FIELDS))
+def test_result_fields_names_order_and_dtypes(sphere_points, method):
+    import clcurv
+    res = clcurv.curvature(sphere_points, 0.35, method=method)
+    f = job.result_fields(res)
+    assert list(f) == FILE_FIELDS[method] + ["neighbours", "status"]
+    assert f["neighbours"].dtype == np.int32 and f["status"].dtype == np.uint8
+    assert all(f[k].dtype == np.float64 and f[k].shape == (len(res),) for k in FILE_FIELDS[method])
+    if res.k1 is not None:
+        np.testing.assert_array_equal(f["dir2_y"], res.dir2[:, 1])
+    assert list(job.result_fields(res, ["status", "normals", FILE_FIELDS[method][0]])) == \
+        [FILE_FIELDS[method][0], "status"]
+    with pytest.raises(job.UsageError, match="unknown field"):
+        job.result_fields(res, ["nonsense"])
+
+
+def test_summary_prints_the_ranges_of_the_width_1_fields(tmp_path, sphere_points):
+    src, lines = tmp_path / "s.npy", []
+    np.save(src, sphere_points)
+    job.run(job.Job(src, tmp_path / "s.ply", method="mls1", radius=0.35, quiet=True),
+            lines.append)
+    ranged = [ln.split()[0] for ln in lines if ln.startswith("  ")]
+    assert ranged == ["mean_curvature", "surface_variation"]
+    h = next(ln for ln in lines if ln.startswith("  mean_curvature"))
+    assert 0.9 < float(h.split("median")[1].split()[0]) < 1.1         # unit sphere: H = 1
+
+
+def test_mls2_gaussian_kernel_and_projections_options(tmp_path):
+    out = tmp_path / "g.ply"
+    p = run("compute", sample_path(), "-o", out, "--method", "mls2", "--kernel", "gaussian",
+            "--h", "0.002", "--projections", "1", "-q")
+    assert p.returncode == 0, p.stderr
+    ok = io.read(out).attributes["status"] == 0
+    assert ok.mean() > 0.98

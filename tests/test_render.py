@@ -150,6 +150,14 @@ def test_bad_shapes(tmp_path, points, values):
     assert not (tmp_path / "bad.png").exists()
 
 
+def test_signed_fields_come_from_the_registry():
+    from clcurv.operators import signed_file_fields
+    from clcurv.render import SIGNED_FIELDS
+    assert signed_file_fields() == {"mean_curvature", "gaussian_curvature", "k1", "k2"}
+    assert SIGNED_FIELDS == signed_file_fields() | {"mean", "gaussian", "k1", "k2", "h", "k"}
+    assert "surface_variation" not in SIGNED_FIELDS
+
+
 def test_bad_options(tmp_path):
     p = sphere(100)
     with pytest.raises(ValueError, match="unknown view"):
@@ -178,8 +186,8 @@ def test_missing_matplotlib_message(monkeypatch, tmp_path):
 
 def test_bunny_sample(tmp_path):
     plyfile = pytest.importorskip("plyfile")
-    ply = Path(__file__).resolve().parents[1] / "clcurv" / "data" / "bunny.ply"
-    v = plyfile.PlyData.read(str(ply))["vertex"]
+    from clcurv.data import sample_path
+    v = plyfile.PlyData.read(str(sample_path()))["vertex"]
     p = np.column_stack([v["x"], v["y"], v["z"]]).astype(np.float64)
     out = render(p, p[:, 2], tmp_path / "bunny_z.png", field="z", unit="m", dpi=DPI)
     rgb, non_white, colours = check_picture(out)
