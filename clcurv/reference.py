@@ -1,403 +1,103 @@
-"""Independent float64 reference ("oracle") for the neighbourhood moments.
+"""Independent float64 reference ("oracle") of the clcurv operators (Digne & Morel 2013).
 
-This module is the host-side ground truth against which the OpenCL kernels are
-checked. It deliberately shares no code with the OpenCL side: it uses only
-NumPy and SciPy, works entirely in float64 and favours clarity and numerical
-care over speed (it is still vectorised enough for ~10^5 points in seconds).
+The host-side ground truth the OpenCL kernels are checked against. It shares no code with
+the OpenCL side: NumPy and SciPy only, float64 throughout, clarity and numerical care
+before speed (still ~10^5 points in seconds, and ~10^6 in memory bounded by blocks).
+
+Engine
+------
+Every operator runs on one ball-neighbourhood engine, in the steps of the kernels
+(``kernels/neighbors.h``, ``weights.h``, ``pca.h``):
+
+1. neighbourhoods -- :class:`_Ball`: the strict balls as a row-sorted graph in k-d tree
+   order, walked in blocks of whole rows of bounded edge count (:class:`_Block`);
+2. weights -- :func:`_edge_weights`: uniform or density, times the Gaussian MLS2 kernel;
+3. weighted moments -- :func:`_row_sums` (per-point sums of per-neighbour values, block by
+   block) and :func:`_mean_cov` (weighted mean and centred covariance of features);
+4. per-point finish -- :func:`_eigh`, :func:`_pca` (eigen decomposition, status) and
+   :func:`_finish` (back to input order, NaN where the status is not OK).
 
 Conventions
 -----------
-* ``points`` is an ``(N, 3)`` array of coordinates in an arbitrary length
-  unit ``L``; ``radius`` is in the same unit ``L``.
-* The neighbourhood of ``p`` is the **strict** ball
-  ``N_r(p) = {q : |q - p| < r}``, the point ``p`` itself included
-  (Digne & Morel 2013, Section 2). The strict inequality is obtained from
-  ``scipy.spatial.cKDTree`` (which tests ``<=``) by querying with
-  ``np.nextafter(radius, 0)``; distances exactly equal to ``r`` (as computed by
-  the k-d tree in float64) are excluded. :func:`ball_neighbors` and
-  :func:`neighbor_counts` use ``cKDTree.query_ball_point``, :func:`moments`
-  uses ``cKDTree.query_pairs``; both apply the same k-d tree distance test,
-  so the neighbourhoods agree exactly.
-* Weights: ``"uniform"`` gives every neighbour weight 1 (the case analysed by
-  the paper's theorems); ``"density"`` gives neighbour ``q`` the weight
-  ``1 / #N_r(q)`` (its own neighbour count, Section 3 of the paper).
-* Normals returned here are **unoriented** (sign as ``numpy.linalg.eigh``
-  gives it); see :mod:`clcurv.orient` to orient them.
-
-Status codes (mirroring ``kernels/common.h``):
-
-* ``0`` ok,
-* ``1`` too few neighbours (``count < 3``),
-* ``2`` degenerate covariance (rank < 2: ``l1 <= 1e-10 * l2`` or ``l2 == 0``
-  with ascending eigenvalues ``l0 <= l1 <= l2``).
-
-Points with a non-zero status get NaN in every floating-point output.
+* ``points`` is ``(N, 3)`` in an arbitrary length unit ``L``; ``radius`` is in ``L``.
+* The neighbourhood of ``p`` is the open ball ``N_r(p) = {q : |q - p| < r}``, ``p``
+  included (paper Section 2, as the kernels). ``scipy.spatial.cKDTree`` tests ``<=``, so it
+  is queried with ``np.nextafter(r, 0)``: distances exactly ``r`` (as the k-d tree computes
+  them in float64) are excluded. ``query_ball_point`` (:func:`ball_neighbors`,
+  :func:`neighbor_counts`) and ``query_pairs`` (the engine) apply the same distance test, so
+  the neighbourhoods agree exactly. Offsets ``q - p`` are formed relative to ``p``
+  (translation safe).
+* Weights: ``"uniform"`` gives every neighbour weight 1 (the case of the paper's theorems);
+  ``"density"`` gives neighbour ``q`` the weight ``1 / #N_r(q)`` (Section 3).
+* Normals: :func:`moments` returns **unoriented** PCA normals (sign as ``numpy.linalg.eigh``
+  gives it; :mod:`clcurv.orient` orients them). :func:`covariance_ops`, :func:`mls2` and
+  :func:`mls2_iterate` take normals **oriented outward** (user normals or oriented PCA
+  normals), normalised again here; a non-finite or zero row is invalid.
+* Curvature sign (clcurv): outward normals, a surface bending away from its normal is
+  positive (sphere of radius R: ``k1 = k2 = H = +1/R``, ``K = 1/R^2``), ``k1 >= k2``.
+  :func:`covariance_ops` returns magnitudes ``k1 >= k2 >= 0``, :func:`mls2` signed values.
+* Eigenvalue order: :func:`moments` ascending ``l0 <= l1 <= l2``; :func:`covariance_ops`
+  descending. Round-off negatives are clipped to 0.
+* Status codes (:mod:`clcurv.constants`, as the kernels): ``OK`` 0; ``TOO_FEW`` 1 (fewer
+  than ``MIN_COUNT_PCA`` = 3 neighbours, ``MIN_COUNT_MLS2`` = 6 for MLS2); ``DEGENERATE`` 2
+  (covariance of rank < 2: ``l1 <= RANK_TOL * l2`` or ``l2 == 0``, or an invalid normal);
+  ``SINGULAR`` 3 (MLS2 system). Every float64 output is NaN where the status is not OK.
 """
 
 from __future__ import annotations
 
+from functools import cached_property
+
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = [
-    "STATUS_OK",
-    "STATUS_TOO_FEW",
-    "STATUS_DEGENERATE",
-    "MIN_COUNT",
-    "RANK_TOL",
-    "ball_neighbors",
-    "neighbor_counts",
-    "moments",
-]
+from .constants import DEGENERATE, MIN_COUNT_MLS2, MIN_COUNT_PCA, OK, SINGULAR, TOO_FEW
 
-STATUS_OK = 0
-STATUS_TOO_FEW = 1
-STATUS_DEGENERATE = 2
+__all__ = ["OK", "TOO_FEW", "DEGENERATE", "SINGULAR", "MIN_COUNT_PCA", "MIN_COUNT_MLS2",
+           "STATUS_OK", "STATUS_TOO_FEW", "STATUS_DEGENERATE", "STATUS_SINGULAR", "MIN_COUNT",
+           "RANK_TOL", "SINGULAR_RCOND", "COV_METHODS", "ball_neighbors", "neighbor_counts",
+           "moments", "tangent_frame", "covariance_ops", "invert_theorem1", "mls2",
+           "mls2_iterate", "scale_space"]
 
-#: Minimum neighbour count (point included) for a covariance to be computed.
-MIN_COUNT = 3
-#: Relative threshold on the middle eigenvalue below which the covariance is
-#: considered of rank < 2.
+# Former names of the shared constants (clcurv.constants).
+STATUS_OK, STATUS_TOO_FEW, STATUS_DEGENERATE, STATUS_SINGULAR = OK, TOO_FEW, DEGENERATE, SINGULAR
+MIN_COUNT = MIN_COUNT_PCA
+
+#: Relative threshold on the middle eigenvalue below which a covariance has rank < 2.
 RANK_TOL = 1e-10
-
+#: The 6x6 MLS2 normal equations are singular when their smallest singular value is
+#: <= SINGULAR_RCOND times the largest (coordinates scaled by 1/r).
+SINGULAR_RCOND = 1e-10
+COV_METHODS = ("2dcov1", "2dcov2", "3dcov")
 _WEIGHTS = ("uniform", "density")
-# Number of neighbour pairs processed at once when accumulating moments.
-_EDGE_CHUNK = 1 << 21
+_KERNELS = ("ball", "gaussian")
+# Edges per block of rows: bounds the per-edge temporaries (~30 arrays this long for MLS2).
+_BLOCK_EDGES = 1 << 16
 
 
-# --------------------------------------------------------------------------
-# input validation
-# --------------------------------------------------------------------------
-def _as_points(points):
-    """Return ``points`` as a C-contiguous float64 ``(N, 3)`` array.
-
-    Raises
-    ------
-    ValueError
-        If the shape is not ``(N, 3)`` or a coordinate is not finite.
-    """
+# --- input validation ---
+def _as_cloud(points, radius):
+    """``points`` as a C-contiguous float64 ``(N, 3)`` array and ``radius`` as a positive
+    float (ValueError if the shape is wrong or a value is not finite)."""
     pts = np.ascontiguousarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"points must have shape (N, 3), got {pts.shape}")
     if not np.all(np.isfinite(pts)):
         raise ValueError("points contain non-finite coordinates")
-    return pts
+    return pts, _as_radius(radius)
 
 
 def _as_radius(radius):
-    """Return ``radius`` as a positive finite Python float."""
+    """``radius`` as a positive finite Python float."""
     r = float(radius)
     if not (np.isfinite(r) and r > 0.0):
         raise ValueError(f"radius must be positive and finite, got {radius!r}")
     return r
 
 
-# --------------------------------------------------------------------------
-# neighbourhoods
-# --------------------------------------------------------------------------
-def _strict_radius(radius):
-    """Largest float64 below ``radius``: turns the k-d tree's ``<=`` into ``<``."""
-    return float(np.nextafter(radius, 0.0))
-
-
-def ball_neighbors(points, radius):
-    """Neighbour index lists of every point in the strict ball.
-
-    Parameters
-    ----------
-    points : array_like, shape (N, 3)
-        Coordinates, in length unit ``L``.
-    radius : float
-        Ball radius ``r`` in unit ``L`` (> 0).
-
-    Returns
-    -------
-    list of list of int
-        ``result[i]`` holds, in increasing order, the indices ``j`` with
-        ``|points[j] - points[i]| < radius``; ``i`` itself is always included.
-    """
-    pts = _as_points(points)
-    r = _as_radius(radius)
-    if len(pts) == 0:
-        return []
-    tree = cKDTree(pts)
-    lists = tree.query_ball_point(pts, _strict_radius(r), workers=-1,
-                                  return_sorted=True)
-    return [list(x) for x in lists]
-
-
-def _ball_pairs(tree, r):
-    """Unordered neighbour pairs ``(i, j)``, ``i < j``, with ``|p_i - p_j| < r``.
-
-    Uses the same k-d tree distance test as :func:`ball_neighbors`
-    (``<= nextafter(r, 0)``), without building Python lists.
-    """
-    pairs = tree.query_pairs(_strict_radius(r), output_type="ndarray")
-    return pairs[:, 0].astype(np.intp), pairs[:, 1].astype(np.intp)
-
-
-def neighbor_counts(points, radius):
-    """Number of points in the strict ball of every point.
-
-    Parameters
-    ----------
-    points : array_like, shape (N, 3)
-        Coordinates, in length unit ``L``.
-    radius : float
-        Ball radius ``r`` in unit ``L`` (> 0).
-
-    Returns
-    -------
-    numpy.ndarray of int32, shape (N,)
-        ``#N_r(p)`` including ``p`` itself (so always >= 1).
-    """
-    pts = _as_points(points)
-    r = _as_radius(radius)
-    if len(pts) == 0:
-        return np.empty(0, dtype=np.int32)
-    tree = cKDTree(pts)
-    counts = tree.query_ball_point(pts, _strict_radius(r), workers=-1,
-                                   return_length=True)
-    return np.asarray(counts, dtype=np.int32)
-
-
-# --------------------------------------------------------------------------
-# moments
-# --------------------------------------------------------------------------
-def _point_weights(counts, weights):
-    """Weight of every point as a neighbour: 1, or ``1/#N_r(q)`` (density)."""
-    if weights == "uniform":
-        return np.ones(len(counts))
-    return 1.0 / counts.astype(np.float64)
-
-
-def _chunks(n, size):
-    """Yield ``slice`` objects covering ``range(n)`` in blocks of ``size``."""
-    for s in range(0, n, size):
-        yield slice(s, min(n, s + size))
-
-
-def _scatter(n, i, j, wi, wj, vi, vj):
-    """``out[i] += wj * vi`` and ``out[j] += wi * vj`` for every pair."""
-    return (np.bincount(i, weights=wj * vi, minlength=n)
-            + np.bincount(j, weights=wi * vj, minlength=n))
-
-
-def _weighted_moments(pts, i, j, w):
-    """Weighted barycenter offset and centred covariance of every ball.
-
-    The ball of ``p`` holds ``p`` itself (weight ``w[p]``) and, for each pair
-    ``(i, j)``, ``j`` in the ball of ``i`` (weight ``w[j]``) and ``i`` in the
-    ball of ``j`` (weight ``w[i]``).
-
-    Two-pass, translation-safe algorithm: neighbour offsets ``d = q - p`` are
-    formed relative to the query point ``p`` (so large coordinate offsets of
-    the cloud cost no digits); the weighted mean offset ``m = o - p`` is
-    accumulated first, then ``C = sum w (d - m)(d - m)^T / sum w``.
-
-    Returns
-    -------
-    shift : ndarray, shape (N, 3)
-        ``o - p`` (unit ``L``).
-    cov : ndarray, shape (N, 3, 3)
-        Weighted centred covariance (unit ``L^2``).
-    """
-    n = len(pts)
-    x = [np.ascontiguousarray(pts[:, k]) for k in range(3)]  # unit-stride
-    wsum = w.copy()              # the point itself...
-    s1 = np.zeros((3, n))        # ...whose offset d = 0 adds nothing
-    for sl in _chunks(len(i), _EDGE_CHUNK):
-        a, b = i[sl], j[sl]
-        wa, wb = w[a], w[b]
-        wsum += _scatter(n, a, b, wa, wb, 1.0, 1.0)
-        for k in range(3):
-            d = x[k][b] - x[k][a]
-            s1[k] += _scatter(n, a, b, wa, wb, d, -d)
-    m = s1 / wsum
-
-    # second pass: centred products, c = d - m (self term: c = -m)
-    iu = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
-    s2 = np.stack([w * m[u] * m[v] for u, v in iu])
-    for sl in _chunks(len(i), _EDGE_CHUNK):
-        a, b = i[sl], j[sl]
-        wa, wb = w[a], w[b]
-        ca, cb = [], []
-        for k in range(3):
-            d = x[k][b] - x[k][a]
-            ca.append(d - m[k][a])   # j seen from i
-            cb.append(-d - m[k][b])  # i seen from j
-        for col, (u, v) in enumerate(iu):
-            s2[col] += _scatter(n, a, b, wa, wb, ca[u] * ca[v], cb[u] * cb[v])
-    s2 /= wsum
-    cov = np.empty((n, 3, 3))
-    for col, (u, v) in enumerate(iu):
-        cov[:, u, v] = s2[col]
-        cov[:, v, u] = s2[col]
-    return m.T.copy(), cov
-
-
-def _classify(counts, evals):
-    """Status codes from neighbour counts and ascending eigenvalues."""
-    status = np.zeros(len(counts), dtype=np.uint8)
-    l1, l2 = evals[:, 1], evals[:, 2]
-    degenerate = (l2 == 0.0) | (l1 <= RANK_TOL * l2)
-    status[degenerate] = STATUS_DEGENERATE
-    status[counts < MIN_COUNT] = STATUS_TOO_FEW
-    return status
-
-
-def _empty_moments():
-    """The :func:`moments` dictionary of an empty cloud."""
-    return {
-        "count": np.empty(0, dtype=np.int32),
-        "status": np.empty(0, dtype=np.uint8),
-        "eigenvalues": np.empty((0, 3)),
-        "normals": np.empty((0, 3)),
-        "variation": np.empty(0),
-        "shift": np.empty((0, 3)),
-    }
-
-
-def moments(points, radius, weights="uniform"):
-    """Weighted PCA moments of every strict-ball neighbourhood.
-
-    For each point ``p`` with neighbourhood ``N_r(p)`` (``p`` included) and
-    weights ``w_q``:
-
-    * barycenter ``o = sum w_q q / sum w_q``,
-    * covariance ``C = sum w_q (q - o)(q - o)^T / sum w_q``,
-    * ascending eigenvalues ``l0 <= l1 <= l2`` of ``C``,
-    * surface variation ``l0 / (l0 + l1 + l2)`` (Pauly et al., operator 4 of
-      Digne & Morel 2013; tends to ``r^2/16 ((k1^2 + k2^2)/2 - k1 k2/3)``),
-    * MLS0 shift ``o - p`` (operator 5; ``o - p ~ -(H r^2/4) n_out`` with the
-      clcurv sign convention, i.e. ``H = 4 <p - o, n_out> / r^2``).
-
-    Parameters
-    ----------
-    points : array_like, shape (N, 3)
-        Coordinates, in length unit ``L``; must be finite.
-    radius : float
-        Ball radius ``r`` in unit ``L`` (> 0). Neighbourhoods are strict
-        balls ``|q - p| < r``.
-    weights : {"uniform", "density"}, optional
-        ``"uniform"``: ``w_q = 1`` (default, the case of the theorems).
-        ``"density"``: ``w_q = 1 / #N_r(q)``, the inverse of ``q``'s own
-        neighbour count (density reweighting, Section 3).
-
-    Returns
-    -------
-    dict
-        ``"count"`` : int32 (N,)
-            ``#N_r(p)``, ``p`` included.
-        ``"status"`` : uint8 (N,)
-            0 ok, 1 too few neighbours (``count < 3``), 2 degenerate
-            covariance (``l1 <= 1e-10 * l2`` or ``l2 == 0``).
-        ``"eigenvalues"`` : float64 (N, 3)
-            Ascending eigenvalues of ``C``, unit ``L^2``. Tiny negative
-            round-off values are clipped to 0.
-        ``"normals"`` : float64 (N, 3)
-            Unit eigenvector of ``l0`` (PCA normal), unoriented.
-        ``"variation"`` : float64 (N,)
-            ``l0 / (l0 + l1 + l2)``, dimensionless, in ``[0, 1/3]``.
-        ``"shift"`` : float64 (N, 3)
-            ``o - p``, unit ``L``.
-
-        Every float64 entry is NaN where ``status != 0``.
-
-    Raises
-    ------
-    ValueError
-        If ``weights`` is not ``"uniform"`` or ``"density"``, ``points`` is
-        not a finite ``(N, 3)`` array, or ``radius`` is not positive.
-    """
-    if weights not in _WEIGHTS:
-        raise ValueError(f"weights must be one of {_WEIGHTS}, got {weights!r}")
-    pts = _as_points(points)
-    r = _as_radius(radius)
-    n = len(pts)
-    if n == 0:
-        return _empty_moments()
-
-    # Work in k-d tree order: spatially coherent, so the gathers and
-    # scatters over neighbour pairs stay in cache; results are permuted back.
-    perm = cKDTree(pts, balanced_tree=False).indices
-    q = pts[perm]
-    i, j = _ball_pairs(cKDTree(q), r)
-    counts_q = (1 + np.bincount(i, minlength=n)
-                + np.bincount(j, minlength=n)).astype(np.int32)
-    shift_q, cov_q = _weighted_moments(q, i, j,
-                                       _point_weights(counts_q, weights))
-    counts = np.empty(n, dtype=np.int32)
-    shift = np.empty((n, 3))
-    cov = np.empty((n, 3, 3))
-    counts[perm], shift[perm], cov[perm] = counts_q, shift_q, cov_q
-
-    evals = np.full((n, 3), np.nan)
-    normals = np.full((n, 3), np.nan)
-    enough = counts >= MIN_COUNT
-    if np.any(enough):
-        lam, vec = np.linalg.eigh(cov[enough])
-        evals[enough] = np.maximum(lam, 0.0)
-        normals[enough] = vec[:, :, 0]
-    status = _classify(counts, np.where(enough[:, None], evals, 0.0))
-
-    bad = status != STATUS_OK
-    with np.errstate(invalid="ignore", divide="ignore"):
-        variation = evals[:, 0] / evals.sum(axis=1)
-    evals[bad] = np.nan
-    normals[bad] = np.nan
-    variation[bad] = np.nan
-    shift[bad] = np.nan
-    return {
-        "count": counts,
-        "status": status,
-        "eigenvalues": evals,
-        "normals": normals,
-        "variation": variation,
-        "shift": shift,
-    }
-
-
-# ==========================================================================
-# Normal-based covariance operators and MLS2 (Digne & Morel 2013, operators
-# 1, 2, 3 and 7)
-# ==========================================================================
-#
-# Conventions shared by :func:`covariance_ops`, :func:`mls2` and
-# :func:`mls2_iterate` (in addition to the module conventions above):
-#
-# * ``normals`` are the caller's unit normals, ORIENTED outward (user normals,
-#   or PCA normals oriented with :mod:`clcurv.orient`). They are normalised
-#   again here (only directions matter); a row that is not finite or is zero
-#   is *invalid*.
-# * Tangent basis at ``p``: ``(t1, t2)`` built deterministically from the
-#   normal ``n`` by :func:`tangent_frame`, orthonormal with ``t1 x t2 = n``.
-# * Sign convention of clcurv: outward normals; a surface bending away from
-#   its normal has positive curvature (sphere of radius R: ``k = +1/R``).
-#   ``covariance_ops`` returns magnitudes, ``mls2`` signed values.
-# * Status codes: 0 ok, 1 too few neighbours, 2 degenerate, 3 singular fit;
-#   every float64 output is NaN on rows whose status is not 0.
-
-__all__ += [
-    "STATUS_SINGULAR",
-    "MIN_COUNT_MLS2",
-    "SINGULAR_RCOND",
-    "COV_METHODS",
-    "tangent_frame",
-    "covariance_ops",
-    "invert_theorem1",
-    "mls2",
-    "mls2_iterate",
-]
-
-STATUS_SINGULAR = 3
-#: Minimum neighbour count (point included) for the 6-coefficient MLS2 fit.
-MIN_COUNT_MLS2 = 6
-#: The 6x6 MLS2 normal equations are singular when their smallest singular
-#: value is <= SINGULAR_RCOND times the largest (coordinates scaled by 1/r).
-SINGULAR_RCOND = 1e-10
-COV_METHODS = ("2dcov1", "2dcov2", "3dcov")
-_KERNELS = ("ball", "gaussian")
+def _check_choice(name, value, choices):
+    if value not in choices:
+        raise ValueError(f"{name} must be one of {choices}, got {value!r}")
 
 
 def _as_normals(normals, n):
@@ -413,26 +113,47 @@ def _as_normals(normals, n):
     return nrm
 
 
+def _empty(*columns):
+    """Result of an empty cloud: count, status and float64 ``(name, width)`` columns
+    (width 0: one value per point)."""
+    out = {"count": np.empty(0, dtype=np.int32), "status": np.empty(0, dtype=np.uint8)}
+    for name, width in columns:
+        out[name] = np.empty((0, width) if width else 0)
+    return out
+
+
+# --- small geometric helpers ---
 def _unit_rows(v):
     """Rows of ``v`` divided by their Euclidean norm."""
     return v / np.sqrt(np.einsum("ij,ij->i", v, v))[:, None]
 
 
+def _rowdot3(a, b):
+    """Column-wise dot products of two ``(3, E)`` stacks."""
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _upper(k):
+    """Index pairs ``(u, v)``, ``u <= v``, of the upper triangle of a ``k x k`` matrix."""
+    return [(u, v) for u in range(k) for v in range(u, k)]
+
+
+def _symmetric(packed, k):
+    """``(n, k, k)`` symmetric matrices from their :func:`_upper` rows ``packed`` (m, n)."""
+    out = np.empty((packed.shape[1], k, k))
+    for col, (u, v) in enumerate(_upper(k)):
+        out[:, u, v] = packed[col]
+        out[:, v, u] = packed[col]
+    return out
+
+
 def tangent_frame(normals):
     """Deterministic orthonormal tangent basis ``(t1, t2)`` with ``t1 x t2 = n``.
 
-    ``t1`` is ``n x e`` normalised, ``e`` being the coordinate axis least
-    aligned with ``n`` (the first such axis on ties); ``t2 = n x t1``. Then
-    ``t1 x t2 = t1 x (n x t1) = n``.
-
-    Parameters
-    ----------
-    normals : array_like, shape (N, 3)
-        Unit normals; NaN rows give NaN frames.
-
-    Returns
-    -------
-    t1, t2 : numpy.ndarray, shape (N, 3)
+    ``t1`` is ``n x e`` normalised, ``e`` being the coordinate axis least aligned with ``n``
+    (the first such axis on ties); ``t2 = n x t1``, so ``t1 x t2 = t1 x (n x t1) = n``
+    (``kernels/frame.h`` uses the same rule). ``normals`` (N, 3): unit normals, NaN rows
+    give NaN frames. Returns ``t1, t2``, each (N, 3), dimensionless.
     """
     n = np.asarray(normals, dtype=np.float64)
     a = np.abs(np.nan_to_num(n))
@@ -443,60 +164,94 @@ def tangent_frame(normals):
     return t1, t2
 
 
-# Edges per block of rows in the row-sorted ball graph (bounds the memory of
-# the per-edge temporaries: ~30 arrays of this length for MLS2).
-_ROW_BLOCK_EDGES = 1 << 18
+# --- engine, step 1: neighbourhoods ---
+def _strict(radius):
+    """Largest float64 below ``radius``: turns the k-d tree's ``<=`` into ``<``."""
+    return float(np.nextafter(radius, 0.0))
 
 
-class _BallGraph:
-    """Strict-ball graph in k-d tree order, stored by rows (CSR).
+def _query_ball(points, radius, **kw):
+    """``cKDTree.query_ball_point`` of every point in its strict ball (None if empty)."""
+    pts, r = _as_cloud(points, radius)
+    if len(pts) == 0:
+        return None
+    return cKDTree(pts).query_ball_point(pts, _strict(r), workers=-1, **kw)
 
-    ``q = pts[perm]`` (spatially coherent order); row ``i`` holds the
-    neighbours of ``q_i`` (``i`` itself included) in
-    ``cols[indptr[i]:indptr[i + 1]]``, ``counts[i] = #N_r(q_i)``. Same
-    distance test as :func:`moments` (``cKDTree.query_pairs``).
+
+def ball_neighbors(points, radius):
+    """Neighbour index lists of every point: ``result[i]`` holds, in increasing order, the
+    indices ``j`` with ``|points[j] - points[i]| < radius``, ``i`` itself included.
+    ``points`` (N, 3) and ``radius`` (> 0) in the same length unit ``L``."""
+    lists = _query_ball(points, radius, return_sorted=True)
+    return [] if lists is None else [list(x) for x in lists]
+
+
+def neighbor_counts(points, radius):
+    """``#N_r(p)`` of every point, ``p`` included (so >= 1), as int32 (N,); ``points``
+    (N, 3) and ``radius`` (> 0) in the same length unit ``L``, strict ball."""
+    counts = _query_ball(points, radius, return_length=True)
+    return np.empty(0, dtype=np.int32) if counts is None else np.asarray(counts, dtype=np.int32)
+
+
+class _Ball:
+    """The strict balls of every point, ``p`` included, as a row-sorted graph (CSR).
+
+    Points are taken in k-d tree order ``q = pts[perm]`` (spatially coherent, so the
+    gathers stay in cache; :func:`_finish` permutes back). Row ``i`` lists the neighbours
+    of ``q_i`` in ``cols[indptr[i]:indptr[i + 1]]``; ``counts[i] = #N_r(q_i)``; ``x`` holds
+    the coordinates as a ``(3, n)`` stack. The pairs come from ``cKDTree.query_pairs`` with
+    the same distance test as :func:`ball_neighbors`.
     """
 
     def __init__(self, pts, r):
-        n = len(pts)
-        self.n = n
+        n = self.n = len(pts)
         self.perm = cKDTree(pts, balanced_tree=False).indices
         self.q = pts[self.perm]
-        i, j = _ball_pairs(cKDTree(self.q), r)
+        self.x = self.q.T.copy()
+        pairs = cKDTree(self.q).query_pairs(_strict(r), output_type="ndarray")
+        i, j = pairs.T.astype(np.int32)          # i < j, each pair once (tree order)
         self.counts = (1 + np.bincount(i, minlength=n)
                        + np.bincount(j, minlength=n)).astype(np.int32)
-        self_ = np.arange(n, dtype=np.intp)
-        rows = np.concatenate([i, j, self_])
-        cols = np.concatenate([j, i, self_])
-        self.cols = cols[np.argsort(rows.astype(np.int32), kind="stable")]
+        own = np.arange(n, dtype=np.int32)
+        del pairs
+        order = np.argsort(np.concatenate([i, j, own]), kind="stable")
+        self.cols = np.concatenate([j, i, own])[order]
         self.indptr = np.zeros(n + 1, dtype=np.intp)
         np.cumsum(self.counts, out=self.indptr[1:])
 
     def blocks(self):
-        """Yield :class:`_Block` objects covering all rows in order."""
+        """:class:`_Block` objects covering all rows in order, ~``_BLOCK_EDGES`` edges each."""
         n, ip = self.n, self.indptr
         r0 = 0
         while r0 < n:
-            r1 = int(np.searchsorted(ip, ip[r0] + _ROW_BLOCK_EDGES, side="right")) - 1
+            r1 = int(np.searchsorted(ip, ip[r0] + _BLOCK_EDGES, side="right")) - 1
             r1 = min(max(r1, r0 + 1), n)
             yield _Block(self, r0, r1)
             r0 = r1
 
 
 class _Block:
-    """Rows ``r0:r1`` of a :class:`_BallGraph` and their edges.
+    """Rows ``r0:r1`` of a :class:`_Ball` and their edges (every row holds its own point).
 
-    ``b``: neighbour (column) index of every edge; :meth:`row` broadcasts a
-    per-row array to the edges (``np.repeat``); :meth:`sum` adds per-edge
-    values over each row (``np.add.reduceat``, every row is non-empty).
+    ``b``: neighbour index of every edge; ``d``: offsets ``q - p`` (3, E), ``p`` the row's
+    point; per-point arrays (last axis n) seen on the edges: :meth:`nb` at the neighbour
+    ``q``, :meth:`row` at ``p``; :meth:`sum` adds per-edge values over each row.
     """
 
-    def __init__(self, g, r0, r1):
+    def __init__(self, ball, r0, r1):
         self.rows = slice(r0, r1)
-        e0, e1 = g.indptr[r0], g.indptr[r1]
-        self.b = g.cols[e0:e1]
-        self._rep = g.counts[r0:r1]
-        self._starts = g.indptr[r0:r1] - e0
+        e0, e1 = ball.indptr[r0], ball.indptr[r1]
+        self.b = ball.cols[e0:e1]
+        self._rep = ball.counts[r0:r1]
+        self._starts = ball.indptr[r0:r1] - e0
+        self._x = ball.x
+
+    @cached_property
+    def d(self):
+        return self.nb(self._x) - self.row(self._x)
+
+    def nb(self, arr):
+        return np.take(arr, self.b, axis=-1)
 
     def row(self, arr):
         return np.repeat(arr[..., self.rows], self._rep, axis=-1)
@@ -505,96 +260,178 @@ class _Block:
         return np.add.reduceat(vals, self._starts, axis=-1)
 
 
-def _row_mean_cov(g, features):
-    """Weighted mean and centred covariance of per-edge features, per row.
+# --- engine, step 2: weights ---
+def _edge_weights(ball, weights, kernel="ball", h=None):
+    """Weight of every edge of a block, as a function of the block: the neighbour's own
+    weight (1, or ``1 / #N_r(q)`` for ``"density"``), times ``exp(-|q - p|^2 / h^2)`` for
+    the Gaussian kernel."""
+    if weights == "uniform":
+        wpt = np.ones(ball.n)
+    else:
+        wpt = 1.0 / ball.counts.astype(np.float64)
+    if kernel == "ball":
+        return lambda blk: blk.nb(wpt)
+    inv_h2 = 1.0 / (h * h)
+    return lambda blk: blk.nb(wpt) * np.exp(-_rowdot3(blk.d, blk.d) * inv_h2)
 
-    ``features(blk)`` returns ``(w, F)`` for the edges of a block: weights
-    ``w`` (E,) and features ``F`` (k, E). Two passes (mean first, then
-    centred products). Returns ``wsum`` (n,), ``mean`` (k, n) and
-    ``cov`` (n, k, k) ``= sum w (F - mean)(F - mean)^T / sum w``.
+
+# --- engine, step 3: weighted moments ---
+def _row_sums(ball, values):
+    """Per-point sums over each ball of per-edge values, block by block: ``values(blk)``
+    lists arrays of shape (E,) or (k_i, E); their sums are the rows of a (sum k_i, n) array."""
+    out = None
+    for blk in ball.blocks():
+        sums = [np.atleast_2d(blk.sum(v)) for v in values(blk)]
+        if out is None:
+            out = np.zeros((sum(len(v) for v in sums), ball.n))
+        out[:, blk.rows] = np.concatenate(sums)
+    return out
+
+
+def _mean_cov(ball, weight, features):
+    """Weighted mean and centred covariance of per-neighbour features, per point.
+
+    ``weight(blk)`` gives the edge weights ``w`` (E,) and ``features(blk)`` the features
+    ``F`` (k, E) of a block. Two passes (mean first, then centred products). Returns
+    ``mean = sum w F / sum w`` (k, n) and ``cov = sum w (F - mean)(F - mean)^T / sum w``
+    (n, k, k).
     """
-    n = g.n
-    wsum = np.zeros(n)
-    s1 = None
-    for blk in g.blocks():
-        w, f = features(blk)
-        if s1 is None:
-            s1 = np.zeros((len(f), n))
-        wsum[blk.rows] = blk.sum(w)
-        s1[:, blk.rows] = blk.sum(w * f)
+    def first(blk):
+        w = weight(blk)
+        return [w, w * features(blk)]
+
+    s1 = _row_sums(ball, first)
+    wsum = s1[0]
     with np.errstate(invalid="ignore", divide="ignore"):
-        mean = s1 / wsum
+        mean = s1[1:] / wsum
     k = len(mean)
-    iu = [(u, v) for u in range(k) for v in range(u, k)]
-    s2 = np.zeros((len(iu), n))
-    for blk in g.blocks():
-        w, f = features(blk)
-        c = f - blk.row(mean)
-        prod = np.stack([c[u] * c[v] for u, v in iu])
-        s2[:, blk.rows] = blk.sum(w * prod)
+
+    def second(blk):
+        c, w = features(blk) - blk.row(mean), weight(blk)
+        return [w * (c[u] * c[v]) for u, v in _upper(k)]
+
+    s2 = _row_sums(ball, second)
     with np.errstate(invalid="ignore", divide="ignore"):
         s2 /= wsum
-    cov = np.empty((n, k, k))
-    for col, (u, v) in enumerate(iu):
-        cov[:, u, v] = s2[col]
-        cov[:, v, u] = s2[col]
-    return wsum, mean, cov
+    return mean, _symmetric(s2, k)
 
 
-def _rowdot3(a, b):
-    """Column-wise dot products of two ``(3, E)`` stacks."""
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
-def _eigh_desc(cov, ok):
-    """Descending eigenvalues (clipped at 0) and eigenvectors on rows ``ok``."""
+# --- engine, step 4: per-point finish ---
+def _eigh(cov, ok):
+    """Ascending eigenvalues (clipped at 0) and eigenvectors of the rows ``ok``, else NaN."""
     n, k = cov.shape[:2]
     lam = np.full((n, k), np.nan)
     vec = np.full((n, k, k), np.nan)
     if np.any(ok):
         w, v = np.linalg.eigh(cov[ok])
-        lam[ok] = np.maximum(w[:, ::-1], 0.0)
-        vec[ok] = v[:, :, ::-1]
+        lam[ok] = np.maximum(w, 0.0)
+        vec[ok] = v
     return lam, vec
 
 
+def _pca(ball, weight, min_count):
+    """Weighted PCA of every ball (``pca.h``): shift ``o - p`` (3, n), ascending
+    eigenvalues (n, 3), unoriented normal ``v0`` (n, 3) and status (TOO_FEW below
+    ``min_count`` neighbours, else DEGENERATE for rank < 2)."""
+    m, cov = _mean_cov(ball, weight, lambda blk: blk.d)
+    lam, vec = _eigh(cov, ball.counts >= min_count)
+    status = np.full(ball.n, OK, dtype=np.uint8)
+    with np.errstate(invalid="ignore"):
+        status[(lam[:, 2] == 0.0) | (lam[:, 1] <= RANK_TOL * lam[:, 2])] = DEGENERATE
+    status[ball.counts < min_count] = TOO_FEW
+    return m, lam, vec[:, :, 0].copy(), status
+
+
+def _finish(out, perm):
+    """Back to input order (``res[perm] = out``); NaN float rows where status != OK."""
+    res = {}
+    for key, val in out.items():
+        res[key] = np.empty(val.shape, dtype=val.dtype)
+        res[key][perm] = val
+    bad = res["status"] != OK
+    for arr in res.values():
+        if arr.dtype == np.float64:
+            arr[bad] = np.nan
+    return res
+
+
+# --- operators 4 and 5: PCA moments, surface variation, MLS0 ---
+def moments(points, radius, weights="uniform"):
+    """Weighted PCA moments of every strict-ball neighbourhood.
+
+    For each point ``p`` with neighbourhood ``N_r(p)`` (``p`` included) and weights ``w_q``:
+
+    * barycenter ``o = sum w_q q / sum w_q``,
+    * covariance ``C = sum w_q (q - o)(q - o)^T / sum w_q``,
+    * ascending eigenvalues ``l0 <= l1 <= l2`` of ``C``,
+    * surface variation ``l0 / (l0 + l1 + l2)`` (Pauly et al., operator 4 of Digne & Morel
+      2013; tends to ``r^2/16 ((k1^2 + k2^2)/2 - k1 k2/3)``),
+    * MLS0 shift ``o - p`` (operator 5; ``o - p ~ -(H r^2/4) n_out`` with the clcurv sign
+      convention, i.e. ``H = 4 <p - o, n_out> / r^2``).
+
+    Parameters
+    ----------
+    points : array_like, shape (N, 3)
+        Coordinates, in length unit ``L``; must be finite.
+    radius : float
+        Ball radius ``r`` in unit ``L`` (> 0); strict balls ``|q - p| < r``.
+    weights : {"uniform", "density"}, optional
+        ``"uniform"``: ``w_q = 1`` (default, the case of the theorems). ``"density"``:
+        ``w_q = 1 / #N_r(q)``, the inverse of ``q``'s own neighbour count (Section 3).
+
+    Returns
+    -------
+    dict
+        ``"count"`` int32 (N,): ``#N_r(p)``, ``p`` included.
+        ``"status"`` uint8 (N,): OK; TOO_FEW (``count < 3``); DEGENERATE
+        (``l1 <= 1e-10 * l2`` or ``l2 == 0``).
+        ``"eigenvalues"`` float64 (N, 3): ascending eigenvalues of ``C``, unit ``L^2``
+        (round-off negatives clipped to 0).
+        ``"normals"`` float64 (N, 3): unit eigenvector of ``l0`` (PCA normal), unoriented.
+        ``"variation"`` float64 (N,): ``l0 / (l0 + l1 + l2)``, dimensionless, in [0, 1/3].
+        ``"shift"`` float64 (N, 3): ``o - p``, unit ``L``.
+        Every float64 entry is NaN where ``status != OK``.
+
+    ValueError if ``weights`` is unknown, ``points`` is not a finite ``(N, 3)`` array, or
+    ``radius`` is not positive (likewise for every operator below).
+    """
+    _check_choice("weights", weights, _WEIGHTS)
+    pts, r = _as_cloud(points, radius)
+    if len(pts) == 0:
+        return _empty(("eigenvalues", 3), ("normals", 3), ("variation", 0), ("shift", 3))
+    ball = _Ball(pts, r)
+    m, lam, v0, status = _pca(ball, _edge_weights(ball, weights), MIN_COUNT_PCA)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        variation = lam[:, 0] / lam.sum(axis=1)
+    return _finish({"count": ball.counts, "status": status, "eigenvalues": lam,
+                    "normals": v0, "variation": variation, "shift": m.T}, ball.perm)
+
+
+# --- operators 1, 2, 3: normal-based covariances ---
 def invert_theorem1(lam1, lam2, radius):
     """Curvature magnitudes from the count-normalised 2dcov1 eigenvalues.
 
     Theorem 1 (Digne & Morel 2013): ``lam1 -> c (5 k1^2 + 2 k1 k2 + k2^2)``,
-    ``lam2 -> c (k1^2 + 2 k1 k2 + 5 k2^2)``, ``c = r^6 / 256``. With
-    ``u = lam1 / c``, ``v = lam2 / c`` and ``m = (k1 + k2)^2`` this reads
-    ``u = 4 k1^2 + m``, ``v = 4 k2^2 + m``; eliminating gives
-    ``32 m^2 - 8 S m + S^2 - 4 u v = 0`` (``S = u + v``), whose two roots
-    ``m_pm = (S +- sqrt(8 u v - S^2)) / 8`` are the two sign hypotheses:
-    the sign of ``k1 k2`` belonging to a root is that of ``6 m - S``
-    (``m_-`` always gives ``k1 k2 <= 0``; ``m_+`` gives ``k1 k2 >= 0`` iff
-    ``u/v <= 5``).
+    ``lam2 -> c (k1^2 + 2 k1 k2 + 5 k2^2)``, ``c = r^6 / 256``. With ``u = lam1 / c``,
+    ``v = lam2 / c`` and ``m = (k1 + k2)^2`` this reads ``u = 4 k1^2 + m``,
+    ``v = 4 k2^2 + m``; eliminating gives ``32 m^2 - 8 S m + S^2 - 4 u v = 0``
+    (``S = u + v``), whose two roots ``m_pm = (S +- sqrt(8 u v - S^2)) / 8`` are the two
+    sign hypotheses: the sign of ``k1 k2`` belonging to a root is that of ``6 m - S``
+    (``m_-`` always gives ``k1 k2 <= 0``; ``m_+`` gives ``k1 k2 >= 0`` iff ``u/v <= 5``).
 
-    **Sign rule.** Both roots always give non-negative squares (``0 <= m <= v``
-    for ``1 <= u/v <= 3 + 2 sqrt 2``), so the data cannot tell the two
-    hypotheses apart (e.g. the sphere ``(k, k)`` and the saddle
-    ``(sqrt2 k, -sqrt2 k)`` have identical eigenvalues). We always keep the
-    larger root ``m_+``: it is the ``k1 k2 >= 0`` solution whenever one
-    exists (eigenvalue ratio ``u/v <= 5``: from 1 for an umbilic to 5 for a
-    cylinder), and for ``5 < u/v <= 3 + 2 sqrt 2`` (only reachable by
-    ``k1 k2 < 0``) the ``k1 k2 < 0`` solution continuous with it. Ratios
-    beyond ``3 + 2 sqrt 2`` are not attainable by Theorem 1 (sampling
-    error): the discriminant is clipped at 0. Then
+    **Sign rule.** Both roots always give non-negative squares (``0 <= m <= v`` for
+    ``1 <= u/v <= 3 + 2 sqrt 2``), so the data cannot tell the two hypotheses apart (e.g.
+    the sphere ``(k, k)`` and the saddle ``(sqrt2 k, -sqrt2 k)`` have identical
+    eigenvalues). We always keep the larger root ``m_+``: it is the ``k1 k2 >= 0`` solution
+    whenever one exists (eigenvalue ratio ``u/v <= 5``: from 1 for an umbilic to 5 for a
+    cylinder), and for ``5 < u/v <= 3 + 2 sqrt 2`` (only reachable by ``k1 k2 < 0``) the
+    ``k1 k2 < 0`` solution continuous with it. Ratios beyond ``3 + 2 sqrt 2`` are not
+    attainable by Theorem 1 (sampling error): the discriminant is clipped at 0. Then
     ``|k1| = sqrt(max(u - m, 0) / 4)``, ``|k2| = sqrt(max(v - m, 0) / 4)``.
 
-    Parameters
-    ----------
-    lam1, lam2 : array_like
-        Largest and smallest count-normalised eigenvalues (unit ``L^6``),
-        ``lam1 >= lam2 >= 0``.
-    radius : float
-        Ball radius ``r`` (unit ``L``).
-
-    Returns
-    -------
-    k1, k2 : numpy.ndarray
-        Magnitudes ``|k1| >= |k2| >= 0`` (unit ``1/L``).
+    ``lam1 >= lam2 >= 0``: the largest and smallest count-normalised eigenvalues (array_like,
+    unit ``L^6``); ``radius``: ``r`` (unit ``L``). Returns the magnitudes ``k1, k2``
+    (arrays, ``|k1| >= |k2| >= 0``, unit ``1/L``).
     """
     c = float(radius) ** 6 / 256.0
     u = np.asarray(lam1, dtype=np.float64) / c
@@ -604,72 +441,51 @@ def invert_theorem1(lam1, lam2, radius):
     return np.sqrt(np.maximum(u - m, 0.0) / 4.0), np.sqrt(np.maximum(v - m, 0.0) / 4.0)
 
 
-def _empty_cov(method):
-    k = 3 if method == "3dcov" else 2
-    return {"count": np.empty(0, dtype=np.int32), "status": np.empty(0, dtype=np.uint8),
-            "eigenvalues": np.empty((0, k)), "k1": np.empty(0), "k2": np.empty(0),
-            "dir1": np.empty((0, 3)), "dir2": np.empty((0, 3))}
-
-
 def covariance_ops(points, radius, normals, method, weights="uniform"):
     """Normal-based covariance curvature operators 2dcov1, 2dcov2 and 3dcov.
 
-    For every point ``p`` with unit outward normal ``n``, tangent basis
-    ``(t1, t2)`` (:func:`tangent_frame`), strict-ball neighbourhood
-    ``N_r(p)`` (``p`` included, ``n_p = #N_r(p)`` points) and weights ``w_i``
-    (1, or ``1 / #N_r(q_i)`` for ``weights="density"``), a feature ``f_i`` is
-    formed for each neighbour ``q_i`` (normal ``n_i``):
+    For every point ``p`` with unit outward normal ``n``, tangent basis ``(t1, t2)``
+    (:func:`tangent_frame`), strict-ball neighbourhood ``N_r(p)`` (``p`` included,
+    ``n_p = #N_r(p)`` points) and weights ``w_i`` (1, or ``1 / #N_r(q_i)`` for
+    ``weights="density"``), a feature ``f_i`` is formed for each neighbour ``q_i``
+    (normal ``n_i``):
 
-    * ``"2dcov1"`` (Berkmann & Caelli; paper operator 1):
-      ``s_i = <q_i - p, n>``,
+    * ``"2dcov1"`` (Berkmann & Caelli; operator 1): ``s_i = <q_i - p, n>``,
       ``f_i = s_i (<q_i - p, t1>, <q_i - p, t2>)`` (2D, unit ``L^2``);
     * ``"2dcov2"`` (operator 2, PCL's PrincipalCurvaturesEstimation):
-      ``f_i = (<n_i, t1>, <n_i, t2>)``, the projection of ``n_i`` on the
-      tangent plane at ``p`` (2D, dimensionless);
-    * ``"3dcov"`` (operator 3): ``f_i = n_i`` (3D; the normals must already
-      be consistently oriented, which outward normals are).
+      ``f_i = (<n_i, t1>, <n_i, t2>)``, ``n_i`` projected on the tangent plane at ``p``
+      (2D, dimensionless);
+    * ``"3dcov"`` (operator 3): ``f_i = n_i`` (3D; the normals must be consistently
+      oriented, which outward normals are).
 
     **Count normalisation.** The reported eigenvalues are those of
-
-        ``C = sum_i w_i (f_i - f_mean)(f_i - f_mean)^T / sum_i w_i``,
-        ``f_mean = sum_i w_i f_i / sum_i w_i``,
-
-    i.e. the weighted scatter matrix ``Sigma_w = sum_i w_i (f_i - f_mean)
-    (f_i - f_mean)^T`` divided by ``n_p * w_mean`` where ``w_mean =
-    sum_i w_i / n_p`` is the mean weight. For uniform weights this is exactly
-    ``Sigma / n_p``, the count-normalised quantity of the paper's Theorems
-    1-3 (population covariance, divisor ``n_p``, not ``n_p - 1``). For
-    2dcov2 with uniform weights the two eigenvalues equal PCL's ``pc1`` and
-    ``pc2`` (``principal_curvatures.hpp``: ``covariance_matrix_`` is the
-    *unnormalised* 3x3 scatter of the projected normals ``(I - n n^T) n_i``
-    about their mean, and ``pc1 = eigenvalues_[2] / indices.size()``,
-    ``pc2 = eigenvalues_[1] / indices.size()``; the 3x3 scatter of tangent
-    vectors has the same non-zero eigenvalues as our 2x2 one).
+    ``C = sum_i w_i (f_i - f_mean)(f_i - f_mean)^T / sum_i w_i`` with
+    ``f_mean = sum_i w_i f_i / sum_i w_i``, i.e. the weighted scatter matrix divided by
+    ``n_p * w_mean`` (``w_mean = sum_i w_i / n_p``). For uniform weights this is exactly
+    ``Sigma / n_p``, the count-normalised quantity of Theorems 1-3 (population covariance,
+    divisor ``n_p``). For 2dcov2 with uniform weights the two eigenvalues equal PCL's
+    ``pc1 = eigenvalues_[2] / indices.size()`` and ``pc2 = eigenvalues_[1] /
+    indices.size()`` (``principal_curvatures.hpp``: eigenvalues of the unnormalised 3x3
+    scatter of the projected normals ``(I - n n^T) n_i``, the non-zero ones of ours).
 
     **Curvatures.**
 
     * 2dcov1: Theorem 1, ``lam1, lam2 -> r^6/256 (5 k1^2 + 2 k1 k2 + k2^2),
-      r^6/256 (k1^2 + 2 k1 k2 + 5 k2^2)``, inverted by
-      :func:`invert_theorem1` (sign rule documented there: keep the
-      ``k1 k2 >= 0`` hypothesis when it exists). ``dir1`` = eigenvector of
-      the largest eigenvalue (the direction of the larger ``|k|``).
+      r^6/256 (k1^2 + 2 k1 k2 + 5 k2^2)``, inverted by :func:`invert_theorem1` (sign
+      rule documented there). ``dir1`` = eigenvector of the largest eigenvalue.
     * 2dcov2 and 3dcov: Theorems 2 and 3, ``lam_j -> k_j^2 r^2 / 4``, so
-      ``|k_j| = (2 / r) sqrt(lam_j)`` with ``lam1 >= lam2`` the two largest
-      eigenvalues of ``C``. ``dir1`` = eigenvector of ``lam1`` (3dcov:
-      projected on the tangent plane at ``p`` and normalised; if that
-      projection is shorter than 1e-3, i.e. a flat neighbourhood where the
-      direction is meaningless, ``t1`` is used).
+      ``|k_j| = (2 / r) sqrt(lam_j)`` with ``lam1 >= lam2`` the two largest eigenvalues of
+      ``C``. ``dir1`` = eigenvector of ``lam1`` (3dcov: projected on the tangent plane at
+      ``p`` and normalised; if that projection is shorter than 1e-3, a flat neighbourhood
+      where the direction is meaningless, ``t1`` is used).
 
-    In every case 2D eigenvectors ``(a, b)`` map to ``a t1 + b t2`` and
-    ``dir2 = n x dir1`` (so ``(dir1, dir2, n)`` is a right-handed orthonormal
-    frame).
+    2D eigenvectors ``(a, b)`` map to ``a t1 + b t2``; ``dir2 = n x dir1`` (so
+    ``(dir1, dir2, n)`` is a right-handed orthonormal frame).
 
     Parameters
     ----------
-    points : array_like, shape (N, 3)
-        Coordinates (unit ``L``), finite.
-    radius : float
-        Ball radius ``r`` (unit ``L``, > 0), strict ball.
+    points, radius : array_like (N, 3), float
+        Coordinates and ball radius ``r`` (> 0), unit ``L``, as for :func:`moments`.
     normals : array_like, shape (N, 3)
         Oriented (outward) unit normals at every point.
     method : {"2dcov1", "2dcov2", "3dcov"}
@@ -679,57 +495,46 @@ def covariance_ops(points, radius, normals, method, weights="uniform"):
     -------
     dict
         ``"count"`` int32 (N,): ``#N_r(p)``, ``p`` included.
-        ``"status"`` uint8 (N,): 0 ok; 1 too few neighbours (``count < 3``);
-        2 degenerate: the normal at ``p`` (2dcov1) or a normal in the ball
-        (2dcov2, 3dcov) is invalid (non-finite or zero).
-        ``"eigenvalues"`` float64 (N, 2) (2dcov1: unit ``L^6``; 2dcov2:
-        dimensionless) or (N, 3) (3dcov, dimensionless): descending
-        eigenvalues of ``C`` (round-off negatives clipped to 0).
-        ``"k1"``, ``"k2"`` float64 (N,): magnitudes ``k1 >= k2 >= 0``
-        (unit ``1/L``).
-        ``"dir1"``, ``"dir2"`` float64 (N, 3): unit tangent directions of
-        ``k1`` and ``k2``, orthogonal.
-        NaN in every float64 output where ``status != 0``.
+        ``"status"`` uint8 (N,): OK; TOO_FEW (``count < 3``); DEGENERATE: the normal at
+        ``p`` (2dcov1) or a normal in the ball (2dcov2, 3dcov) is invalid.
+        ``"eigenvalues"`` float64 (N, 2) (2dcov1: unit ``L^6``; 2dcov2: dimensionless) or
+        (N, 3) (3dcov, dimensionless): descending eigenvalues of ``C`` (clipped at 0).
+        ``"k1"``, ``"k2"`` float64 (N,): magnitudes ``k1 >= k2 >= 0`` (unit ``1/L``).
+        ``"dir1"``, ``"dir2"`` float64 (N, 3): orthogonal unit tangent directions of ``k1``
+        and ``k2``.
+        NaN in every float64 output where ``status != OK``.
     """
-    if method not in COV_METHODS:
-        raise ValueError(f"method must be one of {COV_METHODS}, got {method!r}")
-    if weights not in _WEIGHTS:
-        raise ValueError(f"weights must be one of {_WEIGHTS}, got {weights!r}")
-    pts = _as_points(points)
-    r = _as_radius(radius)
+    _check_choice("method", method, COV_METHODS)
+    _check_choice("weights", weights, _WEIGHTS)
+    pts, r = _as_cloud(points, radius)
     n = len(pts)
     nrm_in = _as_normals(normals, n)
+    k = 3 if method == "3dcov" else 2
     if n == 0:
-        return _empty_cov(method)
+        return _empty(("eigenvalues", k), ("k1", 0), ("k2", 0), ("dir1", 3), ("dir2", 3))
 
-    g = _BallGraph(pts, r)
-    perm, counts_q = g.perm, g.counts
-    nrm = nrm_in[perm]
+    ball = _Ball(pts, r)
+    nrm = nrm_in[ball.perm]
     t1, t2 = tangent_frame(nrm)
-    wpt = _point_weights(counts_q, weights)
-    x = g.q.T.copy()
     nt, t1t, t2t = nrm.T.copy(), t1.T.copy(), t2.T.copy()
-
     if method == "2dcov1":
         def features(blk):
-            d = x[:, blk.b] - blk.row(x)
-            s = _rowdot3(d, blk.row(nt))
-            return wpt[blk.b], np.stack([s * _rowdot3(d, blk.row(t1t)),
-                                         s * _rowdot3(d, blk.row(t2t))])
+            s = _rowdot3(blk.d, blk.row(nt))
+            return np.stack([s * _rowdot3(blk.d, blk.row(t1t)),
+                             s * _rowdot3(blk.d, blk.row(t2t))])
     elif method == "2dcov2":
         def features(blk):
-            nb = nt[:, blk.b]
-            return wpt[blk.b], np.stack([_rowdot3(nb, blk.row(t1t)),
-                                         _rowdot3(nb, blk.row(t2t))])
+            nb = blk.nb(nt)
+            return np.stack([_rowdot3(nb, blk.row(t1t)), _rowdot3(nb, blk.row(t2t))])
     else:
         def features(blk):
-            # shifted by n(p): same covariance, smaller magnitudes
-            return wpt[blk.b], nt[:, blk.b] - blk.row(nt)
+            return blk.nb(nt) - blk.row(nt)   # shifted by n(p): same covariance
 
-    _, _, cov = _row_mean_cov(g, features)
-    enough = counts_q >= MIN_COUNT
+    _, cov = _mean_cov(ball, _edge_weights(ball, weights), features)
+    enough = ball.counts >= MIN_COUNT_PCA
     finite = np.all(np.isfinite(cov.reshape(n, -1)), axis=1)
-    lam, vec = _eigh_desc(cov, enough & finite)
+    lam, vec = _eigh(cov, enough & finite)
+    lam, vec = np.ascontiguousarray(lam[:, ::-1]), np.ascontiguousarray(vec[:, :, ::-1])
 
     if method == "3dcov":
         e1 = vec[:, :, 0]
@@ -741,41 +546,24 @@ def covariance_ops(points, radius, normals, method, weights="uniform"):
         dir1[flat] = t1[flat]
     else:
         dir1 = vec[:, 0, 0][:, None] * t1 + vec[:, 1, 0][:, None] * t2
-    dir2 = np.cross(nrm, dir1)
-
     if method == "2dcov1":
         k1, k2 = invert_theorem1(lam[:, 0], lam[:, 1], r)
     else:
-        k1 = 2.0 / r * np.sqrt(lam[:, 0])
-        k2 = 2.0 / r * np.sqrt(lam[:, 1])
+        k1, k2 = 2.0 / r * np.sqrt(lam[:, 0]), 2.0 / r * np.sqrt(lam[:, 1])
 
-    status = np.zeros(n, dtype=np.uint8)
-    status[~finite | ~np.all(np.isfinite(nrm), axis=1)] = STATUS_DEGENERATE
-    status[~enough] = STATUS_TOO_FEW
-    out = {"count": counts_q, "status": status, "eigenvalues": lam,
-           "k1": k1, "k2": k2, "dir1": dir1, "dir2": dir2}
-    return _unpermute_nan(out, perm)
+    status = np.full(n, OK, dtype=np.uint8)
+    status[~finite | ~np.all(np.isfinite(nrm), axis=1)] = DEGENERATE
+    status[~enough] = TOO_FEW
+    return _finish({"count": ball.counts, "status": status, "eigenvalues": lam, "k1": k1,
+                    "k2": k2, "dir1": dir1, "dir2": np.cross(nrm, dir1)}, ball.perm)
 
 
-def _unpermute_nan(out, perm):
-    """Back to input order (``res[perm] = out``); NaN float rows where status != 0."""
-    res = {}
-    for key, val in out.items():
-        arr = np.empty_like(val)
-        arr[perm] = val
-        res[key] = arr
-    bad = res["status"] != STATUS_OK
-    for key, arr in res.items():
-        if arr.dtype == np.float64:
-            arr[bad] = np.nan
-    return res
-
-
+# --- operator 7: MLS2, and the iterations ---
 def _eigvec_2x2(s11, s12, s21, s22, lam):
-    """Eigenvector ``(a, b)`` of the 2x2 matrix ``[[s11, s12], [s21, s22]]``
-    for the eigenvalue ``lam`` (not normalised): the longer of the vectors
-    orthogonal to the two rows of ``S - lam I``; ``(1, 0)`` when both vanish
-    (``S = lam I``, an umbilic, where every direction is principal)."""
+    """Eigenvector ``(a, b)`` of ``[[s11, s12], [s21, s22]]`` for the eigenvalue ``lam``
+    (not normalised): the longer of the vectors orthogonal to the two rows of
+    ``S - lam I``; ``(1, 0)`` when both vanish (``S = lam I``, an umbilic, where every
+    direction is principal)."""
     va = np.stack([s12, lam - s11], axis=-1)
     vb = np.stack([lam - s22, s21], axis=-1)
     na = np.einsum("ij,ij->i", va, va)
@@ -788,191 +576,135 @@ def _eigvec_2x2(s11, s12, s21, s22, lam):
     return v
 
 
-def _empty_mls2():
-    e1, e3 = np.empty(0), np.empty((0, 3))
-    return {"count": np.empty(0, dtype=np.int32), "status": np.empty(0, dtype=np.uint8),
-            "points": e3, "k1": e1, "k2": e1.copy(), "dir1": e3.copy(), "dir2": e3.copy(),
-            "mean": e1.copy(), "gaussian": e1.copy(), "normals": e3.copy()}
-
-
 def mls2(points, radius, normals, weights="uniform", kernel="ball", h=None):
     """MLS2: local quadratic height fit (paper operator 7), signed curvatures.
 
-    For every point ``p`` with neighbourhood ``N_r(p)`` (strict ball, ``p``
-    included, ``n_p`` points) and neighbour weights ``w_i``:
+    For every point ``p`` with neighbourhood ``N_r(p)`` (strict ball, ``p`` included) and
+    neighbour weights ``w_i``:
 
     1. Weighted PCA of the ball: barycenter ``o``, centred covariance
-       ``sum w_i (q_i - o)(q_i - o)^T / sum w_i``, ``v0`` = eigenvector of the
-       smallest eigenvalue, flipped so that ``<v0, n> > 0`` (``n`` the given
-       oriented normal at ``p``).
-    2. ``Q = p - <p - o, v0> v0`` (projection on the regression plane) and the
-       frame ``(t1, t2, v0)``, ``(t1, t2) = tangent_frame(v0)``.
-    3. Heights ``h_i = <q_i - Q, v0>`` and scaled coordinates
-       ``x_i = <q_i - Q, t1> / r``, ``y_i = <q_i - Q, t2> / r``; weighted
-       least squares of
-       ``g = a00 + a10 x + a01 y + a20 x^2 + a11 x y + a02 y^2`` through the
-       6x6 normal equations ``A a = b``, ``A = sum w phi phi^T``,
-       ``b = sum w h phi``, ``phi = (1, x, y, x^2, x y, y^2)``. ``A`` is
-       *singular* (status 3) when its smallest singular value is
-       ``<= SINGULAR_RCOND * `` its largest (1e-10).
-    4. Unscaled derivatives at the origin (unit ``L``): ``gx = a10 / r``,
-       ``gy = a01 / r``, ``gxx = 2 a20 / r^2``, ``gxy = a11 / r^2``,
-       ``gyy = 2 a02 / r^2``.
+       ``sum w_i (q_i - o)(q_i - o)^T / sum w_i``, ``v0`` = eigenvector of the smallest
+       eigenvalue, flipped so that ``<v0, n> > 0`` (``n`` the given oriented normal at
+       ``p``).
+    2. ``Q = p - <p - o, v0> v0`` (projection on the regression plane) and the frame
+       ``(t1, t2, v0)``, ``(t1, t2) = tangent_frame(v0)``.
+    3. Heights ``h_i = <q_i - Q, v0>`` and scaled coordinates ``x_i = <q_i - Q, t1> / r``,
+       ``y_i = <q_i - Q, t2> / r``; weighted least squares of
+       ``g = a00 + a10 x + a01 y + a20 x^2 + a11 x y + a02 y^2`` through the 6x6 normal
+       equations ``A a = b``, ``A = sum w phi phi^T``, ``b = sum w h phi``,
+       ``phi = (1, x, y, x^2, x y, y^2)``. ``A`` is *singular* (SINGULAR) when its smallest
+       singular value is ``<= SINGULAR_RCOND *`` its largest (1e-10).
+    4. Unscaled derivatives at the origin: ``gx = a10 / r``, ``gy = a01 / r``,
+       ``gxx = 2 a20 / r^2``, ``gxy = a11 / r^2``, ``gyy = 2 a02 / r^2``.
     5. Projection ``Q + a00 v0``; fitted normal
        ``(-gx t1 - gy t2 + v0) / sqrt(1 + gx^2 + gy^2)`` (outward, as ``v0``).
-    6. Shape operator ``S = I^-1 II`` with
-       ``I = [[1 + gx^2, gx gy], [gx gy, 1 + gy^2]]``,
-       ``II = [[gxx, gxy], [gxy, gyy]] / sqrt(1 + gx^2 + gy^2)``.
-       The height is measured along the *outward* ``v0``, so a sphere is a
-       concave graph: clcurv's curvatures are ``k = -eigenvalues(S)``
-       (sphere of radius R: ``k1 = k2 = +1/R``), ``k1 >= k2``,
-       ``mean = (k1 + k2) / 2 = -tr(S) / 2``, ``gaussian = k1 k2 = det S``.
-       ``dir1``: the eigenvector ``(a, b)`` of ``S`` for the eigenvalue
-       ``-k1``, mapped to ``a (t1 + gx v0) + b (t2 + gy v0)`` and normalised
-       (at an umbilic, ``S = -k I``, ``(a, b) = (1, 0)``);
-       ``dir2 = normal x dir1`` (so ``(dir1, dir2, normal)`` is right-handed
-       and orthonormal; the eigenvectors of ``S`` are ``I``-orthogonal, so
+    6. Shape operator ``S = I^-1 II`` with ``I = [[1 + gx^2, gx gy], [gx gy, 1 + gy^2]]``,
+       ``II = [[gxx, gxy], [gxy, gyy]] / sqrt(1 + gx^2 + gy^2)``. The height is measured
+       along the *outward* ``v0``, so a sphere is a concave graph: clcurv's curvatures are
+       ``k = -eigenvalues(S)`` (sphere of radius R: ``k1 = k2 = +1/R``), ``k1 >= k2``,
+       ``mean = (k1 + k2) / 2 = -tr(S) / 2``, ``gaussian = k1 k2 = det S``. ``dir1``: the
+       eigenvector ``(a, b)`` of ``S`` for ``-k1``, mapped to
+       ``a (t1 + gx v0) + b (t2 + gy v0)`` and normalised (at an umbilic, ``S = -k I``,
+       ``(a, b) = (1, 0)``); ``dir2 = normal x dir1`` (so ``(dir1, dir2, normal)`` is
+       right-handed and orthonormal; the eigenvectors of ``S`` are ``I``-orthogonal, so
        this is the direction of ``k2``).
 
-    Offsets are formed relative to ``p`` (translation safe).
-
-    Weights ``w_i`` (used for both the PCA and the fit):
-    ``kernel="ball"``: 1 for every neighbour in the ball;
-    ``kernel="gaussian"``: ``exp(-d_i^2 / h^2)``, ``d_i = |q_i - p|``, with
-    ``h = r / 2`` by default (the weight at the ball's rim is
-    ``exp(-4) = 0.018``); neighbours are still limited to the strict ball.
-    With ``weights="density"`` both are multiplied by ``1 / #N_r(q_i)``.
+    Weights ``w_i`` (used for both the PCA and the fit): ``kernel="ball"``: 1 for every
+    neighbour in the ball; ``kernel="gaussian"``: ``exp(-d_i^2 / h^2)``,
+    ``d_i = |q_i - p|``, ``h = r / 2`` by default (weight ``exp(-4) = 0.018`` at the
+    ball's rim); neighbours are still limited to the strict ball. With
+    ``weights="density"`` both are multiplied by ``1 / #N_r(q_i)``.
 
     Parameters
     ----------
-    points : array_like, shape (N, 3)
-        Coordinates (unit ``L``), finite.
-    radius : float
-        Ball radius ``r`` (unit ``L``, > 0).
+    points, radius : array_like (N, 3), float
+        Coordinates and ball radius ``r`` (> 0), unit ``L``, as for :func:`moments`.
     normals : array_like, shape (N, 3)
         Oriented (outward) normals; only used to orient ``v0``.
     weights : {"uniform", "density"}, optional
     kernel : {"ball", "gaussian"}, optional
     h : float, optional
-        Gaussian width (unit ``L``, > 0); default ``r / 2``. Ignored for the
-        ball kernel.
+        Gaussian width (unit ``L``, > 0); default ``r / 2``. Ignored for the ball kernel.
 
     Returns
     -------
     dict
         ``"count"`` int32 (N,): ``#N_r(p)``.
-        ``"status"`` uint8 (N,): 0 ok; 1 ``count < 6``; 2 degenerate PCA
-        (middle eigenvalue ``<= 1e-10 *`` the largest, or the largest is 0:
-        e.g. collinear neighbours), or an invalid normal at ``p``, or
-        ``<v0, n> = 0``; 3 singular 6x6 system.
+        ``"status"`` uint8 (N,): OK; TOO_FEW (``count < 6``); DEGENERATE: rank < 2 PCA
+        (middle eigenvalue ``<= 1e-10 *`` the largest, or the largest is 0, e.g.
+        collinear neighbours), an invalid normal at ``p``, or ``<v0, n> = 0``;
+        SINGULAR: singular 6x6 system.
         ``"points"`` (N, 3): MLS2 projection of ``p`` (unit ``L``).
-        ``"k1"``, ``"k2"`` (N,): signed principal curvatures, ``k1 >= k2``
-        (unit ``1/L``).
+        ``"k1"``, ``"k2"`` (N,): signed principal curvatures, ``k1 >= k2`` (unit ``1/L``).
         ``"dir1"``, ``"dir2"`` (N, 3): unit principal directions.
-        ``"mean"`` (N,): ``H`` (``1/L``); ``"gaussian"`` (N,): ``K``
-        (``1/L^2``).
+        ``"mean"`` (N,): ``H`` (``1/L``); ``"gaussian"`` (N,): ``K`` (``1/L^2``).
         ``"normals"`` (N, 3): unit fitted normals, outward.
-        NaN in every float64 output where ``status != 0``.
+        NaN in every float64 output where ``status != OK``.
     """
-    if weights not in _WEIGHTS:
-        raise ValueError(f"weights must be one of {_WEIGHTS}, got {weights!r}")
-    if kernel not in _KERNELS:
-        raise ValueError(f"kernel must be one of {_KERNELS}, got {kernel!r}")
-    pts = _as_points(points)
-    r = _as_radius(radius)
+    _check_choice("weights", weights, _WEIGHTS)
+    _check_choice("kernel", kernel, _KERNELS)
+    pts, r = _as_cloud(points, radius)
     hh = r / 2.0 if h is None else _as_radius(h)
     n = len(pts)
     nrm_in = _as_normals(normals, n)
     if n == 0:
-        return _empty_mls2()
+        return _empty(("points", 3), ("k1", 0), ("k2", 0), ("dir1", 3), ("dir2", 3),
+                      ("mean", 0), ("gaussian", 0), ("normals", 3))
 
-    g = _BallGraph(pts, r)
-    perm, q, counts = g.perm, g.q, g.counts
-    nrm = nrm_in[perm]
-    wpt = _point_weights(counts, weights)
-    x = q.T.copy()
-    inv_h2 = 1.0 / (hh * hh)
+    ball = _Ball(pts, r)
+    nrm = nrm_in[ball.perm]
+    weight = _edge_weights(ball, weights, kernel, hh)
 
-    def edge_weights(blk, d):
-        if kernel == "ball":
-            return wpt[blk.b]
-        return wpt[blk.b] * np.exp(-_rowdot3(d, d) * inv_h2)
-
-    def offsets(blk):
-        d = x[:, blk.b] - blk.row(x)
-        return edge_weights(blk, d), d
-
-    # 1. weighted PCA (offsets d = q - p, so mean = o - p)
-    wsum, m, cov = _row_mean_cov(g, offsets)
-    enough = counts >= MIN_COUNT_MLS2
-    lam = np.full((n, 3), np.nan)
-    v0 = np.full((n, 3), np.nan)
-    if np.any(enough):
-        w_, v_ = np.linalg.eigh(cov[enough])
-        lam[enough] = np.maximum(w_, 0.0)
-        v0[enough] = v_[:, :, 0]
+    # 1. weighted PCA (offsets d = q - p, so m = o - p), v0 oriented by the normal at p
+    m, _, v0, status = _pca(ball, weight, MIN_COUNT_MLS2)
     with np.errstate(invalid="ignore"):
-        degenerate = (lam[:, 2] == 0.0) | (lam[:, 1] <= RANK_TOL * lam[:, 2])
         side = np.einsum("ij,ij->i", v0, nrm)
-        degenerate |= ~(np.abs(side) > 0.0)      # invalid normal or <v0, n> = 0
+        status[(status == OK) & ~(np.abs(side) > 0.0)] = DEGENERATE  # invalid n or <v0, n> = 0
     v0 *= np.where(side < 0.0, -1.0, 1.0)[:, None]
-    status = np.zeros(n, dtype=np.uint8)
-    status[enough & degenerate] = STATUS_DEGENERATE
-    status[~enough] = STATUS_TOO_FEW
-    good = status == STATUS_OK
-    v0[~good] = np.nan
+    v0[status != OK] = np.nan
 
-    # 2. frame at Q = p + sq v0, sq = <o - p, v0>
+    # 2. frame at Q = p + sq v0, sq = <o - p, v0> (NaN rows give NaN sums)
     t1, t2 = tangent_frame(v0)
     sq = np.einsum("ij,ji->i", v0, m)
-    # offset of Q from p, and the frame, per row (NaN rows give NaN sums)
     qoff = (sq[:, None] * v0).T.copy()
     v0t, t1t, t2t = v0.T.copy(), t1.T.copy(), t2.T.copy()
     inv_r = 1.0 / r
 
-    # 3. normal equations: 21 + 6 weighted sums per row
-    iu = [(u, v) for u in range(6) for v in range(u, 6)]
-    sa = np.zeros((len(iu), n))
-    sb = np.zeros((6, n))
-    for blk in g.blocks():
-        d = x[:, blk.b] - blk.row(x)
-        w = edge_weights(blk, d)
-        e = d - blk.row(qoff)
+    # 3. normal equations: the 21 packed sums of A and the 6 of b, per point
+    iu = _upper(6)
+
+    def system(blk):
+        e = blk.d - blk.row(qoff)
         hgt = _rowdot3(e, blk.row(v0t))
         xs = _rowdot3(e, blk.row(t1t)) * inv_r
         ys = _rowdot3(e, blk.row(t2t)) * inv_r
         phi = np.stack([np.ones_like(xs), xs, ys, xs * xs, xs * ys, ys * ys])
-        wphi = w * phi
-        sa[:, blk.rows] = blk.sum(np.stack([wphi[u] * phi[v] for u, v in iu]))
-        sb[:, blk.rows] = blk.sum(wphi * hgt)
-    amat = np.empty((n, 6, 6))
-    for col, (u, v) in enumerate(iu):
-        amat[:, u, v] = sa[col]
-        amat[:, v, u] = sa[col]
+        wphi = weight(blk) * phi
+        return [wphi[u] * phi[v] for u, v in iu] + [wphi * hgt]
+
+    sums = _row_sums(ball, system)
+    amat, sb = _symmetric(sums[:len(iu)], 6), sums[len(iu):]
 
     coef = np.full((n, 6), np.nan)
-    if np.any(good):
-        idx = np.flatnonzero(good)
+    idx = np.flatnonzero(status == OK)
+    if len(idx):
         sv = np.linalg.svd(amat[idx], compute_uv=False)
         singular = ~(sv[:, -1] > SINGULAR_RCOND * sv[:, 0])
-        status[idx[singular]] = STATUS_SINGULAR
+        status[idx[singular]] = SINGULAR
         idx = idx[~singular]
         if len(idx):
             coef[idx] = np.linalg.solve(amat[idx], sb[:, idx].T[:, :, None])[:, :, 0]
-    good = status == STATUS_OK
-    coef[~good] = np.nan
 
-    # 4. derivatives, projection, normal, shape operator
+    # 4. derivatives, projection, normal, shape operator S = I^-1 II
     a00, a10, a01, a20, a11, a02 = coef.T
     gx, gy = a10 * inv_r, a01 * inv_r
     gxx, gxy, gyy = 2.0 * a20 * inv_r ** 2, a11 * inv_r ** 2, 2.0 * a02 * inv_r ** 2
-    proj = q + (sq + a00)[:, None] * v0
+    proj = ball.q + (sq + a00)[:, None] * v0
     wn = np.sqrt(1.0 + gx * gx + gy * gy)
     normal = (v0 - gx[:, None] * t1 - gy[:, None] * t2) / wn[:, None]
     e_, f_, g_ = 1.0 + gx * gx, gx * gy, 1.0 + gy * gy
     l_, m_, n_ = gxx / wn, gxy / wn, gyy / wn
     det_i = e_ * g_ - f_ * f_
-    # S = I^-1 II
     s11 = (g_ * l_ - f_ * m_) / det_i
     s12 = (g_ * m_ - f_ * n_) / det_i
     s21 = (e_ * m_ - f_ * l_) / det_i
@@ -980,61 +712,50 @@ def mls2(points, radius, normals, weights="uniform", kernel="ball", h=None):
     half_tr = 0.5 * (s11 + s22)
     det_s = (l_ * n_ - m_ * m_) / det_i
     disc = np.sqrt(np.maximum(0.25 * (s11 - s22) ** 2 + s12 * s21, 0.0))
-    k1 = -half_tr + disc
-    k2 = -half_tr - disc
-    ab = _eigvec_2x2(s11, s12, s21, s22, -k1)
-    dir1 = _unit_rows(ab[:, :1] * (t1 + gx[:, None] * v0)
-                      + ab[:, 1:] * (t2 + gy[:, None] * v0))
-    dir2 = np.cross(normal, dir1)
-
-    out = {"count": counts, "status": status, "points": proj, "k1": k1, "k2": k2,
-           "dir1": dir1, "dir2": dir2, "mean": -half_tr, "gaussian": det_s,
-           "normals": normal}
+    k1, k2 = -half_tr + disc, -half_tr - disc
     with np.errstate(invalid="ignore"):
-        return _unpermute_nan(out, perm)
+        ab = _eigvec_2x2(s11, s12, s21, s22, -k1)
+        dir1 = _unit_rows(ab[:, :1] * (t1 + gx[:, None] * v0)
+                          + ab[:, 1:] * (t2 + gy[:, None] * v0))
+    return _finish({"count": ball.counts, "status": status, "points": proj, "k1": k1,
+                    "k2": k2, "dir1": dir1, "dir2": np.cross(normal, dir1),
+                    "mean": -half_tr, "gaussian": det_s, "normals": normal}, ball.perm)
 
 
 def mls2_iterate(points, radius, normals, iterations, **kw):
     """Apply the MLS2 projection ``iterations`` times to the whole cloud.
 
-    Each iteration calls :func:`mls2` on the current cloud (neighbourhoods
-    recomputed on the moved points) and moves every point with status 0 to
-    its projection; points with a non-zero status stay where they are for
-    that iteration. The orientation normals are then re-estimated as the
-    (uniform-ball, :func:`moments`) PCA normals of the moved cloud, flipped to
-    agree with the previous iterate's normals (dot >= 0); where the PCA
+    Each iteration calls :func:`mls2` on the current cloud (neighbourhoods recomputed on
+    the moved points) and moves every point with status OK to its projection; points with
+    another status stay where they are for that iteration. The orientation normals are
+    then re-estimated as the (uniform-ball, :func:`moments`) PCA normals of the moved
+    cloud, flipped to agree with the previous iterate's normals (dot >= 0); where the PCA
     normal is undefined the previous normal is kept.
 
-    Parameters
-    ----------
-    points, radius, normals :
-        As for :func:`mls2` (``normals`` oriented outward).
-    iterations : int
-        Number of projections (>= 0; 0 returns a copy of ``points``).
-    **kw :
-        ``weights``, ``kernel``, ``h``, passed to :func:`mls2` (``weights``
-        also to the PCA normal re-estimation).
+    ``points``, ``radius``, ``normals`` (outward) as for :func:`mls2`; ``iterations`` >= 0
+    projections (0 returns a copy of ``points``); ``**kw``: ``weights``, ``kernel``, ``h``,
+    passed to :func:`mls2` (``weights`` also to the PCA normal re-estimation).
 
     Returns
     -------
     dict
         ``"points"`` (N, 3): the final points (unit ``L``).
-        ``"status"`` uint8 (N,): the first non-zero :func:`mls2` status met
-        by the point over the iterations (0 if it was always projected).
-        ``"normals"`` (N, 3): the final oriented PCA normals.
-        NaN in ``points`` and ``normals`` where ``status != 0``.
+        ``"status"`` uint8 (N,): the first non-OK :func:`mls2` status met by the point
+        over the iterations (OK if it was always projected).
+        ``"normals"`` (N, 3): the final oriented (outward) unit PCA normals.
+        NaN in ``points`` and ``normals`` where ``status != OK``.
     """
     it = int(iterations)
     if it != iterations or it < 0:
         raise ValueError(f"iterations must be a non-negative integer, got {iterations!r}")
-    cur = _as_points(points).copy()
-    r = _as_radius(radius)
+    cur, r = _as_cloud(points, radius)
+    cur = cur.copy()
     nrm = _as_normals(normals, len(cur))
-    status = np.zeros(len(cur), dtype=np.uint8)
+    status = np.full(len(cur), OK, dtype=np.uint8)
     for _ in range(it):
         res = mls2(cur, r, nrm, **kw)
-        ok = res["status"] == STATUS_OK
-        first = (status == STATUS_OK) & ~ok
+        ok = res["status"] == OK
+        first = (status == OK) & ~ok
         status[first] = res["status"][first]
         cur[ok] = res["points"][ok]
         pca = moments(cur, r, kw.get("weights", "uniform"))["normals"]
@@ -1044,22 +765,30 @@ def mls2_iterate(points, radius, normals, iterations, **kw):
         keep = ~np.all(np.isfinite(pca), axis=1)
         pca[keep] = nrm[keep]
         nrm = pca
-    bad = status != STATUS_OK
+    bad = status != OK
     cur[bad] = np.nan
     nrm[bad] = np.nan
     return {"points": cur, "status": status, "normals": nrm}
 
 
 def scale_space(points, radius, iterations, weights="uniform"):
-    """Float64 MLS1 scale space: ``iterations`` projections p <- p - <p - o, v0> v0 of every
-    point on the weighted PCA plane of its ball, all points together, neighbourhoods
-    recomputed on the moved cloud each time; points with status != 0 stay. Returns the
-    list of the iterates (input first), each (N, 3) float64."""
+    """Float64 MLS1 scale space (paper operator 6, iterated: a discrete mean curvature
+    motion).
+
+    ``iterations`` times, every point is projected on the weighted PCA regression plane of
+    its ball, ``p <- p - <p - o, v0> v0`` (:func:`moments`: ``o`` barycenter, ``v0`` PCA
+    normal; the sign of ``v0`` does not matter), all points together, neighbourhoods
+    recomputed on the moved cloud each time; points whose status is not OK stay.
+
+    ``points`` (N, 3) and ``radius`` (> 0) in unit ``L`` and ``weights`` as for
+    :func:`moments`. Returns the list of the ``iterations + 1`` iterates (input first),
+    each an (N, 3) float64 array, unit ``L``.
+    """
     pts = np.array(points, dtype=np.float64)
     out = [pts.copy()]
     for _ in range(int(iterations)):
         m = moments(pts, radius, weights=weights)
-        ok = m["status"] == STATUS_OK
+        ok = m["status"] == OK
         n = m["normals"][ok]
         along = np.einsum("ij,ij->i", m["shift"][ok], n)
         pts = pts.copy()
