@@ -24,7 +24,8 @@ Tables
 8    wall times on the cylinder: each operator at its calibrated radius (Table 3) against the
      scale space plus the operator at the small radius (Table 6).
 
-``main(argv)`` returns every table as plain dicts (used by tests/test_paper.py).
+``main(argv)`` returns every table as plain dicts. Every operator call goes through the public
+API (``clcurv.curvature(..., scale_space=N)``, ``clcurv.scale_space``, ``clcurv.project``).
 """
 from __future__ import annotations
 
@@ -43,6 +44,8 @@ import numpy as np
 
 import clcurv
 from clcurv import shapes
+
+from .targets import PAPER_DIR1_MAX_DEG, PAPER_K2_TOL, PAPER_REL_TOL, PAPER_STABILITY_MIN
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -121,10 +124,14 @@ def paper_target(shape):
 
 # ----------------------------------------------------------------------------- data
 class Cloud:
-    """A seeded noisy sample and the mask of the points whose statistics are reported."""
+    """A seeded noisy sample, the mask of the points whose statistics are reported, and how
+    the signed operators orient their normals on it (``orient``: 'exact' or 'mst', see
+    :meth:`orient_kw`)."""
 
-    def __init__(self, shape, n, noise, seed):
-        self.shape, self.noise = shape, noise
+    def __init__(self, shape, n, noise, seed, orient="exact"):
+        if orient not in ("exact", "mst"):
+            raise ValueError(f"orient must be 'exact' or 'mst', got {orient!r}")
+        self.shape, self.noise, self.orient = shape, noise, orient
         if shape == "sphere":
             s = shapes.sphere(n, SPHERE_R, noise=noise, seed=seed)
         elif shape == "cylinder":
@@ -143,6 +150,16 @@ class Cloud:
     @property
     def n(self):
         return len(self.points)
+
+    def orient_kw(self, method):
+        """The orientation keywords of ``method`` on this cloud. The signed operators (MLS0,
+        MLS1, MLS2) take the sign of their PCA normal from the sampler's exact normal
+        ('exact': the PCA normal itself is kept) or from clcurv's MST propagation ('mst'). The
+        covariances always use MST-oriented PCA normals (their outputs do not depend on a
+        global flip, and normals= would replace their normals by the exact ones)."""
+        if self.orient == "exact" and clcurv.OPERATORS[method].signed:
+            return {"normals": self.exact["normals"], "orient": "normals"}
+        return {}
 
     def mask(self, reach):
         """Points whose balls, over every iteration, stay away from the cylinder's open ends
@@ -168,27 +185,14 @@ def stats(values, mask):
 
 
 # ----------------------------------------------------------------------------- operators
-ORIENT = {"how": "exact"}   # set by main(): 'exact' or 'mst'
-
-
-def orient_kw(method, exact_normals):
-    """How the signed operators (MLS1, MLS2) orient their PCA normals: by the sign of the
-    sampler's exact normals ('exact': the PCA normal itself is kept, only its sign is taken
-    from the exact one) or by clcurv's MST propagation ('mst'). The covariances always use
-    MST-oriented PCA normals (their outputs do not depend on a global flip, and normals=
-    would replace their normals by the exact ones)."""
-    if method in ("mls1", "mls0", "mls2") and ORIENT["how"] == "exact" and exact_normals is not None:
-        return {"normals": exact_normals, "orient": "normals"}
-    return {}
-
-
-def run(method, points, r, n_iter=0, exact_normals=None):
-    """(result, seconds): the scale space first when n_iter > 0, then the operator, all at r."""
+def run(method, points, r, n_iter=0, **orient):
+    """(result, seconds) of the public pipeline clcurv.curvature(points, r, method=method,
+    scale_space=n_iter, **orient): n_iter MLS1 scale-space steps at r first, then the
+    operator at r."""
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        pts = clcurv.scale_space(points, r, n_iter) if n_iter else points
-        res = clcurv.curvature(pts, r, method=method, **orient_kw(method, exact_normals))
+        res = clcurv.curvature(points, r, method=method, scale_space=n_iter, **orient)
     return res, time.perf_counter() - t0
 
 
@@ -200,7 +204,7 @@ def mean_estimate(res):
 
 
 def evaluate(cloud, method, r, n_iter=0):
-    res, dt = run(method, cloud.points, r, n_iter, cloud.exact["normals"])
+    res, dt = run(method, cloud.points, r, n_iter, **cloud.orient_kw(method))
     mask = cloud.mask((n_iter + 1) * r)
     out = {"method": method, "r": float(r), "N": int(n_iter),
            "r_eq": float(math.sqrt(max(n_iter, 1)) * r), "seconds": dt,
@@ -250,29 +254,33 @@ def secant_radius(f, target, r0, evals, tol, slope0=-2.5, lo=1e-3, hi=10.0):
     return best, hist
 
 
-def mls2_iterates(points, r, iterations, exact_normals=None):
-    """Iterated MLS2, exactly as :func:`clcurv.project` does it (the first iteration oriented
-    as :func:`orient_kw` says, the next ones by the previous fitted normals, failed fits stay
-    put), returning the MLS2 result of every iterate 0..iterations (iterate k = the cloud
-    projected k times), and the iterates themselves."""
-    pts = np.array(points, dtype=np.float64)
-    kw = orient_kw("mls2", exact_normals)
-    ref, how, results, iterates = kw.get("normals"), kw.get("orient", "auto"), [], [pts]
+def mls1_series(cloud, r, at):
+    """{k: H statistics of MLS1 on the k-th clcurv.scale_space iterate} for k in ``at``."""
+    kw = cloud.orient_kw("mls1")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        its = clcurv.scale_space(cloud.points, r, max(at), return_iterates=True)
+        return {k: stats(clcurv.curvature(its[k], r, method="mls1", **kw).mean, cloud.mask(0))
+                for k in at}
+
+
+def mls2_iterates(cloud, r, iterations, at=None):
+    """Iterated MLS2 through the public API: iterate k + 1 = clcurv.project(iterate k, r)
+    (one MLS2 projection of every point, failed fits staying put), oriented as
+    :meth:`Cloud.orient_kw` says. The projection does not depend on the sign of the normals
+    (Q + a0 v0 with a0 odd in v0), so this is clcurv.project(points, r, projections=k) up to
+    float32 rounding. Returns ({k: clcurv.curvature(iterate k, r, method="mls2")} for k in
+    ``at`` (default: every k in 0..iterations), [iterate 0, ..., iterate ``iterations``])."""
+    kw = cloud.orient_kw("mls2")
+    at = set(range(iterations + 1) if at is None else at)
+    iterates, results = [cloud.points], {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         for k in range(iterations + 1):
-            res = clcurv.curvature(pts, r, method="mls2", normals=ref, orient=how)
-            results.append(res)
-            if k == iterations:
-                break
-            ok = res.valid
-            pts = pts.copy()
-            pts[ok] = res.points[ok]
-            iterates.append(pts)
-            ref = np.where(ok[:, None], res.normals, ref if ref is not None else res.normals)
-            if not np.isfinite(ref).all():
-                ref = None
-            how = "normals" if ref is not None else "auto"
+            if k in at:
+                results[k] = clcurv.curvature(iterates[k], r, method="mls2", **kw)
+            if k < iterations:
+                iterates.append(clcurv.project(iterates[k], r, projections=1, **kw))
     return results, iterates
 
 
@@ -281,31 +289,25 @@ def calibrate_t1_radius(cloud, setting):
     """The paper does not give Table 1's radius: take the one at which the iteration-0 MLS1
     std equals the paper's 2.8609."""
     def f(r):
-        res, dt = run("mls1", cloud.points, r, 0, cloud.exact["normals"])
+        res, dt = run("mls1", cloud.points, r, 0, **cloud.orient_kw("mls1"))
         return {"r": r, "H": stats(res.mean, np.ones(cloud.n, bool))}
     best, hist = secant_radius(f, PAPER_T1[0][1], 0.35, setting.cal_evals, setting.cal_tol, -2.0)
     return round(best["r"], 3), hist
 
 
-def table1(setting, seed, noise_as):
+def table1(setting, seed, noise_as, orient="exact"):
     sigma = noise_sigma(T1_NOISE, noise_as)
-    cloud = Cloud("sphere", setting.n_points("sphere"), sigma, seed)
+    cloud = Cloud("sphere", setting.n_points("sphere"), sigma, seed, orient)
     t0 = time.perf_counter()
     r, _ = calibrate_t1_radius(cloud, setting)
-    kmax = max(T1_ITERATIONS)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        its = clcurv.scale_space(cloud.points, r, kmax, return_iterates=True)
-        kw = orient_kw("mls1", cloud.exact["normals"])
-        mls1 = {k: stats(clcurv.curvature(its[k], r, method="mls1", **kw).mean, cloud.mask(0))
-                for k in T1_ITERATIONS}
-    mls2_res, _ = mls2_iterates(cloud.points, r, kmax, cloud.exact["normals"])
+    mls1 = mls1_series(cloud, r, T1_ITERATIONS)
+    mls2_res, _ = mls2_iterates(cloud, r, max(T1_ITERATIONS), T1_ITERATIONS)
     mls2 = {k: stats(mls2_res[k].mean, cloud.mask(0)) for k in T1_ITERATIONS}
     return {"r": r, "sigma": sigma, "n": cloud.n, "mls1": mls1, "mls2": mls2,
             "seconds": time.perf_counter() - t0}
 
 
-def table1_noise_check(setting, seed, t1):
+def table1_noise_check(setting, seed, t1, orient="exact"):
     """Which reading of "variance 0.1" fits the paper's MLS1 column? Under each reading the
     radius is calibrated on the iteration-0 std (2.86) and MLS1 is iterated 10 times."""
     out = {}
@@ -315,15 +317,9 @@ def table1_noise_check(setting, seed, t1):
             out[reading] = {"sigma": sigma, "r": t1["r"],
                             **{k: t1["mls1"][k] for k in (1, 5, 10)}}
             continue
-        cloud = Cloud("sphere", setting.n_points("sphere"), sigma, seed)
+        cloud = Cloud("sphere", setting.n_points("sphere"), sigma, seed, orient)
         r, _ = calibrate_t1_radius(cloud, setting)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            its = clcurv.scale_space(cloud.points, r, 10, return_iterates=True)
-            kw = orient_kw("mls1", cloud.exact["normals"])
-            out[reading] = {"sigma": sigma, "r": r, **{
-                k: stats(clcurv.curvature(its[k], r, method="mls1", **kw).mean, cloud.mask(0))
-                for k in (1, 5, 10)}}
+        out[reading] = {"sigma": sigma, "r": r, **mls1_series(cloud, r, (1, 5, 10))}
     for v in out.values():
         v["misfit"] = float(np.sqrt(np.mean([(v[k]["mean"] / PAPER_T1[k][0] - 1) ** 2
                                              for k in (1, 5, 10)])))
@@ -412,7 +408,8 @@ def verdicts(t1, cal, ss, t8):
     ratios = {k: t1["mls2"][k]["std"] / t1["mls1"][k]["std"] for k in later}
     grow = t1["mls1"][10]["mean"] - t1["mls1"][3]["mean"]
     claims = [
-        ("MLS2-iterated std at least twice MLS1's from iteration 3 on", min(ratios.values()) >= 2,
+        (f"MLS2-iterated std at least {PAPER_STABILITY_MIN:g}x MLS1's from iteration 3 on",
+         min(ratios.values()) >= PAPER_STABILITY_MIN,
          "ratios at iterations " + ", ".join(f"{k}: {ratios[k]:.1f}" for k in later)
          + " (paper: " + ", ".join(f"{PAPER_T1[k][3] / PAPER_T1[k][1]:.1f}" for k in later)
          + ")"),
@@ -466,7 +463,8 @@ def verdicts(t1, cal, ss, t8):
         target, h_true = cal[shape]["target"], 0.5 * sum(EXACT[shape])
         for m in OPERATORS:
             a, raw = ss[shape]["rows"][m]["ss"], ss[shape]["rows"][m]["raw"]
-            ok = (a["H"]["std"] <= 1.5 * target and abs(a["H"]["mean"] / h_true - 1) <= 0.1
+            ok = (a["H"]["std"] <= 1.5 * target
+                  and abs(a["H"]["mean"] / h_true - 1) <= PAPER_REL_TOL
                   and a["H"]["std"] < raw["H"]["std"])
             rel_ok.append(ok)
             if not ok:
@@ -481,8 +479,9 @@ def verdicts(t1, cal, ss, t8):
         ("reliable values with a much smaller neighbourhood", all(rel_ok),
          "after the scale space, every operator at the MLS1 radius (" + ", ".join(
              f"{sh} {radius_ratio[sh]:.1f}x" for sh in SHAPES) + " smaller than the calibrated "
-         "radii) has an H std within 1.5x the calibration target and a mean H within 10% of "
-         "the exact value" + ("" if all(rel_ok) else " except " + ", ".join(rel_txt))
+         "radii) has an H std within 1.5x the calibration target and a mean H within "
+         f"{PAPER_REL_TOL:.0%} of the exact value"
+         + ("" if all(rel_ok) else " except " + ", ".join(rel_txt))
          + "; without the scale space, the same radius gives an H std " + ", ".join(
              f"{sh} {std_gain[sh]:.0f}x" for sh in SHAPES) + " larger"),
         ("faster for every operator", all(g > 1 for g in gains.values()),
@@ -498,9 +497,10 @@ def verdicts(t1, cal, ss, t8):
     for shape in SHAPES:
         a = ss[shape]["rows"]["mls2"]["ss"]
         k1e, k2e = EXACT[shape]
-        ok = (abs(a["k1"]["mean"] / k1e - 1) <= 0.1 and abs(a["k2"]["mean"] - k2e) <= 0.1 * k1e
+        ok = (abs(a["k1"]["mean"] / k1e - 1) <= PAPER_REL_TOL
+              and abs(a["k2"]["mean"] - k2e) <= PAPER_K2_TOL * k1e
               and (k2e == 0 or np.sign(a["k2"]["mean"]) == np.sign(k2e))
-              and a.get("dir1_deg", 0.0) < 10)
+              and a.get("dir1_deg", 0.0) < PAPER_DIR1_MAX_DEG)
         sign_ok.append(ok)
         d = f", dir1 off by {a['dir1_deg']:.1f} deg (median)" if "dir1_deg" in a else ""
         txt.append(f"{shape} k1 {a['k1']['mean']:.3f} (exact {k1e:g}), k2 {a['k2']['mean']:.3f} "
@@ -511,7 +511,8 @@ def verdicts(t1, cal, ss, t8):
     row = t8["rows"]["mls2"]
     claims = [
         ("scale space + MLS2 gives the signed principal curvatures and directions", all(sign_ok),
-         "; ".join(txt) + " (yes when k1, k2 within 10% of k1 and dir1 within 10 deg)"),
+         "; ".join(txt) + f" (yes when k1, k2 within {PAPER_REL_TOL:.0%} of k1 and dir1 "
+         f"within {PAPER_DIR1_MAX_DEG:g} deg)"),
         ("and is cheaper than MLS2 alone at its calibrated radius", row["with"] < row["without"],
          f"{row['with']:.2f} s against {row['without']:.2f} s"),
         ("3dcov is as good as 2dcov2 when the sign is not needed (and not slower)",
@@ -659,7 +660,7 @@ def render_t8(t8):
                         "paper without", "paper with", "paper speed-up"], rows))
 
 
-def assumptions(setting, t1, chk, cal):
+def assumptions(setting, t1, chk, cal, orient):
     dens = setting.density
     ns = ", ".join(f"{sh} {cal[sh]['n']:,}" for sh in SHAPES)
     best_reading = min(chk, key=lambda k: chk[k]["misfit"])
@@ -678,18 +679,19 @@ def assumptions(setting, t1, chk, cal):
         f"std of sqrt(0.05) = 0.22 would exceed the paper's MLS1 radius 0.14.",
         f"- **Table 1 radius** (not stated): r = {t1['r']:.3f}, the radius at which MLS1's "
         f"iteration-0 std equals the paper's 2.8609. MLS1 iteration k = k clcurv.scale_space "
-        f"steps then MLS1's H; MLS2 iteration k = k MLS2 projections (what clcurv.project "
-        f"does, normals propagated from one iteration to the next) then the H of the MLS2 "
-        f"fit. Our MLS2 iteration-0 mean, {t1['mls2'][0]['mean']:.3f}, is as far from 0.5 as "
+        f"steps then MLS1's H; MLS2 iteration k = k clcurv.project steps (one MLS2 "
+        f"projection each; the projection does not depend on the sign of the normals, so "
+        f"this is clcurv.project with k projections) then the H of the MLS2 fit. Our MLS2 "
+        f"iteration-0 mean, {t1['mls2'][0]['mean']:.3f}, is as far from 0.5 as "
         f"the paper's 0.052 although every normal is consistently oriented: on a cloud this "
         f"noisy the MLS2 curvature is strongly biased towards 0, it is not a sign problem.",
-        f"- **Orientation** ({ORIENT['how']}): "
+        f"- **Orientation** ({orient}): "
         + ("the signed operators (MLS1, MLS2) take the sign of their PCA normal from the "
            "sampler's exact outward normal (the PCA normal itself is unchanged): the paper "
            "also worked on a consistently oriented cloud, and clcurv's MST propagation picks "
            "the global sign at the point farthest from the centroid, which on the open "
            "cylinder is a noisy rim point and can turn the whole cylinder inward. "
-           if ORIENT["how"] == "exact" else
+           if orient == "exact" else
            "every operator orients its PCA normals by clcurv's MST propagation (a global "
            "inward choice on the open cylinder flips the signs of MLS1/MLS2 there). ")
         + "2dcov2 and 3dcov always use clcurv's MST-oriented PCA normals (their magnitudes do "
@@ -770,7 +772,8 @@ def warm_up():
             clcurv.curvature(p, 0.2, method=m)
 
 
-def main(argv=None):
+def main(argv=None, setting=None):
+    """Run every table; ``setting`` (a :class:`Setting`) overrides --small."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--small", action="store_true", help="CI setting: 1/4 density, < 60 s")
     ap.add_argument("--out", type=Path, default=RESULTS / "paper.md")
@@ -782,20 +785,19 @@ def main(argv=None):
                          "clcurv's MST propagation")
     ap.add_argument("--quiet", action="store_true", help="do not print the tables")
     args = ap.parse_args(argv)
-    setting = SMALL if args.small else FULL
-    ORIENT["how"] = args.orient
+    setting = setting or (SMALL if args.small else FULL)
     t_start = time.perf_counter()
     say = (lambda *a: None) if args.quiet else (lambda *a: print(*a, flush=True))
     warm_up()
     dev = clcurv.get_device(None) if hasattr(clcurv, "get_device") else None
     say(f"setting {setting.name}: density {setting.density:g} / unit area, seed {args.seed}")
 
-    t1 = table1(setting, args.seed, args.noise_as)
+    t1 = table1(setting, args.seed, args.noise_as, args.orient)
     say(render_t1(t1), "\n")
-    chk = table1_noise_check(setting, args.seed, t1)
+    chk = table1_noise_check(setting, args.seed, t1, args.orient)
     say(render_t1_check(chk), "\n")
     clouds = {sh: Cloud(sh, setting.n_points(sh), noise_sigma(PAPER_NOISE[sh], args.noise_as),
-                        args.seed + 1 + i) for i, sh in enumerate(SHAPES)}
+                        args.seed + 1 + i, args.orient) for i, sh in enumerate(SHAPES)}
     cal = tables_2_4(setting, clouds)
     for sh in SHAPES:
         say(render_cal(sh, cal[sh]), "\n")
@@ -809,7 +811,7 @@ def main(argv=None):
            "date": datetime.datetime.now().isoformat(timespec="seconds"),
            "device": getattr(dev, "name", str(dev)), "table1": t1, "table1_noise_check": chk,
            "calibration": cal, "scale_space": ss, "table8": t8}
-    res["assumptions"] = assumptions(setting, t1, chk, cal)
+    res["assumptions"] = assumptions(setting, t1, chk, cal, args.orient)
     res["verdicts"] = verdicts(t1, cal, ss, t8)
     res["runtime"] = time.perf_counter() - t_start
     res["loadavg"] = " ".join(f"{x:.2f}" for x in os.getloadavg())
