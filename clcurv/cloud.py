@@ -10,7 +10,7 @@ import time
 
 import numpy as np
 
-from .constants import PAD, RECORD_WIDTH as RECORD
+from .constants import PAD, RECORD_WIDTH as RECORD, record_selector
 from .device import get_device
 from .grid import bin_points
 from .program import build, launch, precision_defines
@@ -164,8 +164,8 @@ def fetch_records(cloud, rec, layout, mapped=None):
     real = [(k, v) for k, v in layout.items() if k not in ("count", "status")]
     if len(real) > 6:
         raise ValueError("split_records takes at most 6 real fields")
-    defines = dict(cloud.defines, NF=len(real), COL_COUNT=layout["count"],
-                   COL_STATUS=layout["status"])
+    defines = dict(cloud.defines, NF=len(real), COL_COUNT=record_selector(layout["count"]),
+                   COL_STATUS=record_selector(layout["status"]))
     spans = []
     for k, (name, col) in enumerate(real):
         a, b = (col, col + 1) if isinstance(col, int) else (col.start, col.stop)

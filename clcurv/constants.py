@@ -28,6 +28,15 @@ MIN_COUNT_PCA = 3
 MIN_COUNT_MLS2 = 6
 
 
+def record_selector(columns):
+    """The REAL16 component selector of record ``columns`` (an int or a slice), the form in
+    which a record layout reaches a kernel: 10 -> 'sa', slice(0, 3) -> 's012'."""
+    cols = [columns] if isinstance(columns, int) else range(columns.start, columns.stop)
+    if not cols or min(cols) < 0 or max(cols) >= RECORD_WIDTH or len(cols) not in (1, 2, 3, 4):
+        raise ValueError(f"record columns {columns!r} do not fit a {RECORD_WIDTH}-wide record")
+    return "s" + "".join(f"{c:x}" for c in cols)
+
+
 def kernel_defines():
     """The constants above as ``-D`` build options (name -> value)."""
     return {"PAD": PAD, "RECORD_WIDTH": RECORD_WIDTH, "CELL_BITS": CELL_BITS,

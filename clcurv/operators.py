@@ -23,7 +23,7 @@ from typing import Callable, Mapping
 
 import numpy as np
 
-from .constants import MIN_COUNT_MLS2, MIN_COUNT_PCA, OK
+from .constants import MIN_COUNT_MLS2, MIN_COUNT_PCA, OK, record_selector
 
 
 # ------------------------------------------------------------------------------------------
@@ -35,7 +35,7 @@ class Kernel:
     """One operator kernel: an entry point of a ``kernels/*.cl`` file and its record.
 
     ``layout`` maps a raw field to its record column (an int) or columns (a slice); it
-    reaches the kernel as ``-D COL_<FIELD>=<first column>``, and
+    reaches the kernel as ``-D COL_<FIELD>=<REAL16 selector>`` (``s012``), and
     :func:`clcurv.cloud.fetch_records` reads the record with the same table. Every layout
     has ``count`` and ``status``.
     """
@@ -49,8 +49,7 @@ class Kernel:
 
     def build_defines(self):
         """The kernel's build options: its defines, MIN_COUNT and the record columns."""
-        cols = {f"COL_{k.upper()}": (v if isinstance(v, int) else v.start)
-                for k, v in self.layout.items()}
+        cols = {f"COL_{k.upper()}": record_selector(v) for k, v in self.layout.items()}
         return dict(self.defines, MIN_COUNT=self.min_count, **cols)
 
     def width(self, name):

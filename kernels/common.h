@@ -40,9 +40,11 @@
  * the point's input index: one cache line per point in float32, where a scattered store per
  * output array costs a cache miss each. records.cl:split_records turns them into per-field
  * arrays. The columns are the operator's (clcurv/operators.py), given as -D COL_<FIELD>
- * options; integer fields keep their bits (UINT_AS_REAL). A record is a private array:
- *   REAL rec[RECORD_WIDTH]; record_clear(rec); REC_SET3(rec, COL_NORMALS, v0); ...
- *   REC_STORE(rec, j, out); */
+ * options holding the field's REAL16 component selector (COL_NORMALS=s012, COL_COUNT=sa):
+ * a record is a REAL16 value written by swizzles, which stays in registers (a private
+ * array indexed by column numbers cost 10-30% of the kernels under PoCL). Integer fields
+ * keep their bits (UINT_AS_REAL).
+ *   REAL16 rec = (REAL16)(NAN); rec.COL_NORMALS = v0; ...; REC_STORE(rec, j, out); */
 #if REAL_IS_DOUBLE
 #define UINT_AS_REAL(u) as_double((ulong)(u))
 #define REAL_AS_UINT(x) ((uint)as_ulong(x))
@@ -51,18 +53,13 @@
 #define REAL_AS_UINT(x) as_uint(x)
 #endif
 #if RECORD_WIDTH != 16
-#error "records are stored with vstore16"
+#error "records are REAL16 values"
 #endif
-inline void record_clear(REAL *rec)
-{
-    for (int c = 0; c < RECORD_WIDTH; ++c) rec[c] = NAN;
-}
-#define REC_SET2(rec, col, v) { (rec)[(col)] = (v).x; (rec)[(col) + 1] = (v).y; }
-#define REC_SET3(rec, col, v) { (rec)[(col)] = (v).x; (rec)[(col) + 1] = (v).y; (rec)[(col) + 2] = (v).z; }
+#define REAL16 CAT(REAL, 16)
 /* count and status, the two columns every record has */
 #define REC_COUNT_STATUS(rec, count, status) \
-    { (rec)[COL_COUNT] = UINT_AS_REAL(count); (rec)[COL_STATUS] = (REAL)(status); }
-#define REC_STORE(rec, j, out) vstore16(vload16(0, (rec)), (j), (out))
+    { (rec).COL_COUNT = UINT_AS_REAL(count); (rec).COL_STATUS = (REAL)(status); }
+#define REC_STORE(rec, j, out) vstore16((rec), (j), (out))
 
 /* The arguments of every operator kernel, in the order clcurv/driver.py passes them: the
  * sorted coordinates (neighbors.h), the sorted reference normals NX, NY, NZ (unused by the

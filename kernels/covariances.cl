@@ -114,18 +114,17 @@ inline void cov_finish(uint count, int finite, REAL a, REAL b, REAL c, REAL3 nrm
     else if (!finite) st = ST_DEGENERATE;
     /* record: eigenvalues (descending; 2, or 3 for 3dcov) | k1 k2 | dir1 | dir2 | count |
        status */
-    REAL rec[RECORD_WIDTH];
-    record_clear(rec);
+    REAL16 rec = (REAL16)(NAN);
     if (st == ST_OK) {
 #if COV_METHOD == 3
-        REC_SET3(rec, COL_EIGENVALUES, lam);
+        rec.COL_EIGENVALUES = lam;
 #else
-        REC_SET2(rec, COL_EIGENVALUES, lam);
+        rec.COL_EIGENVALUES = lam.xy;
 #endif
-        rec[COL_K1] = k.x;
-        rec[COL_K2] = k.y;
-        REC_SET3(rec, COL_DIR1, e1);
-        REC_SET3(rec, COL_DIR2, cross(nrm, e1));
+        rec.COL_K1 = k.x;
+        rec.COL_K2 = k.y;
+        rec.COL_DIR1 = e1;
+        rec.COL_DIR2 = cross(nrm, e1);
     }
     REC_COUNT_STATUS(rec, count, st);
     REC_STORE(rec, j, out);

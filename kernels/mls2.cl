@@ -206,15 +206,14 @@ __kernel void mls2(OPERATOR_ARGS)
     /* the records: shift | k1 k2 | dir1 | dir2 | normal | count | status */
     for (uint k = 0; k < kn; ++k) {
         const uchar s = (st[k] == ST_OK && !okl[k]) ? ST_SINGULAR : st[k];
-        REAL rec[RECORD_WIDTH];
-        record_clear(rec);
+        REAL16 rec = (REAL16)(NAN);
         if (s == ST_OK) {
-            REC_SET3(rec, COL_SHIFT, (REAL3)(o[0][k], o[1][k], o[2][k]));
-            rec[COL_K1] = o[3][k];
-            rec[COL_K2] = o[4][k];
-            REC_SET3(rec, COL_DIR1, (REAL3)(o[5][k], o[6][k], o[7][k]));
-            REC_SET3(rec, COL_DIR2, (REAL3)(o[8][k], o[9][k], o[10][k]));
-            REC_SET3(rec, COL_NORMALS, (REAL3)(o[11][k], o[12][k], o[13][k]));
+            rec.COL_SHIFT = (REAL3)(o[0][k], o[1][k], o[2][k]);
+            rec.COL_K1 = o[3][k];
+            rec.COL_K2 = o[4][k];
+            rec.COL_DIR1 = (REAL3)(o[5][k], o[6][k], o[7][k]);
+            rec.COL_DIR2 = (REAL3)(o[8][k], o[9][k], o[10][k]);
+            rec.COL_NORMALS = (REAL3)(o[11][k], o[12][k], o[13][k]);
         }
         REC_COUNT_STATUS(rec, pb.count[k], s);
         REC_STORE(rec, order[g0 + k], out);

@@ -72,13 +72,12 @@ __kernel void moments(OPERATOR_ARGS)
         }
 #endif
         /* record: normal | eigenvalues (ascending) | variation | shift o - p | count | status */
-        REAL rec[RECORD_WIDTH];
-        record_clear(rec);
+        REAL16 rec = (REAL16)(NAN);
         if (st == ST_OK) {
-            REC_SET3(rec, COL_NORMALS, v0);
-            REC_SET3(rec, COL_EIGENVALUES, lam);
-            rec[COL_VARIATION] = lam.x / (lam.x + lam.y + lam.z);
-            REC_SET3(rec, COL_SHIFT, mu);
+            rec.COL_NORMALS = v0;
+            rec.COL_EIGENVALUES = lam;
+            rec.COL_VARIATION = lam.x / (lam.x + lam.y + lam.z);
+            rec.COL_SHIFT = mu;
         }
         REC_COUNT_STATUS(rec, c, st);
         REC_STORE(rec, order[g], out);

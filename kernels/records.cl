@@ -7,7 +7,7 @@
 
 /* Field layout, set by build options (clcurv/cloud.py:fetch_records): NF real fields,
  * field k = columns S<k> .. S<k> + W<k> - 1 of the record; COL_COUNT (uint bits) and
- * COL_STATUS (a small integer). */
+ * COL_STATUS (a small integer), as REAL16 selectors (common.h). */
 #if !defined(NF) || !defined(COL_COUNT) || !defined(COL_STATUS)
 #error "records.cl needs NF, COL_COUNT and COL_STATUS (clcurv/cloud.py:fetch_records)"
 #endif
@@ -22,8 +22,9 @@ __kernel void split_records(__global const REAL *rec, const uint n, __global REA
 {
     const uint j = get_global_id(0);
     if (j >= n) return;
+    const REAL16 r = vload16(j, rec);
     REAL v[RECORD_WIDTH];
-    vstore16(vload16(j, rec), 0, v);
+    vstore16(r, 0, v);
 #if NF > 0
     SPLIT(0)
 #endif
@@ -42,6 +43,6 @@ __kernel void split_records(__global const REAL *rec, const uint n, __global REA
 #if NF > 5
     SPLIT(5)
 #endif
-    count[j] = REAL_AS_UINT(v[COL_COUNT]);
-    status[j] = (uchar)v[COL_STATUS];
+    count[j] = REAL_AS_UINT(r.COL_COUNT);
+    status[j] = (uchar)r.COL_STATUS;
 }

@@ -25,6 +25,8 @@ import numpy as np
 import pyopencl as cl
 import pytest
 
+from clcurv.constants import kernel_defines
+
 KERNELS = Path(__file__).resolve().parent.parent / "kernels"
 
 SOURCE = r"""
@@ -69,7 +71,8 @@ def cl_env():
 
 def build_program(ctx, precision):
     """Build SOURCE for 'float' or 'double' (to be replaced by clcurv.program.build)."""
-    options = ["-I", str(KERNELS), "-D", f"REAL_IS_DOUBLE={int(precision == 'double')}"]
+    options = ["-I", str(KERNELS), "-D", f"REAL_IS_DOUBLE={int(precision == 'double')}",
+               "-D", "VW=8"] + [f"-D{k}={v}" for k, v in kernel_defines().items()]
     return cl.Program(ctx, SOURCE).build(options=options)
 
 

@@ -4,6 +4,7 @@ import numpy as np
 import pyopencl as cl
 import pytest
 
+from clcurv.constants import kernel_defines
 from test_eig3 import (KERNELS, Eig3, check, cl_env, covariances, random_symmetric,  # noqa: F401
                        with_eigenvalues, N, UPPER)
 
@@ -41,7 +42,7 @@ class Eig3V(Eig3):
         self.dtype = np.float64 if precision == "double" else np.float32
         self.eps = float(np.finfo(self.dtype).eps)
         options = ["-I", str(KERNELS), "-D", f"REAL_IS_DOUBLE={int(precision == 'double')}",
-                   "-D", f"VW={vw}"]
+                   "-D", f"VW={vw}"] + [f"-D{k}={v}" for k, v in kernel_defines().items()]
         self.vw = vw
         self.kernel = cl.Kernel(cl.Program(ctx, SOURCE_V).build(options=options), "eig3_test")
 
