@@ -32,7 +32,7 @@
  * Accuracy: backward stable, eigenvalue errors are a few eps * max|lambda|; the eigenvector of an
  * eigenvalue separated by gap has an angle error of about eps * max|lambda| / gap (this is what
  * makes the normal accurate when lambda0 << lambda1 <= lambda2).
- * Overflow: only if an eigenvalue itself exceeds REAL_MAX (entries close to REAL_MAX).
+ * Overflow: only if an eigenvalue itself exceeds the largest finite REAL (entries close to it).
  * Scaling A by a power of two scales w exactly and leaves v0, v1, v2 bit-identical.
  * Denormal inputs are handled if the device does not flush them to zero.
  * Ideas from D. Eberly, "A Robust Eigensolver for 3x3 Symmetric Matrices" (Geometric Tools).
@@ -66,14 +66,7 @@
 #define EIG3_AS_I(x) CAT(as_, IREAL)(x)
 #define EIG3_AS_R(b) CAT(as_, REAL)(b)
 #define EIG3_FN(name) name
-#include "eig3.h"
-#undef EIG3_T
-#undef EIG3_I
-#undef EIG3_SEL
-#undef EIG3_SELI
-#undef EIG3_AS_I
-#undef EIG3_AS_R
-#undef EIG3_FN
+#include "eig3.h"                           /* undefines the EIG3_ parameters */
 
 /* ---- vector instantiation: eig3_sym_g_v on REALV (VW matrices, one per lane) ---- */
 #define EIG3_T REALV
@@ -83,14 +76,7 @@
 #define EIG3_AS_I(x) CAT(as_, IREALV)(x)
 #define EIG3_AS_R(b) CAT(as_, REALV)(b)
 #define EIG3_FN(name) name##_v
-#include "eig3.h"
-#undef EIG3_T
-#undef EIG3_I
-#undef EIG3_SEL
-#undef EIG3_SELI
-#undef EIG3_AS_I
-#undef EIG3_AS_R
-#undef EIG3_FN
+#include "eig3.h"                           /* undefines the EIG3_ parameters */
 #undef EIG3_GENERIC_PASS
 
 /* Eigen decomposition of the symmetric matrix [[a00,a01,a02],[a01,a11,a12],[a02,a12,a22]].
@@ -372,5 +358,13 @@ inline void EIG3_FN(eig3_sym_g)(EIG3_T a00, EIG3_T a01, EIG3_T a02, EIG3_T a11, 
 
 #undef EIG3_V3
 #undef EIG3_M3
+/* the instantiation's parameters, so that the next one can define them again */
+#undef EIG3_T
+#undef EIG3_I
+#undef EIG3_SEL
+#undef EIG3_SELI
+#undef EIG3_AS_I
+#undef EIG3_AS_R
+#undef EIG3_FN
 
 #endif /* EIG3_GENERIC_PASS */

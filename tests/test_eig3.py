@@ -69,21 +69,23 @@ def cl_env():
     return device, ctx, cl.CommandQueue(ctx)
 
 
-def build_program(ctx, precision):
-    """Build SOURCE for 'float' or 'double' (to be replaced by clcurv.program.build)."""
+def build_program(ctx, precision, source=None, vw=8):
+    """Build ``source`` (default SOURCE) for 'float' or 'double' with the host's constants."""
     options = ["-I", str(KERNELS), "-D", f"REAL_IS_DOUBLE={int(precision == 'double')}",
-               "-D", "VW=8"] + [f"-D{k}={v}" for k, v in kernel_defines().items()]
-    return cl.Program(ctx, SOURCE).build(options=options)
+               "-D", f"VW={vw}"] + [f"-D{k}={v}" for k, v in kernel_defines().items()]
+    return cl.Program(ctx, source or SOURCE).build(options=options)
 
 
 class Eig3:
-    """Runs eig3_sym on a stack of symmetric matrices in one precision."""
+    """Runs eig3_sym on a stack of symmetric matrices in one precision; ``vw`` matrices per
+    work-item (``source`` holding an eig3_test kernel of that shape)."""
 
-    def __init__(self, ctx, queue, precision):
-        self.ctx, self.queue, self.precision = ctx, queue, precision
+    def __init__(self, ctx, queue, precision, source=None, vw=1):
+        self.ctx, self.queue, self.precision, self.vw = ctx, queue, precision, vw
         self.dtype = np.float64 if precision == "double" else np.float32
         self.eps = float(np.finfo(self.dtype).eps)
-        self.kernel = cl.Kernel(build_program(ctx, precision), "eig3_test")
+        program = build_program(ctx, precision, source, vw if source else 8)
+        self.kernel = cl.Kernel(program, "eig3_test")
 
     def __call__(self, A):
         """A: (n, 3, 3) symmetric. Returns (A as seen by the kernel in float64, w, V) with
@@ -95,7 +97,7 @@ class Eig3:
         mf = cl.mem_flags
         a_buf = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a)
         o_buf = cl.Buffer(self.ctx, mf.WRITE_ONLY, out.nbytes)
-        self.kernel(self.queue, (n,), None, a_buf, o_buf, np.int32(n))
+        self.kernel(self.queue, (-(-n // self.vw),), None, a_buf, o_buf, np.int32(n))
         cl.enqueue_copy(self.queue, out, o_buf)
         seen = np.zeros((n, 3, 3))
         for k, (i, j) in enumerate(UPPER):

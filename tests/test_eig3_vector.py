@@ -4,8 +4,7 @@ import numpy as np
 import pyopencl as cl
 import pytest
 
-from clcurv.constants import kernel_defines
-from test_eig3 import (KERNELS, Eig3, check, cl_env, covariances, random_symmetric,  # noqa: F401
+from test_eig3 import (Eig3, check, cl_env, covariances, random_symmetric,  # noqa: F401
                        with_eigenvalues, N, UPPER)
 
 SOURCE_V = r"""
@@ -36,34 +35,6 @@ __kernel void eig3_test(__global const REAL *a, __global REAL *out, const int n)
 """
 
 
-class Eig3V(Eig3):
-    def __init__(self, ctx, queue, precision, vw):
-        self.ctx, self.queue, self.precision = ctx, queue, precision
-        self.dtype = np.float64 if precision == "double" else np.float32
-        self.eps = float(np.finfo(self.dtype).eps)
-        options = ["-I", str(KERNELS), "-D", f"REAL_IS_DOUBLE={int(precision == 'double')}",
-                   "-D", f"VW={vw}"] + [f"-D{k}={v}" for k, v in kernel_defines().items()]
-        self.vw = vw
-        self.kernel = cl.Kernel(cl.Program(ctx, SOURCE_V).build(options=options), "eig3_test")
-
-    def __call__(self, A):
-        A = np.asarray(A, dtype=np.float64).reshape(-1, 3, 3)
-        n = len(A)
-        a = np.ascontiguousarray(np.stack([A[:, i, j] for i, j in UPPER], 1), dtype=self.dtype)
-        out = np.empty((n, 12), self.dtype)
-        mf = cl.mem_flags
-        a_buf = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a)
-        o_buf = cl.Buffer(self.ctx, mf.WRITE_ONLY, out.nbytes)
-        self.kernel(self.queue, (-(-n // self.vw),), None, a_buf, o_buf, np.int32(n))
-        cl.enqueue_copy(self.queue, out, o_buf)
-        seen = np.zeros((n, 3, 3))
-        for k, (i, j) in enumerate(UPPER):
-            seen[:, i, j] = seen[:, j, i] = a[:, k]
-        w = out[:, :3].astype(np.float64)
-        V = out[:, 3:].reshape(n, 3, 3).transpose(0, 2, 1).astype(np.float64)
-        return seen, w, V
-
-
 @pytest.fixture(scope="module", params=[("float", 8), ("float", 4), ("float", 16), ("double", 8)],
                 ids=lambda p: f"{p[0]}-vw{p[1]}")
 def eig3v(request, cl_env):  # noqa: F811
@@ -71,7 +42,7 @@ def eig3v(request, cl_env):  # noqa: F811
     precision, vw = request.param
     if precision == "double" and "cl_khr_fp64" not in device.extensions:
         pytest.skip(f"{device.name} has no cl_khr_fp64")
-    return Eig3V(ctx, queue, precision, vw)
+    return Eig3(ctx, queue, precision, SOURCE_V, vw)
 
 
 def special_matrices(rng):
