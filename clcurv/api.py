@@ -21,7 +21,7 @@ class _Run:
     pass of the call, or (backend='numpy') the float64 reference on the same points."""
 
     def __init__(self, backend, points, radius, device, precision, cloud=None):
-        self.backend, self.points, self.radius = backend, points, radius
+        self.points, self.radius = points, radius
         self.cloud = None
         if backend == "opencl":
             from .cloud import DeviceCloud
@@ -139,12 +139,13 @@ def _empty(op, r, weights):
 
 def _check_options(op, kernel, h, projections):
     """The method-specific options: given to a method that ignores them, they raise."""
-    given = {"kernel": kernel is not None, "h": h is not None, "projections": projections != 0}
-    extra = [k for k, v in given.items() if v and k not in op.options]
+    extra = op.foreign_options({"kernel": kernel is not None, "h": h is not None,
+                                "projections": projections != 0})
     if extra:
+        takers = next(iter(extra.values()))
         raise ValueError(f"{', '.join(extra)} {'is' if len(extra) == 1 else 'are'} not an "
                          f"option of method={op.name!r} (only of "
-                         f"{', '.join(repr(m) for m, o in OPERATORS.items() if extra[0] in o.options)})")
+                         f"{', '.join(repr(m) for m in takers)})")
     kernel = choice("ball" if kernel is None else kernel, "kernel", MLS_KERNELS)
     if h is not None:
         if kernel != "gaussian":

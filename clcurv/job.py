@@ -149,10 +149,9 @@ def check_options(job):
     op = OPERATORS.get(job.method)
     if op is None:
         return                                  # the API names the methods
-    given = {"kernel": job.kernel is not None, "h": job.h is not None,
-             "projections": bool(job.projections)}
-    for name in (k for k, v in given.items() if v and k not in op.options):
-        takers = [m for m, o in OPERATORS.items() if name in o.options]
+    extra = op.foreign_options({"kernel": job.kernel is not None, "h": job.h is not None,
+                                "projections": bool(job.projections)})
+    for name, takers in extra.items():
         raise UsageError(f"--{name} is an option of --method {' or '.join(takers)} only, "
                          f"not of {job.method}")
 

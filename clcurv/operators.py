@@ -113,8 +113,11 @@ class Operator:
     def min_count(self):
         return self.kernel.min_count
 
-    def output(self, name):
-        return next(o for o in self.outputs if o.name == name)
+    def foreign_options(self, given):
+        """The names among ``given`` (option name -> whether the caller set it) that this
+        method does not take, each with the methods that do take it."""
+        return {k: [m for m, op in OPERATORS.items() if k in op.options]
+                for k, v in given.items() if v and k not in self.options}
 
     def file_fields(self):
         """File field name -> (output name, column or None), in the output order."""
