@@ -7,7 +7,9 @@
   Cloud), :func:`_split_named` (columns by name: x y z, normals ``nx ny nz`` /
   ``normal_x ...``, attributes), :func:`_split_positional` (headerless tables: columns 0-2
   are x y z, 3-5 normals when exactly 6 columns of unit vectors), :func:`_native`,
-  :func:`_struct_columns` and :func:`_quiet`;
+  :func:`_struct_columns` and :func:`_quiet`; :func:`_check_claim`, the guard against
+  hostile headers (a count is checked against the bytes the file holds before anything is
+  allocated from it);
 * writing helpers: :func:`_check_points`, :func:`_check_normals`, :func:`_check_fields`
   (names ``[A-Za-z_][A-Za-z0-9_.-]*``, not reserved for coordinates or normals, shape
   ``(N,)``, numeric; bool becomes uint8) and :func:`_int_as` (the integer type a format
@@ -141,6 +143,20 @@ def _finish(path, fmt, points, normals=None, attributes=None, header=None):
         normals = np.ascontiguousarray(normals, dtype=np.float64).reshape(-1, 3)
     attributes = {k: np.ascontiguousarray(v) for k, v in attributes.items()}
     return Cloud(points, normals, attributes, header, dropped, path, fmt)
+
+
+def _check_claim(path, claim, need, have, exact=True):
+    """Raise CorruptFileError unless the ``need`` bytes that the header's ``claim`` takes
+    (exactly, or at least when ``exact`` is false) fit in the ``have`` bytes the file holds.
+
+    Called before allocating anything from a header count, so that a few hundred bytes
+    claiming 10^10 points fail at once instead of allocating gigabytes.
+    """
+    if need > have:
+        size = f"{need} bytes" if exact else f"at least {need} bytes"
+        raise CorruptFileError(f"{path}: truncated or corrupt: the header claims {claim}, "
+                               f"which takes {size}, but the file has only {have} bytes "
+                               "for it")
 
 
 def _native(a):

@@ -22,11 +22,14 @@ import struct
 
 import numpy as np
 
-from ._common import CorruptFileError, Format, _native, _quiet, _split_named, _struct_columns
+from ._common import (CorruptFileError, Format, _check_claim, _native, _quiet, _split_named,
+                      _struct_columns)
 
 _TYPES = {("F", 4): "<f4", ("F", 8): "<f8", ("U", 1): "u1", ("U", 2): "<u2",
           ("U", 4): "<u4", ("U", 8): "<u8", ("I", 1): "i1", ("I", 2): "<i2",
           ("I", 4): "<i4", ("I", 8): "<i8"}
+#: LZF's largest expansion: a 3-byte back reference copies at most 264 bytes
+LZF_MAX_RATIO = 88
 
 
 # --------------------------------------------------------------------------- header
@@ -71,12 +74,24 @@ def _check_header(path, fields, sizes, types, counts, data):
     if not len(fields) == len(sizes) == len(types) == len(counts):
         raise CorruptFileError(f"{path}: PCD header has {len(fields)} FIELDS but "
                                f"{len(sizes)} SIZE, {len(types)} TYPE, {len(counts)} COUNT")
+    if any(c < 1 for c in counts):
+        raise CorruptFileError(f"{path}: PCD COUNT {counts} must be >= 1 for every field")
     bad = [(t, s) for t, s in zip(types, sizes) if (t, s) not in _TYPES]
     if bad:
         raise CorruptFileError(f"{path}: unsupported PCD TYPE/SIZE {bad}")
     if data not in ("ascii", "binary", "binary_compressed"):
         raise CorruptFileError(f"{path}: unknown PCD DATA {data!r}; expected ascii, binary "
                                "or binary_compressed")
+
+
+def _check_shape(path, width, height, npts):
+    """WIDTH, HEIGHT and POINTS are >= 0 and POINTS = WIDTH x HEIGHT (as PCL requires)."""
+    for key, value in (("WIDTH", width), ("HEIGHT", height), ("POINTS", npts)):
+        if value < 0:
+            raise CorruptFileError(f"{path}: PCD {key} {value} is negative")
+    if width * height != npts:
+        raise CorruptFileError(f"{path}: PCD WIDTH {width} x HEIGHT {height} = "
+                               f"{width * height} points, but POINTS {npts}")
 
 
 def _unique_names(fields):
@@ -94,6 +109,7 @@ def _parse_header(raw, path):
     hdr, pos = _header_keys(raw, path)
     fields, sizes, types, counts, width, height, npts, data = _header_values(hdr, path)
     _check_header(path, fields, sizes, types, counts, data)
+    _check_shape(path, width, height, npts)
     info = {"version": (hdr.get("VERSION") or [None])[0], "fields": fields, "size": sizes,
             "type": types, "count": counts, "width": width, "height": height,
             "viewpoint": [float(v) for v in hdr.get("VIEWPOINT", [])], "points": npts,
@@ -124,7 +140,8 @@ def _ascii_columns(raw, pos, h, specs, dtype, path):
               if f in ("rgb", "rgba") and s == 4 and c == 1}
     text_dtype = np.dtype([(n, "f8") if n in packed else (n, dtype[n]) for n in dtype.names])
     with _quiet():  # loadtxt warns on an empty body
-        rows = np.loadtxt(io.StringIO(raw[pos:].decode("ascii")), dtype=text_dtype,
+        text = raw[pos:].decode("ascii", errors="replace")  # '#' comments may be latin-1
+        rows = np.loadtxt(io.StringIO(text), dtype=text_dtype,
                           comments="#", ndmin=1, max_rows=npts)
     if len(rows) != npts:
         raise CorruptFileError(f"{path}: PCD header says POINTS {npts} but the ascii "
@@ -135,10 +152,6 @@ def _ascii_columns(raw, pos, h, specs, dtype, path):
 
 def _binary_columns(raw, pos, h, specs, dtype, path):
     npts = h["points"]
-    need = npts * dtype.itemsize
-    if len(raw) - pos < need:
-        raise CorruptFileError(f"{path}: binary PCD data is truncated ({len(raw) - pos} "
-                               f"bytes, expected {need} for {npts} points)")
     return _struct_columns(np.frombuffer(raw, dtype=dtype, count=npts, offset=pos))
 
 
@@ -150,11 +163,11 @@ def _lzf_payload(raw, pos, npts, itemsize, path):
     need = npts * itemsize
     if usize != need:
         raise CorruptFileError(f"{path}: binary_compressed PCD uncompressed size {usize} != "
-                               f"{need} expected for {npts} points of {itemsize} bytes")
+                               f"{need} expected for POINTS {npts} of {itemsize} bytes")
     comp = raw[pos + 8:pos + 8 + csize]
-    if len(comp) != csize:
-        raise CorruptFileError(f"{path}: binary_compressed PCD is truncated ({len(comp)} of "
-                               f"{csize} compressed bytes)")
+    _check_claim(path, f"{csize} bytes of LZF data", csize, len(comp))
+    _check_claim(path, f"POINTS {npts} = {usize} bytes compressed by LZF (at most "
+                 f"{LZF_MAX_RATIO}:1)", -(-usize // LZF_MAX_RATIO), csize, exact=False)
     try:
         return lzf_decompress(comp, usize)
     except ValueError as exc:
@@ -178,8 +191,30 @@ _BODIES = {"ascii": _ascii_columns, "binary": _binary_columns,
            "binary_compressed": _compressed_columns}
 
 
+def _check_body(raw, pos, h, path):
+    """CorruptFileError unless the body can hold POINTS points (before any allocation):
+    binary takes POINTS x the point size, ascii two bytes per value (a digit and a
+    separator), binary_compressed two size words and 1 byte per 88 of the point data."""
+    npts, have = h["points"], len(raw) - pos
+    values = sum(h["count"])
+    itemsize = sum(s * c for s, c in zip(h["size"], h["count"]))
+    point = (f"POINTS {npts} of {itemsize} bytes (SIZE {' '.join(map(str, h['size']))} x "
+             f"COUNT {' '.join(map(str, h['count']))})")
+    if h["data"] == "ascii":
+        _check_claim(path, f"POINTS {npts} of {values} values (COUNT "
+                     f"{' '.join(map(str, h['count']))})", 2 * npts * values - 1, have,
+                     exact=False)
+    elif h["data"] == "binary":
+        _check_claim(path, point, npts * itemsize, have)
+    else:
+        _check_claim(path, f"{point} = {npts * itemsize} bytes compressed by LZF (at most "
+                     f"{LZF_MAX_RATIO}:1)", 8 + -(-npts * itemsize // LZF_MAX_RATIO), have,
+                     exact=False)
+
+
 def _columns(raw, pos, h, path):
     """Per-field arrays (N,) or (N, COUNT) from the PCD body."""
+    _check_body(raw, pos, h, path)
     specs = [(n, _TYPES[(t, s)], c) for n, t, s, c in
              zip(h["_names"], h["type"], h["size"], h["count"])]
     dtype = np.dtype([(n, t) if c == 1 else (n, t, (c,)) for n, t, c in specs])
@@ -236,8 +271,10 @@ def lzf_decompress(data, size):
     Raises
     ------
     ValueError
-        The data is corrupt or does not decompress to exactly ``size`` bytes.
+        The data is corrupt or does not decompress to exactly ``size`` bytes, or ``size``
+        is more than LZF can expand ``data`` to (checked before allocating the output).
     """
+    _check_expansion(data, size)
     if size == 0:
         if len(data):
             raise ValueError(f"{len(data)} compressed bytes for an empty output")
@@ -252,8 +289,16 @@ def lzf_decompress(data, size):
     return out
 
 
+def _check_expansion(data, size):
+    """ValueError when ``size`` exceeds what ``data`` can expand to (or is negative)."""
+    if size < 0 or size > LZF_MAX_RATIO * len(data):
+        raise ValueError(f"{len(data)} bytes of LZF data cannot decompress to {size} bytes "
+                         f"(LZF expands {LZF_MAX_RATIO}:1 at most)")
+
+
 def _lzf_decompress_py(data, size):
     """Pure-Python LZF decoder (see :func:`lzf_decompress`)."""
+    _check_expansion(data, size)
     src = bytes(data)
     out = bytearray(size)
     ip = op = 0

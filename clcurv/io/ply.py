@@ -28,13 +28,18 @@ import re
 
 import numpy as np
 
-from ._common import CorruptFileError, Format, _int_as, _quiet, _split_named, _struct_columns
+from ._common import (CorruptFileError, Format, _check_claim, _int_as, _quiet, _split_named,
+                      _struct_columns)
 
 _TYPES = {"char": "i1", "uchar": "u1", "int8": "i1", "uint8": "u1", "short": "i2",
           "ushort": "u2", "int16": "i2", "uint16": "u2", "int": "i4", "uint": "u4",
           "int32": "i4", "uint32": "u4", "float": "f4", "float32": "f4",
           "double": "f8", "float64": "f8"}
 _INTS = [np.dtype(t) for t in ("i1", "u1", "i2", "u2", "i4", "u4")]
+#: bytes of each type name plyfile accepts (its aliases i1 ... f8 included)
+_SIZES = {**{name: np.dtype(t).itemsize for name, t in _TYPES.items()},
+          **{t: np.dtype(t).itemsize for t in ("i1", "u1", "i2", "u2", "i4", "u4", "f4",
+                                                "f8")}}
 
 
 # --------------------------------------------------------------------------- read
@@ -65,7 +70,42 @@ def _parse_header(raw, path):
     if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
         raise CorruptFileError(f"{path}: unknown PLY format {fmt!r}; expected ascii, "
                                "binary_little_endian or binary_big_endian")
+    for name, count, block in elements:
+        if count and len(block) == 1:
+            raise CorruptFileError(f"{path}: PLY element {name!r} claims {count} rows but "
+                                   "has no properties")
     return fmt, preamble, elements, m.end()
+
+
+def _min_row_bytes(block, fmt):
+    """The fewest bytes one row of an element (header lines ``block``) takes: in binary the
+    sizes of its scalars and list lengths (an empty list), in ascii two per value (a digit
+    and a separator; a list at least its length). An unknown type counts 1 byte (plyfile
+    rejects it before reading any data)."""
+    props = [ln.split() for ln in block[1:]]
+    if fmt == "ascii":
+        return 2 * len(props)
+    types = [p[2] if p[1:2] == ["list"] and len(p) > 2 else (p[1:2] or [""])[0]
+             for p in props]
+    return sum(_SIZES.get(t, 1) for t in types)
+
+
+def _check_elements(path, fmt, elements, have):
+    """CorruptFileError unless the rows that the header claims can fit in the ``have``
+    bytes after the header (checked before plyfile allocates every element)."""
+    need = sum(count * _min_row_bytes(block, fmt) for _, count, block in elements)
+    claim = "elements " + ", ".join(f"{name} {count}" for name, count, _ in elements)
+    _check_claim(path, claim, need - 1 if fmt == "ascii" and need else need, have,
+                 exact=False)
+
+
+def _ascii_header(raw, start):
+    """``raw`` with every non-ASCII byte of the header replaced by ``?`` (plyfile decodes
+    the header as strict ASCII; a latin-1 comment would stop it)."""
+    return raw[:start].translate(_TO_ASCII) + raw[start:]
+
+
+_TO_ASCII = bytes(range(128)) + b"?" * 128
 
 
 def _preamble_values(preamble, keyword):
@@ -77,15 +117,17 @@ def _preamble_values(preamble, keyword):
 def _binary_vertices(raw, start, n, props, fmt, path):
     order = "<" if fmt == "binary_little_endian" else ">"
     dtype = np.dtype([(p[2], order + _TYPES[p[1]]) for p in props])
-    if len(raw) - start < n * dtype.itemsize:
-        raise CorruptFileError(f"{path}: PLY vertex data is truncated ({len(raw) - start} "
-                               f"bytes, expected {n * dtype.itemsize} for {n} vertices)")
+    _check_claim(path, f"{n} vertices of {dtype.itemsize} bytes", n * dtype.itemsize,
+                 len(raw) - start)
     return _struct_columns(np.frombuffer(raw, dtype=dtype, count=n, offset=start))
 
 
 def _ascii_vertices(raw, start, n, props, path):
     """One vertex per line."""
     dtype = np.dtype([(p[2], _TYPES[p[1]]) for p in props])
+    # each value takes a digit and a separator: bound the rows before loadtxt allocates them
+    _check_claim(path, f"{n} vertices of {len(props)} values", 2 * n * len(props) - 1,
+                 len(raw) - start, exact=False)
     with _quiet():  # loadtxt warns on an empty body
         v = np.loadtxt(io.StringIO(raw[start:].decode("ascii", errors="replace")),
                        dtype=dtype, ndmin=1, max_rows=n, comments=None)
@@ -114,8 +156,9 @@ def _vertex_columns(raw, path):
         return _binary_vertices(raw, start, n, props, fmt, path), header
     if simple:
         return _ascii_vertices(raw, start, n, props, path), header
+    _check_elements(path, fmt, elements, len(raw) - start)
     with _quiet():  # plyfile warns on empty ascii elements
-        ply = plyfile.PlyData.read(io.BytesIO(raw))
+        ply = plyfile.PlyData.read(io.BytesIO(_ascii_header(raw, start)))
     return _struct_columns(ply["vertex"].data), header
 
 
