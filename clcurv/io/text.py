@@ -28,6 +28,9 @@ import numpy as np
 from ._common import CorruptFileError, Format, _quiet, _split_named, _split_positional
 
 _COMMENTS = ("#", "//")
+#: a leading UTF-8 BOM (Excel's CSV) is dropped; a non-UTF-8 byte (a latin-1 comment)
+#: becomes U+FFFD instead of stopping the reader
+_OPEN = {"encoding": "utf-8-sig", "errors": "replace"}
 
 
 # --------------------------------------------------------------------------- read
@@ -43,7 +46,7 @@ def _is_number(tok):
 def _scan(path):
     """(header names or None, lines to skip before the data, first data line or None)."""
     names, skip, first_data = None, 0, None
-    with open(path, "r", encoding="utf-8", errors="replace") as f:
+    with open(path, "r", **_OPEN) as f:
         for i, line in enumerate(f):
             s = line.strip()
             if not s:
@@ -72,9 +75,9 @@ def _load(path, names, skip, first_data):
             raise CorruptFileError(f"{path}: no data (expected lines of x y z ...)")
         return np.empty((0, len(names)))
     delim = "," if "," in first_data else (";" if ";" in first_data else None)
-    with _quiet():
-        return np.loadtxt(path, dtype=np.float64, delimiter=delim, skiprows=skip,
-                          comments=list(_COMMENTS), ndmin=2, encoding="utf-8")
+    with _quiet(), open(path, "r", **_OPEN) as f:
+        return np.loadtxt(f, dtype=np.float64, delimiter=delim, skiprows=skip,
+                          comments=list(_COMMENTS), ndmin=2)
 
 
 def read(path):
