@@ -1,4 +1,4 @@
-"""Render a point cloud coloured by a per-point field to a PNG (matplotlib, Agg, no display).
+"""Render a point cloud coloured by a per-point field to a picture (matplotlib, Agg, no display).
 
 :func:`render` draws orthographic projections of the cloud from two or three viewpoints side
 by side, with one colorbar and a caption giving the point, drawn-point and NaN counts::
@@ -29,6 +29,12 @@ Points are sorted by depth so that near points are drawn last (over far ones). S
 use a diverging colormap centred on 0 ("RdBu_r", symmetric limits); unsigned ones "viridis".
 Colour limits are robust percentiles of the finite values; NaN values are drawn light grey.
 
+The picture format follows the extension of the output (:data:`IMAGE_FORMATS`: PNG, JPEG,
+PDF, SVG, TIFF, WebP); any other extension, a point cloud's included, is refused before
+drawing by :func:`check_image_output`, which a command can also call before its computation.
+The picture is written atomically (:func:`clcurv.io.atomic_output`): a failed write leaves
+the previous file as it was. Folders are not created.
+
 matplotlib is imported inside :func:`render` only; without it :class:`MissingMatplotlibError`
 (an ``ImportError``) says how to install it.
 """
@@ -38,9 +44,16 @@ from pathlib import Path
 
 import numpy as np
 
+from .io import atomic_output, check_output
 from .operators import OPERATORS, signed_file_fields
 
-__all__ = ["render", "MissingMatplotlibError", "VIEWS", "SIGNED_FIELDS"]
+__all__ = ["render", "check_image_output", "MissingMatplotlibError", "VIEWS", "SIGNED_FIELDS",
+           "IMAGE_FORMATS"]
+
+#: Extensions :func:`render` writes (lower case) -> the format given to matplotlib's
+#: ``savefig`` (Agg canvas; JPEG, TIFF and WebP through Pillow, a matplotlib dependency).
+IMAGE_FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".pdf": "pdf",
+                 ".svg": "svg", ".tif": "tiff", ".tiff": "tiff", ".webp": "webp"}
 
 #: Field names treated as signed (diverging colormap) when ``signed=None`` and the values
 #: take both signs: the file fields and result attributes of the registry's signed outputs
@@ -138,10 +151,27 @@ def _point_diameter_px(u, v, scale_px, n_drawn):
     return float(np.clip(d, 0.9, 9.0))
 
 
+def check_image_output(path) -> Path:
+    """Check that :func:`render` can write ``path``, without drawing or writing; return it.
+
+    The extension must be one of :data:`IMAGE_FORMATS` (so ``-o cloud.ply`` cannot replace a
+    point cloud with a picture), the folder must exist (it is not created) and be writable,
+    and ``path`` must not be a directory or a read-only file: :func:`clcurv.io.check_output`
+    with the picture formats.
+
+    Raises
+    ------
+    clcurv.io.OutputPathError
+        A :class:`clcurv.io.WriteError` (a ``ValueError``) whose message starts with ``path``
+        and, for a bad extension, lists the accepted ones.
+    """
+    return check_output(path, IMAGE_FORMATS, what="picture")
+
+
 def render(points, values, path, *, field="mean_curvature", unit="1/length unit",
            signed=None, views=("front", "side", "top"), max_points=200_000,
            percentiles=(2, 98), title=None, dpi=110, seed=0) -> Path:
-    """Write a PNG of ``points`` coloured by ``values`` seen from ``views``; return its path.
+    """Write a picture of ``points`` coloured by ``values`` seen from ``views``; return its path.
 
     Parameters
     ----------
@@ -150,7 +180,9 @@ def render(points, values, path, *, field="mean_curvature", unit="1/length unit"
     values : (N,) array_like
         The per-point field (NaN allowed: drawn light grey and counted in the caption).
     path : str or Path
-        Output PNG file; parent directories are created.
+        Output picture; its extension gives the format, one of :data:`IMAGE_FORMATS`
+        (``.png``, ``.jpg``, ``.pdf``, ``.svg``...). The folder must exist. Written
+        atomically: on failure the previous file is kept and nothing else is left.
     field, unit : str
         Colorbar label ``"field [unit]"`` (``unit`` may be empty or None).
     signed : bool or None
@@ -167,19 +199,25 @@ def render(points, values, path, *, field="mean_curvature", unit="1/length unit"
     title : str or None
         First line of the caption (default: the field name).
     dpi : int
-        The PNG is ``figsize * dpi`` pixels; the figure is ``(3.7 * len(views) + 0.9) x 4.5``
+        A raster picture is ``figsize * dpi`` pixels; the figure is ``(3.7 * len(views) + 0.9) x 4.5``
         inches (12 x 4.5 for three views).
     seed : int
         Seed of the subsample.
 
     Raises
     ------
+    clcurv.io.OutputPathError
+        ``path`` cannot be written (:func:`check_image_output`): not a picture extension,
+        missing folder, a directory, read-only folder or file. Checked before drawing.
+    clcurv.io.WriteFailedError
+        Writing failed part way (disk full...); also an ``OSError``. The previous file is kept.
     ValueError
         ``points`` not (N, 3), ``values`` not of length N, bad ``views``, ``percentiles``,
         ``max_points`` or ``dpi``.
     MissingMatplotlibError
         matplotlib is not installed (an ``ImportError``).
     """
+    path = check_image_output(path)
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"points must be an (N, 3) array, got shape {pts.shape}")
@@ -212,9 +250,6 @@ def render(points, values, path, *, field="mean_curvature", unit="1/length unit"
     matplotlib, Figure, FigureCanvasAgg = _import_matplotlib()
     from matplotlib.colors import Normalize
     from matplotlib.cm import ScalarMappable
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
 
     # --- colour scale from all finite values (before subsampling) ---------------------------
     finite_mask = np.isfinite(vals)
@@ -367,5 +402,6 @@ def render(points, values, path, *, field="mean_curvature", unit="1/length unit"
     fig.text(0.5, 1 - 0.45 / fig_h, "  \u00b7  ".join(parts), ha="center", va="top",
              fontsize=9, color="#333333")
 
-    fig.savefig(path, dpi=dpi, format="png", facecolor="white")
+    with atomic_output(path) as tmp:
+        fig.savefig(tmp, dpi=dpi, format=IMAGE_FORMATS[path.suffix.lower()], facecolor="white")
     return path

@@ -22,6 +22,15 @@ file name: :class:`MissingFileError` (also a ``FileNotFoundError``),
 :class:`MissingDependencyError` (also ``ImportError``; an optional package such as ``lazrs``
 is needed). Bad arguments to :func:`write` raise :class:`WriteError` (a ``ValueError``).
 
+Writing
+-------
+:func:`write` is atomic: the file is written under a temporary name in the output's folder,
+flushed to disk and renamed onto the output (:func:`atomic_output`, also used by
+:func:`clcurv.render.render`). A failed or interrupted write leaves the previous file, if any,
+byte for byte, and no temporary file. :func:`check_output` checks an output path (extension,
+folder, writability) without writing anything, so that a command can refuse a bad ``-o``
+before its computation. Folders are never created: a missing folder is an error.
+
 Optional packages: ``laspy`` for LAS, ``laspy[lazrs]`` for LAZ, and ``python-lzf`` (module
 ``lzf``) to speed up binary_compressed PCD (a pure-Python LZF decoder is used without it).
 
@@ -37,7 +46,11 @@ module and one entry in :data:`FORMATS`.
 """
 from __future__ import annotations
 
+import contextlib
+import errno
 import os
+import secrets
+import stat
 from pathlib import Path
 
 from . import las, npy, pcd, ply, text
@@ -47,12 +60,25 @@ from ._common import (Cloud, CorruptFileError, MissingDependencyError, MissingFi
 from .las import LAZ_HINT  # noqa: F401  (kept importable from clcurv.io)
 from .pcd import _lzf_decompress_py, lzf_decompress  # noqa: F401
 
-__all__ = ["Cloud", "read", "write", "lzf_decompress", "ReadError", "MissingFileError",
-           "UnknownFormatError", "CorruptFileError", "MissingDependencyError", "WriteError",
+__all__ = ["Cloud", "read", "write", "check_output", "atomic_output", "lzf_decompress",
+           "ReadError", "MissingFileError", "UnknownFormatError", "CorruptFileError",
+           "MissingDependencyError", "WriteError", "OutputPathError", "WriteFailedError",
            "READ_FORMATS", "WRITE_FORMATS"]
 
+
+class OutputPathError(WriteError):
+    """The output path cannot be written: its extension, a missing folder, a directory in
+    its place, a read-only folder or file (:func:`check_output`). Nothing was written."""
+
+
+class WriteFailedError(WriteError, OSError):
+    """Writing failed part way (disk full, file too large, I/O error...): an ``OSError`` of
+    the format's writer, re-raised with the output path in the message and the original
+    ``errno`` (``errno.ENOSPC``, ``errno.EFBIG``...). The previous file is untouched and the
+    temporary file is removed. Also an ``OSError``."""
+
 for _public in (Cloud, ReadError, MissingFileError, UnknownFormatError, CorruptFileError,
-                MissingDependencyError, WriteError):
+                MissingDependencyError, WriteError, OutputPathError, WriteFailedError):
     _public.__module__ = __name__  # shown (and pickled) as clcurv.io.<name>, as before
 del _public
 
@@ -156,29 +182,204 @@ def write(path, points, fields=None, normals=None, like=None):
     Returns
     -------
     pathlib.Path
-        The file written.
+        The file written (``path``).
 
     Raises
     ------
+    OutputPathError
+        ``path`` cannot be written (:func:`check_output`): unknown extension, missing folder,
+        a directory, read-only folder or file. Checked before anything else.
     WriteError
-        Unknown extension, bad shapes or names, NaN coordinates in LAS, coordinates out of
-        the range of the LAS scale and offset, or a field that LAS cannot hold.
+        Bad shapes or names, NaN coordinates in LAS, coordinates out of the range of the LAS
+        scale and offset, or a field that LAS cannot hold.
+    WriteFailedError
+        The write failed part way (disk full ``ENOSPC``, file size limit ``EFBIG``, I/O
+        error): a :class:`WriteError` and an ``OSError`` whose message starts with ``path``.
     MissingDependencyError
         LAS needs ``laspy``, LAZ needs ``laspy[lazrs]``.
 
     Notes
     -----
+    The write is atomic (:func:`atomic_output`): on any error, and on ``KeyboardInterrupt``,
+    the previous file at ``path`` is left as it was and no other file remains. An existing
+    file keeps its permission bits; a symbolic link stays a link and the file it points to
+    is replaced.
+
     How each format stores points, normals and fields (types, precision, header line,
     LAS scales and extra bytes) is described in the docstring of its module:
     :mod:`clcurv.io.ply`, :mod:`clcurv.io.las`, :mod:`clcurv.io.text`, :mod:`clcurv.io.npy`.
     """
-    path = Path(os.fspath(path))
-    ext = path.suffix.lower()
-    if ext not in _WRITERS:
-        raise WriteError(f"{path}: cannot write extension {ext or '(none)'!r}; expected one "
-                         f"of {', '.join(WRITE_FORMATS)}")
+    path = check_output(path)
     pts = _check_points(path, points)
     normals = _check_normals(path, normals, len(pts))
     fields = _check_fields(path, fields, len(pts))
-    _WRITERS[ext][1](path, pts, fields, normals, like)
+    with atomic_output(path) as tmp:
+        _WRITERS[path.suffix.lower()][1](tmp, pts, fields, normals, like)
     return path
+
+
+# --------------------------------------------------------------------------- output paths
+
+def _real_target(path):
+    """The file that writing ``path`` replaces: the end of a chain of symbolic links."""
+    return Path(os.path.realpath(path)) if os.path.islink(path) else path
+
+
+def _reason(exc):
+    return exc.strerror or str(exc) or type(exc).__name__
+
+
+def _new_temp(target):
+    """Create an empty temporary file next to ``target``, named ``.<name>.<random>.tmp<ext>``
+    (the real extension stays last: laspy picks LAZ compression and NumPy its suffix by
+    it); its mode is what ``open(target, "w")`` would give (0o666 minus the umask)."""
+    name = target.name[:180]
+    for _ in range(100):
+        tmp = target.with_name(f".{name}.{secrets.token_hex(4)}.tmp{target.suffix}")
+        try:
+            os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+        except FileExistsError:
+            continue
+        return tmp
+    raise FileExistsError(errno.EEXIST, "no free temporary name", str(target.parent))
+
+
+def check_output(path, formats=None, *, what="point cloud") -> Path:
+    """Check that ``path`` can be written, without writing it; return it as a Path.
+
+    Meant to be called before a long computation whose result goes to ``path``. The folder
+    is not created (no command of clcurv creates folders) and the file is not touched; a
+    temporary file is created in the folder and removed again, since ``os.access`` answers
+    "writable" on read-only mounts.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The output file.
+    formats : mapping of str -> str, optional
+        Accepted extensions (lower case, with the dot) -> description; default
+        :data:`WRITE_FORMATS`. :func:`clcurv.render.check_image_output` passes the picture
+        formats.
+    what : str
+        What is written, for the messages ("point cloud", "image").
+
+    Returns
+    -------
+    pathlib.Path
+
+    Raises
+    ------
+    OutputPathError
+        With one message starting with ``path``: the extension is not in ``formats`` (the
+        accepted ones are listed), the folder does not exist or is not a folder, ``path``
+        is a directory or another non-regular file, the folder is not writable (permissions,
+        read-only file system), or the existing file is read-only.
+    """
+    path = Path(os.fspath(path))
+    formats = WRITE_FORMATS if formats is None else formats
+    ext = path.suffix.lower()
+    if ext not in formats:
+        raise OutputPathError(f"{path}: cannot write a {what} with extension "
+                              f"{ext or '(none)'!r}; expected one of {', '.join(formats)}")
+    target = _real_target(path)
+    folder = target.parent
+    if not folder.exists():
+        raise OutputPathError(f"{path}: folder {folder} does not exist (it is not created)")
+    if not folder.is_dir():
+        raise OutputPathError(f"{path}: {folder} is not a folder")
+    if target.is_dir():
+        raise OutputPathError(f"{path}: is a directory")
+    if target.exists() and not target.is_file():
+        raise OutputPathError(f"{path}: exists and is not a regular file")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise OutputPathError(f"{path}: folder {folder} is not writable")
+    if target.exists() and not os.access(target, os.W_OK):
+        raise OutputPathError(f"{path}: the existing file is read-only")
+    try:
+        os.unlink(_new_temp(target))
+    except OSError as exc:
+        raise OutputPathError(f"{path}: cannot create a file in folder {folder}: "
+                              f"{_reason(exc)}") from exc
+    return path
+
+
+def _renamed(exc, tmp, path):
+    """``exc`` again with the temporary name replaced by ``path`` in its message, or None
+    when the message does not name it or the type cannot be rebuilt from a message."""
+    if not (len(exc.args) == 1 and isinstance(exc.args[0], str) and str(tmp) in exc.args[0]):
+        return None
+    try:
+        new = type(exc)(exc.args[0].replace(str(tmp), str(path)))
+    except Exception:  # a constructor with other arguments: keep the original
+        return None
+    return new if str(new) != str(exc) else None
+
+
+def _discard(tmp):
+    try:
+        os.unlink(tmp)
+    except FileNotFoundError:
+        pass
+
+
+def _fsync(path, flags=os.O_RDONLY):
+    fd = os.open(path, flags)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def atomic_output(path):
+    """Context manager for writing ``path`` atomically; yields the temporary path to write.
+
+    The body writes the whole file to the yielded path (``.<name>.<random>.tmp<ext>`` in the
+    folder of ``path``, created empty; the extension of ``path`` stays last). When the body
+    returns, the temporary file is flushed to disk (``fsync``), given the permission bits of
+    the file it replaces (if any) and renamed onto ``path`` with ``os.replace`` (atomic on
+    one file system), then the folder is flushed. When the body raises (any exception,
+    ``KeyboardInterrupt`` included) the temporary file is removed and ``path`` is untouched.
+
+    A symbolic link at ``path`` stays a link: the file it points to is replaced. Hard links
+    to the old file keep the old content; the new file belongs to the writing user.
+
+    Raises
+    ------
+    OutputPathError
+        The temporary file cannot be created in the folder.
+    WriteFailedError
+        An ``OSError`` (disk full, file too large...) in the body, the flush or the rename,
+        with ``path`` in the message and the original ``errno``.
+    Other exceptions of the body propagate, their message naming ``path`` instead of the
+    temporary file.
+    """
+    path = Path(os.fspath(path))
+    target = _real_target(path)
+    try:
+        tmp = _new_temp(target)
+    except OSError as exc:
+        raise OutputPathError(f"{path}: cannot create a file in folder {target.parent}: "
+                              f"{_reason(exc)}") from exc
+    try:
+        yield tmp
+        _fsync(tmp, os.O_RDWR if os.name == "nt" else os.O_RDONLY)
+        try:
+            mode = stat.S_IMODE(os.stat(target).st_mode)
+        except FileNotFoundError:
+            pass
+        else:
+            os.chmod(tmp, mode)
+        os.replace(tmp, target)
+    except BaseException as exc:
+        _discard(tmp)
+        if isinstance(exc, OSError) and not isinstance(exc, WriteError):
+            err = WriteFailedError(f"{path}: write failed: {_reason(exc)}")
+            err.errno = exc.errno
+            raise err from exc
+        renamed = _renamed(exc, tmp, path) if isinstance(exc, Exception) else None
+        if renamed is None:
+            raise
+        raise renamed from exc
+    with contextlib.suppress(OSError):  # the rename itself reaches the disk
+        _fsync(target.parent)
