@@ -117,10 +117,10 @@ CRAFTED = {
     "count_huge.pcd": (pcd_header("binary", 1, count="1 1 1000000000") + bytes(12),
                        10 ** 9, 12),
     # NPY header shape (10^11, 3) float64 over 24 bytes of data
-    "huge.npy": (npy_bytes("<f8", NPY_SHAPE, bytes(24)), 3 * 10 ** 11, 24),
+    "huge.npy": (npy_bytes("<f8", NPY_SHAPE, bytes(24)), 10 ** 11, 24),
     # NPZ member whose NPY header claims (10^11, 3)
     "member_shape.npz": (zip_bytes({"points.npy": npy_bytes("<f8", NPY_SHAPE, bytes(24))}),
-                         3 * 10 ** 11, 24),
+                         10 ** 11, 24),
     # NPZ member whose zip entry claims 2.4 GB (header shape consistent with it)
     "member_size.npz": (zip_bytes({"points.npy": npy_bytes("<f8", NPZ_SHAPE, bytes(24))},
                                   claim=NPZ_CLAIM), NPZ_CLAIM, None),

@@ -19,15 +19,48 @@ name, dtypes unchanged; fields may not be named ``points`` or ``normals``.
 """
 from __future__ import annotations
 
+import math
+import zipfile
+
 import numpy as np
 
-from ._common import (CorruptFileError, Format, WriteError, _finish, _split_named,
-                      _split_positional, _struct_columns)
+from ._common import (CorruptFileError, Format, WriteError, _check_claim, _finish,
+                      _split_named, _split_positional, _struct_columns)
 
 
 # --------------------------------------------------------------------------- read
 
+#: the largest expansion of each zip method NumPy reads (deflate: 1032:1)
+_ZIP_RATIOS = {zipfile.ZIP_STORED: 1, zipfile.ZIP_DEFLATED: 1032}
+
+
+def _npy_header(fp):
+    """(shape, dtype) from the NPY header at the position of ``fp``, leaving ``fp`` at the
+    first data byte."""
+    version = np.lib.format.read_magic(fp)
+    read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+            else np.lib.format.read_array_header_2_0)
+    shape, _, dtype = read(fp)
+    return shape, dtype
+
+
+def _check_npy(path, fp, have, what="NPY"):
+    """CorruptFileError unless the ``have`` bytes after the NPY header at ``fp`` hold the
+    array its header claims (checked before NumPy allocates the array from the shape)."""
+    shape, dtype = _npy_header(fp)
+    if dtype.hasobject:
+        return  # np.load refuses it (allow_pickle=False)
+    count = math.prod(shape)
+    claim = f"{what} shape {shape} of {dtype}"
+    if any(d < 0 for d in shape) or (count and not dtype.itemsize):
+        raise CorruptFileError(f"{path}: the header claims {claim}, which is not an array "
+                               "(negative dimension or zero-byte items)")
+    _check_claim(path, claim, count * dtype.itemsize, have - fp.tell())
+
+
 def _read_npy(path):
+    with open(path, "rb") as fp:
+        _check_npy(path, fp, path.stat().st_size)
     a = np.load(path, allow_pickle=False)
     if a.dtype.names:
         if a.ndim != 1:
@@ -40,7 +73,33 @@ def _read_npy(path):
     return _split_positional(path, "npy", a.astype(np.float64))
 
 
+def _check_member(path, zf, info, size):
+    """CorruptFileError unless the zip member ``info`` can hold what its entry and its NPY
+    header claim, given an archive of ``size`` bytes."""
+    name = info.filename
+    ratio = _ZIP_RATIOS.get(info.compress_type)
+    if ratio is None:
+        raise CorruptFileError(f"{path}: member {name!r} uses zip compression method "
+                               f"{info.compress_type}; NPZ members are stored or deflated")
+    _check_claim(path, f"member {name!r} of {info.compress_size} compressed bytes",
+                 info.compress_size, size, exact=False)
+    _check_claim(path, f"member {name!r} of {info.file_size} bytes ({ratio}:1 at most)",
+                 -(-info.file_size // ratio), info.compress_size, exact=False)
+    if name.endswith(".npy"):
+        with zf.open(info) as fp:
+            _check_npy(path, fp, info.file_size, what=f"member {name!r} of")
+
+
+def _check_npz(path):
+    """Every member of the archive checked by :func:`_check_member`."""
+    size = path.stat().st_size
+    with zipfile.ZipFile(path) as zf:
+        for info in zf.infolist():
+            _check_member(path, zf, info, size)
+
+
 def _read_npz(path):
+    _check_npz(path)
     with np.load(path, allow_pickle=False) as z:
         arrays = {k: z[k] for k in z.files}
     pts = arrays.pop("points", None)
