@@ -6,7 +6,9 @@ re-uploading. Timings of each stage are kept in ``timings`` (seconds).
 """
 from __future__ import annotations
 
+import os
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -16,9 +18,69 @@ from .grid import bin_points
 from .program import build, launch, precision_defines
 from .validate import as_points, as_radius
 
+#: Use at most this many bytes of device memory (None: what the device reports). A knob for
+#: tests and for leaving room to other users of the device; the environment variable
+#: ``CLCURV_DEVICE_MEMORY`` (bytes) sets it when this is None. Read at every plan.
+DEVICE_MEMORY = None
+#: Fraction of the device's reported global memory that clcurv plans to use (drivers, other
+#: contexts and allocation granularity take some); not applied to DEVICE_MEMORY.
+HEADROOM = 0.9
+#: Fewest points of a chunk: a budget that leaves room for fewer is refused.
+MIN_CHUNK = 1024
+#: Device bytes per point of an operator's chunk at most: the record and its split fields
+#: (clcurv.driver), for the up-front check of a new cloud.
+CHUNK_BYTES_MAX = 2 * RECORD  # x itemsize, + 5
+
 
 class DeviceMemoryError(MemoryError):
-    """The cloud does not fit the device's allocation limits."""
+    """The data that must stay on the device does not fit it (or the DEVICE_MEMORY cap);
+    the message says how many points would fit."""
+
+
+@dataclass(frozen=True)
+class Limits:
+    """What clcurv may use of one device now: ``budget`` bytes in all, ``max_alloc`` per
+    buffer, and what they come from (for messages)."""
+    budget: int
+    max_alloc: int
+    source: str
+
+
+def device_limits(device):
+    """The :class:`Limits` of ``device``, queried now (PoCL reports different values within
+    one boot, so nothing is cached) and capped by DEVICE_MEMORY / CLCURV_DEVICE_MEMORY."""
+    dev = device.cl_device
+    total, alloc = int(dev.global_mem_size), int(dev.max_mem_alloc_size)
+    source = (f"{device.info.name}: global memory {total / 2**20:.0f} MiB, max single "
+              f"allocation {alloc / 2**20:.0f} MiB")
+    budget = int(total * HEADROOM)
+    cap = DEVICE_MEMORY if DEVICE_MEMORY is not None else os.environ.get("CLCURV_DEVICE_MEMORY")
+    if cap not in (None, ""):
+        cap = int(cap)
+        if cap < budget:
+            budget, source = cap, source + f", capped at {cap} bytes by CLCURV_DEVICE_MEMORY"
+        alloc = min(alloc, cap)
+    return Limits(budget, alloc, source)
+
+
+@dataclass(frozen=True)
+class Plan:
+    """How one stage runs: ``n`` points in chunks of ``chunk`` sorted points (the last one
+    partial), ``per_point`` device bytes per point of a chunk, while ``held`` bytes stay on
+    the device (the cloud and the stage's whole-cloud buffers)."""
+    what: str
+    n: int
+    chunk: int
+    per_point: int
+    held: int
+
+    @property
+    def count(self):
+        return -(-self.n // self.chunk)
+
+    def ranges(self):
+        """The sorted ranges (first, stop) of the chunks, in order."""
+        return [(a, min(a + self.chunk, self.n)) for a in range(0, self.n, self.chunk)]
 
 
 class DeviceCloud:
@@ -39,6 +101,14 @@ class DeviceCloud:
     A DeviceCloud can be passed to :func:`clcurv.curvature` and :func:`clcurv.normals` in
     place of the points: the cloud is then binned once for several operators (at any radius
     <= ``cell``), on its own device and precision. ``points`` keeps the float64 input.
+
+    Device memory: the coordinates, the grid (and per run the reference normals, density
+    weights) stay whole on the device; the operators' outputs go through chunks of sorted
+    points sized by :meth:`plan` from the device's limits (:func:`device_limits`), so a
+    cloud too big for the device at once still runs. :class:`DeviceMemoryError` is raised
+    only when the whole-cloud data does not fit; its message says how many points would.
+    ``device_bytes`` is what the cloud holds on the device; ``plans`` the last
+    :class:`Plan` of every stage run on it.
     """
 
     def __init__(self, points, cell, *, device=None, precision="float"):
@@ -51,6 +121,7 @@ class DeviceCloud:
         self.dtype = np.float64 if precision == "double" else np.float32
         self.n = len(points)
         self.timings = {}
+        self.plans = {}
         if self.n == 0:
             raise ValueError("DeviceCloud needs at least one point")
         t0 = time.perf_counter()
@@ -89,15 +160,59 @@ class DeviceCloud:
         self.timings["cell_ranges"] = time.perf_counter() - t3
 
     def _check_memory(self):
-        info = self.device.info
+        """Refuse a cloud whose coordinates and grid, with the binning's temporaries and the
+        smallest chunk of an operator, do not fit the device."""
+        g, item = self.grid, np.dtype(self.dtype).itemsize
+        cells = max(g.ncells, 1)
+        # x (3 copies), y, z | cell_of, order | 9 ranges per cell
+        self.device_bytes = 5 * (self.n + PAD) * item + 8 * self.n + 72 * cells
+        temporary = 12 * cells + 4                   # keys and cell_start, during __init__
+        self._require("the coordinates and the grid", temporary,
+                      MIN_CHUNK * (CHUNK_BYTES_MAX * item + 5), 0, MIN_CHUNK)
+
+    def _require(self, what, grows, fixed, reserve, chunk_alloc):
+        """Raise DeviceMemoryError unless the cloud, ``reserve`` bytes per point of
+        whole-cloud buffers, ``grows`` more bytes that scale with the cloud and ``fixed``
+        bytes fit the device, every whole-cloud buffer within the max allocation and a
+        chunk buffer of ``chunk_alloc`` bytes too. The message names how many points of
+        this cloud's density (cells per point) would fit."""
+        lim = device_limits(self.device)
         item = np.dtype(self.dtype).itemsize
-        biggest = max(self.grid.ncells * 9 * 8, 3 * self.n * item, RECORD * self.n * item)
-        total = (5 * item + 8) * self.n + self.grid.ncells * (9 * 8 + 12) + RECORD * self.n * item
-        if biggest > info.max_alloc or total > info.global_mem:
-            raise DeviceMemoryError(
-                f"{self.n} points need about {total / 2**20:.0f} MiB on {info.name} "
-                f"(max single allocation {info.max_alloc / 2**20:.0f} MiB, global memory "
-                f"{info.global_mem / 2**20:.0f} MiB); split the cloud into tiles")
+        held = self.device_bytes + reserve * (self.n + PAD) + grows
+        # the largest whole-cloud buffer: x's 3 copies or the ranges (9 uint2 per cell)
+        widest_pp = max(3 * item, 72 * max(self.grid.ncells, 1) / self.n)
+        widest = widest_pp * (self.n + PAD)
+        if held + fixed <= lim.budget and widest <= lim.max_alloc \
+                and chunk_alloc <= lim.max_alloc:
+            return
+        per_point = held / (self.n + PAD)
+        fit = min((lim.budget - fixed) / per_point, lim.max_alloc / widest_pp) - PAD
+        fit = max(int(fit), 0) if chunk_alloc <= lim.max_alloc else 0
+        raise DeviceMemoryError(
+            f"{self.n} points do not fit the device: {what} need "
+            f"{(held + fixed) / 2**20:.1f} MiB on it at precision {self.precision!r} "
+            f"(about {per_point:.0f} bytes per point, largest buffer "
+            f"{widest / 2**20:.1f} MiB), but clcurv may use {lim.budget / 2**20:.1f} MiB "
+            f"with buffers up to {lim.max_alloc / 2**20:.1f} MiB ({lim.source}). "
+            f"About {fit} points of this cloud's density fit: split the cloud into tiles, "
+            "or use a larger radius (fewer cells) or a device with more memory")
+
+    def plan(self, what, per_point, *, reserve=0, widest=None, label=None):
+        """The :class:`Plan` of stage ``what``: chunks of sorted points of ``per_point``
+        device bytes each (``widest`` of them in one buffer; default all), beside the cloud
+        and ``reserve`` bytes per point of the stage's whole-cloud buffers (already
+        allocated or about to be). One chunk when everything fits; DeviceMemoryError
+        (describing the stage as ``label``) when not even MIN_CHUNK points do."""
+        lim = device_limits(self.device)
+        widest = per_point if widest is None else widest
+        held = self.device_bytes + reserve * (self.n + PAD)
+        chunk = int(min((lim.budget - held) // per_point, lim.max_alloc // widest, self.n))
+        if chunk < min(self.n, MIN_CHUNK):
+            k = min(self.n, MIN_CHUNK)
+            self._require(label or what, 0, k * per_point, reserve, k * widest)
+        plan = Plan(what, self.n, max(chunk, min(self.n, MIN_CHUNK)), int(per_point), held)
+        self.plans[what] = plan
+        return plan
 
     def check_radius(self, radius):
         r = as_radius(radius)
@@ -117,24 +232,38 @@ class DeviceCloud:
 
 def upload_sorted(cloud, values):
     """Upload per-point ``values`` (N, 3), input order, as three padded SoA buffers in the
-    cloud's sorted order and precision (cast on the host, gathered on the device)."""
+    cloud's sorted order and precision (cast on the host, gathered on the device). The rows
+    go through a staging buffer in chunks of input indices when the device lacks room for
+    all of them (stage ``upload_normals`` of :meth:`DeviceCloud.plan`)."""
     import pyopencl as cl
-    rows = np.ascontiguousarray(values, dtype=cloud.dtype)
-    ctx, mf = cloud.device.context, cl.mem_flags
-    src = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=rows)
-    size = (cloud.n + PAD) * np.dtype(cloud.dtype).itemsize
+    item = np.dtype(cloud.dtype).itemsize
+    plan = cloud.plan("upload_normals", 3 * item, reserve=3 * item,
+                      label="the coordinates, the grid and the reference normals")
+    ctx, mf, q = cloud.device.context, cl.mem_flags, cloud.device.queue
+    size = (cloud.n + PAD) * item
     out = [cl.Buffer(ctx, mf.READ_WRITE, size=size) for _ in range(3)]
     prg = build(cloud.device, "gather.cl", cloud.defines)
-    launch(cloud.device, prg.gather_sorted, cloud.n + PAD, src, cloud.order, np.uint32(cloud.n),
-           *out)
+    staging = cl.Buffer(ctx, mf.READ_ONLY, size=plan.chunk * 3 * item)
+    for lo, hi in plan.ranges():
+        cl.enqueue_copy(q, staging, np.ascontiguousarray(values[lo:hi], dtype=cloud.dtype))
+        launch(cloud.device, prg.gather_sorted, cloud.n + PAD, staging, cloud.order,
+               np.uint32(cloud.n), np.uint32(lo), np.uint32(hi), *out)
     return out
 
 
-def record_buffer(cloud):
-    """A device buffer for one output record per point."""
+def record_buffer(cloud, count=None):
+    """A device buffer for one output record per point (of ``count`` points; default all)."""
     import pyopencl as cl
-    size = cloud.n * RECORD * np.dtype(cloud.dtype).itemsize
+    size = (cloud.n if count is None else count) * RECORD * np.dtype(cloud.dtype).itemsize
     return cl.Buffer(cloud.device.context, cl.mem_flags.READ_WRITE, size=max(size, 1))
+
+
+def record_bytes(cloud, layout):
+    """Device bytes per point of a record and its split fields (:func:`split_records`)."""
+    item = np.dtype(cloud.dtype).itemsize
+    cols = sum(1 if isinstance(v, int) else v.stop - v.start
+               for k, v in layout.items() if k not in ("count", "status"))
+    return (RECORD + cols) * item + 5
 
 
 def _host_array(cloud, buf, shape, dtype, mapped=None):
@@ -151,43 +280,76 @@ def _host_array(cloud, buf, shape, dtype, mapped=None):
     return arr
 
 
-def fetch_records(cloud, rec, layout, mapped=None):
-    """The fields of the records ``rec`` (input order) as host arrays.
-
-    ``layout`` maps a name to a record column or a slice of columns, and must name 'count'
-    (stored as uint bits) and 'status' (a small integer). Real fields come back as float64
-    (N,) or (N, width) arrays, 'count' as int64 and 'status' as uint8. The device splits the
-    records into contiguous per-field arrays first (records.cl), so the host only casts.
-    """
-    import pyopencl as cl
-    n, ctx = cloud.n, cloud.device.context
+def _fields(layout, n):
+    """(name, shape, host dtype) of the fields of ``layout`` for ``n`` points, the real
+    fields first (at most 6), then count and status."""
     real = [(k, v) for k, v in layout.items() if k not in ("count", "status")]
     if len(real) > 6:
         raise ValueError("split_records takes at most 6 real fields")
+    out = [(k, (n,) if isinstance(v, int) else (n, v.stop - v.start), np.float64)
+           for k, v in real]
+    return out + [("count", (n,), np.int64), ("status", (n,), np.uint8)]
+
+
+def split_records(cloud, rec, layout, n, mapped=None):
+    """The fields of the first ``n`` records of ``rec`` as host arrays in the device's types
+    (REAL, count uint32, status uint8), in the records' order: a list of (name, array). The
+    device splits the records into contiguous per-field arrays first (records.cl), so the
+    host only casts."""
+    import pyopencl as cl
+    fields = _fields(layout, n)
+    real = fields[:-2]
     defines = dict(cloud.defines, NF=len(real), COL_COUNT=record_selector(layout["count"]),
                    COL_STATUS=record_selector(layout["status"]))
-    spans = []
-    for k, (name, col) in enumerate(real):
+    for k, (name, _, _) in enumerate(real):
+        col = layout[name]
         a, b = (col, col + 1) if isinstance(col, int) else (col.start, col.stop)
         defines[f"S{k}"], defines[f"W{k}"] = a, b - a
-        spans.append((name, (n,) if isinstance(col, int) else (n, b - a)))
     prg = build(cloud.device, "records.cl", defines)
     flags = cl.mem_flags.WRITE_ONLY
     if cloud.device.info.kind == "cpu":
         flags |= cl.mem_flags.ALLOC_HOST_PTR
     item = np.dtype(cloud.dtype).itemsize
-    new = lambda nbytes: cl.Buffer(ctx, flags, size=max(nbytes, 1))
-    outs = [new(int(np.prod(shape)) * item) for _, shape in spans]
+    new = lambda nbytes: cl.Buffer(cloud.device.context, flags, size=max(nbytes, 1))
+    outs = [new(int(np.prod(shape)) * item) for _, shape, _ in real]
     outs += [outs[0] if outs else rec] * (6 - len(outs))       # unused placeholders
     count, status = new(4 * n), new(n)
     launch(cloud.device, prg.split_records, n, rec, np.uint32(n), *outs, count, status)
-    host = [(name, _host_array(cloud, buf, shape, cloud.dtype, mapped), np.float64)
-            for (name, shape), buf in zip(spans, outs)]
-    host += [("count", _host_array(cloud, count, (n,), np.uint32, mapped), np.int64),
-             ("status", _host_array(cloud, status, (n,), np.uint8, mapped), np.uint8)]
-    # the casts (numpy releases the GIL) run on the host's cores while the device is idle
-    casts = host_pool().map(lambda h: h[1].astype(h[2]), host)
-    return {h[0]: a for h, a in zip(host, casts)}
+    host = [(name, _host_array(cloud, buf, shape, cloud.dtype, mapped))
+            for (name, shape, _), buf in zip(real, outs)]
+    return host + [("count", _host_array(cloud, count, (n,), np.uint32, mapped)),
+                   ("status", _host_array(cloud, status, (n,), np.uint8, mapped))]
+
+
+def empty_fields(layout, n):
+    """Host arrays (uninitialised) for the fields of ``layout`` for ``n`` points, in the
+    types :func:`fetch_records` returns."""
+    return {name: np.empty(shape, dtype) for name, shape, dtype in _fields(layout, n)}
+
+
+def place_records(cloud, rec, layout, out, first, stop, chunked, mapped=None):
+    """Split the records of the sorted points [first, stop) in ``rec`` and write them to the
+    host arrays ``out`` (:func:`empty_fields`) at their input indices: ``rec`` holds the
+    records of every point at its input index (``chunked`` false, then first = 0 and stop =
+    N), or those of the chunk at g - first (``chunked``: scattered by ``cloud.grid.order``)."""
+    host = split_records(cloud, rec, layout, stop - first, mapped)
+    at = cloud.grid.order[first:stop] if chunked else slice(first, stop)
+
+    def put(h):
+        out[h[0]][at] = h[1]          # the cast, and in a chunk the scatter (no GIL held)
+    list(host_pool().map(put, host))
+
+
+def fetch_records(cloud, rec, layout, mapped=None):
+    """The fields of the records ``rec`` (one per point, input order) as host arrays.
+
+    ``layout`` maps a name to a record column or a slice of columns, and must name 'count'
+    (stored as uint bits) and 'status' (a small integer). Real fields come back as float64
+    (N,) or (N, width) arrays, 'count' as int64 and 'status' as uint8.
+    """
+    out = empty_fields(layout, cloud.n)
+    place_records(cloud, rec, layout, out, 0, cloud.n, False, mapped)
+    return out
 
 
 _POOL = None

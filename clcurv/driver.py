@@ -6,6 +6,13 @@ writes one record per point whose columns its :class:`~clcurv.operators.Kernel` 
 declares, so running an operator is the same recipe for all of them: build with the spec's
 defines, upload the reference normals (sorted, device precision), the density weights if
 asked for, launch one work-item per VW points, split and fetch the records.
+
+The records go through chunks of sorted points when the device lacks room for all of them
+(:meth:`clcurv.cloud.DeviceCloud.plan`): the kernel runs on the sorted points [first,
+stop) of each chunk and writes their records at g - first in a chunk-sized buffer, which is
+split and scattered on the host by ``order``. With one chunk (the cloud fits) the records
+go straight to their input index, as the host wants them. The kernels, and so the results,
+are the same either way, bit for bit.
 """
 from __future__ import annotations
 
@@ -13,22 +20,21 @@ import time
 
 import numpy as np
 
-from .cloud import fetch_records, record_buffer, upload_sorted
+from .cloud import empty_fields, place_records, record_buffer, record_bytes, upload_sorted
+from .constants import PAD, RECORD_WIDTH
 from .program import batches, build, launch
 
 
 def device_counts(cloud, radius):
-    """#N_r(p) (point itself included) in *sorted* order, and the buffer of the density
-    weights 1/#N_r(p) (sorted, device precision), both on the device."""
+    """The density weights 1/#N_r(p) (#N_r(p): the point itself included) of every point,
+    sorted order, device precision, padded: a device buffer."""
     import pyopencl as cl
-    ctx = cloud.device.context
     prg = build(cloud.device, "density.cl", cloud.defines)
-    counts = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, size=4 * cloud.n)
-    weights = cl.Buffer(ctx, cl.mem_flags.READ_WRITE,
-                        size=np.dtype(cloud.dtype).itemsize * (cloud.n + 16))
+    weights = cl.Buffer(cloud.device.context, cl.mem_flags.READ_WRITE,
+                        size=np.dtype(cloud.dtype).itemsize * (cloud.n + PAD))
     launch(cloud.device, prg.count_neighbors, cloud.n, cloud.x, cloud.y, cloud.z, cloud.cell_of,
-           cloud.ranges, np.uint32(cloud.n), cloud.ball(radius), counts, weights)
-    return counts, weights
+           cloud.ranges, np.uint32(cloud.n), cloud.ball(radius), weights)
+    return weights
 
 
 def _par(cloud, r, h):
@@ -71,25 +77,38 @@ def run_kernel(kernel, cloud, radius, *, normals=None, weights="uniform", h=None
     opts = dict(cloud.defines, **kernel.build_defines())
     opts.update(defines or {}, DENSITY=int(weights == "density"), GAUSSIAN=int(h is not None),
                 REF_NORMALS=int(normals is not None))
+    keep = set(kernel.layout) if fields is None else set(fields) | {"count", "status"}
+    layout = {k: v for k, v in kernel.layout.items() if k in keep}
+    item = np.dtype(cloud.dtype).itemsize
+    what = [w for w, on in (("the reference normals", normals is not None),
+                            ("the density weights", weights == "density")) if on]
+    plan = cloud.plan(f"kernel_{kernel.name}", record_bytes(cloud, layout),
+                      reserve=item * (3 * (normals is not None) + (weights == "density")),
+                      widest=RECORD_WIDTH * item, label=", ".join(["the coordinates, the grid"] + what))
     t = [time.perf_counter()]
     prg = build(cloud.device, kernel.file, opts)
     t.append(time.perf_counter())
     nx, ny, nz = upload_sorted(cloud, normals) if normals is not None else (cloud.x,) * 3
     cloud.device.queue.finish()
     t.append(time.perf_counter())
-    wbuf = device_counts(cloud, r)[1] if weights == "density" else cloud.x
-    rec = record_buffer(cloud)
+    wbuf = device_counts(cloud, r) if weights == "density" else cloud.x
+    chunked = plan.count > 1
+    rec = record_buffer(cloud, plan.chunk)
+    out = empty_fields(layout, cloud.n)
     cloud.device.queue.finish()
     t.append(time.perf_counter())
-    launch(cloud.device, getattr(prg, kernel.entry), batches(cloud.n, opts), cloud.x, cloud.y,
-           cloud.z, nx, ny, nz, wbuf, cloud.cell_of, cloud.ranges, cloud.order,
-           np.uint32(cloud.n), cloud.ball(r), _par(cloud, r, h), rec)
-    cloud.device.queue.finish()
-    t.append(time.perf_counter())
-    keep = set(kernel.layout) if fields is None else set(fields) | {"count", "status"}
-    out = fetch_records(cloud, rec, {k: v for k, v in kernel.layout.items() if k in keep})
-    t.append(time.perf_counter())
-    names = (f"build_{kernel.name}", "upload_normals", "density", f"kernel_{kernel.name}",
-             "download")
+    run, fetch = 0.0, 0.0
+    for first, stop in plan.ranges():
+        t0 = time.perf_counter()
+        launch(cloud.device, getattr(prg, kernel.entry), batches(stop - first, opts), cloud.x,
+               cloud.y, cloud.z, nx, ny, nz, wbuf, cloud.cell_of, cloud.ranges, cloud.order,
+               np.uint32(cloud.n), cloud.ball(r), _par(cloud, r, h), np.uint32(first),
+               np.uint32(stop), np.uint32(chunked), rec)
+        cloud.device.queue.finish()
+        t1 = time.perf_counter()
+        place_records(cloud, rec, layout, out, first, stop, chunked)
+        run, fetch = run + t1 - t0, fetch + time.perf_counter() - t1
+    names = (f"build_{kernel.name}", "upload_normals", "density")
     cloud.timings.update({k: b - a for k, a, b in zip(names, t, t[1:])})
+    cloud.timings.update({f"kernel_{kernel.name}": run, "download": fetch})
     return out

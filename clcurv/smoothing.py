@@ -40,14 +40,20 @@ def _copies(cloud, buffers):
 
 
 class _DeviceState:
-    """One binning of the current positions, with ping-pong and displacement buffers."""
+    """One binning of the current positions, with ping-pong and displacement buffers (whole
+    cloud, on the device) and the drift of one chunk of sorted points at a time."""
 
-    def __init__(self, base, disp, radius, device, precision):
+    def __init__(self, base, disp, radius, device, precision, density):
         import pyopencl as cl
         self.cloud = c = DeviceCloud(base + disp, radius * (1 + 2 * MARGIN), device=device,
                                      precision=precision)
         g = c.grid
         ctx = c.device.context
+        item = np.dtype(c.dtype).itemsize
+        # ping and pong (x in 3 copies, y, z), the displacement and the density weights
+        self.plan = c.plan("scale_space", item + 1,          # drift, and its block maxima
+                           reserve=item * (13 + density),
+                           label="the coordinates, the grid and the scale space's iterates")
         # c.x, c.y, c.z keep the binned positions B; the iterates live in ping/pong, whose
         # padding is zeroed (vector loads read it, masked, and NaN garbage would leak)
         self.ping = _copies(c, (c.x, c.y, c.z))
@@ -56,12 +62,10 @@ class _DeviceState:
         for k in range(3):
             d[k][:g.n] = disp[g.order, k]
         self.disp = _buffers(c, d)
-        self.drift = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, size=np.dtype(c.dtype).itemsize * g.n)
-        self.nblocks = -(-g.n // BLOCK)
-        self.block_max = cl.Buffer(ctx, cl.mem_flags.READ_WRITE,
-                                   size=np.dtype(c.dtype).itemsize * self.nblocks)
-        self.weights = _buffers(c, [np.zeros(g.n + PAD, c.dtype)])[0]
-        self.counts = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, size=4 * g.n)
+        chunk = self.plan.chunk
+        self.drift = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, size=item * chunk)
+        self.block_max = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, size=item * -(-chunk // BLOCK))
+        self.weights = _buffers(c, [np.zeros(g.n + PAD, c.dtype)])[0] if density else c.x
 
     def displacement(self):
         """Accumulated displacement from the input, (N, 3) float64 in input order."""
@@ -83,16 +87,21 @@ class _DeviceState:
         if density:
             m = build(c.device, "density.cl", c.defines)
             launch(c.device, m.count_neighbors, c.n, *self.ping, c.cell_of, c.ranges, n, r2,
-                   self.counts, self.weights)
+                   self.weights)
         prg = build(c.device, "scale_space.cl", defines)
-        launch(c.device, prg.mls1_step, batches(c.n, defines), *self.ping, self.weights, c.cell_of, c.ranges, n,
-               r2, c.x, c.y, c.z, *self.pong, *self.disp, self.drift)
-        launch(c.device, prg.block_max, self.nblocks, self.drift, n, np.uint32(BLOCK),
-               self.block_max, np.uint32(self.nblocks))
-        bm = np.empty(self.nblocks, c.dtype)
-        cl.enqueue_copy(c.device.queue, bm, self.block_max)
+        drift = 0.0
+        for first, stop in self.plan.ranges():
+            k, nblocks = stop - first, -(-(stop - first) // BLOCK)
+            launch(c.device, prg.mls1_step, batches(k, defines), *self.ping, self.weights,
+                   c.cell_of, c.ranges, n, r2, c.x, c.y, c.z, *self.pong, *self.disp,
+                   np.uint32(first), np.uint32(stop), self.drift)
+            launch(c.device, prg.block_max, nblocks, self.drift, np.uint32(k), np.uint32(BLOCK),
+                   self.block_max, np.uint32(nblocks))
+            bm = np.empty(nblocks, c.dtype)
+            cl.enqueue_copy(c.device.queue, bm, self.block_max)
+            drift = max(drift, float(bm.max()))
         self.ping, self.pong = self.pong, self.ping
-        return float(bm.max()) if len(bm) else 0.0
+        return drift
 
 
 def scale_space(points, radius, steps, *, weights="uniform", return_iterates=False,
@@ -119,7 +128,9 @@ def scale_space(points, radius, steps, *, weights="uniform", return_iterates=Fal
     return_stats : bool
         Also return a dict of statistics of the device run: ``rebins`` (re-binnings on the
         host because a point drifted more than MARGIN r), ``binning`` and ``steps``
-        (seconds); empty for the NumPy backend.
+        (seconds), ``plan`` (the :class:`clcurv.cloud.Plan` of the steps: chunks of points
+        when the device lacks room for the whole cloud's drift at once); empty for the
+        NumPy backend.
     backend : {'opencl', 'numpy'}
         'numpy' runs the float64 reference (clcurv.reference.scale_space).
     progress : callable, optional
@@ -147,11 +158,12 @@ def scale_space(points, radius, steps, *, weights="uniform", return_iterates=Fal
     if len(pts) == 0 or steps == 0:
         return done(iterates if return_iterates else pts.copy())
     disp = np.zeros_like(pts)
-    state = _DeviceState(pts, disp, r, device, precision)
-    stats.update(rebins=0, binning=state.cloud.timings["binning"], steps=0.0)
+    density = weights == "density"
+    state = _DeviceState(pts, disp, r, device, precision, density)
+    stats.update(rebins=0, binning=state.cloud.timings["binning"], steps=0.0, plan=state.plan)
     for it in range(steps):
         t = time.perf_counter()
-        drift = state.step(r, weights == "density")
+        drift = state.step(r, density)
         stats["steps"] += time.perf_counter() - t
         if progress is not None:
             progress()
@@ -161,7 +173,9 @@ def scale_space(points, radius, steps, *, weights="uniform", return_iterates=Fal
             if return_iterates:
                 iterates.append(pts + disp)
         if not last and drift > MARGIN * r:
-            state = _DeviceState(pts, disp, r, device, precision)
+            state = None                    # its device memory goes before the next binning
+            state = _DeviceState(pts, disp, r, device, precision, density)
             stats["rebins"] += 1
+            stats["plan"] = state.plan
             stats["binning"] += state.cloud.timings["binning"]
     return done(iterates if return_iterates else pts + disp)

@@ -137,9 +137,9 @@ inline void cov_finish(uint count, int finite, REAL a, REAL b, REAL c, REAL3 nrm
 __kernel void covariance(OPERATOR_ARGS)
 {
     const REAL r = par.x;
-    const uint g0 = get_global_id(0) * VW;
-    if (g0 >= n) return;
-    const uint kn = min((uint)VW, n - g0);
+    const uint g0 = first + get_global_id(0) * VW;
+    if (g0 >= stop) return;
+    const uint kn = min((uint)VW, stop - g0);
     uint cnt[VW];
     int fin[VW];
     REAL cs[6][VW];
@@ -184,6 +184,6 @@ __kernel void covariance(OPERATOR_ARGS)
         e3 = (REAL3)(ex[k], ey[k], ez[k]);
 #endif
         cov_finish(cnt[k], fin[k], cs[0][k], cs[1][k], cs[3][k], nrm, t1, t2, r, lam3, e3,
-                   order[g], out);
+                   REC_INDEX(g), out);
     }
 }

@@ -1,5 +1,5 @@
-/* density.cl -- #N_r(p) for every sorted point and the density weight 1 / #N_r(p) that
- * the operators read as W when built with DENSITY=1 (weights.h).
+/* density.cl -- the density weight 1 / #N_r(p) of every sorted point, which the operators
+ * read as W when built with DENSITY=1 (weights.h).
  *
  * One work-item per sorted point; same fixed-order neighbour walk as the operators, so the
  * count equals the operators' count column.
@@ -7,11 +7,12 @@
 #include "common.h"
 #include "neighbors.h"
 
-/* #N_r(p) for every sorted point, and the density weight 1 / #N_r(p). */
+/* The density weight 1 / #N_r(p) of every sorted point (weight: n + PAD, padding left as
+ * it is: the lanes that read it are masked). */
 __kernel void count_neighbors(__global const REAL *X, __global const REAL *Y,
                               __global const REAL *Z, __global const uint *cell_of,
                               __global const uint2 *ranges, const uint n, const REAL2 ball,
-                              __global uint *count, __global REAL *weight)
+                              __global REAL *weight)
 {
     const uint g = get_global_id(0);
     if (g >= n) return;
@@ -24,7 +25,5 @@ __kernel void count_neighbors(__global const REAL *X, __global const REAL *Y,
         const IREALV m = chunk_offsets(XA, Y, Z, i, end, pr, ball, &dx, &dy, &dz);
         cnt += select((REALV)0, (REALV)1, m);
     NEIGHBOR_CHUNKS_END
-    const uint c = (uint)hsum(cnt);
-    count[g] = c;
-    weight[g] = (REAL)1 / (REAL)c;
+    weight[g] = (REAL)1 / hsum(cnt);
 }

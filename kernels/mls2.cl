@@ -177,9 +177,9 @@ inline void mls2_finish_v(const REALV a[6], REAL fr[12][VW], REAL r, REAL o[14][
 __kernel void mls2(OPERATOR_ARGS)
 {
     const REAL r = par.x, ih2 = par.y;
-    const uint g0 = get_global_id(0) * VW;
-    if (g0 >= n) return;
-    const uint kn = min((uint)VW, n - g0);
+    const uint g0 = first + get_global_id(0) * VW;
+    if (g0 >= stop) return;
+    const uint kn = min((uint)VW, stop - g0);
     pca_batch_t pb;
     pca_batch(X, Y, Z, W, cell_of, ranges, n, g0, kn, ball, ih2, &pb);
     REAL Ml[21][VW], bl[6][VW], fr[12][VW];
@@ -216,6 +216,6 @@ __kernel void mls2(OPERATOR_ARGS)
             rec.COL_NORMALS = (REAL3)(o[11][k], o[12][k], o[13][k]);
         }
         REC_COUNT_STATUS(rec, pb.count[k], s);
-        REC_STORE(rec, order[g0 + k], out);
+        REC_STORE(rec, REC_INDEX(g0 + k), out);
     }
 }

@@ -32,9 +32,9 @@
  * refinement and the stores run per point again. */
 __kernel void moments(OPERATOR_ARGS)
 {
-    const uint g0 = get_global_id(0) * VW;
-    if (g0 >= n) return;
-    const uint kn = min((uint)VW, n - g0);       /* points of this work-item */
+    const uint g0 = first + get_global_id(0) * VW;
+    if (g0 >= stop) return;
+    const uint kn = min((uint)VW, stop - g0);       /* points of this work-item */
 
     /* 1-2. neighbour sums point by point, VW eigen decompositions at once */
     pca_batch_t pb;
@@ -80,6 +80,6 @@ __kernel void moments(OPERATOR_ARGS)
             rec.COL_SHIFT = mu;
         }
         REC_COUNT_STATUS(rec, c, st);
-        REC_STORE(rec, order[g], out);
+        REC_STORE(rec, REC_INDEX(g), out);
     }
 }

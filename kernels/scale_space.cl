@@ -14,18 +14,19 @@
 #include "weights.h"
 #include "pca.h"
 
-/* One work-item per VW consecutive sorted points (global size >= ceil(n / VW)). */
+/* One work-item per VW consecutive sorted points of [first, stop) (global size >=
+ * ceil((stop - first) / VW)); drift[g - first]: the drift buffer holds one chunk. */
 __kernel void mls1_step(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
                         __global const REAL *W, __global const uint *cell_of,
                         __global const uint2 *ranges, const uint n, const REAL2 ball,
                         __global const REAL *BX, __global const REAL *BY, __global const REAL *BZ,
                         __global REAL *XN, __global REAL *YN, __global REAL *ZN,
                         __global REAL *DX, __global REAL *DY, __global REAL *DZ,
-                        __global REAL *drift)
+                        const uint first, const uint stop, __global REAL *drift)
 {
-    const uint g0 = get_global_id(0) * VW;
-    if (g0 >= n) return;
-    const uint kn = min((uint)VW, n - g0);
+    const uint g0 = first + get_global_id(0) * VW;
+    if (g0 >= stop) return;
+    const uint kn = min((uint)VW, stop - g0);
     pca_batch_t pb;
     pca_batch(X, Y, Z, W, cell_of, ranges, n, g0, kn, ball, (REAL)0, &pb);
     for (uint k = 0; k < kn; ++k) {
@@ -42,7 +43,7 @@ __kernel void mls1_step(__global const REAL *X, __global const REAL *Y, __global
         }
         YN[g] = q.y; ZN[g] = q.z;
         DX[g] += move.x; DY[g] += move.y; DZ[g] += move.z;
-        drift[g] = length(q - (REAL3)(BX[g], BY[g], BZ[g]));
+        drift[g - first] = length(q - (REAL3)(BX[g], BY[g], BZ[g]));
     }
 }
 /* Maximum of each block of `block` consecutive values (fixed order, no atomics). */
