@@ -3,6 +3,13 @@
 :class:`DeviceCloud` holds the sorted coordinates, the sparse cell table and the per-cell
 neighbour ranges on the device, so several operators can run without re-binning or
 re-uploading. Timings of each stage are kept in ``timings`` (seconds).
+
+Device memory: what every point's neighbours read stays whole on the device (coordinates,
+grid; per run the reference normals and density weights; the scale space's iterates); what
+is per point only (output records, the normals' staging rows, drift) goes through chunks of
+points. :meth:`DeviceCloud.plan` sizes the chunks from the device's global memory and max
+allocation (queried at every plan, :func:`device_limits`) minus what the cloud holds, one
+chunk when everything fits. ``DEVICE_MEMORY`` / ``CLCURV_DEVICE_MEMORY`` caps the budget.
 """
 from __future__ import annotations
 
@@ -27,9 +34,6 @@ DEVICE_MEMORY = None
 HEADROOM = 0.9
 #: Fewest points of a chunk: a budget that leaves room for fewer is refused.
 MIN_CHUNK = 1024
-#: Device bytes per point of an operator's chunk at most: the record and its split fields
-#: (clcurv.driver), for the up-front check of a new cloud.
-CHUNK_BYTES_MAX = 2 * RECORD  # x itemsize, + 5
 
 
 class DeviceMemoryError(MemoryError):
@@ -58,16 +62,18 @@ def device_limits(device):
     if cap not in (None, ""):
         cap = int(cap)
         if cap < budget:
-            budget, source = cap, source + f", capped at {cap} bytes by CLCURV_DEVICE_MEMORY"
+            budget = cap
+            source += f", capped at {cap} bytes (CLCURV_DEVICE_MEMORY, clcurv.cloud.DEVICE_MEMORY)"
         alloc = min(alloc, cap)
     return Limits(budget, alloc, source)
 
 
 @dataclass(frozen=True)
 class Plan:
-    """How one stage runs: ``n`` points in chunks of ``chunk`` sorted points (the last one
-    partial), ``per_point`` device bytes per point of a chunk, while ``held`` bytes stay on
-    the device (the cloud and the stage's whole-cloud buffers)."""
+    """How one stage runs: ``n`` points in chunks of ``chunk`` consecutive points (sorted
+    positions; input indices for upload_sorted), the last one partial, ``per_point`` device
+    bytes per point of a chunk, while ``held`` bytes stay on the device (the cloud and the
+    stage's whole-cloud buffers)."""
     what: str
     n: int
     chunk: int
@@ -79,7 +85,7 @@ class Plan:
         return -(-self.n // self.chunk)
 
     def ranges(self):
-        """The sorted ranges (first, stop) of the chunks, in order."""
+        """The ranges (first, stop) of the chunks, in order."""
         return [(a, min(a + self.chunk, self.n)) for a in range(0, self.n, self.chunk)]
 
 
@@ -167,8 +173,10 @@ class DeviceCloud:
         # x (3 copies), y, z | cell_of, order | 9 ranges per cell
         self.device_bytes = 5 * (self.n + PAD) * item + 8 * self.n + 72 * cells
         temporary = 12 * cells + 4                   # keys and cell_start, during __init__
+        # and the smallest chunk of the widest operator: a record and as many split fields
+        # (record_bytes)
         self._require("the coordinates and the grid", temporary,
-                      MIN_CHUNK * (CHUNK_BYTES_MAX * item + 5), 0, MIN_CHUNK)
+                      MIN_CHUNK * (2 * RECORD * item + 5), 0, MIN_CHUNK * RECORD * item)
 
     def _require(self, what, grows, fixed, reserve, chunk_alloc):
         """Raise DeviceMemoryError unless the cloud, ``reserve`` bytes per point of
@@ -236,6 +244,7 @@ def upload_sorted(cloud, values):
     go through a staging buffer in chunks of input indices when the device lacks room for
     all of them (stage ``upload_normals`` of :meth:`DeviceCloud.plan`)."""
     import pyopencl as cl
+    values = np.asarray(values)
     item = np.dtype(cloud.dtype).itemsize
     plan = cloud.plan("upload_normals", 3 * item, reserve=3 * item,
                       label="the coordinates, the grid and the reference normals")

@@ -5,7 +5,9 @@ The cloud stays on the device between iterations (ping-pong buffers). It is binn
 with a cell size h = (1 + 2 MARGIN) r; the candidate cells of a point then contain its
 whole ball as long as every point moved less than MARGIN r from where it was binned, which
 the device checks at each iteration (a per-block maximum, a few KB downloaded). Only when
-the bound is crossed is the cloud brought back and re-binned on the host.
+the bound is crossed is the cloud brought back and re-binned on the host. The iterates stay
+whole on the device; each step runs over chunks of sorted points when the device lacks room
+for the drift of all of them (:meth:`clcurv.cloud.DeviceCloud.plan`).
 """
 from __future__ import annotations
 

@@ -72,6 +72,19 @@ def test_operators_in_chunks_are_bit_identical(device, sphere, budget, method, w
     assert_bit_identical(whole, parts)
 
 
+def test_double_precision_in_chunks(device, sphere, budget):
+    if not device.info.fp64:
+        pytest.skip("device without fp64")
+    pts, nrm = sphere
+    cloud = DeviceCloud(pts, RADIUS, device=device, precision="double")
+    run = lambda: clcurv.curvature(cloud, RADIUS, method="mls2", normals=nrm)
+    whole = run()
+    budget(for_chunk(cloud.plans["kernel_mls2"]))
+    parts = run()
+    assert_chunked(cloud.plans["kernel_mls2"], device)
+    assert_bit_identical(whole, parts)
+
+
 @pytest.mark.parametrize("orient", [None, "mst"])
 def test_mls2_without_reference_normals_and_pca_normals_in_chunks(device, sphere, budget,
                                                                   orient):
