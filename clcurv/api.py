@@ -10,9 +10,13 @@ from . import orient as _orient
 from .constants import TOO_FEW
 from .operators import METHODS, OPERATORS, PCA
 from .result import CurvatureResult
-from .validate import as_normals, as_points, as_radius, as_viewpoint, choice
+from .grid import ExtentError, bin_points, check_pairs
+from .validate import (as_count, as_normals, as_points, as_radius, as_viewpoint, choice,
+                       device_radius)
 
 ORIENTS = ("auto", "mst", "viewpoint", "normals", None)
+#: largest ``orient_k``: Hoppe's graph needs about 10; more only costs time and memory
+MAX_ORIENT_K = 256
 MLS_KERNELS = ("ball", "gaussian")
 
 
@@ -25,8 +29,18 @@ class _Run:
         self.cloud = None
         if backend == "opencl":
             from .cloud import DeviceCloud
+            device_radius(radius, precision if cloud is None else cloud.precision)
             self.cloud = cloud if cloud is not None else DeviceCloud(
                 points, radius, device=device, precision=precision)
+            check_pairs(self.cloud.grid, points, radius)
+        else:                               # the float64 reference: double's range
+            device_radius(radius, "double")
+            try:
+                grid = bin_points(points, radius)
+            except ExtentError:             # more cells than keys: far from quadratic
+                grid = None
+            if grid is not None:
+                check_pairs(grid, points, radius)
 
     def operator(self, op, normals=None, weights="uniform", kernel="ball", h=None):
         """The raw fields of ``op`` (a clcurv.operators.Operator); ``h`` defaults to r / 2
@@ -61,7 +75,7 @@ def _cloud_points(points):
     return points, None
 
 
-def _inputs(points, radius, weights, backend, orient, normals, viewpoint, unit=True,
+def _inputs(points, radius, weights, backend, orient, normals, viewpoint, orient_k, unit=True,
             defer=False):
     """Validated (points, radius, normals or None (unit if ``unit``), viewpoint or None,
     orientation). With ``defer`` (and a large cloud on the OpenCL backend) the normals come
@@ -70,6 +84,7 @@ def _inputs(points, radius, weights, backend, orient, normals, viewpoint, unit=T
     choice(weights, "weights", ("uniform", "density"))
     choice(backend, "backend", ("opencl", "numpy"))
     choice(orient, "orient", ORIENTS)
+    as_count(orient_k, "orient_k", MAX_ORIENT_K)
     pts = as_points(points)
     r = as_radius(radius)
     ref = None
@@ -204,7 +219,7 @@ def curvature(points, radius, *, method="mls1", weights="uniform", normals=None,
     viewpoint : 3 floats, optional
         Scanner position: normals are turned towards it.
     orient_k : int
-        Neighbours per point of the 'mst' propagation graph (default 10).
+        Neighbours per point of the 'mst' propagation graph, 1 to 256 (default 10).
     kernel : {'ball', 'gaussian'}, optional
         MLS2 only: neighbour weights uniform in the ball (default), or
         exp(-|q - p|^2 / h^2).
@@ -247,7 +262,8 @@ def curvature(points, radius, *, method="mls1", weights="uniform", normals=None,
     kernel, h, projections = _check_options(op, kernel, h, projections)
     points, cloud = _cloud_points(points)
     pts, r, ref_normals, vp, how = _inputs(points, radius, weights, backend, orient, normals,
-                                           viewpoint, unit=op.normals == "values", defer=True)
+                                           viewpoint, orient_k, unit=op.normals == "values",
+                                           defer=True)
     if op.kernel.reads_normals and op.normals == "values" and how is None and ref_normals is None:
         raise ValueError(f"{method} needs consistently oriented normals: pass normals= or an orient")
     scale_space = int(scale_space)
@@ -271,10 +287,13 @@ def curvature(points, radius, *, method="mls1", weights="uniform", normals=None,
         res.info["scale_space"] = scale_space
         return res
     if projections:
-        moved = project(pts, r, projections=projections, weights=weights, normals=ref_normals,
-                        orient=orient, viewpoint=vp, orient_k=orient_k, kernel=kernel, h=h,
-                        device=device, precision=precision, backend=backend)
-        res = curvature(moved, r, orient=orient if orient != "normals" else "mst", **same, **mls)
+        moved, fitted = _project(pts, r, projections, weights=weights, normals=ref_normals,
+                                 orient=orient, viewpoint=vp, orient_k=orient_k, kernel=kernel,
+                                 h=h, device=device, precision=precision, backend=backend)
+        # the last projection's fitted normals carry the orientation asked for (the
+        # user's normals, viewpoint or MST) to the moved cloud
+        res = curvature(moved, r, normals=fitted, orient="normals" if fitted is not None
+                        else orient, **same, **mls)
         res.info["projections"] = projections
         return res
     run = _Run(backend, pts, r, device, precision, cloud)   # bins while the normals are checked
@@ -314,25 +333,33 @@ def project(points, radius, *, projections=1, method="mls2", weights="uniform", 
     """
     choice(method, "method", ("mls2",))
     points, _ = _cloud_points(points)
-    pts = as_points(points).copy()
     projections = int(projections)
     if projections < 0:
         raise ValueError(f"projections must be >= 0, got {projections}")
+    return _project(as_points(points), radius, projections, weights=weights, normals=normals,
+                    orient=orient, viewpoint=viewpoint, orient_k=orient_k, kernel=kernel, h=h,
+                    device=device, precision=precision, backend=backend)[0]
+
+
+def _project(pts, radius, projections, *, normals, orient, viewpoint, **common):
+    """:func:`project` on checked points; returns (moved points, the last projection's
+    fitted normals, oriented as asked: the user's normals where a fit failed, None when no
+    normals were given and some point never had a valid fit)."""
+    pts = pts.copy()
     ref = as_normals(normals, len(pts), unit=False) if normals is not None else None
     how = orient
     for _ in range(projections):
         if len(pts) == 0:
             break
-        res = curvature(pts, radius, method="mls2", weights=weights, normals=ref, orient=how,
-                        viewpoint=viewpoint, orient_k=orient_k, kernel=kernel, h=h,
-                        device=device, precision=precision, backend=backend)
+        res = curvature(pts, radius, method="mls2", normals=ref, orient=how,
+                        viewpoint=viewpoint, **common)
         ok = res.valid
         pts[ok] = res.points[ok]
         ref = np.where(ok[:, None], res.normals, ref if ref is not None else res.normals)
         if not np.isfinite(ref).all():
             ref = None
         how = "normals" if ref is not None else orient
-    return pts
+    return pts, ref
 
 
 def normals(points, radius, *, weights="uniform", normals=None, orient="auto", viewpoint=None,
@@ -345,7 +372,7 @@ def normals(points, radius, *, weights="uniform", normals=None, orient="auto", v
     """
     points, cloud = _cloud_points(points)
     pts, r, ref_normals, vp, how = _inputs(points, radius, weights, backend, orient, normals,
-                                           viewpoint, unit=False)     # they only orient
+                                           viewpoint, orient_k, unit=False)  # they only orient
     if len(pts) == 0:
         return np.empty((0, 3))
     raw = _Run(backend, pts, r, device, precision, cloud).pca_normals(weights)

@@ -9,13 +9,17 @@ This module parses the arguments and maps errors to exit codes; the work is done
 :mod:`clcurv.job` (compute), :mod:`clcurv.demo` and :mod:`clcurv.render`. Radii and ``--h``
 are in the file's length unit, curvatures in 1/length (see :mod:`clcurv.operators`).
 
-Exit codes: 0 success, 1 unexpected error, 2 bad arguments, 3 unreadable input or
-unwritable output, 4 no usable OpenCL device.
+Exit codes: 0 success, 1 unexpected error, 2 bad arguments (including a radius the data
+cannot take: a far outlier, a ball holding most of the cloud), 3 unreadable input or
+unwritable output, 4 no usable OpenCL device, 5 out of memory (host or device), 130
+interrupted. Every failure is one ``clcurv: error: ...`` line on stderr, and every warning
+one ``clcurv: warning: ...`` line.
 """
 from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 
 import numpy as np
 
@@ -25,7 +29,8 @@ from .job import UsageError
 from .operators import METHODS
 from .program import PrecisionError
 
-EXIT_ERROR, EXIT_USAGE, EXIT_IO, EXIT_DEVICE = 1, 2, 3, 4
+EXIT_ERROR, EXIT_USAGE, EXIT_IO, EXIT_DEVICE, EXIT_MEMORY = 1, 2, 3, 4, 5
+EXIT_INTERRUPTED = 130
 
 
 def compute(args, out=print):
@@ -35,7 +40,8 @@ def compute(args, out=print):
 
 def render_cmd(args, out=print):
     """``clcurv render``: PNG of a file's points coloured by one of its fields."""
-    from .render import render
+    from .render import check_image_output, render
+    check_image_output(args.output)         # before reading: never a picture over a cloud
     cloud = io.read(args.input)
     values = cloud.attributes.get(args.field)
     if values is None:
@@ -114,7 +120,8 @@ def build_parser():
 
 #: exception types -> exit code, the first match wins (io errors are also ValueError or
 #: ImportError)
-_EXIT_CODES = ((UsageError, EXIT_USAGE), (io.ReadError, EXIT_IO), (io.WriteError, EXIT_IO),
+_EXIT_CODES = ((MemoryError, EXIT_MEMORY), (UsageError, EXIT_USAGE), (io.ReadError, EXIT_IO),
+               (io.WriteError, EXIT_IO),
                (OSError, EXIT_IO), (NoDeviceError, EXIT_DEVICE), (PrecisionError, EXIT_DEVICE),
                (ValueError, EXIT_USAGE), (TypeError, EXIT_USAGE), (ImportError, EXIT_ERROR))
 
@@ -124,14 +131,32 @@ def _fail(code, msg):
     return code
 
 
+def _message(e):
+    """The one-line message of ``e`` (a bare MemoryError has none)."""
+    text = " ".join(str(e).split())
+    if isinstance(e, MemoryError) and not isinstance(e, io.ReadError):
+        return (f"out of memory{': ' + text if text else ''} (the cloud and its outputs do "
+                "not fit; use a machine with more memory, or split the cloud into tiles)")
+    return text or type(e).__name__
+
+
+def _warn_line(message, category, filename, lineno, file=None, line=None):
+    """``warnings.showwarning`` of the command: one line, no Python file or source text."""
+    print(f"clcurv: warning: {' '.join(str(message).split())}", file=sys.stderr)
+
+
 def main(argv=None):
     """Entry point of the ``clcurv`` command; returns the exit code."""
     args = build_parser().parse_args(argv)
     run = {"compute": compute, "devices": devices_cmd, "render": render_cmd, "demo": demo_cmd}
-    try:
-        run[args.command](args)
-    except tuple(t for t, _ in _EXIT_CODES) as e:
-        return _fail(next(c for t, c in _EXIT_CODES if isinstance(e, t)), str(e))
+    with warnings.catch_warnings():
+        warnings.showwarning = _warn_line
+        try:
+            run[args.command](args)
+        except tuple(t for t, _ in _EXIT_CODES) as e:
+            return _fail(next(c for t, c in _EXIT_CODES if isinstance(e, t)), _message(e))
+        except KeyboardInterrupt:
+            return _fail(EXIT_INTERRUPTED, "interrupted")
     return 0
 
 

@@ -95,17 +95,10 @@ def _match(spec, found):
         i = int(spec)
         if 0 <= i < len(found):
             return i
-        raise NoDeviceError(f"device index {i} out of range: {len(found)} device(s) found")
+        raise NoDeviceError(f"device index {i} out of range: {len(found)} device(s) found: "
+                            f"{_listing(found)}")
     if isinstance(spec, str) and ":" in spec:
-        pi, di = (int(s) for s in spec.split(":", 1))
-        plats = []
-        for p, _ in found:
-            if p not in plats:
-                plats.append(p)
-        for i, (p, d) in enumerate(found):
-            if p == plats[pi] and p.get_devices().index(d) == di:
-                return i
-        raise NoDeviceError(f"no device {spec!r}")
+        return _match_pair(spec, found)
     if isinstance(spec, str):
         s = spec.lower()
         for i, (p, d) in enumerate(found):
@@ -114,6 +107,32 @@ def _match(spec, found):
         names = ", ".join(d.name.strip() for _, d in found)
         raise NoDeviceError(f"no OpenCL device matches {spec!r}; available: {names}")
     raise TypeError(f"device must be an int or a str, got {type(spec).__name__}")
+
+
+def _listing(found):
+    """'index: device | platform' of every device, for error messages."""
+    return "; ".join(f"{i}: {d.name.strip()} | {p.name.strip()}"
+                     for i, (p, d) in enumerate(found))
+
+
+def _match_pair(spec, found):
+    """The index of ``'platform:device'`` (two integers, as ``clcurv devices`` numbers the
+    platforms and their devices), or NoDeviceError listing what exists."""
+    try:
+        pi, di = (int(s) for s in spec.split(":", 1))
+    except ValueError:
+        raise NoDeviceError(f"device {spec!r}: 'platform:device' takes two integers; "
+                            f"devices: {_listing(found)}") from None
+    plats = []
+    for p, _ in found:
+        if p not in plats:
+            plats.append(p)
+    if 0 <= pi < len(plats):
+        devs = [d for p, d in found if p == plats[pi]]
+        if 0 <= di < len(devs):
+            return found.index((plats[pi], devs[di]))
+    raise NoDeviceError(f"no device {spec!r} ({len(plats)} platform(s)); devices: "
+                        f"{_listing(found)}")
 
 
 def _default(found):

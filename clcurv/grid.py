@@ -99,18 +99,49 @@ def _sort_keys(key, ncells_box):
     return order, key[order]
 
 
+class ExtentError(ValueError):
+    """The cloud's bounding box has more than 2^62 cells of the requested size (a far
+    outlier such as a 3.4e38 "no data" value, or a radius tiny for the extent)."""
+
+
+def _dims(points, lo, hi, cell):
+    """(nx, ny, nz) cells of size ``cell`` covering [lo, hi], or :class:`ExtentError`.
+
+    Computed and checked in float64 *before* any cast to int64: a coordinate such as
+    3.4e38 gives a count of cells that no int64 holds (the cast would wrap, and every key
+    with it). Within the bound, keys, cell indices and the kernels' int64 key arithmetic
+    (key +- 1 +- nx +- nx ny) cannot overflow."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        span = np.floor((hi - lo) * (1.0 / cell)) + 1.0    # as the cells of bin_points
+        box = float(np.prod(span))
+    if np.isfinite(box) and box < MAX_KEY:
+        return tuple(int(d) for d in span)
+    raise ExtentError(f"the points span {_fmt(hi - lo)} (from {_fmt(lo)} to {_fmt(hi)}): "
+                      f"{box:.3g} cells of size {cell:.6g}, more than the 2^62 a grid key "
+                      f"holds. {_outlier(points, lo, hi)}Drop far outliers and \"no data\" "
+                      "values, use a larger radius, or split the cloud into tiles")
+
+
+def _fmt(v):
+    return "(" + ", ".join(f"{x:.6g}" for x in v) + ")"
+
+
+def _outlier(points, lo, hi):
+    """A sentence naming the point farthest from the median (only on the error path)."""
+    med = np.median(points, axis=0)
+    far = int(np.argmax(np.max(np.abs(points - med), axis=1)))
+    return (f"The farthest point from the median {_fmt(med)} is #{far} at "
+            f"{_fmt(points[far])}. ")
+
+
 def bin_points(points, cell, dtype=np.float32):
     """Bin ``points`` (N, 3) float64 into cells of size ``cell``; see the module docstring."""
     points = np.ascontiguousarray(points, dtype=np.float64)
     n = len(points)
     lo, hi = _bounding_box(points)
     inv = 1.0 / cell
-    dims = np.floor((hi - lo) * inv).astype(np.int64) + 1
-    box = float(dims[0]) * float(dims[1]) * float(dims[2])
-    if box >= MAX_KEY:
-        raise ValueError(f"bounding box {hi - lo} is too large for cell size {cell}: "
-                         "more than 2^62 cells; use a larger radius or split the cloud")
-    nx, ny, nz = (int(d) for d in dims)
+    nx, ny, nz = _dims(points, lo, hi, cell)
+    box = float(nx) * float(ny) * float(nz)
     key, i = np.empty(n, np.int64), np.empty(n, np.int64)
     rel = np.empty((3, n), dtype)
     u = np.empty(n)                               # float64 scratch, reused for every axis
@@ -148,3 +179,73 @@ def bin_points(points, cell, dtype=np.float32):
     return Grid(n=n, origin=lo, cell=float(cell), dims=(nx, ny, nz), order=order,
                 x=coords[0], y=coords[1], z=coords[2], keys=skey[starts],
                 cell_start=cell_start, cell_of=cell_of)
+
+
+#: Neighbour pairs (sum over the points of #N_r(p)) above which a run is refused: about a
+#: minute of MLS2 on a 2-core CPU, hours for the float64 reference. A radius that puts most
+#: of the cloud in every ball makes every operator quadratic in N.
+MAX_PAIRS = 2e10
+
+
+#: sampled balls counted exactly by :func:`neighbour_estimate` (each costs up to N distances)
+EXACT_SAMPLE = 16
+
+
+class RadiusTooLargeError(ValueError):
+    """The radius puts so many points in every ball that the run would be quadratic."""
+
+
+def _sample_candidates(grid, sample, seed):
+    """(sorted positions of ``sample`` random points, for each the sorted positions of the
+    points of the 27 cells around its own)."""
+    rng = np.random.default_rng(seed)
+    js = np.sort(rng.choice(grid.n, size=min(sample, grid.n), replace=False))
+    nx, ny, nz = grid.dims
+    ijk = _cell_index(grid, js)
+    steps = np.array([(dx, dy, dz) for dz in (-1, 0, 1) for dy in (-1, 0, 1)
+                      for dx in (-1, 0, 1)], dtype=np.int64)
+    c = ijk[:, None, :] + steps[None, :, :]                       # (S, 27, 3)
+    inside = np.all((c >= 0) & (c < np.array([nx, ny, nz])), axis=2)
+    near = np.where(inside, (c[..., 2] * ny + c[..., 1]) * nx + c[..., 0], -1)
+    pos = np.minimum(np.searchsorted(grid.keys, near), grid.ncells - 1)
+    hit = inside & (grid.keys[pos] == near)
+    lo = np.where(hit, grid.cell_start[pos], 0).astype(np.int64)
+    hi = np.where(hit, grid.cell_start[pos + 1], 0).astype(np.int64)
+    return js, lo, hi
+
+
+def _cell_index(grid, js):
+    """(len(js), 3) cell coordinates of the sorted points ``js``."""
+    nx, ny, _ = grid.dims
+    k = grid.keys[grid.cell_of[js]]
+    return np.stack([k % nx, (k // nx) % ny, k // (nx * ny)], axis=1)
+
+
+def neighbour_estimate(grid, points, radius, sample=64, seed=0):
+    """Estimated mean #N_r(p) (point included) of the cloud, for :func:`check_pairs`.
+
+    First an upper bound, the points of the 27 cells around ``sample`` random points; when
+    that bound allows :data:`MAX_PAIRS` it is returned as is. Otherwise the balls of the
+    sample are counted exactly (``points``: the (N, 3) float64 input, input order)."""
+    js, lo, hi = _sample_candidates(grid, sample, seed)
+    bound = float((hi - lo).sum(axis=1).mean())
+    if bound * grid.n <= MAX_PAIRS:
+        return bound
+    r2, counts = radius * radius, []
+    for j, a, b in list(zip(js, lo, hi))[:EXACT_SAMPLE]:
+        for s, e in zip(a, b):
+            if e > s:
+                d = points[grid.order[s:e]] - points[grid.order[j]]
+                counts.append(np.count_nonzero(np.einsum("ij,ij->i", d, d) < r2))
+    return float(np.sum(counts)) / min(len(js), EXACT_SAMPLE)
+
+
+def check_pairs(grid, points, radius):
+    """Raise :class:`RadiusTooLargeError` when about N x mean #N_r(p) > :data:`MAX_PAIRS`."""
+    mean = neighbour_estimate(grid, points, radius)
+    if mean * grid.n > MAX_PAIRS:
+        raise RadiusTooLargeError(
+            f"radius {radius:.6g} puts about {mean:.0f} points in every ball (mean over "
+            f"sampled points; about 30 is typical): {mean * grid.n:.2g} neighbour pairs for "
+            f"{grid.n} points, a quadratic run of many minutes. Use a smaller radius (or "
+            f"raise clcurv.grid.MAX_PAIRS = {MAX_PAIRS:.0e} if you mean it)")

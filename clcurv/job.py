@@ -118,14 +118,22 @@ def _bar(name, total):
 def auto_radius(points, k=AUTO_NEIGHBOURS, sample=5000, seed=0):
     """Radius (points' length unit) giving about ``k`` neighbours: the median, over a
     random subsample of ``sample`` points (``seed``), of the distance to the k-th nearest
-    other point."""
+    other point. When that median is 0 (most points have k exact duplicates), the same
+    over the distinct positions; UsageError when there are at most ``k`` of them."""
     from scipy.spatial import cKDTree
     if len(points) <= k:
         raise UsageError(f"--radius auto needs more than {k} points, the cloud has {len(points)}")
     rng = np.random.default_rng(seed)
     idx = rng.choice(len(points), size=min(sample, len(points)), replace=False)
     d, _ = cKDTree(points).query(points[idx], k=k + 1)
-    return float(np.median(d[:, -1]))
+    r = float(np.median(d[:, -1]))
+    if r > 0:
+        return r
+    distinct = np.unique(points, axis=0)        # most sampled points have k duplicates
+    if len(distinct) <= k:
+        raise UsageError(f"--radius auto: the {len(points)} points have only {len(distinct)} "
+                         f"distinct positions (duplicates); give --radius explicitly")
+    return auto_radius(distinct, k, sample, seed)
 
 
 def resolve_radius(radius, points, out=print):
@@ -243,11 +251,12 @@ def _summary(job, cloud, done, device, times, normals_written):
 def run(job, out=print):
     """Run ``job`` (a :class:`Job`), print its summary on ``out``; return a :class:`Done`."""
     check_options(job)
+    io.check_output(job.output)             # before any work: extension, folder, rights
+    device = get_device(job.device)
     st = Stages(job.quiet)
     with st.stage("reading"):
         cloud = io.read(job.input)
     radius = resolve_radius(job.radius, cloud.points, out)
-    device = get_device(job.device)
     res, work = _evaluate(job, cloud, radius, device, st)
     done = Done(cloud.points, radius, res, result_fields(res, job.fields))
     normals = None if job.fields and "normals" not in job.fields else res.normals

@@ -72,3 +72,31 @@ def choice(value, name, allowed):
     if value not in allowed:
         raise ValueError(f"{name} must be one of {', '.join(map(repr, allowed))}, got {value!r}")
     return value
+
+
+#: Radii (points' unit) the kernels compute with, per device precision. Inside, every
+#: operator's outputs scale with the cloud bit for bit under power-of-two scalings
+#: (tests/test_hostile_api.py), so no intermediate over- or underflows; outside, some do
+#: (2dcov1's 256 / r^6 in float32 beyond about 2^20), and the call is refused.
+DEVICE_RADIUS_RANGE = {"float": (2.0 ** -40, 2.0 ** 40), "double": (2.0 ** -300, 2.0 ** 300)}
+
+
+def device_radius(radius, precision):
+    """``radius`` (a checked float) if the kernels of ``precision`` represent it, else a
+    ValueError naming the range and what to do."""
+    lo, hi = DEVICE_RADIUS_RANGE[choice(precision, "precision", tuple(DEVICE_RADIUS_RANGE))]
+    if lo <= radius <= hi:
+        return radius
+    raise ValueError(f"radius {radius:.6g} is outside [{lo:.3g}, {hi:.3g}], the radii that "
+                     f"precision={precision!r} kernels compute with in the points' unit: "
+                     f"express the points in another unit (e.g. mm instead of m)"
+                     + (" or double precision" if precision == "float" else ""))
+
+
+def as_count(value, name, most):
+    """``value`` as an int in [1, most], or TypeError / ValueError."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f"{name} must be an integer, got {value!r}")
+    if not 1 <= value <= most:
+        raise ValueError(f"{name} must be in [1, {most}], got {value}")
+    return int(value)

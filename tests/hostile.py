@@ -57,11 +57,14 @@ def run_cli(*args, env=None, timeout=60, preexec_fn=None):
     return Outcome(p.returncode, got["out"], got["err"], seconds, usage.ru_maxrss / 1024.0)
 
 
-def assert_clean_failure(outcome, code=3, what=""):
+def assert_clean_failure(outcome, code=3, what="", max_seconds=MAX_SECONDS,
+                         max_mb=MAX_PEAK_MB):
     """One ``clcurv: error:`` line naming the problem, exit ``code``, within the budgets
-    (run ``compute`` with ``-q``: its progress bars also go to stderr)."""
+    (run ``compute`` with ``-q``: its progress bars also go to stderr). The budgets are the
+    issue's for a crafted file; a failure that needs the OpenCL platform (whose start
+    alone takes ~3 s and ~150 MB with PoCL) passes larger ones."""
     assert outcome.code == code, (what, outcome.code, outcome.stderr[-2000:])
     assert len(outcome.lines) == 1, (what, outcome.stderr[-2000:])
     assert outcome.lines[0].startswith("clcurv: error: "), (what, outcome.lines)
-    assert outcome.seconds < MAX_SECONDS, (what, outcome.seconds)
-    assert outcome.peak_mb < MAX_PEAK_MB, (what, outcome.peak_mb)
+    assert outcome.seconds < max_seconds, (what, outcome.seconds)
+    assert outcome.peak_mb < max_mb, (what, outcome.peak_mb)
