@@ -115,6 +115,33 @@ def test_cli_compute_in_place_on_a_full_disk_keeps_the_input(tmp_path):
     assert str(src) in outcome.lines[0] and "write failed" in outcome.lines[0], outcome.lines
 
 
+def can_mount_a_tmpfs():
+    """True when ``unshare -rm`` may mount a tmpfs (a user and mount namespace)."""
+    if shutil.which("unshare") is None:
+        return False
+    p = subprocess.run(["unshare", "-rm", "sh", "-c", "mount -t tmpfs -o size=64k tmpfs /mnt"],
+                       capture_output=True, timeout=30)
+    return p.returncode == 0
+
+
+@pytest.mark.skipif(not can_mount_a_tmpfs(), reason="cannot mount a tmpfs (unshare -rm)")
+def test_cli_compute_in_place_on_a_real_full_disk_keeps_the_input(tmp_path):
+    """The issue's case: the bunny on a 2 MB tmpfs, ``clcurv compute b.ply -o b.ply``: the
+    write fails with ENOSPC; exit 3, one line, the input byte-identical, nothing else."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    src = disk / "b.ply"
+    script = (f'mount -t tmpfs -o size=2m tmpfs "{disk}" && cp "{sample_path()}" "{src}" && '
+              f'{{ "{sys.executable}" -m clcurv.cli compute "{src}" -o "{src}" -q; '
+              f'echo "rc=$?"; ls -A "{disk}"; cmp -s "{src}" "{sample_path()}" && echo same; }}')
+    p = subprocess.run(["unshare", "-rm", "sh", "-c", script], capture_output=True, text=True,
+                       timeout=120)
+    lines = [l for l in p.stderr.splitlines() if l.strip()]
+    assert p.stdout.split("\n")[-4:] == ["rc=3", "b.ply", "same", ""], (p.stdout, p.stderr)
+    assert len(lines) == 1 and lines[0].startswith(f"clcurv: error: {src}: write failed: "), lines
+    assert "No space left" in lines[0], lines
+
+
 #: writes a 400,000-point CSV to argv[1]; a watcher thread interrupts the main thread (as
 #: Ctrl-C would) as soon as a new or changed non-empty file shows up in the folder
 CHILD_INTERRUPT = r"""
