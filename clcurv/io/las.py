@@ -9,29 +9,52 @@ Reading
 ``points`` equal ``las.x, las.y, las.z`` (X * scale + offset in float64). Every other
 dimension (intensity, classification, return_number, gps_time, red, ..., extra bytes) is an
 attribute; extra dimensions named ``nx, ny, nz`` are the normals. ``Cloud.header`` is the
-``laspy.LasHeader``; ``Cloud.format`` is ``'las'`` or ``'laz'``.
+``laspy.LasHeader``; ``Cloud.format`` is ``'las'`` or ``'laz'``, from the content (the
+compression bit of the point format), so a LAZ file named ``.las`` or a LAS file named
+``.laz`` is read correctly.
+
+Before laspy sees the file, the public header block is checked against the file size
+(laspy trusts its counts for allocation): signature, version 1.0-1.5, header size, point
+format 0-10 and a record length at least the format's, finite non-zero scales and finite
+offsets, the VLRs (54-byte headers plus their data) between the header and the point data,
+the point data starting within the file, the EVLRs (60-byte headers) within the file, the
+LAS 1.4 legacy count equal to the 64-bit count (or 0). For LAS the point data must hold the
+header's count (``offset + count * record length <= file size``, or the first EVLR); for LAZ
+the count must fit the chunk table (``number of chunks * chunk size``) and the points are
+decoded in bounded steps, the array growing with the decoded points only. Any mismatch, and
+any difference between the points decoded and the header's count, is a
+:class:`CorruptFileError` naming the claimed value and what the file holds, never a partial
+read. A header claiming 0 points is an empty cloud.
 
 Writing
 -------
 With ``like`` (a Cloud read from a LAS/LAZ file with the same number of points): its header
 (version, point format, scales, offsets, VLRs) is kept, so a point read from that file is
 written back to the same integer; its attributes (classification, intensity, GPS time,
-extra bytes...) are copied, and its normals when none are given. Without ``like``: LAS 1.4,
-point format 6, scale 0.001 on each axis, offsets = the per-axis minimum, so coordinates are
-kept within 0.0005 units. Each field is added as an extra-bytes dimension (float32, or its
+extra bytes...) are copied, and its normals when none are given. A ``like`` Cloud read from
+another format (PLY, PCD, NPY...) is ignored; anything else than a Cloud is a WriteError.
+Without a LAS ``like``, a fresh header: LAS 1.4, point format 6, offsets = the per-axis
+minimum and one scale on all axes, :func:`scale_for_extent` of the largest extent (the
+finest power of ten that keeps the integers within 2**30, half the int32 range), so
+coordinates are kept within half that scale (0.5e-9 to 5e-9 times the extent; 0.001 when
+all points are equal). Each field is added as an extra-bytes dimension (float32, or its
 integer type; names of at most 32 characters) through ``laspy.ExtraBytesParams``, described
 ``clcurv``; a field named like an existing dimension (e.g. ``classification``) overwrites
 it. Normals are stored as float32 extra dimensions ``nx, ny, nz``. LAS cannot hold NaN
-coordinates, nor coordinates outside int32 at the header's scale and offset (WriteError).
+coordinates, nor coordinates outside int32 at a ``like`` header's scale and offset
+(WriteError).
 """
 from __future__ import annotations
 
 import copy
+import math
+import struct
+from dataclasses import dataclass
 
 import numpy as np
 
-from ._common import (CorruptFileError, Format, MissingDependencyError, WriteError, _int_as,
-                      _native, _split_named)
+from ._common import (Cloud, CorruptFileError, Format, MissingDependencyError, WriteError,
+                      _int_as, _native, _split_named)
 
 LAZ_HINT = 'pip install "laspy[lazrs]"'
 _INTS = [np.dtype(t) for t in ("u1", "i1", "u2", "i2", "u4", "i4", "u8", "i8")]
@@ -56,11 +79,253 @@ def _is_laz(path):
 
 # --------------------------------------------------------------------------- read
 
+#: public header size by minor version (LAS 1.0-1.5; 1.5 is read by laspy 2.6+)
+_HEADER_SIZES = {0: 227, 1: 227, 2: 227, 3: 235, 4: 375, 5: 393}
+#: smallest record length of point formats 0-10 (LAS 1.4 R15, table 7 ff.)
+_RECORD_SIZES = (20, 28, 26, 34, 57, 63, 30, 36, 38, 59, 67)
+_VLR_HEADER, _EVLR_HEADER = 54, 60
+_LASZIP_VLR = (b"laszip encoded", 22204)
+_VARIABLE_CHUNKS = 0xFFFFFFFF
+#: points are decoded in steps of at most this many bytes of records
+_STEP_BYTES = 1 << 26
+#: a LAZ file's records are first allocated for at most this many times its size (more
+#: only as decoded points arrive), so a header count is never trusted for allocation alone
+_LAZ_TRUSTED_RATIO = 64
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """What the public header block says, checked against the file size by :func:`_layout`."""
+
+    size: int
+    version: str
+    offset_to_points: int
+    point_format: int
+    compressed: bool
+    record_length: int
+    count: int
+
+
+def _layout(path):
+    """Parse and check the header, the (E)VLR headers and, for LAS, the point data's size.
+
+    Raises CorruptFileError naming the claimed value and what the file holds, before laspy
+    sees the file (laspy trusts the VLR count and the point count for its allocations).
+    """
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        head = f.read(max(_HEADER_SIZES.values()))
+        if size < _HEADER_SIZES[0]:
+            raise CorruptFileError(f"{path}: {size} bytes, shorter than a LAS header "
+                                   f"({_HEADER_SIZES[0]} bytes)")
+        if head[:4] != b"LASF":
+            raise CorruptFileError(f"{path}: not a LAS/LAZ file (signature {head[:4]!r}, "
+                                   f"expected b'LASF')")
+        major, minor = head[24], head[25]
+        version = f"{major}.{minor}"
+        if major != 1 or minor not in _HEADER_SIZES:
+            raise CorruptFileError(f"{path}: LAS version {version} in the header; 1.0 to "
+                                   f"1.{max(_HEADER_SIZES)} are known")
+        header_size, offset, n_vlrs = struct.unpack_from("<HII", head, 94)
+        if not _HEADER_SIZES[minor] <= header_size <= size:
+            raise CorruptFileError(f"{path}: header size {header_size} in the header; a LAS "
+                                   f"{version} header has at least {_HEADER_SIZES[minor]} "
+                                   f"bytes and the file has {size}")
+        raw_format, record_length, legacy_count = struct.unpack_from("<BHI", head, 104)
+        fmt, compressed = raw_format & 0x3F, raw_format & 0xC0 == 0x80
+        if fmt >= len(_RECORD_SIZES):
+            raise CorruptFileError(f"{path}: point format {fmt} (header byte {raw_format}) "
+                                   f"is not a LAS point format (0 to {len(_RECORD_SIZES) - 1})")
+        if record_length < _RECORD_SIZES[fmt]:
+            raise CorruptFileError(f"{path}: point record length {record_length} in the "
+                                   f"header; point format {fmt} needs at least "
+                                   f"{_RECORD_SIZES[fmt]} bytes")
+        scales = struct.unpack_from("<3d", head, 131)
+        offsets = struct.unpack_from("<3d", head, 155)
+        if not all(math.isfinite(s) and s != 0 for s in scales):
+            raise CorruptFileError(f"{path}: scale factors {scales} in the header; each must "
+                                   f"be finite and non-zero")
+        if not all(math.isfinite(o) for o in offsets):
+            raise CorruptFileError(f"{path}: offsets {offsets} in the header; each must be "
+                                   f"finite")
+        count, evlr_start, n_evlrs = legacy_count, 0, 0
+        if minor >= 4:
+            evlr_start, n_evlrs, count = struct.unpack_from("<QIQ", head, 235)
+            if legacy_count and legacy_count != count:
+                raise CorruptFileError(f"{path}: the legacy point count ({legacy_count}) and "
+                                       f"the 64-bit point count ({count}) of the header "
+                                       f"disagree")
+        if offset < header_size + n_vlrs * _VLR_HEADER:
+            raise CorruptFileError(
+                f"{path}: the header claims {n_vlrs} VLRs ({n_vlrs * _VLR_HEADER} bytes at "
+                f"least) but the point data starts at byte {offset}, "
+                f"{max(offset - header_size, 0)} bytes after the {header_size}-byte header")
+        if offset > size:
+            raise CorruptFileError(f"{path}: the header puts the point data at byte {offset} "
+                                   f"but the file has {size} bytes (truncated?)")
+        f.seek(header_size)
+        laszip = _walk_vlrs(path, f.read(offset - header_size), n_vlrs, header_size, offset)
+        end = size
+        if n_evlrs:
+            _walk_evlrs(path, f, n_evlrs, evlr_start, offset, size)
+            end = evlr_start
+        layout = _Layout(size, version, offset, fmt, compressed, record_length, count)
+        if not compressed:
+            room = (end - offset) // record_length
+            if count > room:
+                raise CorruptFileError(
+                    f"{path}: the header claims {count} points of {record_length} bytes but "
+                    f"the file has {size} bytes, room for {room} points after byte {offset}")
+        elif count:
+            if laszip is None:
+                raise CorruptFileError(f"{path}: compressed point format {fmt} but no LASzip "
+                                       f"VLR describes the compression")
+            _check_chunk_table(path, f, layout, laszip, end)
+    return layout
+
+
+def _walk_vlrs(path, area, n_vlrs, start, offset):
+    """Check each VLR ends before the point data; the LASzip VLR's data, or None."""
+    pos, laszip = 0, None
+    for i in range(n_vlrs):
+        user_id = area[pos + 2:pos + 18].split(b"\0", 1)[0]
+        record_id, length = struct.unpack_from("<HH", area, pos + 18)
+        if pos + _VLR_HEADER + length > len(area):
+            raise CorruptFileError(
+                f"{path}: VLR {i + 1} of {n_vlrs} (at byte {start + pos}) claims {length} "
+                f"bytes of data, past the start of the point data at byte {offset}")
+        if (user_id, record_id) == _LASZIP_VLR:
+            laszip = area[pos + _VLR_HEADER:pos + _VLR_HEADER + length]
+        pos += _VLR_HEADER + length
+    return laszip
+
+
+def _walk_evlrs(path, f, n_evlrs, start, offset, size):
+    """Check the EVLRs lie after the point data and within the file."""
+    if start < offset or start + n_evlrs * _EVLR_HEADER > size:
+        raise CorruptFileError(
+            f"{path}: the header claims {n_evlrs} EVLRs ({n_evlrs * _EVLR_HEADER} bytes at "
+            f"least) from byte {start}, but the point data starts at byte {offset} and the "
+            f"file has {size} bytes")
+    pos = start
+    for i in range(n_evlrs):
+        f.seek(pos + 20)
+        length, = struct.unpack("<Q", f.read(8))
+        if pos + _EVLR_HEADER + length > size:
+            raise CorruptFileError(f"{path}: EVLR {i + 1} of {n_evlrs} (at byte {pos}) "
+                                   f"claims {length} bytes of data but the file has {size}")
+        pos += _EVLR_HEADER + length
+
+
+def _check_chunk_table(path, f, layout, laszip, end):
+    """Bound a LAZ point count by its chunk table (fixed-size chunks).
+
+    LASzip (compressors 2 and 3) writes the points in chunks of at most ``chunk_size``
+    points (the LASzip VLR) and, at the end, a chunk table whose position is the int64 at
+    the start of the point data (or, when that is -1, the last 8 bytes of the file); the
+    table starts with its version and number of chunks (uint32). Each chunk takes at
+    least one byte, so ``n_chunks <= compressed bytes`` and ``count <= n_chunks *
+    chunk_size``. A table that cannot be located is left to the decoder, whose reading
+    is bounded anyway (:func:`_read_points`).
+    """
+    if len(laszip) < 16:
+        raise CorruptFileError(f"{path}: LASzip VLR of {len(laszip)} bytes, shorter than "
+                               f"its 34-byte header")
+    compressor, = struct.unpack_from("<H", laszip, 0)
+    chunk_size, = struct.unpack_from("<I", laszip, 12)
+    if compressor not in (2, 3) or chunk_size == _VARIABLE_CHUNKS:
+        return
+    start = layout.offset_to_points
+    f.seek(start)
+    table = struct.unpack("<q", f.read(8))[0] if start + 8 <= end else None
+    if table == -1 and layout.size >= 8:
+        f.seek(layout.size - 8)
+        table, = struct.unpack("<q", f.read(8))
+    if table is None or not start + 8 <= table <= end - 8:
+        return
+    f.seek(table)
+    _, n_chunks = struct.unpack("<II", f.read(8))
+    data = table - start - 8
+    if n_chunks > data:
+        raise CorruptFileError(f"{path}: the LAZ chunk table claims {n_chunks} chunks in "
+                               f"{data} bytes of compressed points")
+    if layout.count > n_chunks * chunk_size:
+        raise CorruptFileError(
+            f"{path}: the header claims {layout.count} points but the LAZ chunk table lists "
+            f"{n_chunks} chunks of at most {chunk_size} points ({n_chunks * chunk_size} "
+            f"points at most)")
+
+
+def _read_points(laspy, path, layout):
+    """The LasData of ``path``, decoded in bounded steps and exactly ``layout.count`` points.
+
+    The records array is allocated for the header's count when the file can hold it (LAS,
+    checked by :func:`_layout`), else (LAZ) for at most :data:`_LAZ_TRUSTED_RATIO` times the
+    file size and grown as decoded points arrive; data ending early is a CorruptFileError.
+    """
+    count, rec = layout.count, layout.record_length
+    step = max(1, _STEP_BYTES // rec)
+    first = count if not layout.compressed else \
+        min(count, max(step, _LAZ_TRUSTED_RATIO * layout.size // rec))
+    got = 0
+    with laspy.open(str(path)) as reader:
+        header = reader.header
+        out = np.empty(first, dtype=header.point_format.dtype())
+        try:
+            for chunk in reader.chunk_iterator(step):
+                k = len(chunk)
+                if k == 0 or got + k > count:
+                    break
+                if got + k > len(out):
+                    grown = np.empty(min(count, max(2 * len(out), got + k)), out.dtype)
+                    grown[:got] = out[:got]
+                    out = grown
+                out[got:got + k] = chunk.array
+                got += k
+        except MemoryError:
+            raise
+        except Exception as exc:
+            if layout.compressed:
+                got = _decodable(laspy, path, got, min(count, got + step))
+            raise CorruptFileError(f"{path}: the header claims {count} points but only {got} "
+                                   f"could be decoded ({type(exc).__name__}: {exc})") from exc
+    if got != count:
+        raise CorruptFileError(f"{path}: the header claims {count} points but the point data "
+                               f"holds {got}")
+    points = laspy.ScaleAwarePointRecord(out, header.point_format, header.scales,
+                                         header.offsets)
+    return laspy.LasData(header=header, points=points)
+
+
+def _decodable(laspy, path, start, stop):
+    """How many points of a LAZ file decode, knowing ``start`` do and ``stop`` do not.
+
+    A failed step says only that some point of it is missing; this decodes that step again
+    with the sequential decoder from the chunk holding ``start``, in sub-steps of 4096 and
+    then of one point, so the message can say where the data ends.
+    """
+    backend = laspy.LazBackend.Lazrs if laspy.LazBackend.Lazrs.is_available() else None
+    for size in (4096, 1):
+        try:
+            with laspy.open(str(path), laz_backend=backend) as reader:
+                reader.seek(start)
+                while start < stop:
+                    k = len(reader.read_points(min(size, stop - start)))
+                    if k == 0:
+                        return start
+                    start += k
+        except MemoryError:
+            raise
+        except Exception:  # the decoder fails where the data ends
+            pass
+    return start
+
+
 def read(path):
-    laz = _is_laz(path)
-    laspy = _import_laspy(path, laz)
+    layout = _layout(path)
+    laspy = _import_laspy(path, layout.compressed)
     try:
-        las = laspy.read(str(path))
+        las = _read_points(laspy, path, layout)
     except laspy.LaspyException as exc:
         if "backend" in str(exc).lower():
             raise MissingDependencyError(f"{path}: compressed LAS data needs a LAZ backend: "
@@ -71,21 +336,70 @@ def read(path):
                               np.asarray(las.z, dtype=np.float64)])
     columns = {n: _native(np.asarray(las[n])) for n in las.point_format.dimension_names
                if n not in ("X", "Y", "Z")}
-    return _split_named(path, "laz" if laz else "las", columns, las.header, points=points)
+    return _split_named(path, "laz" if layout.compressed else "las", columns, las.header,
+                        points=points)
 
 
 # --------------------------------------------------------------------------- write
 
+#: fresh headers keep coordinates within this many integer steps of the offset, half the
+#: int32 range (the other half is margin)
+_FRESH_STEPS = 2**30
+_FRESH_DEFAULT_SCALE = 1e-3
+#: finest scale exponent (10**-300 is still a normal float64)
+_FRESH_FINEST = -300
+
+
+def scale_for_extent(extent):
+    """The LAS scale factor of a fresh header for coordinates spanning ``extent`` units.
+
+    The finest power of ten ``10**k`` with ``extent / 10**k <= 2**30``: with the offset at the
+    per-axis minimum, the integers stay within ``[0, 2**30]``, half the int32 range, and a
+    coordinate is kept within ``scale / 2``, i.e. between ``0.47e-9`` and ``4.7e-9`` times the
+    extent. An extent of 0 (one point, or all equal) gives 0.001; the scale is never finer
+    than ``1e-300``.
+
+    >>> scale_for_extent(1e5), scale_for_extent(1.0), scale_for_extent(1e-3)
+    (0.0001, 1e-09, 1e-12)
+    """
+    extent = float(extent)
+    if not math.isfinite(extent) or extent < 0:
+        raise ValueError(f"extent must be finite and >= 0, got {extent}")
+    if extent == 0:
+        return _FRESH_DEFAULT_SCALE
+    k = max(math.ceil(math.log10(extent) - math.log10(_FRESH_STEPS)), _FRESH_FINEST)
+    while extent / 10.0**k > _FRESH_STEPS:  # log10 rounding
+        k += 1
+    while k > _FRESH_FINEST and extent / 10.0**(k - 1) <= _FRESH_STEPS:
+        k -= 1
+    return 10.0**k
+
+
+def _fresh_header(laspy, path, pts):
+    """LAS 1.4, point format 6, one scale for all axes from the extent, offsets = minimum."""
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    if not len(pts):
+        header.scales, header.offsets = np.full(3, _FRESH_DEFAULT_SCALE), np.zeros(3)
+        return header
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    with np.errstate(over="ignore"):
+        extent = float((hi - lo).max())
+    if not math.isfinite(extent):
+        raise WriteError(f"{path}: coordinates span more than float64 can hold "
+                         f"(min {lo}, max {hi}); LAS cannot store them")
+    header.scales = np.full(3, scale_for_extent(extent))
+    header.offsets = lo
+    return header
+
+
 def _target_header(laspy, path, pts, like):
     """(header, attributes to copy, normals to use when none are given) for the output."""
     n = len(pts)
-    if like is None:
-        header = laspy.LasHeader(point_format=6, version="1.4")
-        header.scales = np.array([0.001, 0.001, 0.001])
-        header.offsets = pts.min(axis=0) if n else np.zeros(3)
-        return header, {}, None
-    if not isinstance(getattr(like, "header", None), laspy.LasHeader):
-        raise WriteError(f"{path}: like= must be a Cloud read from a LAS/LAZ file")
+    if like is not None and not isinstance(like, Cloud):
+        raise WriteError(f"{path}: like= must be a Cloud (from clcurv.io.read), got "
+                         f"{type(like).__name__}")
+    if like is None or not isinstance(like.header, laspy.LasHeader):
+        return _fresh_header(laspy, path, pts), {}, None  # like= from PLY, PCD...: ignored
     if len(like.points) != n:
         raise WriteError(f"{path}: like= has {len(like.points)} points but {n} are given")
     return copy.deepcopy(like.header), dict(like.attributes), like.normals
