@@ -29,7 +29,9 @@ flushed to disk and renamed onto the output (:func:`atomic_output`, also used by
 :func:`clcurv.render.render`). A failed or interrupted write leaves the previous file, if any,
 byte for byte, and no temporary file. :func:`check_output` checks an output path (extension,
 folder, writability) without writing anything, so that a command can refuse a bad ``-o``
-before its computation. Folders are never created: a missing folder is an error.
+before its computation; it raises :class:`OutputPathError`. A write that fails part way
+(disk full...) raises :class:`WriteFailedError`, both a :class:`WriteError` and an
+``OSError``. Folders are never created: a missing folder is an error.
 
 Optional packages: ``laspy`` for LAS, ``laspy[lazrs]`` for LAZ, and ``python-lzf`` (module
 ``lzf``) to speed up binary_compressed PCD (a pure-Python LZF decoder is used without it).
@@ -256,10 +258,10 @@ def check_output(path, formats=None, *, what="point cloud") -> Path:
     ----------
     path : str or os.PathLike
         The output file.
-    formats : mapping of str -> str, optional
-        Accepted extensions (lower case, with the dot) -> description; default
-        :data:`WRITE_FORMATS`. :func:`clcurv.render.check_image_output` passes the picture
-        formats.
+    formats : collection of str, optional
+        Accepted extensions, lower case with the dot (a mapping's keys); default
+        :data:`WRITE_FORMATS`. :func:`clcurv.render.check_image_output` passes
+        :data:`clcurv.render.IMAGE_FORMATS`.
     what : str
         What is written, for the messages ("point cloud", "image").
 
