@@ -146,13 +146,19 @@ def craft(tmp_path, kind):
         src = cio.write(tmp_path / "a.laz", make_points())
         return patched(tmp_path, "plus1.laz", src.read_bytes(), count_64=("Q", N + 1)), \
             [N + 1, N]
+    if kind == "laz_truncated":
+        src = cio.write(tmp_path / "a.laz", make_points())
+        data = src.read_bytes()
+        path = tmp_path / "cut.laz"
+        path.write_bytes(data[:len(data) * 2 // 3])
+        return path, [len(data) * 2 // 3, "chunk table"]
     raise AssertionError(kind)
 
 
 LAS_KINDS = ["vlr_count", "count_1e8", "count_u32max", "count_plus_one", "offset_past_end",
              "scale_nan", "scale_zero", "scale_inf", "offset_inf", "format_unknown",
              "record_short", "truncated_in_vlrs", "legacy_disagrees", "version"]
-LAZ_KINDS = ["laz_count_1e8", "laz_count_plus_one"]
+LAZ_KINDS = ["laz_count_1e8", "laz_count_plus_one", "laz_truncated"]
 ALL_KINDS = LAS_KINDS + [pytest.param(k, marks=needs_laz) for k in LAZ_KINDS]
 
 
@@ -209,6 +215,12 @@ def test_laz_count_bounded_by_the_chunk_table(tmp_path):
     path, words = craft(tmp_path, "laz_count_1e8")
     msg = assert_corrupt(path, *words)
     assert "chunk" in msg
+
+
+@needs_laz
+def test_truncated_laz(tmp_path):
+    path, words = craft(tmp_path, "laz_truncated")
+    assert_corrupt(path, *words)
 
 
 @needs_laz

@@ -226,7 +226,7 @@ def _check_chunk_table(path, f, layout, laszip, end):
     table starts with its version and number of chunks (uint32). Each chunk takes at
     least one byte, so ``n_chunks <= compressed bytes`` and ``count <= n_chunks *
     chunk_size``. A table that cannot be located is left to the decoder, whose reading
-    is bounded anyway (:func:`_read_points`).
+    is bounded anyway (:func:`_read_points`); one past the end of the file is a truncation.
     """
     if len(laszip) < 16:
         raise CorruptFileError(f"{path}: LASzip VLR of {len(laszip)} bytes, shorter than "
@@ -241,6 +241,9 @@ def _check_chunk_table(path, f, layout, laszip, end):
     if table == -1 and layout.size >= 8:
         f.seek(layout.size - 8)
         table, = struct.unpack("<q", f.read(8))
+    if table is not None and table > layout.size - 8:
+        raise CorruptFileError(f"{path}: the LAZ chunk table should be at byte {table} but the "
+                               f"file has {layout.size} bytes (truncated?)")
     if table is None or not start + 8 <= table <= end - 8:
         return
     f.seek(table)
@@ -308,7 +311,8 @@ def _decodable(laspy, path, start, stop):
     for size in (4096, 1):
         try:
             with laspy.open(str(path), laz_backend=backend) as reader:
-                reader.seek(start)
+                if start:
+                    reader.seek(start)
                 while start < stop:
                     k = len(reader.read_points(min(size, stop - start)))
                     if k == 0:
