@@ -13,7 +13,6 @@ import shutil
 import struct
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -103,7 +102,7 @@ def header_info(data):
 
 def craft(tmp_path, kind):
     """The crafted file for ``kind`` and the words its error message must contain."""
-    src, data = valid_file(tmp_path)
+    _, data = valid_file(tmp_path)
     hs, off, nvlr, size = header_info(data)
     if kind == "vlr_count":
         return patched(tmp_path, "vlrs.las", data, number_of_vlrs=("I", 0x0FFFFFFF)), \
