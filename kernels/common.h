@@ -37,7 +37,8 @@
 #define VLOADV CAT(vload, VW)
 
 /* Per-point output records: RECORD_WIDTH REALs per point, written with one vector store at
- * the point's input index: one cache line per point in float32, where a scattered store per
+ * the point's input index (or its place in a chunk, REC_INDEX): one cache line per point in
+ * float32, where a scattered store per
  * output array costs a cache miss each. records.cl:split_records turns them into per-field
  * arrays. The columns are the operator's (clcurv/operators.py), given as -D COL_<FIELD>
  * options holding the field's REAL16 component selector (COL_NORMALS=s012, COL_COUNT=sa):

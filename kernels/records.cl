@@ -1,8 +1,8 @@
 /* records.cl -- split_records: the operator kernels write one record of RECORD_WIDTH REALs
- * per point at its input index (one cache line per point: a scattered store per output
- * array would cost a miss each); this splits the records into contiguous input-order
- * arrays, one per field, so the host gets ready columns without a strided pass over all
- * records per field. */
+ * per point at its input index, or at its place in a chunk of sorted points (one cache line
+ * per point: a scattered store per output array would cost a miss each); this splits the
+ * records into contiguous arrays in the same order, one per field, so the host gets ready
+ * columns (or scatters a chunk's) without a strided pass over all records per field. */
 #include "common.h"
 
 /* Field layout, set by build options (clcurv/cloud.py:fetch_records): NF real fields,
@@ -13,8 +13,8 @@
 #endif
 #define SPLIT(k) for (int c = 0; c < W##k; ++c) o##k[(size_t)j * W##k + c] = v[S##k + c];
 
-/* Records (input order, sequential) to contiguous per-field arrays: every read and write
- * is sequential. */
+/* The first n records to contiguous per-field arrays in the same order: every read and
+ * write is sequential. */
 __kernel void split_records(__global const REAL *rec, const uint n, __global REAL *o0,
                             __global REAL *o1, __global REAL *o2, __global REAL *o3,
                             __global REAL *o4, __global REAL *o5, __global uint *count,

@@ -122,6 +122,17 @@ def test_scale_space_in_chunks_is_bit_identical(device, sphere, budget, weights)
         assert_bit_identical(a, b)
 
 
+def test_scale_space_in_chunks_with_rebinning(device, budget):
+    """Noise of 0.1 r: points drift far enough to re-bin (a new cloud, planned again)."""
+    pts = clcurv.shapes.sphere(N, R, noise=0.03, seed=9)["points"]
+    run = lambda: clcurv.scale_space(pts, 0.3, 5, device=device.info.index, return_stats=True)
+    whole, stats = run()
+    budget(for_chunk(stats["plan"]))
+    parts, stats = run()
+    assert stats["rebins"] >= 1 and stats["plan"].count >= CHUNKS - 1
+    assert_bit_identical(whole, parts)
+
+
 def test_upload_of_normals_in_chunks_of_input_rows(device, sphere, budget):
     """The staging buffer of upload_sorted holds one chunk of input rows at a time."""
     pts, nrm = sphere
