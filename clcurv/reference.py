@@ -430,7 +430,7 @@ def invert_theorem1(lam1, lam2, radius):
     ``|k1| = sqrt(max(u - m, 0) / 4)``, ``|k2| = sqrt(max(v - m, 0) / 4)``.
 
     ``lam1 >= lam2 >= 0``: the largest and smallest count-normalised eigenvalues (array_like,
-    unit ``L^6``); ``radius``: ``r`` (unit ``L``). Returns the magnitudes ``k1, k2``
+    unit ``L^4``: (k^2 r^6 / 256)); ``radius``: ``r`` (unit ``L``). Returns the magnitudes ``k1, k2``
     (arrays, ``|k1| >= |k2| >= 0``, unit ``1/L``).
     """
     c = float(radius) ** 6 / 256.0
@@ -497,7 +497,7 @@ def covariance_ops(points, radius, normals, method, weights="uniform"):
         ``"count"`` int32 (N,): ``#N_r(p)``, ``p`` included.
         ``"status"`` uint8 (N,): OK; TOO_FEW (``count < 3``); DEGENERATE: the normal at
         ``p`` (2dcov1) or a normal in the ball (2dcov2, 3dcov) is invalid.
-        ``"eigenvalues"`` float64 (N, 2) (2dcov1: unit ``L^6``; 2dcov2: dimensionless) or
+        ``"eigenvalues"`` float64 (N, 2) (2dcov1: unit ``L^4``; 2dcov2: dimensionless) or
         (N, 3) (3dcov, dimensionless): descending eigenvalues of ``C`` (clipped at 0).
         ``"k1"``, ``"k2"`` float64 (N,): magnitudes ``k1 >= k2 >= 0`` (unit ``1/L``).
         ``"dir1"``, ``"dir2"`` float64 (N, 3): orthogonal unit tangent directions of ``k1``

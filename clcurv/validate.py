@@ -78,7 +78,7 @@ def choice(value, name, allowed):
 #: operator's outputs scale with the cloud bit for bit under power-of-two scalings
 #: (tests/test_hostile_api.py), so no intermediate over- or underflows; outside, some do
 #: (2dcov1's 256 / r^6 in float32 beyond about 2^20), and the call is refused.
-DEVICE_RADIUS_RANGE = {"float": (2.0 ** -40, 2.0 ** 40), "double": (2.0 ** -300, 2.0 ** 300)}
+DEVICE_RADIUS_RANGE = {"float": (2.0 ** -20, 2.0 ** 26), "double": (2.0 ** -140, 2.0 ** 140)}
 
 
 def device_radius(radius, precision):

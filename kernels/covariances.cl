@@ -32,9 +32,10 @@
  * reference.invert_theorem1 documents. */
 inline REAL2 invert_theorem1(REAL l1, REAL l2, REAL r)
 {
-    const REAL r2 = r * r;
-    const REAL s = (REAL)256 / (r2 * r2 * r2);
-    const REAL u = l1 * s, v = l2 * s, S = u + v;
+    /* u = l1 / c with c = r^6 / 256, as two factors: 256 / r^6 itself overflows float32
+       for r < 2^-19 and r^6 for r > 2^21, where l1 (~ k^2 r^6) is still representable */
+    const REAL r2 = r * r, a = (REAL)16 / r2, b = (REAL)16 / (r2 * r2);
+    const REAL u = l1 * a * b, v = l2 * a * b, S = u + v;
     const REAL m = (S + sqrt(fmax((REAL)8 * u * v - S * S, (REAL)0))) / (REAL)8;
     return (REAL2)(sqrt(fmax(u - m, (REAL)0) * (REAL)0.25), sqrt(fmax(v - m, (REAL)0) * (REAL)0.25));
 }

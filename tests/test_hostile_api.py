@@ -171,3 +171,39 @@ def test_warnings_are_one_line(tmp_path):
     warn = [l for l in out.lines if "warning" in l]
     assert warn and all(l.startswith("clcurv: warning: ") for l in warn), out.stderr
     assert ".py:" not in out.stderr
+
+
+# --------------------------------------------------------------------------- scale range
+
+#: the power of a length in each output unit of the registry
+_POWER = {"1": 0, "length": 1, "length^2": 2, "length^4": 4, "length^6": 6, "1/length": -1,
+          "1/length^2": -2}
+
+
+@pytest.mark.parametrize("precision", ["float", "double"])
+@pytest.mark.parametrize("method", clcurv.METHODS)
+def test_results_scale_with_the_cloud_over_the_radius_range(method, precision):
+    """Inside DEVICE_RADIUS_RANGE no intermediate over- or underflows: the cloud scaled by a
+    power of two 2^k (an exact operation) gives every output scaled by 2^(k p), p the power
+    of length of its unit, to round-off (built-ins such as sqrt and length may round
+    differently at other exponents). 2dcov1's 256 / r^6 overflowed float32 below r = 2^-19
+    and r^6 above 2^21, and gave k1 = 0 without a word."""
+    from clcurv.operators import OPERATORS
+    op = OPERATORS[method]
+    pts, r = SPHERE[::5], 0.25                                  # 4000 points, ~60 per ball
+    call = dict(method=method, orient="viewpoint", viewpoint=(0, 0, 0), precision=precision)
+    base = clcurv.curvature(pts, r, **call)
+    assert base.valid.mean() > 0.99
+    tol = 2e-5 if precision == "float" else 1e-12
+    for end in DEVICE_RADIUS_RANGE[precision]:
+        k = int(np.log2(end / r))
+        res = clcurv.curvature(pts * 2.0 ** k, r * 2.0 ** k, **call)
+        np.testing.assert_array_equal(res.status, base.status)
+        for o in op.outputs:
+            want, got = getattr(base, o.name), getattr(res, o.name)
+            if want is None:
+                continue
+            got = got * 2.0 ** (-k * _POWER[o.unit])
+            scale = np.nanmax(np.abs(want))
+            np.testing.assert_allclose(got, want, rtol=tol, atol=tol * scale,
+                                       err_msg=f"{method} {o.name} at r = 2^{np.log2(end):.0f}")
