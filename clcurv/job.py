@@ -252,11 +252,11 @@ def run(job, out=print):
     """Run ``job`` (a :class:`Job`), print its summary on ``out``; return a :class:`Done`."""
     check_options(job)
     io.check_output(job.output)             # before any work: extension, folder, rights
-    device = get_device(job.device)
     st = Stages(job.quiet)
     with st.stage("reading"):
         cloud = io.read(job.input)
     radius = resolve_radius(job.radius, cloud.points, out)
+    device = get_device(job.device)
     res, work = _evaluate(job, cloud, radius, device, st)
     done = Done(cloud.points, radius, res, result_fields(res, job.fields))
     normals = None if job.fields and "normals" not in job.fields else res.normals

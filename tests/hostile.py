@@ -1,6 +1,6 @@
 """Shared helpers of the tests/test_hostile*.py files: run the ``clcurv`` command on a crafted
 input in a child process and measure what a user would see (exit code, stderr lines, wall
-time, the child's peak RSS)."""
+time, the child's own peak RSS)."""
 from __future__ import annotations
 
 import os
@@ -27,34 +27,42 @@ class Outcome:
         return [l for l in self.stderr.splitlines() if l.strip()]
 
 
+#: the child's entry point: the CLI, then its own peak RSS (VmHWM of its address space,
+#: which starts at exec; the rusage of a child also counts the parent's pages at fork time)
+_LAUNCH = """
+import atexit, os, runpy, sys
+def _hwm():
+    with open("/proc/self/status") as f:
+        kb = next(l.split()[1] for l in f if l.startswith("VmHWM"))
+    with open(os.environ["CLCURV_TEST_HWM"], "w") as f:
+        f.write(kb)
+atexit.register(_hwm)
+sys.argv[0] = "clcurv"
+runpy.run_module("clcurv.cli", run_name="__main__")
+"""
+
+
 def run_cli(*args, env=None, timeout=60, preexec_fn=None):
-    """Run ``python -m clcurv.cli ARGS``; the child's own peak RSS comes from ``os.wait4``
-    (a timer kills it after ``timeout`` seconds, which fails the test)."""
-    import threading
+    """Run the ``clcurv`` command line with ``args`` in a child process (killed after
+    ``timeout`` seconds, which fails the test); its peak RSS is its VmHWM at exit."""
+    import tempfile
+    fd, hwm = tempfile.mkstemp(prefix="clcurv-hwm-")
+    os.close(fd)
     t = time.perf_counter()
-    p = subprocess.Popen([sys.executable, "-m", "clcurv.cli", *map(str, args)],
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                         env=None if env is None else {**os.environ, **env},
-                         preexec_fn=preexec_fn)
-    got = {}
-    readers = [threading.Thread(target=lambda k=k, f=f: got.__setitem__(k, f.read()))
-               for k, f in (("out", p.stdout), ("err", p.stderr))]
-    for r in readers:
-        r.start()
-    killer = threading.Timer(timeout, p.kill)
-    killer.start()
     try:
-        _, status, usage = os.wait4(p.pid, 0)
-    finally:
-        killer.cancel()
-    for r in readers:
-        r.join()
-    p.returncode = os.waitstatus_to_exitcode(status)
-    seconds = time.perf_counter() - t
-    if seconds >= timeout:
+        p = subprocess.run([sys.executable, "-c", _LAUNCH, *map(str, args)],
+                           capture_output=True, text=True, timeout=timeout,
+                           env={**os.environ, **(env or {}), "CLCURV_TEST_HWM": hwm},
+                           preexec_fn=preexec_fn)
+    except subprocess.TimeoutExpired as e:
         raise AssertionError(f"clcurv {' '.join(map(str, args))} still running after "
-                             f"{timeout} s; stderr: {got.get('err', '')[-2000:]}")
-    return Outcome(p.returncode, got["out"], got["err"], seconds, usage.ru_maxrss / 1024.0)
+                             f"{timeout} s; stderr: {(e.stderr or b'')[-2000:]!r}") from None
+    seconds = time.perf_counter() - t
+    with open(hwm) as f:
+        text = f.read().strip()
+    os.unlink(hwm)
+    peak = float(text) / 1024.0 if text else float("nan")   # none: killed before exit
+    return Outcome(p.returncode, p.stdout, p.stderr, seconds, peak)
 
 
 def assert_clean_failure(outcome, code=3, what="", max_seconds=MAX_SECONDS,

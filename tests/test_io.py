@@ -259,14 +259,16 @@ def test_las_round_trip_without_like(tmp_path):
     path = cio.write(tmp_path / "c.las", pts, fields, normals=nrm)
     las = laspy.read(str(path))
     assert las.header.version == "1.4" and las.header.point_format.id == 6
-    assert np.allclose(las.header.scales, 0.001)
+    scale = cio.las.scale_for_extent(np.ptp(pts, axis=0).max())     # one for the 3 axes
+    assert np.array_equal(las.header.scales, [scale] * 3)
     assert np.array_equal(las.header.offsets, pts.min(axis=0))
     assert list(las.point_format.extra_dimension_names) == ["nx", "ny", "nz", *fields]
     for name, a in fields.items():  # extra bytes readable by laspy directly
         expect = a.astype(np.float32) if a.dtype.kind == "f" else a
         assert np.array_equal(np.asarray(las[name]), expect, equal_nan=True), name
     cloud = cio.read(path)
-    assert np.abs(cloud.points - pts).max() <= 0.0005 + 1e-9
+    # half the scale, plus the float64 rounding of X * scale + offset
+    assert np.abs(cloud.points - pts).max() <= scale / 2 + 4 * np.spacing(np.abs(pts).max())
     assert np.array_equal(cloud.normals, nrm.astype(np.float32).astype(np.float64))
     assert np.array_equal(cloud.attributes["label"], fields["label"])
 
@@ -571,6 +573,10 @@ def test_write_argument_errors(tmp_path):
     with pytest.raises(cio.WriteError, match="1065 points"):
         cio.write(tmp_path / "a.las", pts, like=src)
     with pytest.raises(cio.WriteError, match="like="):
-        cio.write(tmp_path / "a.las", pts, like=cio.read(cio.write(tmp_path / "p.npz", pts)))
+        cio.write(tmp_path / "a.las", pts, like="not a cloud")
+    # a like= from another format is ignored: a fresh header
+    other = cio.read(cio.write(tmp_path / "p.npz", pts))
+    assert np.allclose(cio.read(cio.write(tmp_path / "a.las", pts, like=other)).points, pts)
+    far = src.points + [1e12, 0, 0]          # beyond int32 at the file's scale and offset
     with pytest.raises(cio.WriteError, match="int32"):
-        cio.write(tmp_path / "a.las", np.array([[0.0, 0, 0], [1e7, 0, 0]]))
+        cio.write(tmp_path / "a.las", far, like=src)

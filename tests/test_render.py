@@ -121,7 +121,7 @@ def test_subsample_caption_and_determinism(tmp_path, captions):
 
 def test_all_nan_still_renders_grey(tmp_path, captions):
     p = sphere(4_000, seed=6)
-    out = render(p, np.full(len(p), np.nan), tmp_path / "sub" / "nan.png", dpi=DPI)
+    out = render(p, np.full(len(p), np.nan), tmp_path / "nan.png", dpi=DPI)
     assert out.is_file()
     rgb = load_rgb(out)
     grey = np.all(np.abs(rgb.astype(int) - 200) <= 3, axis=2).mean()

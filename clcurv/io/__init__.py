@@ -178,8 +178,10 @@ def write(path, points, fields=None, normals=None, like=None):
     like : Cloud, optional
         Only for LAS/LAZ output: a Cloud read from a LAS/LAZ file with the same number of
         points. Its header (version, point format, scales, offsets, VLRs) and its attributes
-        (classification, intensity, GPS time, extra bytes...) are kept. Ignored for the other
-        formats.
+        (classification, intensity, GPS time, extra bytes...) are kept. A Cloud read from
+        another format is ignored (a fresh header scaled to the extent,
+        :func:`clcurv.io.las.scale_for_extent`); anything that is not a Cloud raises
+        WriteError. Ignored for the other output formats.
 
     Returns
     -------
@@ -192,8 +194,8 @@ def write(path, points, fields=None, normals=None, like=None):
         ``path`` cannot be written (:func:`check_output`): unknown extension, missing folder,
         a directory, read-only folder or file. Checked before anything else.
     WriteError
-        Bad shapes or names, NaN coordinates in LAS, coordinates out of the range of the LAS
-        scale and offset, or a field that LAS cannot hold.
+        Bad shapes or names, NaN coordinates in LAS, coordinates out of the int32 range of
+        the scale and offset of a LAS ``like=`` header, or a field that LAS cannot hold.
     WriteFailedError
         The write failed part way (disk full ``ENOSPC``, file size limit ``EFBIG``, I/O
         error): a :class:`WriteError` and an ``OSError`` whose message starts with ``path``.
