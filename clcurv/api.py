@@ -248,7 +248,11 @@ def curvature(points, radius, *, method="mls1", weights="uniform", normals=None,
         Arrays in input order. Sign convention: outward normals, sphere of radius R has
         H = k1 = k2 = +1/R. Points with too few neighbours (status 1: fewer than the
         method's minimum, 3, or 6 for MLS2), a degenerate neighbourhood (2) or a singular
-        fit (3) get NaN.
+        fit (3) get NaN. MLS2 with 6 to 9 neighbours (``count``) is an interpolation more
+        than a fit: it amplifies round-off, and float32 results may differ from float64 by
+        up to about 0.15 / r (measured on spheres; from 10 neighbours below 1e-4 / r, see
+        tests/test_hostile_api.py). Use a radius with ~30 neighbours, or
+        ``precision='double'``, where such points matter.
 
     Examples
     --------
