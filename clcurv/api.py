@@ -27,12 +27,11 @@ class _Run:
     def __init__(self, backend, points, radius, device, precision, cloud=None):
         self.points, self.radius = points, radius
         self.cloud = None
-        if backend == "opencl":
+        if backend == "opencl":                # DeviceCloud checks the radius and the pairs
             from .cloud import DeviceCloud
-            device_radius(radius, precision if cloud is None else cloud.precision)
             self.cloud = cloud if cloud is not None else DeviceCloud(
                 points, radius, device=device, precision=precision)
-            check_pairs(self.cloud.grid, points, radius)
+            self.cloud.check_radius(radius)
         else:                               # the float64 reference: double's range
             device_radius(radius, "double")
             try:

@@ -21,9 +21,9 @@ import numpy as np
 
 from .constants import PAD, RECORD_WIDTH as RECORD, record_selector
 from .device import get_device
-from .grid import bin_points
+from .grid import bin_points, check_pairs
 from .program import build, launch, precision_defines
-from .validate import as_points, as_radius
+from .validate import as_points, as_radius, device_radius
 
 #: Use at most this many bytes of device memory (None: what the device reports). A knob for
 #: tests and for leaving room to other users of the device; the environment variable
@@ -120,7 +120,7 @@ class DeviceCloud:
     def __init__(self, points, cell, *, device=None, precision="float"):
         import pyopencl as cl
         self.points = points = as_points(points)
-        self.cell = as_radius(cell)
+        self.cell = device_radius(as_radius(cell), precision)
         self.device = get_device(device)
         self.defines = precision_defines(self.device, precision)
         self.precision = precision
@@ -132,6 +132,7 @@ class DeviceCloud:
             raise ValueError("DeviceCloud needs at least one point")
         t0 = time.perf_counter()
         self.grid = g = bin_points(points, self.cell, self.dtype)
+        check_pairs(g, points, self.cell)       # the walk visits the cells: cell = radius
         t1 = time.perf_counter()
         self.timings["binning"] = t1 - t0
         self._check_memory()
@@ -223,7 +224,7 @@ class DeviceCloud:
         return plan
 
     def check_radius(self, radius):
-        r = as_radius(radius)
+        r = device_radius(as_radius(radius), self.precision)
         if r > self.cell * (1 + 1e-12):
             raise ValueError(f"radius {r} exceeds the cell size {self.cell} of this DeviceCloud")
         return r

@@ -227,3 +227,29 @@ def test_mls2_with_few_neighbours_matches_the_documented_bounds():
         assert sparse.sum() > 500                              # the case is exercised
         assert err[sparse].max() < few, (precision, worst(err[sparse]))
         assert err[ok & ~sparse].max() < many, (precision, worst(err[ok & ~sparse]))
+
+
+def test_scale_space_and_device_cloud_check_radius_and_pairs(monkeypatch):
+    """The DeviceCloud makes the checks, so every entry point has them: the scale space
+    (which bins its own clouds), a DeviceCloud made by the user, and its radii."""
+    with pytest.raises(ValueError, match="outside"):
+        clcurv.scale_space(SPHERE[:2000], 1e30, 1)
+    cloud = clcurv.DeviceCloud(SPHERE[:2000], 0.3)
+    with pytest.raises(ValueError, match="outside"):
+        clcurv.curvature(cloud, 1e-30, method="variation")
+    monkeypatch.setattr(G, "MAX_PAIRS", 1e8)
+    with pytest.raises(G.RadiusTooLargeError):
+        clcurv.scale_space(SPHERE, 5.0, 1)
+    with pytest.raises(G.RadiusTooLargeError):
+        clcurv.DeviceCloud(SPHERE, 5.0)
+
+
+def test_device_memory_error_cli_one_line_exit_5(tmp_path):
+    """Too little device memory even for the cloud's own data (CLCURV_DEVICE_MEMORY, the
+    documented cap) was a DeviceMemoryError traceback with exit 1."""
+    np.save(tmp_path / "s.npy", SPHERE)
+    out = run_cli("compute", tmp_path / "s.npy", "-o", tmp_path / "o.ply", "-q",
+                  env={"CLCURV_DEVICE_MEMORY": "100000"})
+    assert_clean_failure(out, code=5, **PLATFORM)
+    assert "points" in out.lines[0] and "fit" in out.lines[0]
+    assert not (tmp_path / "o.ply").exists()
