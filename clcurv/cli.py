@@ -134,9 +134,11 @@ def _fail(code, msg):
 def _message(e):
     """The one-line message of ``e`` (a bare MemoryError has none)."""
     text = " ".join(str(e).split())
-    if isinstance(e, MemoryError) and not isinstance(e, io.ReadError):
-        return (f"out of memory{': ' + text if text else ''} (the cloud and its outputs do "
-                "not fit; use a machine with more memory, or split the cloud into tiles)")
+    if isinstance(e, MemoryError) and text:
+        return f"out of memory: {text}"        # DeviceMemoryError says what fits
+    if isinstance(e, MemoryError):
+        return ("out of memory (the cloud and its outputs do not fit this machine's RAM; "
+                "use a machine with more memory, or split the cloud into tiles)")
     return text or type(e).__name__
 
 

@@ -253,3 +253,15 @@ def test_device_memory_error_cli_one_line_exit_5(tmp_path):
     assert_clean_failure(out, code=5, **PLATFORM)
     assert "points" in out.lines[0] and "fit" in out.lines[0]
     assert not (tmp_path / "o.ply").exists()
+
+
+def test_host_memory_error_is_one_line_exit_5(monkeypatch, capsys):
+    """A bare MemoryError (host RAM) gets a sentence instead of an empty message."""
+    from clcurv import cli
+
+    def boom(args, out=print):
+        raise MemoryError()
+    monkeypatch.setattr(cli, "compute", boom)
+    assert cli.main(["compute", "in.ply", "-o", "out.ply"]) == cli.EXIT_MEMORY == 5
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("clcurv: error: out of memory (")
