@@ -136,7 +136,7 @@ def test_unknown_device():
 
 def test_huge_bounding_box_is_an_error_not_a_dense_grid(device):
     pts = np.array([[0.0, 0.0, 0.0], [1e9, 1e9, 1e9], [1.0, 0.0, 0.0]])
-    with pytest.raises(ValueError, match="more than the 2\^62"):
+    with pytest.raises(ValueError, match=r"more than the 2\^62"):
         clcurv.curvature(pts, 1e-6, device=device)
 
 
