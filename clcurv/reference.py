@@ -30,9 +30,10 @@ Conventions
 * Weights: ``"uniform"`` gives every neighbour weight 1 (the case of the paper's theorems);
   ``"density"`` gives neighbour ``q`` the weight ``1 / #N_r(q)`` (Section 3).
 * Normals: :func:`moments` returns **unoriented** PCA normals (sign as ``numpy.linalg.eigh``
-  gives it; :mod:`clcurv.orient` orients them). :func:`covariance_ops`, :func:`mls2` and
-  :func:`mls2_iterate` take normals **oriented outward** (user normals or oriented PCA
-  normals), normalised again here; a non-finite or zero row is invalid.
+  gives it; :mod:`clcurv.orient` orients them). :func:`mls2` and :func:`mls2_iterate` take
+  normals **oriented outward** (user normals or oriented PCA normals); :func:`covariance_ops`
+  takes normals of any signs (it aligns each neighbour's with its query point's). They are
+  normalised again here; a non-finite or zero row is invalid.
 * Curvature sign (clcurv): outward normals, a surface bending away from its normal is
   positive (sphere of radius R: ``k1 = k2 = H = +1/R``, ``K = 1/R^2``), ``k1 >= k2``.
   :func:`covariance_ops` returns magnitudes ``k1 >= k2 >= 0``, :func:`mls2` signed values.
@@ -441,6 +442,12 @@ def invert_theorem1(lam1, lam2, radius):
     return np.sqrt(np.maximum(u - m, 0.0) / 4.0), np.sqrt(np.maximum(v - m, 0.0) / 4.0)
 
 
+def _aligned(nb, n):
+    """The neighbours' normals ``nb`` (3, m) aligned with their query point's normal ``n``
+    (3, m): ``n_i := -n_i`` where ``<n_i, n> < 0`` (kept where it is 0 or NaN)."""
+    return np.where(_rowdot3(nb, n) < 0, -nb, nb)
+
+
 def covariance_ops(points, radius, normals, method, weights="uniform"):
     """Normal-based covariance curvature operators 2dcov1, 2dcov2 and 3dcov.
 
@@ -455,8 +462,16 @@ def covariance_ops(points, radius, normals, method, weights="uniform"):
     * ``"2dcov2"`` (operator 2, PCL's PrincipalCurvaturesEstimation):
       ``f_i = (<n_i, t1>, <n_i, t2>)``, ``n_i`` projected on the tangent plane at ``p``
       (2D, dimensionless);
-    * ``"3dcov"`` (operator 3): ``f_i = n_i`` (3D; the normals must be consistently
-      oriented, which outward normals are).
+    * ``"3dcov"`` (operator 3): ``f_i = n_i`` (3D).
+
+    **Signs.** For 2dcov2 and 3dcov every neighbour's normal is first aligned with ``n``:
+    ``n_i := -n_i`` where ``<n_i, n> < 0`` (kept where it is 0), the paper's "orientation
+    made consistent with n", as the kernels do. The normals need to agree within each
+    ball only (unoriented PCA normals will do): the sign of a neighbour's normal changes
+    nothing, and the sign of ``n`` changes no eigenvalue and no magnitude (``-n`` gives
+    the frame ``(-t1, t2)``, so the features become ``(f_a, -f_b)`` for 2dcov1 and 2dcov2,
+    ``-f`` for 3dcov: the same eigenvalues). It may change the sign of ``dir1`` and
+    ``dir2`` (``dir2 = n x dir1`` keeps the frame right-handed).
 
     **Count normalisation.** The reported eigenvalues are those of
     ``C = sum_i w_i (f_i - f_mean)(f_i - f_mean)^T / sum_i w_i`` with
@@ -487,7 +502,7 @@ def covariance_ops(points, radius, normals, method, weights="uniform"):
     points, radius : array_like (N, 3), float
         Coordinates and ball radius ``r`` (> 0), unit ``L``, as for :func:`moments`.
     normals : array_like, shape (N, 3)
-        Oriented (outward) unit normals at every point.
+        Unit normals at every point (normalised again here); any signs (see **Signs**).
     method : {"2dcov1", "2dcov2", "3dcov"}
     weights : {"uniform", "density"}, optional
 
@@ -524,11 +539,12 @@ def covariance_ops(points, radius, normals, method, weights="uniform"):
                              s * _rowdot3(blk.d, blk.row(t2t))])
     elif method == "2dcov2":
         def features(blk):
-            nb = blk.nb(nt)
+            nb = _aligned(blk.nb(nt), blk.row(nt))
             return np.stack([_rowdot3(nb, blk.row(t1t)), _rowdot3(nb, blk.row(t2t))])
     else:
         def features(blk):
-            return blk.nb(nt) - blk.row(nt)   # shifted by n(p): same covariance
+            own = blk.row(nt)
+            return _aligned(blk.nb(nt), own) - own   # shifted by n(p): same covariance
 
     _, cov = _mean_cov(ball, _edge_weights(ball, weights), features)
     enough = ball.counts >= MIN_COUNT_PCA

@@ -3,10 +3,25 @@
  *   COV_METHOD 2  2dcov2: covariance of the neighbours' unit normals projected on the
  *                 tangent plane at p (Theorem 2; PCL's PrincipalCurvaturesEstimation)
  *   COV_METHOD 3  3dcov:  covariance of the neighbours' unit normals (Theorem 3)
- * with d_i = q_i - p and (t1, t2, n) the tangent frame of p's oriented unit normal n.
+ * with d_i = q_i - p and (t1, t2, n) the tangent frame of p's unit normal n.
  * Covariances are weighted and normalised by the sum of weights (= Sigma / n_p for uniform
  * weights, the paper's count normalisation). The 3D normals are accumulated relative to n
  * (a shift leaves a covariance unchanged and keeps float32 sums small).
+ *
+ * Signs: the normals need to agree within each ball only, not across the cloud. Each
+ * neighbour's normal n_i is first aligned with p's: n_i := -n_i where <n_i, n> < 0 (kept
+ * where <n_i, n> = 0; the paper's "orientation made consistent with n", Theorem 3), so the
+ * sign of any neighbour's normal changes nothing. The sign of n itself changes no
+ * eigenvalue and no magnitude either, bit for bit: tangent_frame(-n) = (-t1, t2), so
+ *   2dcov1: s_i = <d_i, n> flips, f_i = s_i (<d_i, t1>, <d_i, t2>) becomes (f_a, -f_b);
+ *   2dcov2: the aligned n_i flip with n, f_i = (<n_i, t1>, <n_i, t2>) becomes (f_a, -f_b);
+ *   3dcov:  f_i = n_i - n becomes -f_i;
+ * negating feature coordinates negates the off-diagonal entry ab (2D) or nothing (3D), and
+ * every operation here is exact under negation (round to nearest). What may change is the
+ * sign of the directions: 2dcov1/2dcov2's dir1 = +-(e_a t1 + e_b t2) follows eig2_sym's
+ * branch (flips when a >= c), 3dcov's dir1 is the same (t1, which flips, on a flat ball),
+ * and dir2 = n x dir1 keeps (dir1, dir2, n) right-handed, so it flips when n flips and dir1
+ * does not. The host returns the normals it was given (their signs are the caller's).
  *
  * Outputs per point (one record, input order): count, status, eigenvalues (descending; 2
  * or 3), the curvature magnitudes k1 >= k2 >= 0 (1/length) and the unit tangent directions
@@ -59,7 +74,11 @@ inline uint cov_ball(__global const REAL *X, __global const REAL *Y, __global co
         const REALV fb = s * (dx * t2.x + dy * t2.y + dz * t2.z);
         const REALV fd = 0;
 #else
-        const REALV qx = VLOADV(0, NX + i), qy = VLOADV(0, NY + i), qz = VLOADV(0, NZ + i);
+        /* align each neighbour's normal with p's: q := -q where <q, n> < 0 (= 0 or NaN: kept) */
+        const REALV qx0 = VLOADV(0, NX + i), qy0 = VLOADV(0, NY + i), qz0 = VLOADV(0, NZ + i);
+        const IREALV flip = isless(qx0 * nrm.x + qy0 * nrm.y + qz0 * nrm.z, (REALV)0);
+        const REALV qx = select(qx0, -qx0, flip), qy = select(qy0, -qy0, flip);
+        const REALV qz = select(qz0, -qz0, flip);
 #if COV_METHOD == 2
         const REALV fa0 = qx * t1.x + qy * t1.y + qz * t1.z;
         const REALV fb0 = qx * t2.x + qy * t2.y + qz * t2.z;

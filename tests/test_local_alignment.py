@@ -1,0 +1,147 @@
+"""The unsigned operators need normals that agree within each ball, not across the cloud
+(issue 11: pay for a sign only where a sign is asked for).
+
+2dcov2 and 3dcov align every neighbour's normal with the query point's (n_i := -n_i where
+<n_i, n> < 0; kernels/covariances.cl, clcurv.reference.covariance_ops); 2dcov1 reads only
+the query normal, whose sign changes no eigenvalue (the features become (f_a, -f_b));
+variation reads no normal at all. So, on the OpenCL kernels and on the float64 reference:
+
+* outward normals and the same normals with random per-point signs give the same k1, k2,
+  eigenvalues and variation; the directions agree up to sign; the returned ``normals``
+  carry the caller's signs;
+* orient='mst' gives the same outputs as the unoriented PCA normals (what orient=None
+  would run: PCA signs as the solver leaves them).
+
+Tolerance (float32 and float64 alike): |a - b| <= RTOL * the point's largest value of that
+output (k1 for k1, k2; lambda_1 for eigenvalues; variation itself) plus ATOL. Every step of
+the kernels is exact under negation (round to nearest), so PoCL gives bit-identical values;
+the tolerance leaves room for a device or solver that is not (LAPACK on the sign-flipped
+2x2 matrix). Directions: 1 - |cos| <= DIR_TOL where the two leading eigenvalues differ by
+more than 10%.
+"""
+import numpy as np
+import pytest
+
+import clcurv
+from clcurv import shapes
+from clcurv.cloud import DeviceCloud
+from clcurv.driver import run_kernel
+from clcurv.operators import OPERATORS
+
+RTOL = 1e-6         # relative to the point's largest value (float32: ~8 ulp)
+ATOL = 1e-30        # only for exact zeros
+DIR_TOL = 1e-6
+COV = ("2dcov1", "2dcov2", "3dcov")
+METHODS = COV + ("variation",)
+BACKENDS = ("opencl", "numpy")
+
+
+def _shape(name):
+    if name == "torus":                   # ~36 neighbours per ball
+        s = shapes.torus(20000, 2.0, 0.5, seed=11)
+        return s["points"], s["normals"], 0.15
+    s = shapes.sphere(20000, 2.0, noise=0.01, seed=12)   # noisy sphere, ~50 neighbours
+    return s["points"], s["normals"], 0.2
+
+
+SHAPES = {name: _shape(name) for name in ("torus", "noisy_sphere")}
+
+
+def random_signs(n, seed=5):
+    return np.where(np.random.default_rng(seed).random(n) < 0.5, -1.0, 1.0)
+
+
+def outputs(res):
+    """The sign-free outputs of a result: name -> (values, per-point scale)."""
+    out = {}
+    if res.method == "variation":
+        out["variation"] = (res.variation, res.variation)
+        out["eigenvalues"] = (res.eigenvalues, res.eigenvalues[:, 2])
+    else:
+        out["k1"] = (res.k1, res.k1)
+        out["k2"] = (res.k2, res.k1)
+        out["eigenvalues"] = (res.eigenvalues, res.eigenvalues[:, 0])
+    return out
+
+
+def check_same(a, b, what):
+    """a and b (CurvatureResults of one method) agree on every sign-free output; returns
+    the largest relative difference seen."""
+    np.testing.assert_array_equal(a.count, b.count)
+    np.testing.assert_array_equal(a.status, b.status)
+    ok = a.valid
+    assert ok.mean() > 0.99, what
+    worst = 0.0
+    got = outputs(b)
+    for name, (va, scale) in outputs(a).items():
+        vb = got[name][0]
+        va, vb, scale = va[ok], vb[ok], scale[ok]
+        d = np.abs(va - vb)
+        if d.ndim == 2:
+            d = d.max(axis=1)
+        rel = d / np.maximum(scale, ATOL)
+        i = int(np.argmax(rel))
+        assert rel[i] <= RTOL, f"{what}: {name} differs by {rel[i]:.3g} (relative) at point " \
+                               f"{np.flatnonzero(ok)[i]}: {va[i]} vs {vb[i]}"
+        worst = max(worst, float(rel[i]))
+    if a.method != "variation":
+        lam = a.eigenvalues[ok]
+        sep = lam[:, 0] - lam[:, 1] > 0.1 * lam[:, 0]
+        for d in ("dir1", "dir2"):
+            cos = np.abs(np.einsum("ij,ij->i", getattr(a, d)[ok], getattr(b, d)[ok]))[sep]
+            assert (1 - cos).max() <= DIR_TOL, f"{what}: {d} differs"
+    return worst
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("shape", SHAPES)
+@pytest.mark.parametrize("method", METHODS)
+def test_random_normal_signs_change_nothing(device, method, shape, backend):
+    """normals= outward vs the same normals with random per-point signs."""
+    pts, nrm, r = SHAPES[shape]
+    signs = random_signs(len(pts))
+    kw = dict(method=method, device=device, backend=backend)
+    a = clcurv.curvature(pts, r, normals=nrm, **kw)
+    b = clcurv.curvature(pts, r, normals=nrm * signs[:, None], **kw)
+    worst = check_same(a, b, f"{method} {shape} {backend}")
+    print(f"\n{method} {shape} {backend}: largest relative difference {worst:.3g}")
+    # the returned normals carry the caller's signs; (dir1, dir2, n) stays right-handed
+    np.testing.assert_allclose(b.normals, a.normals * signs[:, None], rtol=0, atol=1e-12)
+    if method != "variation":
+        ok = b.valid
+        np.testing.assert_allclose(np.cross(b.dir1[ok], b.dir2[ok]), b.normals[ok], atol=1e-5)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("shape", SHAPES)
+@pytest.mark.parametrize("method", METHODS)
+def test_mst_orientation_is_not_needed(device, method, shape, backend):
+    """orient='mst' vs the unoriented PCA normals of the same cloud, given as normals=."""
+    pts, _, r = SHAPES[shape]
+    kw = dict(device=device, backend=backend)
+    raw = clcurv.normals(pts, r, orient=None, **kw)
+    mst = clcurv.normals(pts, r, orient="mst", **kw)
+    flipped = np.einsum("ij,ij->i", raw, mst) < 0
+    assert 0.05 < flipped.mean() < 0.95, "the PCA signs must disagree with the MST's"
+    a = clcurv.curvature(pts, r, method=method, orient="mst", **kw)
+    b = clcurv.curvature(pts, r, method=method, normals=raw, **kw)
+    check_same(a, b, f"{method} {shape} {backend}")
+
+
+@pytest.mark.parametrize("method", ("2dcov2", "3dcov"))
+def test_kernel_with_unoriented_pca_normals(device, method):
+    """What orient=None would run: the registry's kernel fed the PCA normals as the solver
+    leaves them, against the outward exact normals (torus)."""
+    pts, nrm, r = SHAPES["torus"]
+    raw = clcurv.normals(pts, r, orient=None, device=device)
+    cloud = DeviceCloud(pts, r, device=device)
+    kernel = OPERATORS[method].kernel
+    a = run_kernel(kernel, cloud, r, normals=clcurv.normals(pts, r, device=device))
+    b = run_kernel(kernel, cloud, r, normals=raw)
+    ok = (a["status"] == 0) & (b["status"] == 0)
+    assert ok.mean() > 0.99
+    np.testing.assert_allclose(b["k1"][ok], a["k1"][ok], rtol=RTOL)
+    np.testing.assert_allclose(b["eigenvalues"][ok], a["eigenvalues"][ok], rtol=0,
+                               atol=RTOL * a["eigenvalues"][ok][:, :1].max())
+    # and the magnitudes are the torus's: meridian 1/0.5, parallel |cos(phi)| / ring
+    assert abs(np.median(b["k1"][ok]) - 2.0) < 0.1
