@@ -20,7 +20,7 @@ left to the caller (:mod:`clcurv.orient`).
 
 Both run in the cloud's precision; weights are float32 either way, and the edge parity
 ``n_u . n_v < 0`` is evaluated at the device precision (``float``: the normals rounded to
-float32, products summed x, y, z without fused multiply-add).
+float32, ``fma(z, z', fma(y, y', x x'))``).
 """
 from __future__ import annotations
 

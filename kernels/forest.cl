@@ -28,7 +28,6 @@
  * relative to D, that parity being par[u] ^ (n_u . n_v < 0) ^ par[v]; pointer jumping
  * composes (root, parity) pairs by XOR.
  */
-#pragma OPENCL FP_CONTRACT OFF  /* weights and parities: the same bits on every device */
 #include "common.h"
 #include "neighbors.h"
 
@@ -36,6 +35,13 @@
 /* longest neighbour list (clcurv/forest.py checks k against it: forest.KMAX) */
 #define KMAX 32
 #define VSTOREV CAT(vstore, VW)
+
+/* a . b with its roundings spelled out (fma is exact then rounded once on every device), so
+ * that no compiler's choice to contract a product and a sum changes a weight or a parity */
+inline REAL dot3(REAL3 a, REAL3 b)
+{
+    return fma(a.z, b.z, fma(a.y, b.y, a.x * b.x));
+}
 
 /* (da, ka) < (db, kb) lexicographically */
 #define KEY_LESS(da, ka, db, kb) ((da) < (db) || ((da) == (db) && (ka) < (kb)))
@@ -105,9 +111,10 @@ __kernel void knn_graph(__global const REAL *X, __global const REAL *Y, __global
             const REAL ddy = Y[j] - (p.y + (REAL)(1 - row % 3) * ball.y);
             const REAL ddz = Z[j] - (p.z + (REAL)(1 - row / 3) * ball.y);
             const REAL3 nj = (REAL3)(NX[j], NY[j], NZ[j]);
-            const REAL dot = ng.x * nj.x + ng.y * nj.y + ng.z * nj.z;
-            const REAL a = fabs(ddx * ng.x + ddy * ng.y + ddz * ng.z);
-            const REAL b = fabs(ddx * nj.x + ddy * nj.y + ddz * nj.z);
+            const REAL3 dd = (REAL3)(ddx, ddy, ddz);
+            const REAL dot = dot3(ng, nj);
+            const REAL a = fabs(dot3(dd, ng));
+            const REAL b = fabs(dot3(dd, nj));
             const REAL t = bd[s] > 0 ? (a * b) / bd[s] : (REAL)0;
             const REAL w = ((REAL)1 - fabs(dot)) + t;
             outw[s] = w > 0 ? (float)w : 0.0f;            /* +0, never -0 */
@@ -298,8 +305,7 @@ __kernel void hook(const uint n, __global const uint *comp, __global const uchar
     const uint a = rank[lo], b = rank[hi];
     const int a_in = comp[a] == g;
     const uint u = a_in ? a : b, v = a_in ? b : a;
-    const REAL dot = NX[a] * NX[b] + NY[a] * NY[b] + NZ[a] * NZ[b];
-    const uint pe = dot < 0;
+    const uint pe = dot3((REAL3)(NX[a], NY[a], NZ[a]), (REAL3)(NX[b], NY[b], NZ[b])) < 0;
     link[g] = comp[v] << 1 | ((uint)par[u] ^ pe ^ (uint)par[v]);
     flo[g] = lo; fhi[g] = hi;
     bw[g] = NONE; blo[g] = NONE; bhi[g] = NONE;

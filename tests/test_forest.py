@@ -98,10 +98,14 @@ def sorted_edges(e):
 
 
 def dot32(normals, a, b):
-    """n_a . n_b as the device computes it in float32 (x, y, z summed in order, no FMA)."""
+    """n_a . n_b as the device computes it in float32: fma(z, z', fma(y, y', x x')) (a
+    product of float32 values is exact in float64; the sum is rounded to float64 first,
+    which keeps its sign)."""
     n = normals.astype(np.float32)
-    x, y = n[a], n[b]
-    return (x[:, 0] * y[:, 0] + x[:, 1] * y[:, 1]) + x[:, 2] * y[:, 2]
+    x, y = n[a].astype(np.float64), n[b].astype(np.float64)
+    s = (x[:, 0] * y[:, 0]).astype(np.float32)
+    s = (x[:, 1] * y[:, 1] + s).astype(np.float32)
+    return (x[:, 2] * y[:, 2] + s).astype(np.float32)
 
 
 def check_forest(normals, graph, fo):
