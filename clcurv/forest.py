@@ -208,6 +208,21 @@ class Forest:
     edge_counts: list
 
 
+#: When a dict, every kernel launch of spanning_forest waits for its end and adds its time
+#: (seconds) under the kernel's name: a profile, for benchmarks only.
+PROFILE = None
+
+
+def _launch(dev, kernel, n, *args):
+    if PROFILE is None:
+        return launch(dev, kernel, n, *args)
+    t = time.perf_counter()
+    launch(dev, kernel, n, *args)
+    dev.queue.finish()
+    PROFILE[kernel.function_name] = PROFILE.get(kernel.function_name, 0.0) + \
+        time.perf_counter() - t
+
+
 def _blocks(m):
     return -(-m // BLOCK)
 
@@ -241,18 +256,18 @@ def spanning_forest(cloud, graph):
     total = np.empty(1, np.uint32)
     one = np.ones(1, np.uint32)
     nx, ny, nz = graph.normals
-    launch(dev, prg.forest_init, n, u32(n), cloud.order, comp, par, rank, bw, blo, bhi, flo)
+    _launch(dev, prg.forest_init, n, u32(n), cloud.order, comp, par, rank, bw, blo, bhi, flo)
     # the initial edge list: each undirected edge once
     nb = _blocks(n)
     counts = buf(4 * max(nb, _blocks(n * k)))
     offsets = buf(4 * max(nb, _blocks(n * k)))
     tot = buf(4)
-    launch(dev, prg.graph_count, nb, graph.nbr, cloud.order, u32(n), u32(k), u32(BLOCK), counts)
-    launch(dev, prg.scan_blocks, 1, counts, u32(nb), offsets, tot)
+    _launch(dev, prg.graph_count, nb, graph.nbr, cloud.order, u32(n), u32(k), u32(BLOCK), counts)
+    _launch(dev, prg.scan_blocks, 1, counts, u32(nb), offsets, tot)
     cl.enqueue_copy(q, total, tot)
     m = int(total[0])
     lists = [[buf(4 * m) for _ in range(3)] for _ in range(2)]
-    launch(dev, prg.graph_edges, nb, graph.nbr, graph.wgt, cloud.order, u32(n), u32(k),
+    _launch(dev, prg.graph_edges, nb, graph.nbr, graph.wgt, cloud.order, u32(n), u32(k),
            u32(BLOCK), offsets, *lists[0])
     q.finish()
     t1 = time.perf_counter()
@@ -263,8 +278,8 @@ def spanning_forest(cloud, graph):
         ta = time.perf_counter()
         eu, ev, ew = lists[cur]
         nb = _blocks(m)
-        launch(dev, prg.min_weight, nb, eu, ev, ew, u32(m), u32(BLOCK), comp, bw, counts)
-        launch(dev, prg.scan_blocks, 1, counts, u32(nb), offsets, tot)
+        _launch(dev, prg.min_weight, nb, eu, ev, ew, u32(m), u32(BLOCK), comp, bw, counts)
+        _launch(dev, prg.scan_blocks, 1, counts, u32(nb), offsets, tot)
         cl.enqueue_copy(q, total, tot)
         m2 = int(total[0])
         edge_counts.append(m2)
@@ -272,30 +287,30 @@ def spanning_forest(cloud, graph):
             timings["rounds"].append(time.perf_counter() - ta)
             break
         out = lists[1 - cur]
-        launch(dev, prg.min_lo, nb, eu, ev, ew, u32(m), u32(BLOCK), offsets, comp, cloud.order,
+        _launch(dev, prg.min_lo, nb, eu, ev, ew, u32(m), u32(BLOCK), offsets, comp, cloud.order,
                bw, blo, *out)
         cur, m = 1 - cur, m2
         eu, ev, ew = out
-        launch(dev, prg.min_hi, _blocks(m), eu, ev, ew, u32(m), u32(BLOCK), comp, cloud.order,
+        _launch(dev, prg.min_hi, _blocks(m), eu, ev, ew, u32(m), u32(BLOCK), comp, cloud.order,
                bw, blo, bhi)
-        launch(dev, prg.hook, n, u32(n), comp, par, rank, nx, ny, nz, bw, blo, bhi, links[0],
+        _launch(dev, prg.hook, n, u32(n), comp, par, rank, nx, ny, nz, bw, blo, bhi, links[0],
                flo, fhi)
-        launch(dev, prg.break_pairs, n, u32(n), comp, cloud.order, links[0], links[1], flo)
+        _launch(dev, prg.break_pairs, n, u32(n), comp, cloud.order, links[0], links[1], flo)
         a = 1
         while True:
             cl.enqueue_copy(q, flag, one)
-            launch(dev, prg.jump, n, u32(n), comp, links[a], links[1 - a], flag)
+            _launch(dev, prg.jump, n, u32(n), comp, links[a], links[1 - a], flag)
             a = 1 - a
             cl.enqueue_copy(q, total, flag)
             if total[0] == 1:
                 break
-        launch(dev, prg.relabel, n, u32(n), comp, par, links[a])
+        _launch(dev, prg.relabel, n, u32(n), comp, par, links[a])
         q.finish()
         rounds += 1
         timings["rounds"].append(time.perf_counter() - ta)
     t2 = time.perf_counter()
     label, parity, elo, ehi = buf(4 * n), buf(n), buf(4 * n), buf(4 * n)
-    launch(dev, prg.forest_out, n, u32(n), cloud.order, nx, comp, par, flo, fhi, label, parity,
+    _launch(dev, prg.forest_out, n, u32(n), cloud.order, nx, comp, par, flo, fhi, label, parity,
            elo, ehi)
     h_label = np.empty(n, np.int32)
     h_par = np.empty(n, np.uint8)
