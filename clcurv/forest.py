@@ -38,6 +38,9 @@ KMAX = 32
 #: Edges (graph_*: points) per work-item of the edge kernels: a block's kept edges are
 #: written in order from its offset (a prefix sum over the blocks).
 BLOCK = 256
+#: Longest hook chain followed link by link in a round; longer ones are finished by pointer
+#: jumping (a launch and a read-back per halving).
+CHASE = 64
 #: Marks "no neighbour", "no edge", "invalid normal" in the device's uint arrays.
 NONE = np.uint32(0xFFFFFFFF)
 
@@ -296,14 +299,18 @@ def spanning_forest(cloud, graph):
         _launch(dev, prg.hook, n, u32(n), comp, par, rank, nx, ny, nz, bw, blo, bhi, links[0],
                flo, fhi)
         _launch(dev, prg.break_pairs, n, u32(n), comp, cloud.order, links[0], links[1], flo)
-        a = 1
-        while True:
+        # hook chains: followed to their end (resolve), pointer jumping for a chain longer
+        # than CHASE
+        cl.enqueue_copy(q, flag, one)
+        _launch(dev, prg.resolve, n, u32(n), comp, links[1], u32(CHASE), links[0],
+                flag)
+        a = 0
+        cl.enqueue_copy(q, total, flag)
+        while total[0] != 1:
             cl.enqueue_copy(q, flag, one)
             _launch(dev, prg.jump, n, u32(n), comp, links[a], links[1 - a], flag)
             a = 1 - a
             cl.enqueue_copy(q, total, flag)
-            if total[0] == 1:
-                break
         _launch(dev, prg.relabel, n, u32(n), comp, par, links[a])
         q.finish()
         rounds += 1

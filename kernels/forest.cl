@@ -425,6 +425,27 @@ __kernel void break_pairs(const uint n, __global const uint *comp, __global cons
     }
 }
 
+/* Every root of the round to the end of its hook chain: B[g] = (final root, parity of g
+ * relative to it), following A. A chain longer than chase stops at an intermediate root
+ * (a correct pair) and lowers *unfinished to 0: then jump finishes. */
+__kernel void resolve(const uint n, __global const uint *comp, __global const uint *A,
+                      const uint chase, __global uint *B, volatile __global uint *unfinished)
+{
+    const uint g = get_global_id(0);
+    if (g >= n || comp[g] != g) return;
+    uint L = A[g];
+    for (uint step = 0; ; ++step) {
+        const uint L2 = A[L >> 1];
+        if (L2 >> 1 == L >> 1) break;
+        if (step == chase) {
+            lower(unfinished, 0);
+            break;
+        }
+        L = (L2 & ~1u) | ((L ^ L2) & 1u);
+    }
+    B[g] = L;
+}
+
 /* One step of pointer jumping over the roots of the round: B[g] = A[A[g]] with the parities
  * composed; *changed lowered to 0 when a link moved. */
 __kernel void jump(const uint n, __global const uint *comp, __global const uint *A,

@@ -230,7 +230,7 @@ def test_thin_plate_edges_stay_on_their_sheet(device):
     assert (side[u] != side[v]).sum() == pieces(~across) - pieces(across | ~across)
 
 
-def test_deterministic_and_independent_of_blocking(device, monkeypatch):
+def test_deterministic_and_independent_of_blocking_and_chasing(device, monkeypatch):
     p, nrm = noisy_bumpy(20000)
     nrm = random_signs(nrm, 13)
     nrm[::97] = np.nan
@@ -238,6 +238,7 @@ def test_deterministic_and_independent_of_blocking(device, monkeypatch):
     g2 = forest.knn_graph(cloud, 0.04, nrm, K)
     f2 = forest.spanning_forest(cloud, g2)
     monkeypatch.setattr(forest, "BLOCK", 7)
+    monkeypatch.setattr(forest, "CHASE", 1)          # pointer jumping finishes the chains
     f3 = forest.spanning_forest(cloud, g2)
     assert np.array_equal(g1.neighbors(), g2.neighbors())
     assert g1.weights().tobytes() == g2.weights().tobytes()
