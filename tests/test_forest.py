@@ -269,3 +269,19 @@ def test_graph_that_does_not_fit_names_what_fits(device, monkeypatch):
     monkeypatch.setattr(cloud_mod, "DEVICE_MEMORY", cloud.device_bytes + 20000 * 200)
     with pytest.raises(cloud_mod.DeviceMemoryError, match=r"about \d+ points of this cloud fit"):
         forest.knn_graph(cloud, 0.05, s["normals"], 10)
+
+
+def test_double_precision(device):
+    if not device.info.fp64:
+        pytest.skip(f"{device.info.name} has no float64")
+    s = shapes.sphere(20000, 1.0, seed=1)
+    p, nrm = s["points"], random_signs(s["normals"], 3)
+    cloud = DeviceCloud(p, 0.06, device=device, precision="double")
+    graph = forest.knn_graph(cloud, 0.06, nrm, K)
+    fo = forest.spanning_forest(cloud, graph)
+    check_knn(p, nrm, 0.06, graph)
+    check_weights(p, nrm, graph)
+    lo, hi, w = graph.edges()
+    assert np.array_equal(sorted_edges(fo.edges), kruskal(len(p), lo, hi, w))
+    u, v = fo.edges[:, 0], fo.edges[:, 1]
+    assert np.array_equal(fo.parity[u] ^ fo.parity[v], np.sum(nrm[u] * nrm[v], 1) < 0)
