@@ -151,6 +151,10 @@ def knn_graph(cloud, radius, normals, k=10):
     k : int, 1 <= k <= KMAX
         Longest neighbour list; a list is shorter when the ball holds fewer valid points.
 
+    Squared distances are those of the device precision, compared as float32 (with
+    ``precision='double'`` rounded to float32 first, so near ties go to the smaller input
+    index). Weights are float32 and equal to the bit in both lists that hold an edge.
+
     Returns
     -------
     Graph

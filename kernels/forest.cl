@@ -10,8 +10,9 @@
  * normal strictly within the radius, ordered by (squared distance, input index), NONE past
  * the last; wgt[g k + s] its edge weight (float)
  *     w = 1 - |n_g . n_j| + |d . n_g| |d . n_j| / |d|^2,   d = p_j - p_g   (0 when d = 0)
- * An undirected edge {g, j} is kept once: in the list of the endpoint with the smaller input
- * index when both lists hold it, else in the one list that does; its weight is that slot's.
+ * computed from the walk of the endpoint with the smaller input index, so both lists that
+ * hold an edge hold the same bits. The edge list keeps each undirected edge once: in the
+ * list of the endpoint with the smaller input index when both lists hold it.
  *
  * Edge lists: eu, ev (sorted indices, order[eu] < order[ev]) and ew (weight bits: weights are
  * >= +0, whose bits order like the floats). Edges are strictly ordered by (ew, order[eu],
