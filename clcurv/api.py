@@ -14,7 +14,7 @@ from .grid import ExtentError, bin_points, check_pairs
 from .validate import (as_count, as_normals, as_points, as_radius, as_viewpoint, choice,
                        device_radius)
 
-ORIENTS = ("auto", "mst", "viewpoint", "normals", None)
+ORIENTS = ("auto", "mst", "viewpoint", "normals", "up", None)   # or a direction (3 floats)
 #: largest ``orient_k``: Hoppe's graph needs about 10; more only costs time and memory
 MAX_ORIENT_K = 256
 MLS_KERNELS = ("ball", "gaussian")
@@ -53,6 +53,13 @@ class _Run:
         return run_kernel(op.kernel, self.cloud, self.radius, normals=normals, weights=weights,
                           h=h if kernel == "gaussian" else None)
 
+    def mst_flips(self, normals, k):
+        """Flip mask of Hoppe's propagation over the ``k``-nearest-neighbour graph within the
+        radius: on the device (the same graph and forest), or the float64 reference."""
+        if self.cloud is None:
+            return _orient.flip_by_propagation(self.points, normals, k=k, radius=self.radius)
+        return _orient.flip_on_device(self.cloud, normals, self.radius, k)
+
     def pca_normals(self, weights):
         """Unoriented PCA normals (and count, status) only: the orientation pass."""
         if self.cloud is None:
@@ -75,14 +82,14 @@ def _cloud_points(points):
 
 
 def _inputs(points, radius, weights, backend, orient, normals, viewpoint, orient_k, unit=True,
-            defer=False):
+            defer=False, signed=True):
     """Validated (points, radius, normals or None (unit if ``unit``), viewpoint or None,
     orientation). With ``defer`` (and a large cloud on the OpenCL backend) the normals come
     as a future of that result, checked on a host thread while the caller bins the cloud;
     :func:`_resolved` gives the array or raises the check's error."""
     choice(weights, "weights", ("uniform", "density"))
     choice(backend, "backend", ("opencl", "numpy"))
-    choice(orient, "orient", ORIENTS)
+    orient = _orient_spec(orient)
     as_count(orient_k, "orient_k", MAX_ORIENT_K)
     pts = as_points(points)
     r = as_radius(radius)
@@ -94,7 +101,7 @@ def _inputs(points, radius, weights, backend, orient, normals, viewpoint, orient
         else:
             ref = as_normals(normals, len(pts), unit)
     vp = as_viewpoint(viewpoint) if viewpoint is not None else None
-    return pts, r, ref, vp, _orientation(orient, ref, vp)
+    return pts, r, ref, vp, _orientation(orient, ref, vp, signed)
 
 
 def _resolved(normals):
@@ -102,9 +109,30 @@ def _resolved(normals):
     return normals.result() if hasattr(normals, "result") else normals
 
 
-def _orientation(orient, normals, viewpoint):
+def _orient_spec(orient):
+    """``orient`` checked: one of :data:`ORIENTS`, or a direction as a unit float64 (3,)
+    array ("up" is (0, 0, 1))."""
+    if orient is None or isinstance(orient, str):
+        choice(orient, "orient", ORIENTS)
+        return np.array([0.0, 0.0, 1.0]) if orient == "up" else orient
+    d = np.asarray(orient, dtype=np.float64).reshape(-1)
+    if d.shape != (3,) or not np.isfinite(d).all() or not np.any(d):
+        raise ValueError(f"orient must be one of {', '.join(map(repr, ORIENTS))} or a "
+                         f"nonzero direction of 3 finite numbers, got {orient!r}")
+    return d / np.linalg.norm(d)
+
+
+def _orientation(orient, normals, viewpoint, signed=True):
+    """The orientation a call uses: 'auto' is the user's normals, else the viewpoint, else
+    'mst' for a signed result and None (no global orientation) for an unsigned one."""
+    if isinstance(orient, np.ndarray):
+        return orient
     if orient == "auto":
-        return "normals" if normals is not None else "viewpoint" if viewpoint is not None else "mst"
+        if normals is not None:
+            return "normals"
+        if viewpoint is not None:
+            return "viewpoint"
+        return "mst" if signed else None
     if orient == "normals" and normals is None:
         raise ValueError("orient='normals' needs normals=")
     if orient == "viewpoint" and viewpoint is None:
@@ -112,13 +140,16 @@ def _orientation(orient, normals, viewpoint):
     return orient
 
 
-def _flip(points, n, how, normals, viewpoint, k):
+def _flip(run, n, how, normals, viewpoint, k):
+    """Flip mask of the normals ``n`` of ``run``'s points for the orientation ``how``."""
+    if isinstance(how, np.ndarray):
+        return _orient.flip_to_reference(n, how)
     if how == "normals":
         return _orient.flip_to_reference(n, normals)
     if how == "viewpoint":
-        return _orient.flip_to_viewpoint(points, n, viewpoint)
+        return _orient.flip_to_viewpoint(run.points, n, viewpoint)
     if how == "mst":
-        return _orient.flip_by_propagation(points, n, k=k)
+        return run.mst_flips(n, k)
     return np.zeros(len(n), dtype=bool)
 
 
@@ -130,10 +161,10 @@ def _warn_sparse(status, radius, need):
                       RuntimeWarning, stacklevel=3)
 
 
-def _oriented(pts, raw, how, ref_normals, vp, k):
+def _oriented(run, raw, how, ref_normals, vp, k):
     """The PCA normals of ``raw`` (float64), oriented as ``how`` says."""
     n = np.array(raw["normals"], dtype=np.float64, copy=None)   # the backends' arrays are fresh
-    n[_flip(pts, n, how, ref_normals, vp, k)] *= -1
+    n[_flip(run, n, how, ref_normals, vp, k)] *= -1
     return n
 
 
@@ -208,13 +239,19 @@ def curvature(points, radius, *, method="mls1", weights="uniform", normals=None,
     normals : (N, 3) array_like, optional
         Normals of the points (need not be unit). They orient the PCA normals and are the
         normals of the normal-based operators (the PCL/CGAL convention).
-    orient : {'auto', 'mst', 'viewpoint', 'normals', None}
+    orient : {'auto', 'mst', 'viewpoint', 'normals', 'up', None} or 3 floats
         How to orient the normals (and so sign H, k1, k2). 'auto' uses ``normals`` when given,
-        else ``viewpoint`` when given, else 'mst': Hoppe's minimum-spanning-tree propagation
-        over the ``orient_k``-nearest-neighbour graph with the outward choice at the point
-        farthest from each component's centroid (closed shapes come out outward).
-        None keeps the PCA sign (arbitrary per point; not allowed for the 2dcov/3dcov methods
-        without ``normals``, since they need normals that agree within each ball).
+        else ``viewpoint`` when given, else, for a signed method (mls0, mls1, mls2), 'mst',
+        and for an unsigned one (variation, 2dcov1, 2dcov2, 3dcov) None: their values do not
+        depend on the normals' signs (2dcov2 and 3dcov align each neighbour's normal with the
+        query point's inside the kernel), so no global orientation is paid for and their
+        ``normals`` keep the PCA sign. 'mst': Hoppe's minimum-spanning-tree propagation
+        over the graph of each point's ``orient_k`` nearest neighbours within the radius,
+        on the device (:mod:`clcurv.forest`), then each connected component turned outward
+        (:func:`clcurv.orient.component_signs`: closed shapes, nested ones included, come
+        out outward). 'up' (or a direction vector): normals make a positive dot product
+        with +Z (with the vector): PDAL's ``always_up``, for aerial LiDAR. None keeps the
+        PCA sign (arbitrary per point).
     viewpoint : 3 floats, optional
         Scanner position: normals are turned towards it.
     orient_k : int
@@ -266,9 +303,7 @@ def curvature(points, radius, *, method="mls1", weights="uniform", normals=None,
     points, cloud = _cloud_points(points)
     pts, r, ref_normals, vp, how = _inputs(points, radius, weights, backend, orient, normals,
                                            viewpoint, orient_k, unit=op.normals == "values",
-                                           defer=True)
-    if op.kernel.reads_normals and op.normals == "values" and how is None and ref_normals is None:
-        raise ValueError(f"{method} needs consistently oriented normals: pass normals= or an orient")
+                                           defer=True, signed=op.signed)
     scale_space = int(scale_space)
     if scale_space < 0:
         raise ValueError(f"scale_space must be >= 0, got {scale_space}")
@@ -306,14 +341,14 @@ def curvature(points, radius, *, method="mls1", weights="uniform", normals=None,
         # normals no PCA pass is run at all
         if ref_normals is not None:
             use = ref_normals
-        elif how is None:
+        elif how is None and op.normals != "values":
             use = None                      # MLS2 with the solver's sign for v0
-        else:
-            use = _oriented(pts, run.pca_normals(weights), how, None, vp, orient_k)
+        else:                               # None: 2dcov2/3dcov align them per ball
+            use = _oriented(run, run.pca_normals(weights), how, None, vp, orient_k)
         raw = run.operator(op, use, weights, kernel, h)
     else:
         raw = run.operator(op, weights=weights)
-        use = _oriented(pts, raw, how, ref_normals, vp, orient_k)
+        use = _oriented(run, raw, how, ref_normals, vp, orient_k)
     _warn_sparse(raw["status"], r, op.min_count)
     res = _result(op, r, weights, raw["count"], raw["status"],
                   op.finish(raw, pts, r, use, ref_normals))
@@ -378,6 +413,7 @@ def normals(points, radius, *, weights="uniform", normals=None, orient="auto", v
                                            viewpoint, orient_k, unit=False)  # they only orient
     if len(pts) == 0:
         return np.empty((0, 3))
-    raw = _Run(backend, pts, r, device, precision, cloud).pca_normals(weights)
+    run = _Run(backend, pts, r, device, precision, cloud)
+    raw = run.pca_normals(weights)
     _warn_sparse(raw["status"], r, PCA.min_count)
-    return _oriented(pts, raw, how, ref_normals, vp, orient_k)
+    return _oriented(run, raw, how, ref_normals, vp, orient_k)

@@ -92,7 +92,12 @@ def _compute_parser(sub):
     c.add_argument("--precision", default="float", choices=["float", "double"])
     c.add_argument("--fields", nargs="+", default=None, help="fields to write (default: all)")
     c.add_argument("--viewpoint", nargs=3, type=float, default=None, metavar=("X", "Y", "Z"),
-                   help="orient normals towards this scanner position (default: MST propagation)")
+                   help="orient normals towards this scanner position")
+    c.add_argument("--orient", default="auto", choices=list(job.ORIENT_CHOICES),
+                   help="how signed results are oriented: 'auto' (default) uses the file's "
+                   "normals, else --viewpoint, else 'up' for LAS/LAZ input (normals towards "
+                   "+Z, for aerial LiDAR) and 'mst' (minimum-spanning-tree propagation, "
+                   "outward on closed shapes) for the other formats; 'none' keeps the PCA sign")
     c.add_argument("--positions", default="original", choices=["original", "projected"],
                    help="write the input positions or the smoothed/projected ones")
     c.add_argument("--ignore-normals", action="store_true",

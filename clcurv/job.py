@@ -67,6 +67,7 @@ class Job:
     precision: str = "float"
     fields: Sequence[str] | None = None
     viewpoint: Sequence[float] | None = None
+    orient: str = "auto"
     positions: str = "original"
     ignore_normals: bool = False
     quiet: bool = False
@@ -218,9 +219,26 @@ def _evaluate(job, cloud, radius, device, st):
             work = scale_space(work, radius, job.scale_space, progress=tick, **common)
     with st.stage(job.method):
         res = curvature(work, radius, method=job.method, normals=_input_normals(job, cloud),
-                        viewpoint=job.viewpoint, kernel=job.kernel, h=job.h,
-                        projections=job.projections, **common)
+                        viewpoint=job.viewpoint, orient=orientation(job, cloud),
+                        kernel=job.kernel, h=job.h, projections=job.projections, **common)
     return res, work
+
+
+#: ``--orient`` values and the API's ``orient`` they stand for
+ORIENT_CHOICES = {"auto": "auto", "mst": "mst", "up": "up", "none": None}
+
+
+def orientation(job, cloud):
+    """The API ``orient`` of a job: ``--orient auto`` is "up" (normals towards +Z, PDAL's
+    ``always_up``) for LAS/LAZ input without normals or a viewpoint, else the API's
+    "auto" (the file's normals, the viewpoint, else MST propagation)."""
+    if job.orient not in ORIENT_CHOICES:
+        raise UsageError(f"--orient must be one of {', '.join(ORIENT_CHOICES)}, got "
+                         f"{job.orient!r}")
+    aerial = cloud.format in ("las", "laz") and job.viewpoint is None
+    if job.orient == "auto" and aerial and _input_normals(job, cloud) is None:
+        return "up"
+    return ORIENT_CHOICES[job.orient]
 
 
 def _positions(job, cloud, res, work):

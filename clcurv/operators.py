@@ -82,9 +82,10 @@ class Operator:
     ``normals``: how the operator uses normals --
       'none'   it needs none (its ``normals`` output is oriented only if asked);
       'sign'   their sign only (orientation of the PCA normal; signed outputs);
-      'values' their values: the normals you pass (normalised), else the oriented PCA
-               normals; they must agree in every ball, so ``orient=None`` is refused
-               without ``normals=`` (MLS0 alone falls back on its PCA normal).
+      'values' their values: the normals you pass (normalised), else the PCA normals,
+               oriented when the method is signed (MLS0 alone falls back on its PCA
+               normal); 2dcov2 and 3dcov align each neighbour's normal with the query
+               point's in the kernel, so their values do not depend on the signs.
     ``options``: the keyword arguments of :func:`clcurv.curvature` it takes beyond the
     common ones (others given raise). ``reference(points, r, normals, weights, **options)``
     returns the same raw fields as the kernel (float64); ``finish(raw, points, r,
@@ -104,10 +105,6 @@ class Operator:
     def signed(self):
         """True when some output carries the sign of curvature (needs oriented normals)."""
         return any(o.signed for o in self.outputs)
-
-    @property
-    def needs_oriented_normals(self):
-        return self.normals != "none"
 
     @property
     def min_count(self):
@@ -320,7 +317,7 @@ def program_variants(precision_defines):
     ``precision_defines`` (clcurv.program.precision_defines): each operator kernel (with
     every optional branch switched on) and the support kernels. The tests build them all."""
     base = dict(precision_defines)
-    out = [(f, base) for f in ("grid.cl", "density.cl", "gather.cl")]
+    out = [(f, base) for f in ("grid.cl", "density.cl", "gather.cl", "forest.cl")]
     out.append(("scale_space.cl", dict(base, DENSITY=1, GAUSSIAN=0)))
     layout = MLS2.build_defines()
     out.append(("records.cl", dict(base, NF=6, COL_COUNT=layout["COL_COUNT"],

@@ -1,4 +1,4 @@
-"""Consistent orientation of unoriented (e.g. PCA) normals, on the host.
+"""Consistent orientation of unoriented (e.g. PCA) normals.
 
 Every function returns a boolean **flip mask** ``flip`` of shape ``(N,)``:
 ``True`` where the normal must be negated. Inputs are never modified; use
@@ -15,6 +15,36 @@ Conventions
   radius ``R`` with outward normals has mean curvature ``H = +1/R``.
 * A normal ``n`` that is exactly perpendicular to the reference direction
   (dot product 0) is not flipped.
+
+Propagation (``orient="mst"``) in three stages
+----------------------------------------------
+1. **Graph and forest** (:mod:`clcurv.forest`, on the device): each valid point's
+   ``k`` nearest valid neighbours within the radius, edges weighted by
+   :func:`edge_weights`; Borůvka's minimum spanning forest under a strict order
+   (weight, then edge id), so it is unique and equals Kruskal's
+   (:func:`flip_by_propagation`, the float64 reference on the host, builds the
+   same graph with cKDTree and SciPy). Each point comes out with its component
+   ``label`` and its ``parity``: whether its normal disagrees with its
+   component root's once propagated along the tree.
+2. **Per-component sign** (:func:`component_signs`, on the host, O(components)):
+   each component's outward vote, then the nesting check by generalised winding
+   numbers against the larger components around it.
+3. ``flip = parity XOR sign[label]`` (:func:`orient_components`).
+
+Tiles (out-of-core work)
+------------------------
+The three stages are local except the second. A tile runs stage 1 on its own
+points plus a halo of one radius (an edge never exceeds the radius, so every
+edge between owned points is seen, and the forest restricted to owned points
+is the tile's forest when the halo's extra edges are dropped), keeping for
+every owned point its tile-local ``label`` and ``parity``. Signs are then
+reconciled across tiles on the labels alone: halo points shared by two tiles
+give, for each pair of (tile, label) components they join, the relative
+parity (a vote over the shared points); a BFS over that small component graph
+fixes every tile component's parity relative to one root per global
+component, and stage 2 runs on the global components (its vote sums are
+per-component sums the tiles report: counts, centroid sums, the dot sums;
+the winding check reads subsamples). Nothing in stage 3 needs neighbours.
 """
 
 from __future__ import annotations
@@ -130,8 +160,24 @@ def _spatial_order(p):
     return cKDTree(p, balanced_tree=False).indices
 
 
-def _knn_graph(p, u, k):
-    """kNN graph with Hoppe weights ``1 - |u_i . u_j| + EDGE_EPS``.
+def edge_weights(u_i, u_j, e):
+    """Orientation-graph weights of edges between unit normals ``u_i``, ``u_j`` (rows) along
+    offsets ``e = p_j - p_i``: Hoppe's ``1 - |u_i . u_j|`` plus ``|ê . u_i| |ê . u_j|``
+    (ê = e / |e|; 0 for coincident points), which penalises an edge that jumps across a
+    thin sheet (ê along both normals) and is ~0 between neighbours on one smooth surface
+    (ê nearly tangent). Symmetric in (i, j). The device graph (clcurv.forest) uses the same
+    formula."""
+    ln = np.sqrt(np.einsum("...k,...k->...", e, e))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        eh = np.where(ln[..., None] > 0, e / ln[..., None], 0.0)
+    return (1.0 - np.abs(np.einsum("...k,...k->...", u_i, u_j))
+            + np.abs(np.einsum("...k,...k->...", eh, u_i))
+            * np.abs(np.einsum("...k,...k->...", eh, u_j)))
+
+
+def _knn_graph(p, u, k, radius=None):
+    """Orientation graph: each point's k nearest other points (within ``radius`` when
+    given), weights :func:`edge_weights` + ``EDGE_EPS``.
 
     Returned as an ``(M, M)`` CSR matrix holding the directed kNN edges; the
     spanning-tree routine treats every stored entry as an undirected edge
@@ -140,28 +186,127 @@ def _knn_graph(p, u, k):
     """
     m = len(p)
     kk = min(k, m - 1)
-    _, nb = cKDTree(p, balanced_tree=False).query(p, k=kk + 1, workers=-1)
-    w = 1.0 - np.abs(np.einsum("ijk,ik->ij", u[nb], u)) + EDGE_EPS
-    if np.array_equal(nb[:, 0], np.arange(m)):
-        # usual case: the self match comes first; build the CSR directly
-        return csr_matrix((w[:, 1:].ravel(), nb[:, 1:].ravel(),
-                           np.arange(0, kk * m + 1, kk)), shape=(m, m))
-    rows = np.repeat(np.arange(m), kk + 1)
-    cols = nb.ravel()
-    keep = cols != rows  # duplicate points: drop self wherever it landed
-    return csr_matrix((w.ravel()[keep], (rows[keep], cols[keep])),
-                      shape=(m, m))
+    bound = np.inf if radius is None else radius
+    d, nb = cKDTree(p, balanced_tree=False).query(p, k=kk + 1, workers=-1,
+                                                  distance_upper_bound=bound)
+    rows = np.repeat(np.arange(m), kk + 1).reshape(m, kk + 1)
+    keep = (nb < m) & (nb != rows)          # within the radius; self (or a duplicate's) out
+    nbc = np.where(keep, nb, rows)
+    w = edge_weights(u[rows], u[nbc], p[nbc] - p[rows]) + EDGE_EPS
+    return csr_matrix((w[keep], (rows[keep], nb[keep])), shape=(m, m))
 
 
-def _component_roots(p, labels, ncomp):
-    """Centroid of each component and its point farthest from it."""
+def _tree_parity(tree, u, labels, ncomp):
+    """Parity of every node relative to its component's root along the forest ``tree``:
+    True where its normal disagrees with the root's once propagated (the XOR of the edge
+    flips ``u_a . u_b < 0`` on its path; roots: the first node of each component)."""
+    m = len(u)
+    roots = np.full(ncomp, m)
+    np.minimum.at(roots, labels, np.arange(m))
+    parent = _super_rooted_parents(tree, roots)
+    edge_flip = np.zeros(m + 1, dtype=bool)
+    child = np.flatnonzero(parent[:m] != m)
+    edge_flip[child] = _negative(_rowdot(u[child], u[parent[child]]))
+    return _xor_to_root(edge_flip, parent, m)[:m]
+
+
+def _winding(q, p, n, area):
+    """Generalised winding number at the rows of ``q`` of the oriented surface sampled by
+    points ``p``, unit normals ``n`` and areas ``area`` (sum of the solid angles / 4 pi)."""
+    w = np.zeros(len(q))
+    for a in range(0, len(q), 256):
+        d = p[None, :, :] - q[a:a + 256, None, :]
+        r3 = np.einsum("ijk,ijk->ij", d, d) ** 1.5
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.einsum("ijk,jk->ij", d, n) * area / r3
+        w[a:a + 256] = np.nansum(np.where(np.isfinite(t), t, 0.0), axis=1) / (4 * np.pi)
+    return w
+
+
+#: components with at least this many points take part in the nesting decision
+NEST_MIN = 100
+#: points per component used for winding numbers (a seeded subsample)
+NEST_SAMPLE = 4000
+
+
+def _surface_sample(p, n, rng):
+    """A seeded subsample of a component: (points, normals, the area each sample stands
+    for, pi d^2 / 8 with d the distance to its 8th nearest sample)."""
+    pick = rng.choice(len(p), size=min(NEST_SAMPLE, len(p)), replace=False)
+    ps, ns = p[pick], n[pick]
+    k = min(8, len(ps) - 1)
+    d = cKDTree(ps).query(ps, k=k + 1)[0][:, -1]
+    return ps, ns, np.pi * d * d / k
+
+
+def component_signs(points, normals, labels):
+    """Global sign of each component of a consistently oriented cloud: True where the
+    component must be flipped so that its normals point out of the solid.
+
+    ``normals`` (rows of one component consistent with each other; any nonzero length)
+    and ``labels`` (the component of each row: integers >= 0, not necessarily contiguous;
+    the result is indexed by them). Two steps:
+
+    1. **Own vote**: a component whose normals point, summed over its points, towards its
+       own centroid is flipped (closed shapes, open cylinders and most single-view scans
+       come out outward).
+    2. **Nesting**: components of at least :data:`NEST_MIN` points, largest bounding box
+       first, are checked against the larger ones already decided: the generalised winding
+       number W of those (from seeded subsamples of :data:`NEST_SAMPLE` points) is
+       averaged over the component's points. Inside the solid of another component (W near
+       1, e.g. the inner wall of a hollow shell) the component is flipped so that its
+       normals face the cavity, which is outside the solid; W near 0 keeps the vote.
+       Only larger components whose bounding box contains the component's are evaluated.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    u = np.asarray(normals, dtype=np.float64)
+    ncomp = int(labels.max()) + 1 if len(labels) else 0
     size = np.bincount(labels, minlength=ncomp).astype(np.float64)
     cen = np.stack([np.bincount(labels, weights=p[:, j], minlength=ncomp)
-                    for j in range(3)], axis=1) / size[:, None]
-    d2 = np.sum((p - cen[labels]) ** 2, axis=1)
-    order = np.lexsort((-d2, labels))  # by label, then farthest first
-    first = np.searchsorted(labels[order], np.arange(ncomp))
-    return cen, order[first]
+                    for j in range(3)], axis=1) / np.maximum(size, 1)[:, None]
+    vote = np.bincount(labels, weights=_rowdot(u, p - cen[labels]), minlength=ncomp)
+    flip = vote < 0
+    big = np.flatnonzero(size >= NEST_MIN)
+    if len(big) < 2:
+        return flip
+    order = np.argsort(labels, kind="stable")
+    starts = np.searchsorted(labels[order], np.arange(ncomp + 1))
+    rows = {c: order[starts[c]:starts[c + 1]] for c in big}
+    lo = {c: p[rows[c]].min(axis=0) for c in big}
+    hi = {c: p[rows[c]].max(axis=0) for c in big}
+    big = sorted(big, key=lambda c: -np.linalg.norm(hi[c] - lo[c]))
+    rng = np.random.default_rng(0)
+    samples = {}
+    for i, c in enumerate(big):
+        outer = [o for o in big[:i] if np.all(lo[o] <= lo[c]) and np.all(hi[o] >= hi[c])]
+        if not outer:
+            continue
+        q = p[rows[c][rng.choice(len(rows[c]), size=min(64, len(rows[c])), replace=False)]]
+        w = 0.0
+        for o in outer:
+            if o not in samples:
+                samples[o] = _surface_sample(p[rows[o]], u[rows[o]], rng)
+            ps, ns, area = samples[o]
+            sign = -1.0 if flip[o] else 1.0
+            w = w + sign * _winding(q, ps, ns, area)
+        # w ~ 1: inside the others' solid, so the component bounds a cavity: its normals
+        # face away from its own outside, i.e. the opposite of its own vote
+        flip[c] = (vote[c] < 0) != (float(np.median(w)) > 0.5)
+    return flip
+
+
+def orient_components(points, normals, labels, parity):
+    """Flip mask from a spanning forest's per-point ``parity`` (relative to each
+    component's root) and ``labels``: ``parity`` XOR the component's global sign
+    (:func:`component_signs`). Components of fewer than :data:`MIN_COMPONENT` points are
+    not trusted: each of their points faces away from the centroid of all points."""
+    p = np.asarray(points, dtype=np.float64)
+    u = np.asarray(normals, dtype=np.float64)
+    consistent = u * np.where(parity, -1.0, 1.0)[:, None]
+    f = parity ^ component_signs(p, consistent, labels)[labels]
+    small = np.bincount(labels)[labels] < MIN_COMPONENT
+    f[small] = _negative(_rowdot(u[small], p[small] - p.mean(axis=0)))
+    return f
 
 
 def _xor_to_root(edge_flip, parent, root):
@@ -180,30 +325,26 @@ def _xor_to_root(edge_flip, parent, root):
     return f
 
 
-def flip_by_propagation(points, normals, k=10):
-    """Flip mask for a consistent, globally outward orientation (Hoppe 1992).
+def flip_by_propagation(points, normals, k=10, radius=None):
+    """Flip mask for a consistent, globally outward orientation (Hoppe 1992), on the host:
+    the float64 reference of the device orientation (:mod:`clcurv.forest`).
 
     Algorithm:
 
-    1. Build the k-nearest-neighbour graph of the valid points (symmetrised:
-       every kNN pair is an undirected edge) with weights
-       ``1 - |n_i . n_j| + 1e-6`` (the epsilon keeps parallel pairs as edges).
-    2. Take its minimum spanning forest (Kruskal,
-       :func:`scipy.sparse.csgraph.minimum_spanning_tree`).
-    3. In every connected component, the root is the point farthest from the
-       component's centroid; its normal is oriented away from the centroid.
-    4. Propagate along the tree from the root: a node is flipped relative to
-       its already-oriented parent when their normals disagree (dot < 0).
-       All components are processed at once by hanging their roots under a
-       virtual super-root, doing one breadth-first search and accumulating
-       the flips along root paths by vectorised pointer jumping.
-    5. Global outward choice: a component is flipped as a whole when the sum
-       over its points of <n, p - centroid> is negative (closed shapes, open
-       cylinders and most single-view scans get outward normals).
+    1. The orientation graph: every valid point's ``k`` nearest other valid points (within
+       ``radius`` when given: the device graph's definition), symmetrised, with weights
+       :func:`edge_weights` (Hoppe's ``1 - |n_i . n_j|`` plus a penalty for edges across a
+       thin sheet) + 1e-6.
+    2. Its minimum spanning forest (Kruskal, :func:`scipy.sparse.csgraph.minimum_spanning_tree`).
+    3. In each tree, every node's parity relative to the root: the XOR of the edge flips
+       ``n_a . n_b < 0`` on its path (one breadth-first search under a virtual super-root,
+       then vectorised pointer jumping).
+    4. Each component's global sign (:func:`component_signs`): its own outward vote, then
+       the nesting check against the components around it (a hollow shell's inner wall
+       faces its cavity).
 
-    Components with fewer than 3 points (only possible when there are at most
-    ``k`` valid points in a region) are not propagated: each of their points
-    is oriented on its own, away from the centroid of all valid points.
+    Components with fewer than 3 points are not propagated: each of their points is
+    oriented on its own, away from the centroid of all valid points.
 
     Parameters
     ----------
@@ -215,17 +356,13 @@ def flip_by_propagation(points, normals, k=10):
         and get ``flip = False``.
     k : int, optional
         Number of nearest neighbours per point in the graph (default 10).
+    radius : float, optional
+        Only neighbours closer than ``radius`` (unit ``L``) are linked.
 
     Returns
     -------
     numpy.ndarray of bool, shape (N,)
         ``True`` where the normal must be negated.
-
-    Notes
-    -----
-    The outward vote assumes that on the whole the centroid lies on the inner
-    side of the surface: true for closed surfaces (sphere, capsule, torus...)
-    and for most object scans; for terrain (aerial LiDAR) use a viewpoint.
     """
     p_all = _as_vectors(points, "points")
     n_all = _as_vectors(normals, "normals")
@@ -243,7 +380,35 @@ def flip_by_propagation(points, normals, k=10):
         idx = idx[_spatial_order(p_all[idx])]
     p = p_all[idx]
     u = n_all[idx] / np.linalg.norm(n_all[idx], axis=1)[:, None]
-    flip[idx] = _propagate(p, u, k)
+    flip[idx] = _propagate(p, u, k, radius)
+    return flip
+
+
+def flip_on_device(cloud, normals, radius, k=10):
+    """Flip mask of :func:`flip_by_propagation` with stages 1 and 3 on the device of
+    ``cloud`` (a :class:`~clcurv.cloud.DeviceCloud`): the same graph (``k`` nearest
+    neighbours within ``radius``), its minimum spanning forest and parities
+    (:mod:`clcurv.forest`), then :func:`orient_components` on the host. Invalid normals get
+    False. Stage times go to ``cloud.timings`` (orient_graph, orient_forest,
+    orient_signs)."""
+    import time
+    from . import forest
+    n = _as_vectors(normals, "normals")
+    t0 = time.perf_counter()
+    graph = forest.knn_graph(cloud, radius, n, k)
+    t1 = time.perf_counter()
+    fo = forest.spanning_forest(cloud, graph)
+    t2 = time.perf_counter()
+    flip = np.zeros(len(n), dtype=bool)
+    valid = fo.label >= 0
+    if valid.all():                         # the usual case: no copies
+        flip = orient_components(cloud.points, n, fo.label, fo.parity)
+    elif valid.any():                       # labels are root indices: any ids < N do
+        idx = np.flatnonzero(valid)
+        flip[idx] = orient_components(cloud.points[idx], n[idx], fo.label[idx],
+                                      fo.parity[idx])
+    cloud.timings.update(orient_graph=t1 - t0, orient_forest=t2 - t1,
+                         orient_signs=time.perf_counter() - t2)
     return flip
 
 
@@ -266,33 +431,14 @@ def _super_rooted_parents(tree, roots):
     return parent
 
 
-def _propagate(p, u, k):
+def _propagate(p, u, k, radius=None):
     """Flip mask of valid points ``p`` with unit normals ``u`` (Hoppe 1992)."""
     m = len(p)
-    global_out = _negative(_rowdot(u, p - p.mean(axis=0)))
     if m < MIN_COMPONENT:
-        return global_out
-
-    tree = minimum_spanning_tree(_knn_graph(p, u, k), overwrite=True)
+        return _negative(_rowdot(u, p - p.mean(axis=0)))
+    tree = minimum_spanning_tree(_knn_graph(p, u, k, radius), overwrite=True)
     ncomp, labels = connected_components(tree, directed=False)
-    cen, roots = _component_roots(p, labels, ncomp)
-    parent = _super_rooted_parents(tree, roots)
-
-    edge_flip = np.zeros(m + 1, dtype=bool)
-    child = np.flatnonzero(parent[:m] != m)
-    edge_flip[child] = _negative(_rowdot(u[child], u[parent[child]]))
-    edge_flip[roots] = _negative(_rowdot(u[roots], p[roots] - cen))
-    f = _xor_to_root(edge_flip, parent, m)[:m]
-    # global outward choice by a vote of the whole component rather than of its root (the
-    # root's normal can be poor at a scan's rim): flip a component whose oriented normals
-    # point on the whole towards its centroid
-    vote = np.bincount(labels, weights=np.where(f, -1.0, 1.0) * _rowdot(u, p - cen[labels]),
-                       minlength=ncomp)
-    f ^= (vote < 0)[labels]
-
-    small = np.bincount(labels, minlength=ncomp)[labels] < MIN_COMPONENT
-    f[small] = global_out[small]
-    return f
+    return orient_components(p, u, labels, _tree_parity(tree, u, labels, ncomp))
 
 
 def apply_flip(flip, *arrays):

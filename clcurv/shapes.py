@@ -91,3 +91,56 @@ def saddle(n, c=1.0, extent=1.0, *, noise=0.0, seed=0):
     k1, k2 = Hn + disc, Hn - disc
     pts3 = np.stack([x, y, (x ** 2 - y ** 2) / (2 * c)], axis=1)
     return _finish(rng, pts3, nrm, k1, k2, noise)
+
+
+def _concat(parts):
+    """One sample from several: every array concatenated (dir1 only if all have it)."""
+    keys = [k for k in parts[0] if all(k in p for p in parts)]
+    return {k: np.concatenate([p[k] for p in parts]) for k in keys}
+
+
+def two_spheres(n, radius=1.0, gap=1.0, *, noise=0.0, seed=0):
+    """Two disjoint spheres of ``radius`` on the x axis, ``gap`` apart (n // 2 points each)."""
+    parts = [sphere(m, radius, noise=noise, seed=seed + i) for i, m in
+             enumerate((n // 2, n - n // 2))]
+    for p, sgn in zip(parts, (-1, 1)):
+        p["points"] = p["points"] + [sgn * (radius + gap / 2), 0.0, 0.0]
+    return _concat(parts)
+
+
+def hollow_shell(n, outer=1.0, inner=0.7, *, noise=0.0, seed=0):
+    """A hollow spherical shell: the solid between two concentric spheres. Its normals
+    point out of the solid: away from the centre on the outer wall, towards it on the inner
+    wall, whose curvatures are then -1/inner (it bends towards its normal). Points are
+    split between the walls in proportion to their areas."""
+    m = int(round(n * outer ** 2 / (outer ** 2 + inner ** 2)))
+    a = sphere(m, outer, noise=noise, seed=seed)
+    b = sphere(n - m, inner, noise=noise, seed=seed + 1)
+    for key in ("normals", "k1", "k2", "H"):
+        b[key] = -b[key]
+    return _concat([a, b])
+
+
+def thin_box(spacing, thickness, side=1.0, *, seed=0):
+    """A closed box ``side`` x ``side`` x ``thickness`` centred at the origin, sampled
+    uniformly on its six faces at about one point per ``spacing**2``: a thin plate whose
+    two large faces are ``thickness / spacing`` samples apart. Flat faces: k1 = k2 = 0
+    (the edges' curvature is not modelled)."""
+    rng = np.random.default_rng(seed)
+    dims = np.array([side, side, thickness], dtype=np.float64)
+    pts, nrm = [], []
+    for ax in range(3):
+        o = [a for a in range(3) if a != ax]
+        m = max(1, int(dims[o[0]] * dims[o[1]] / spacing ** 2))
+        for sgn in (-1.0, 1.0):
+            q = np.empty((m, 3))
+            q[:, o[0]] = rng.uniform(0, dims[o[0]], m)
+            q[:, o[1]] = rng.uniform(0, dims[o[1]], m)
+            q[:, ax] = dims[ax] if sgn > 0 else 0.0
+            nn = np.zeros((m, 3))
+            nn[:, ax] = sgn
+            pts.append(q - dims / 2)
+            nrm.append(nn)
+    pts, nrm = np.concatenate(pts), np.concatenate(nrm)
+    zero = np.zeros(len(pts))
+    return _finish(rng, pts, nrm, zero, zero.copy(), 0.0)

@@ -85,7 +85,7 @@ def test_double_precision_in_chunks(device, sphere, budget):
     assert_bit_identical(whole, parts)
 
 
-@pytest.mark.parametrize("orient", [None, "mst"])
+@pytest.mark.parametrize("orient", [None, "up"])
 def test_mls2_without_reference_normals_and_pca_normals_in_chunks(device, sphere, budget,
                                                                   orient):
     pts, _ = sphere
@@ -95,6 +95,17 @@ def test_mls2_without_reference_normals_and_pca_normals_in_chunks(device, sphere
     parts = clcurv.curvature(cloud, RADIUS, method="mls2", orient=orient)
     assert_chunked(cloud.plans["kernel_mls2"], device)
     assert_bit_identical(whole, parts)
+
+
+def test_orientation_graph_is_whole_cloud(device, sphere, budget):
+    """The MST orientation's graph (k edges per point) is not chunked: under a budget that
+    holds only the operators' chunks it is refused by name, never skipped or replaced."""
+    pts, _ = sphere
+    cloud = DeviceCloud(pts, RADIUS, device=device)
+    clcurv.curvature(cloud, RADIUS, method="mls2", orient=None)
+    budget(for_chunk(cloud.plans["kernel_mls2"]))
+    with pytest.raises(DeviceMemoryError, match="orientation graph"):
+        clcurv.curvature(cloud, RADIUS, method="mls2", orient="mst")
 
 
 @pytest.mark.parametrize("weights", ["uniform", "density"])
