@@ -1,26 +1,18 @@
-"""The orientation graph and its minimum spanning forest, on the device (issue 11).
+"""The minimum spanning forest of the orientation graph, on the device (issue 11).
 
 Hoppe et al. (1992) orient normals by propagating a sign along a minimum spanning tree of a
-k-nearest-neighbour graph. This module builds that graph and its forest on the OpenCL device
-of a :class:`~clcurv.cloud.DeviceCloud` and returns, for every point, its component and its
-sign *parity* relative to the component's root; choosing each component's global sign is
-left to the caller (:mod:`clcurv.orient`).
+k-nearest-neighbour graph. :mod:`clcurv.graph` builds that graph on the OpenCL device of a
+:class:`~clcurv.cloud.DeviceCloud`; :func:`spanning_forest` takes its minimum spanning
+forest and returns, for every point, its component and its sign *parity* relative to the
+component's root; choosing each component's global sign is left to the caller
+(:mod:`clcurv.orient`).
 
-- :func:`knn_graph`: for every point with a valid normal, the ``k`` nearest other points
-  with valid normals strictly within ``radius``, ordered by (squared distance, input
-  index), and the symmetric edge weight
-  ``w = 1 - |n_i . n_j| + |e . n_i| |e . n_j|`` with ``e`` the unit vector from p_i to p_j
-  (the second term is 0 for coincident points). The second term penalises edges that cross
-  a thin sheet (e along both normals) rather than run along the surface (e tangent).
-- :func:`spanning_forest`: Boruvka's minimum spanning forest of the undirected graph (an
-  edge {i, j} when j is in i's list or i in j's) under the strict order (weight, smaller
-  input index, larger input index), hence unique, with 32-bit ``atomic_min`` only (three
-  passes per round), so the result is bit-identical across runs, work-group sizes and
-  devices computing the same float weights. See kernels/forest.cl.
-
-Both run in the cloud's precision; weights are float32 either way, and the edge parity
-``n_u . n_v < 0`` is evaluated at the device precision (``float``: the normals rounded to
-float32, ``fma(z, z', fma(y, y', x x'))``).
+:func:`spanning_forest` is Boruvka's algorithm on the undirected graph (an edge {i, j} when j
+is in i's list or i in j's) under the strict order (weight, smaller input index, larger
+input index), hence unique, with 32-bit ``atomic_min`` only (three passes per round), so the
+result is bit-identical across runs, work-group sizes and devices computing the same float
+weights. See kernels/forest.cl. The edge parity ``n_u . n_v < 0`` is evaluated at the device
+precision (``float``: the normals rounded to float32, ``fma(z, z', fma(y, y', x x'))``).
 """
 from __future__ import annotations
 
@@ -29,162 +21,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .cloud import DeviceMemoryError, upload_sorted
-from .constants import PAD
 from .program import build, launch
 
-#: Longest neighbour list (``KMAX`` in kernels/forest.cl).
-KMAX = 32
 #: Edges (graph_*: points) per work-item of the edge kernels: a block's kept edges are
 #: written in order from its offset (a prefix sum over the blocks).
 BLOCK = 256
 #: Longest hook chain followed link by link in a round; longer ones are finished by pointer
 #: jumping (a launch and a read-back per halving).
 CHASE = 64
-#: Marks "no neighbour", "no edge", "invalid normal" in the device's uint arrays.
-NONE = np.uint32(0xFFFFFFFF)
-
-
-def _valid_normals(normals, n):
-    """(normals as float64 (N, 3) with NaN rows where invalid, count of valid rows)."""
-    a = np.asarray(normals, dtype=np.float64)
-    if a.shape != (n, 3):
-        raise ValueError(f"normals must have shape ({n}, 3), got {a.shape}")
-    ok = np.isfinite(a).all(axis=1)
-    ok &= (a != 0).any(axis=1)
-    nvalid = int(np.count_nonzero(ok))
-    if nvalid < n:
-        a = a.copy()
-        a[~ok] = np.nan
-    return a, nvalid
-
-
-@dataclass
-class Graph:
-    """The k-NN orientation graph of a cloud, kept on its device (:func:`knn_graph`).
-
-    ``nbr`` and ``wgt`` are device buffers of ``n * k`` uint32 / float32 in the cloud's
-    sorted order (row g: sorted point g; entries are sorted indices, 0xFFFFFFFF past the
-    list's end); ``normals`` the three sorted normal columns (NaN rows invalid).
-    :meth:`neighbors` and :meth:`weights` bring them to the host in input order.
-    """
-    cloud: object
-    radius: float
-    k: int
-    nbr: object
-    wgt: object
-    normals: tuple
-    nvalid: int
-    timings: dict = field(default_factory=dict)
-
-    def _sorted(self, buf, dtype):
-        import pyopencl as cl
-        out = np.empty((self.cloud.n, self.k), dtype)
-        cl.enqueue_copy(self.cloud.device.queue, out, buf)
-        return out
-
-    def neighbors(self):
-        """(N, k) int64: row i lists the input indices of point i's neighbours, nearest
-        first (ties: smaller input index first), -1 past the end of the list."""
-        order = self.cloud.grid.order
-        s = self._sorted(self.nbr, np.uint32)
-        out = np.full((self.cloud.n, self.k), -1, np.int64)
-        have = s != NONE
-        rows = np.where(have, order[np.where(have, s, 0)], -1)
-        out[order] = rows
-        return out
-
-    def weights(self):
-        """(N, k) float32: the weight of each entry of :meth:`neighbors` as computed in that
-        point's list (NaN past the end). An edge held by both lists uses the weight of the
-        list of its endpoint with the smaller input index (:meth:`edges`)."""
-        out = np.empty((self.cloud.n, self.k), np.float32)
-        out[self.cloud.grid.order] = self._sorted(self.wgt, np.float32)
-        return out
-
-    def edges(self):
-        """The undirected edges the forest uses, each once: ``(lo, hi, w)`` with lo < hi
-        (int64 input indices) and w (float32) the weight of the kept slot."""
-        nb, w = self.neighbors(), self.weights()
-        i = np.repeat(np.arange(self.cloud.n), self.k)
-        j, w = nb.ravel(), w.ravel()
-        have = j >= 0
-        i, j, w = i[have], j[have], w[have]
-        lo, hi = np.minimum(i, j), np.maximum(i, j)
-        # the slot of the smaller endpoint wins; a one-sided edge keeps its only slot
-        pri = (i != lo).astype(np.int64)
-        o = np.lexsort((pri, hi, lo))
-        lo, hi, w = lo[o], hi[o], w[o]
-        first = np.ones(len(lo), bool)
-        first[1:] = (lo[1:] != lo[:-1]) | (hi[1:] != hi[:-1])
-        return lo[first], hi[first], w[first]
-
-
-def _check_graph_memory(cloud, k):
-    """DeviceMemoryError unless the graph and the forest's buffers fit beside the cloud."""
-    item = np.dtype(cloud.dtype).itemsize
-    # graph (nbr, wgt), two edge lists of up to k edges per point (3 uints each), the
-    # per-point forest arrays (comp, rank, bw, blo, bhi, 2 links, flo, fhi, par) and the
-    # outputs (label, parity, elo, ehi)
-    per_point = 8 * k + 24 * k + 9 * 4 + 1 + 13
-    plan = cloud.plan("forest", per_point, reserve=3 * item, widest=12 * k,
-                      label="the coordinates, the grid, the normals and the orientation graph")
-    if plan.count > 1:
-        raise DeviceMemoryError(
-            f"{cloud.n} points do not fit the device for the orientation graph with k = {k}: "
-            f"about {per_point} bytes per point besides the cloud and the normals; about "
-            f"{plan.chunk} points of this cloud fit. Use a smaller k, split the cloud into "
-            "tiles, or use a device with more memory")
-
-
-def knn_graph(cloud, radius, normals, k=10):
-    """The k-nearest-neighbour orientation graph of ``cloud`` on its device.
-
-    Parameters
-    ----------
-    cloud : clcurv.cloud.DeviceCloud
-    radius : float, same length unit as the points
-        Neighbours lie strictly within it (|q - p| < radius); at most ``cloud.cell``.
-    normals : (N, 3) array_like, input order
-        Unit normals (any sign). Rows with a non-finite component, or all zero, are invalid:
-        such points have no neighbours and are nobody's neighbour.
-    k : int, 1 <= k <= KMAX
-        Longest neighbour list; a list is shorter when the ball holds fewer valid points.
-
-    Squared distances are those of the device precision, compared as float32 (with
-    ``precision='double'`` rounded to float32 first, so near ties go to the smaller input
-    index). Weights are float32 and equal to the bit in both lists that hold an edge.
-
-    Returns
-    -------
-    Graph
-        Device buffers and host accessors (:meth:`Graph.neighbors`, :meth:`Graph.weights`,
-        :meth:`Graph.edges`); ``timings`` holds ``upload_normals`` and ``knn`` (seconds).
-    """
-    import pyopencl as cl
-    r = cloud.check_radius(radius)
-    k = int(k)
-    if not 1 <= k <= KMAX:
-        raise ValueError(f"k must be in [1, {KMAX}], got {k}")
-    if cloud.n >= 2 ** 31:
-        raise ValueError(f"at most 2^31 - 1 points, got {cloud.n}")
-    _check_graph_memory(cloud, k)
-    t0 = time.perf_counter()
-    nrm, nvalid = _valid_normals(normals, cloud.n)
-    cols = upload_sorted(cloud, nrm)
-    prg = build(cloud.device, "forest.cl", cloud.defines)
-    ctx, mf, q = cloud.device.context, cl.mem_flags, cloud.device.queue
-    nbr = cl.Buffer(ctx, mf.READ_WRITE, size=4 * cloud.n * k)
-    wgt = cl.Buffer(ctx, mf.READ_WRITE, size=4 * cloud.n * k)
-    q.finish()
-    t1 = time.perf_counter()
-    launch(cloud.device, prg.knn_graph, cloud.n, cloud.x, cloud.y, cloud.z, *cols,
-           cloud.cell_of, cloud.ranges, cloud.order, np.uint32(cloud.n), cloud.ball(r),
-           np.uint32(k), nbr, wgt)
-    q.finish()
-    t2 = time.perf_counter()
-    return Graph(cloud, r, k, nbr, wgt, tuple(cols), nvalid,
-                 {"upload_normals": t1 - t0, "knn": t2 - t1})
 
 
 @dataclass
@@ -235,7 +79,7 @@ def _blocks(m):
 
 
 def spanning_forest(cloud, graph):
-    """Boruvka's minimum spanning forest of ``graph`` (:func:`knn_graph`) on its device.
+    """Boruvka's minimum spanning forest of ``graph`` (:func:`clcurv.graph.knn_graph`) on its device.
 
     Edges are ordered strictly by (float32 weight, smaller input index, larger input
     index), so the forest is unique. Each round every component finds its lightest edge

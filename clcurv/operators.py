@@ -317,7 +317,7 @@ def program_variants(precision_defines):
     ``precision_defines`` (clcurv.program.precision_defines): each operator kernel (with
     every optional branch switched on) and the support kernels. The tests build them all."""
     base = dict(precision_defines)
-    out = [(f, base) for f in ("grid.cl", "density.cl", "gather.cl", "forest.cl")]
+    out = [(f, base) for f in ("grid.cl", "density.cl", "gather.cl", "knn.cl", "forest.cl")]
     out.append(("scale_space.cl", dict(base, DENSITY=1, GAUSSIAN=0)))
     layout = MLS2.build_defines()
     out.append(("records.cl", dict(base, NF=6, COL_COUNT=layout["COL_COUNT"],

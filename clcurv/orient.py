@@ -392,10 +392,10 @@ def flip_on_device(cloud, normals, radius, k=10):
     False. Stage times go to ``cloud.timings`` (orient_graph, orient_forest,
     orient_signs)."""
     import time
-    from . import forest
+    from . import forest, graph as knn
     n = _as_vectors(normals, "normals")
     t0 = time.perf_counter()
-    graph = forest.knn_graph(cloud, radius, n, k)
+    graph = knn.knn_graph(cloud, radius, n, k)
     t1 = time.perf_counter()
     fo = forest.spanning_forest(cloud, graph)
     t2 = time.perf_counter()

@@ -8,6 +8,7 @@ from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 from scipy.spatial import cKDTree
 
 from clcurv import forest, shapes
+from clcurv.graph import KMAX, knn_graph
 from clcurv.cloud import DeviceCloud
 
 from conftest import bumpy_surface
@@ -26,7 +27,7 @@ def random_signs(normals, seed):
 
 def run(points, normals, radius, device, k=K):
     cloud = DeviceCloud(points, radius, device=device)
-    graph = forest.knn_graph(cloud, radius, normals, k)
+    graph = knn_graph(cloud, radius, normals, k)
     return cloud, graph, forest.spanning_forest(cloud, graph)
 
 
@@ -235,7 +236,7 @@ def test_deterministic_and_independent_of_blocking_and_chasing(device, monkeypat
     nrm = random_signs(nrm, 13)
     nrm[::97] = np.nan
     cloud, g1, f1 = run(p, nrm, 0.04, device)
-    g2 = forest.knn_graph(cloud, 0.04, nrm, K)
+    g2 = knn_graph(cloud, 0.04, nrm, K)
     f2 = forest.spanning_forest(cloud, g2)
     monkeypatch.setattr(forest, "BLOCK", 7)
     monkeypatch.setattr(forest, "CHASE", 1)          # pointer jumping finishes the chains
@@ -253,13 +254,13 @@ def test_k_and_shapes_checked(device):
     s = shapes.sphere(2000, 1.0, seed=14)
     cloud = DeviceCloud(s["points"], 0.1, device=device)
     with pytest.raises(ValueError, match="k must be"):
-        forest.knn_graph(cloud, 0.1, s["normals"], forest.KMAX + 1)
+        knn_graph(cloud, 0.1, s["normals"], KMAX + 1)
     with pytest.raises(ValueError, match="normals must have shape"):
-        forest.knn_graph(cloud, 0.1, s["normals"][:10], 5)
+        knn_graph(cloud, 0.1, s["normals"][:10], 5)
     with pytest.raises(ValueError, match="exceeds the cell size"):
-        forest.knn_graph(cloud, 0.2, s["normals"], 5)
-    g = forest.knn_graph(cloud, 0.1, s["normals"], forest.KMAX)
-    check_knn(s["points"], s["normals"], 0.1, g, forest.KMAX)
+        knn_graph(cloud, 0.2, s["normals"], 5)
+    g = knn_graph(cloud, 0.1, s["normals"], KMAX)
+    check_knn(s["points"], s["normals"], 0.1, g, KMAX)
 
 
 def test_graph_that_does_not_fit_names_what_fits(device, monkeypatch):
@@ -268,7 +269,7 @@ def test_graph_that_does_not_fit_names_what_fits(device, monkeypatch):
     cloud = DeviceCloud(s["points"], 0.05, device=device)
     monkeypatch.setattr(cloud_mod, "DEVICE_MEMORY", cloud.device_bytes + 20000 * 200)
     with pytest.raises(cloud_mod.DeviceMemoryError, match=r"about \d+ points of this cloud fit"):
-        forest.knn_graph(cloud, 0.05, s["normals"], 10)
+        knn_graph(cloud, 0.05, s["normals"], 10)
 
 
 def test_double_precision(device):
@@ -277,7 +278,7 @@ def test_double_precision(device):
     s = shapes.sphere(20000, 1.0, seed=1)
     p, nrm = s["points"], random_signs(s["normals"], 3)
     cloud = DeviceCloud(p, 0.06, device=device, precision="double")
-    graph = forest.knn_graph(cloud, 0.06, nrm, K)
+    graph = knn_graph(cloud, 0.06, nrm, K)
     fo = forest.spanning_forest(cloud, graph)
     check_knn(p, nrm, 0.06, graph)
     check_weights(p, nrm, graph)
