@@ -239,13 +239,13 @@ def _surface_sample(p, n, rng):
     return ps, ns, np.pi * d * d / k
 
 
-def component_signs(points, normals, labels):
+def component_signs(points, normals, labels, parity=None):
     """Global sign of each component of a consistently oriented cloud: True where the
     component must be flipped so that its normals point out of the solid.
 
-    ``normals`` (rows of one component consistent with each other; any nonzero length)
-    and ``labels`` (the component of each row: integers >= 0, not necessarily contiguous;
-    the result is indexed by them). Two steps:
+    ``normals`` (rows of one component consistent with each other once negated where
+    ``parity`` is True; any nonzero length) and ``labels`` (the component of each row:
+    integers >= 0, not necessarily contiguous; the result is indexed by them). Two steps:
 
     1. **Own vote**: a component whose normals point, summed over its points, towards its
        own centroid is flipped (closed shapes, open cylinders and most single-view scans
@@ -260,11 +260,14 @@ def component_signs(points, normals, labels):
     """
     p = np.asarray(points, dtype=np.float64)
     u = np.asarray(normals, dtype=np.float64)
+    sgn = np.ones(len(u)) if parity is None else np.where(parity, -1.0, 1.0)
     ncomp = int(labels.max()) + 1 if len(labels) else 0
     size = np.bincount(labels, minlength=ncomp).astype(np.float64)
-    cen = np.stack([np.bincount(labels, weights=p[:, j], minlength=ncomp)
-                    for j in range(3)], axis=1) / np.maximum(size, 1)[:, None]
-    vote = np.bincount(labels, weights=_rowdot(u, p - cen[labels]), minlength=ncomp)
+    col = lambda w: np.bincount(labels, weights=w, minlength=ncomp)
+    cen = np.stack([col(p[:, j]) for j in range(3)], axis=1) / np.maximum(size, 1)[:, None]
+    # sum of <s u, p - c> = sum <s u, p> - <sum s u, c>: no per-point gathers of c
+    su = np.stack([col(u[:, j] * sgn) for j in range(3)], axis=1)
+    vote = col(_rowdot(u, p) * sgn) - _rowdot(su, cen)
     flip = vote < 0
     big = np.flatnonzero(size >= NEST_MIN)
     if len(big) < 2:
@@ -285,7 +288,7 @@ def component_signs(points, normals, labels):
         w = 0.0
         for o in outer:
             if o not in samples:
-                samples[o] = _surface_sample(p[rows[o]], u[rows[o]], rng)
+                samples[o] = _surface_sample(p[rows[o]], u[rows[o]] * sgn[rows[o], None], rng)
             ps, ns, area = samples[o]
             sign = -1.0 if flip[o] else 1.0
             w = w + sign * _winding(q, ps, ns, area)
@@ -302,10 +305,10 @@ def orient_components(points, normals, labels, parity):
     not trusted: each of their points faces away from the centroid of all points."""
     p = np.asarray(points, dtype=np.float64)
     u = np.asarray(normals, dtype=np.float64)
-    consistent = u * np.where(parity, -1.0, 1.0)[:, None]
-    f = parity ^ component_signs(p, consistent, labels)[labels]
-    small = np.bincount(labels)[labels] < MIN_COMPONENT
-    f[small] = _negative(_rowdot(u[small], p[small] - p.mean(axis=0)))
+    f = parity ^ component_signs(p, u, labels, parity)[labels]
+    small = np.flatnonzero(np.bincount(labels)[labels] < MIN_COMPONENT)
+    if len(small):
+        f[small] = _negative(_rowdot(u[small], p[small] - p.mean(axis=0)))
     return f
 
 
