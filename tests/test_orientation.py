@@ -145,3 +145,51 @@ def test_bad_input_gets_documented_flips(device):
     truth = np.vstack([s["normals"], [[1.0, 0, 0], [0, 1.0, 0]]])
     assert np.all(np.einsum("ij,ij->i", o[ok], truth[ok]) > 0)
     np.testing.assert_array_equal(flip, orient.flip_by_propagation(pts, n, k=K, radius=r))
+
+
+def test_up_and_direction_orientations():
+    """orient='up' (PDAL's always_up) and a direction vector: every valid normal makes a
+    non-negative dot product with it; the signed curvature of a bump follows."""
+    from conftest import bumpy_surface
+    pts = bumpy_surface(20_000, seed=3)
+    n = clcurv.normals(pts, 0.08, orient="up")
+    ok = np.isfinite(n).all(axis=1)
+    assert ok.mean() > 0.99 and np.all(n[ok, 2] >= 0)
+    d = np.array([1.0, -2.0, 0.5])
+    m = clcurv.normals(pts, 0.08, orient=d)
+    assert np.all(m[ok] @ d >= 0)
+    with pytest.raises(ValueError, match="direction"):
+        clcurv.normals(pts, 0.08, orient=(0, 0, 0))
+    res = clcurv.curvature(pts, 0.08, method="mls2", orient="up")
+    assert np.all(res.normals[res.valid, 2] >= 0)
+
+
+def test_unsigned_methods_pay_for_no_orientation():
+    """Their default call orients nothing (info['orientation'] is None) and gives the
+    values of an oriented call."""
+    s = shapes.torus(20_000)
+    r = _radius(s["points"])
+    for method in ("variation", "2dcov1", "2dcov2", "3dcov"):
+        a = clcurv.curvature(s["points"], r, method=method)
+        b = clcurv.curvature(s["points"], r, method=method, orient="mst")
+        assert a.info["orientation"] is None and b.info["orientation"] == "mst"
+        field = "variation" if method == "variation" else "k1"
+        np.testing.assert_allclose(getattr(a, field), getattr(b, field), rtol=1e-4,
+                                   atol=1e-6 * np.nanmax(np.abs(getattr(b, field))))
+
+
+def test_cli_orients_las_up_by_default(tmp_path):
+    from conftest import bumpy_surface
+    pts = bumpy_surface(5000, seed=4) * 100.0                 # a terrain tile, in metres
+    clcurv.io.write(tmp_path / "t.las", pts)
+    from clcurv import cli
+    assert cli.main(["compute", str(tmp_path / "t.las"), "-o", str(tmp_path / "o.ply"),
+                     "--method", "mls2", "-q"]) == 0
+    out = clcurv.io.read(tmp_path / "o.ply")
+    ok = out.attributes["status"] == 0
+    assert ok.mean() > 0.9 and np.all(out.normals[ok, 2] >= 0)
+    # a viewpoint below wins over the LAS default
+    assert cli.main(["compute", str(tmp_path / "t.las"), "-o", str(tmp_path / "m.ply"),
+                     "--method", "mls2", "--viewpoint", "0", "0", "-1000", "-q"]) == 0
+    m = clcurv.io.read(tmp_path / "m.ply")
+    assert np.all(m.normals[ok, 2] <= 0)
