@@ -23,7 +23,7 @@ import numpy as np
 
 from .program import build, launch
 
-#: Edges (graph_*: points) per work-item of the edge kernels: a block's kept edges are
+#: Edges (first_*, next_*: points) per work-item of the edge kernels: a block's kept edges are
 #: written in order from its offset (a prefix sum over the blocks).
 BLOCK = 256
 #: Longest hook chain followed link by link in a round; longer ones are finished by pointer
@@ -47,9 +47,10 @@ class Forest:
     rounds : int
         Boruvka rounds that hooked components.
     timings : dict
-        Seconds: ``init`` (edge list), ``rounds`` (a list, one per round), ``output``.
+        Seconds: ``init`` (buffers), ``rounds`` (a list, one per round), ``output``.
     edge_counts : list of int
-        Edges joining two components at the start of every round.
+        Edges joining two components at the start of every round from the second (round 1
+        reads the neighbour lists).
     """
     label: np.ndarray
     parity: np.ndarray
@@ -100,7 +101,7 @@ def spanning_forest(cloud, graph):
     u32 = np.uint32
     t0 = time.perf_counter()
     buf = lambda nbytes: cl.Buffer(ctx, mf.READ_WRITE, size=max(int(nbytes), 4))
-    comp, rank, bw, blo, bhi, flo, fhi = (buf(4 * n) for _ in range(7))
+    comp, rank, bw, blo, bhi, flo, fhi, mask = (buf(4 * n) for _ in range(8))
     links = [buf(4 * n), buf(4 * n)]
     par = buf(n)
     flag = buf(4)
@@ -108,50 +109,24 @@ def spanning_forest(cloud, graph):
     one = np.ones(1, np.uint32)
     nx, ny, nz = graph.normals
     _launch(dev, prg.forest_init, n, u32(n), cloud.order, comp, par, rank, bw, blo, bhi, flo)
-    # the initial edge list: each undirected edge once
     nb = _blocks(n)
     counts = buf(4 * max(nb, _blocks(n * k)))
     offsets = buf(4 * max(nb, _blocks(n * k)))
     tot = buf(4)
-    _launch(dev, prg.graph_count, nb, graph.nbr, cloud.order, u32(n), u32(k), u32(BLOCK), counts)
-    _launch(dev, prg.scan_blocks, 1, counts, u32(nb), offsets, tot)
-    cl.enqueue_copy(q, total, tot)
-    m = int(total[0])
-    lists = [[buf(4 * m) for _ in range(3)] for _ in range(2)]
-    _launch(dev, prg.graph_edges, nb, graph.nbr, graph.wgt, cloud.order, u32(n), u32(k),
-           u32(BLOCK), offsets, *lists[0])
     q.finish()
     t1 = time.perf_counter()
     timings = {"init": t1 - t0, "rounds": []}
     edge_counts, rounds = [], 0
-    cur = 0
-    while m > 0:
-        ta = time.perf_counter()
-        eu, ev, ew = lists[cur]
-        nb = _blocks(m)
-        _launch(dev, prg.min_weight, nb, eu, ev, ew, u32(m), u32(BLOCK), comp, bw, counts)
-        _launch(dev, prg.scan_blocks, 1, counts, u32(nb), offsets, tot)
-        cl.enqueue_copy(q, total, tot)
-        m2 = int(total[0])
-        edge_counts.append(m2)
-        if m2 == 0:
-            timings["rounds"].append(time.perf_counter() - ta)
-            break
-        out = lists[1 - cur]
-        _launch(dev, prg.min_lo, nb, eu, ev, ew, u32(m), u32(BLOCK), offsets, comp, cloud.order,
-               bw, blo, *out)
-        cur, m = 1 - cur, m2
-        eu, ev, ew = out
-        _launch(dev, prg.min_hi, _blocks(m), eu, ev, ew, u32(m), u32(BLOCK), comp, cloud.order,
-               bw, blo, bhi)
-        _launch(dev, prg.hook, n, u32(n), comp, par, rank, nx, ny, nz, bw, blo, bhi, links[0],
-               flo, fhi)
+
+    def merge(first):
+        """Hook every root across its lightest edge, follow the chains, relabel."""
+        _launch(dev, prg.hook, n, u32(n), comp, par, cloud.order, u32(first), rank, nx, ny, nz,
+                bw, blo, bhi, links[0], flo, fhi)
         _launch(dev, prg.break_pairs, n, u32(n), comp, cloud.order, links[0], links[1], flo)
         # hook chains: followed to their end (resolve), pointer jumping for a chain longer
         # than CHASE
         cl.enqueue_copy(q, flag, one)
-        _launch(dev, prg.resolve, n, u32(n), comp, links[1], u32(CHASE), links[0],
-                flag)
+        _launch(dev, prg.resolve, n, u32(n), comp, links[1], u32(CHASE), links[0], flag)
         a = 0
         cl.enqueue_copy(q, total, flag)
         while total[0] != 1:
@@ -161,6 +136,52 @@ def spanning_forest(cloud, graph):
             cl.enqueue_copy(q, total, flag)
         _launch(dev, prg.relabel, n, u32(n), comp, par, links[a])
         q.finish()
+
+    # round 1 on the neighbour lists (every point its own component)
+    ta = time.perf_counter()
+    _launch(dev, prg.first_weight, nb, graph.nbr, graph.wgt, u32(n), u32(k), u32(BLOCK), bw,
+            mask)
+    _launch(dev, prg.first_other, nb, graph.nbr, graph.wgt, cloud.order, mask, u32(n), u32(k),
+            u32(BLOCK), bw, bhi)
+    merge(1)
+    rounds += 1
+    timings["rounds"].append(time.perf_counter() - ta)
+    # round 2 on the neighbour lists, writing the edges that join two components
+    ta = time.perf_counter()
+    _launch(dev, prg.next_weight, nb, graph.nbr, graph.wgt, cloud.order, mask, comp, u32(n), u32(k),
+            u32(BLOCK), bw, counts)
+    _launch(dev, prg.scan_blocks, 1, counts, u32(nb), offsets, tot)
+    cl.enqueue_copy(q, total, tot)
+    m = int(total[0])
+    edge_counts.append(m)
+    if m == 0:
+        timings["rounds"].append(time.perf_counter() - ta)
+    else:
+        lists = [[buf(4 * m) for _ in range(3)] for _ in range(2)]
+        _launch(dev, prg.next_lo, nb, graph.nbr, graph.wgt, cloud.order, mask, comp, u32(n), u32(k),
+                u32(BLOCK), offsets, bw, blo, *lists[0])
+    cur = 0
+    while m > 0:
+        eu, ev, ew = lists[cur]
+        if rounds > 1:
+            ta = time.perf_counter()
+            nb = _blocks(m)
+            _launch(dev, prg.min_weight, nb, eu, ev, ew, u32(m), u32(BLOCK), comp, bw, counts)
+            _launch(dev, prg.scan_blocks, 1, counts, u32(nb), offsets, tot)
+            cl.enqueue_copy(q, total, tot)
+            m2 = int(total[0])
+            edge_counts.append(m2)
+            if m2 == 0:
+                timings["rounds"].append(time.perf_counter() - ta)
+                break
+            out = lists[1 - cur]
+            _launch(dev, prg.min_lo, nb, eu, ev, ew, u32(m), u32(BLOCK), offsets, comp,
+                    cloud.order, bw, blo, *out)
+            cur, m = 1 - cur, m2
+            eu, ev, ew = out
+        _launch(dev, prg.min_hi, _blocks(m), eu, ev, ew, u32(m), u32(BLOCK), comp, cloud.order,
+                bw, blo, bhi)
+        merge(0)
         rounds += 1
         timings["rounds"].append(time.perf_counter() - ta)
     t2 = time.perf_counter()

@@ -16,7 +16,9 @@
  * component's lightest edge with three passes of 32-bit atomic_min (weight, then the smaller
  * input index among the edges of that weight, then the larger). Atomics are used only for
  * min, whose result does not depend on the order of the updates: no result depends on the
- * work-group size or the scheduling. Edge kernels take blocks of B consecutive edges per
+ * work-group size or the scheduling. Rounds 1 and 2 read the neighbour lists (first_*,
+ * next_*); round 2 writes the edge list of the edges that still join two components, and
+ * later rounds compact it. Kernels take blocks of B consecutive points or edges per
  * work-item; kept edges are compacted in order (per-block counts, a prefix sum).
  *
  * Components: comp[g] is the sorted index of g's root, par[g] g's sign parity relative to it
@@ -27,61 +29,6 @@
  */
 #include "common.h"
 #include "orient.h"
-
-/* Is slot s of sorted point g the kept copy of its undirected edge (see the top)? */
-inline int slot_kept(__global const uint *nbr, __global const uint *order, uint k, uint g,
-                     uint j)
-{
-    if (order[g] < order[j]) return 1;
-    __global const uint *lj = nbr + (size_t)j * k;
-    int found = 0;
-    for (uint t = 0; t < k; ++t)            /* branch-free: the list is one or two lines */
-        found |= lj[t] == g;
-    return !found;
-}
-
-/* Kept slots of the points [b B, b B + B): counts[b]. */
-__kernel void graph_count(__global const uint *nbr, __global const uint *order, const uint n,
-                          const uint k, const uint B, __global uint *counts)
-{
-    const uint b = get_global_id(0);
-    const uint g0 = b * B;
-    if (g0 >= n) return;
-    const uint g1 = min(g0 + B, n);
-    uint c = 0;
-    for (uint g = g0; g < g1; ++g)
-        for (uint s = 0; s < k; ++s) {
-            const uint j = nbr[(size_t)g * k + s];
-            if (j == NONE) break;
-            c += slot_kept(nbr, order, k, g, j);
-        }
-    counts[b] = c;
-}
-
-/* The kept slots of the points of block b as edges, from offsets[b] on. */
-__kernel void graph_edges(__global const uint *nbr, __global const float *wgt,
-                          __global const uint *order, const uint n, const uint k,
-                          const uint B, __global const uint *offsets, __global uint *eu,
-                          __global uint *ev, __global uint *ew)
-{
-    const uint b = get_global_id(0);
-    const uint g0 = b * B;
-    if (g0 >= n) return;
-    const uint g1 = min(g0 + B, n);
-    uint o = offsets[b];
-    for (uint g = g0; g < g1; ++g)
-        for (uint s = 0; s < k; ++s) {
-            const size_t slot = (size_t)g * k + s;
-            const uint j = nbr[slot];
-            if (j == NONE) break;
-            if (!slot_kept(nbr, order, k, g, j)) continue;
-            const int lo_first = order[g] < order[j];
-            eu[o] = lo_first ? g : j;
-            ev[o] = lo_first ? j : g;
-            ew[o] = as_uint(wgt[slot]);
-            ++o;
-        }
-}
 
 /* Exclusive prefix sum of counts[0 .. m) into offsets, the sum into total[0]. One work-item:
  * m is the number of blocks, a few ten thousand at most per 10^7 edges. */
@@ -185,10 +132,158 @@ __kernel void min_hi(__global const uint *eu, __global const uint *ev, __global 
     }
 }
 
+/* Is g in the list of j? */
+inline uint listed(__global const uint *nbr, uint k, uint j, uint g)
+{
+    __global const uint *lj = nbr + (size_t)j * k;
+    uint found = 0;
+    for (uint t = 0; t < k; ++t)            /* branch-free: the list is one or two lines */
+        found |= lj[t] == g;
+    return found;
+}
+
+/* Rounds 1 and 2 read the neighbour lists directly. An undirected edge is met in every list
+ * that holds it, with the same weight bits and the same (smaller, larger input index) pair.
+ * A point's own slots update its own component (a running minimum over consecutive points
+ * of one component, then one atomic); a slot g -> j also updates j's component only when g
+ * is not in j's list (mask[g] bit s clear: a one-sided edge), as j's own list covers the
+ * rest. The edge list (kept slots, see the top) is written in round 2.
+ *
+ * Round 1: every point is its own component; among the edges of g of weight bw[g] the
+ * order (smaller, larger input index) is the order of the other endpoint's input index, so
+ * two passes suffice: the weights (bw, and mask), then the other endpoint (into bhi). */
+__kernel void first_weight(__global const uint *nbr, __global const float *wgt, const uint n,
+                           const uint k, const uint B, volatile __global uint *bw,
+                           __global uint *mask)
+{
+    const uint b = get_global_id(0);
+    const uint g0 = b * B;
+    if (g0 >= n) return;
+    const uint g1 = min(g0 + B, n);
+    for (uint g = g0; g < g1; ++g) {
+        uint mw = NONE, msk = 0;
+        for (uint s = 0; s < k; ++s) {
+            const size_t slot = (size_t)g * k + s;
+            const uint j = nbr[slot];
+            if (j == NONE) break;
+            const uint w = as_uint(wgt[slot]);
+            const uint two = listed(nbr, k, j, g);
+            msk |= two << s;
+            mw = min(mw, w);
+            if (!two) lower(bw + j, w);
+        }
+        mask[g] = msk;
+        if (mw != NONE) lower(bw + g, mw);
+    }
+}
+
+__kernel void first_other(__global const uint *nbr, __global const float *wgt,
+                          __global const uint *order, __global const uint *mask, const uint n,
+                          const uint k, const uint B, __global const uint *bw,
+                          volatile __global uint *bhi)
+{
+    const uint b = get_global_id(0);
+    const uint g0 = b * B;
+    if (g0 >= n) return;
+    const uint g1 = min(g0 + B, n);
+    for (uint g = g0; g < g1; ++g) {
+        const uint og = order[g], bg = bw[g], msk = mask[g];
+        uint mo = NONE;
+        for (uint s = 0; s < k; ++s) {
+            const size_t slot = (size_t)g * k + s;
+            const uint j = nbr[slot];
+            if (j == NONE) break;
+            const uint w = as_uint(wgt[slot]);
+            if (w == bg) mo = min(mo, order[j]);
+            if (!(msk >> s & 1u) && w == bw[j]) lower(bhi + j, og);
+        }
+        if (mo != NONE) lower(bhi + g, mo);
+    }
+}
+
+/* Round 2, pass 1: counts[b], the kept slots of block b that join two components, and bw. */
+__kernel void next_weight(__global const uint *nbr, __global const float *wgt,
+                          __global const uint *order, __global const uint *mask,
+                          __global const uint *comp, const uint n, const uint k, const uint B,
+                          volatile __global uint *bw, __global uint *counts)
+{
+    const uint b = get_global_id(0);
+    const uint g0 = b * B;
+    if (g0 >= n) return;
+    const uint g1 = min(g0 + B, n);
+    uint c = 0, rc = NONE, rm = NONE;
+    for (uint g = g0; g < g1; ++g) {
+        const uint cg = comp[g], og = order[g], msk = mask[g];
+        if (cg != rc) {
+            if (rm != NONE) lower(bw + rc, rm);
+            rc = cg; rm = NONE;
+        }
+        for (uint s = 0; s < k; ++s) {
+            const size_t slot = (size_t)g * k + s;
+            const uint j = nbr[slot];
+            if (j == NONE) break;
+            const uint cj = comp[j];
+            if (cj == cg) continue;
+            const uint w = as_uint(wgt[slot]);
+            const uint two = msk >> s & 1u;
+            rm = min(rm, w);
+            if (!two) lower(bw + cj, w);
+            c += !two | (og < order[j]);
+        }
+    }
+    if (rm != NONE) lower(bw + rc, rm);
+    counts[b] = c;
+}
+
+/* Round 2, pass 2: the kept slots that join two components as edges from offsets[b] on, and
+ * blo. */
+__kernel void next_lo(__global const uint *nbr, __global const float *wgt,
+                      __global const uint *order, __global const uint *mask,
+                      __global const uint *comp, const uint n, const uint k, const uint B,
+                      __global const uint *offsets, __global const uint *bw,
+                      volatile __global uint *blo, __global uint *eu, __global uint *ev,
+                      __global uint *ew)
+{
+    const uint b = get_global_id(0);
+    const uint g0 = b * B;
+    if (g0 >= n) return;
+    const uint g1 = min(g0 + B, n);
+    uint o = offsets[b], rc = NONE, rl = NONE;
+    for (uint g = g0; g < g1; ++g) {
+        const uint cg = comp[g], og = order[g], msk = mask[g];
+        if (cg != rc) {
+            if (rl != NONE) lower(blo + rc, rl);
+            rc = cg; rl = NONE;
+        }
+        const uint bg = bw[cg];
+        for (uint s = 0; s < k; ++s) {
+            const size_t slot = (size_t)g * k + s;
+            const uint j = nbr[slot];
+            if (j == NONE) break;
+            const uint cj = comp[j];
+            if (cj == cg) continue;
+            const uint w = as_uint(wgt[slot]), oj = order[j];
+            const uint two = msk >> s & 1u;
+            const int g_first = og < oj;
+            if (!two | g_first) {
+                eu[o] = g_first ? g : j;
+                ev[o] = g_first ? j : g;
+                ew[o] = w;
+                ++o;
+            }
+            const uint lo = min(og, oj);
+            if (w == bg) rl = min(rl, lo);
+            if (!two && w == bw[cj]) lower(blo + cj, lo);
+        }
+    }
+    if (rl != NONE) lower(blo + rc, rl);
+}
+
 /* Every root g hooks onto the component across its lightest edge: link[g] = D << 1 | parity
  * of g relative to D (g << 1 for a root without edges); its edge goes to (flo, fhi) (input
  * indices). Resets the root's bw, blo, bhi for the next round. */
 __kernel void hook(const uint n, __global const uint *comp, __global const uchar *par,
+                   __global const uint *order, const uint first,
                    __global const uint *rank, __global const REAL *NX,
                    __global const REAL *NY, __global const REAL *NZ, __global uint *bw,
                    __global uint *blo, __global uint *bhi, __global uint *link,
@@ -200,7 +295,9 @@ __kernel void hook(const uint n, __global const uint *comp, __global const uchar
         link[g] = g << 1;
         return;
     }
-    const uint lo = blo[g], hi = bhi[g];
+    /* round 1 (first_*): bhi[g] is the other endpoint's input index */
+    const uint og = order[g], ot = bhi[g];
+    const uint lo = first ? min(og, ot) : blo[g], hi = first ? max(og, ot) : ot;
     const uint a = rank[lo], b = rank[hi];
     const int a_in = comp[a] == g;
     const uint u = a_in ? a : b, v = a_in ? b : a;
