@@ -139,10 +139,11 @@ def spanning_forest(cloud, graph):
 
     # round 1 on the neighbour lists (every point its own component)
     ta = time.perf_counter()
-    _launch(dev, prg.first_weight, nb, graph.nbr, graph.wgt, u32(n), u32(k), u32(BLOCK), bw,
-            mask)
-    _launch(dev, prg.first_other, nb, graph.nbr, graph.wgt, cloud.order, mask, u32(n), u32(k),
-            u32(BLOCK), bw, bhi)
+    # own_w, own_o in links[0], links[1] (free until hook)
+    _launch(dev, prg.first_weight, nb, graph.nbr, graph.wgt, cloud.order, u32(n), u32(k),
+            u32(BLOCK), bw, mask, links[0], links[1])
+    _launch(dev, prg.first_other, nb, graph.nbr, graph.wgt, cloud.order, mask, links[0],
+            links[1], u32(n), u32(k), u32(BLOCK), bw, bhi)
     merge(1)
     rounds += 1
     timings["rounds"].append(time.perf_counter() - ta)

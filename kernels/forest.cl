@@ -136,8 +136,13 @@ __kernel void min_hi(__global const uint *eu, __global const uint *ev, __global 
 inline uint listed(__global const uint *nbr, uint k, uint j, uint g)
 {
     __global const uint *lj = nbr + (size_t)j * k;
-    uint found = 0;
-    for (uint t = 0; t < k; ++t)            /* branch-free: the list is one or two lines */
+    const uint4 g4 = (uint4)(g);
+    int4 f = (int4)(0);
+    uint t = 0;
+    for (; t + 4 <= k; t += 4)              /* branch-free: the list is one or two lines */
+        f |= vload4(0, lj + t) == g4;
+    uint found = (f.x | f.y | f.z | f.w) != 0;
+    for (; t < k; ++t)
         found |= lj[t] == g;
     return found;
 }
@@ -152,34 +157,40 @@ inline uint listed(__global const uint *nbr, uint k, uint j, uint g)
  * Round 1: every point is its own component; among the edges of g of weight bw[g] the
  * order (smaller, larger input index) is the order of the other endpoint's input index, so
  * two passes suffice: the weights (bw, and mask), then the other endpoint (into bhi). */
-__kernel void first_weight(__global const uint *nbr, __global const float *wgt, const uint n,
-                           const uint k, const uint B, volatile __global uint *bw,
-                           __global uint *mask)
+__kernel void first_weight(__global const uint *nbr, __global const float *wgt,
+                           __global const uint *order, const uint n, const uint k,
+                           const uint B, volatile __global uint *bw, __global uint *mask,
+                           __global uint *own_w, __global uint *own_o)
 {
     const uint b = get_global_id(0);
     const uint g0 = b * B;
     if (g0 >= n) return;
     const uint g1 = min(g0 + B, n);
     for (uint g = g0; g < g1; ++g) {
-        uint mw = NONE, msk = 0;
+        uint mw = NONE, mo = NONE, msk = 0;
         for (uint s = 0; s < k; ++s) {
             const size_t slot = (size_t)g * k + s;
             const uint j = nbr[slot];
             if (j == NONE) break;
-            const uint w = as_uint(wgt[slot]);
+            const uint w = as_uint(wgt[slot]), oj = order[j];
             const uint two = listed(nbr, k, j, g);
             msk |= two << s;
+            mo = w < mw ? oj : (w == mw ? min(mo, oj) : mo);
             mw = min(mw, w);
             if (!two) lower(bw + j, w);
         }
         mask[g] = msk;
+        own_w[g] = mw; own_o[g] = mo;
         if (mw != NONE) lower(bw + g, mw);
     }
 }
 
+/* own_w, own_o: the lightest edge of g's own list (weight, other endpoint's input index);
+ * only the one-sided slots (mask bits clear) can reach another point's lightest edge. */
 __kernel void first_other(__global const uint *nbr, __global const float *wgt,
-                          __global const uint *order, __global const uint *mask, const uint n,
-                          const uint k, const uint B, __global const uint *bw,
+                          __global const uint *order, __global const uint *mask,
+                          __global const uint *own_w, __global const uint *own_o,
+                          const uint n, const uint k, const uint B, __global const uint *bw,
                           volatile __global uint *bhi)
 {
     const uint b = get_global_id(0);
@@ -187,17 +198,20 @@ __kernel void first_other(__global const uint *nbr, __global const float *wgt,
     if (g0 >= n) return;
     const uint g1 = min(g0 + B, n);
     for (uint g = g0; g < g1; ++g) {
-        const uint og = order[g], bg = bw[g], msk = mask[g];
-        uint mo = NONE;
-        for (uint s = 0; s < k; ++s) {
+        const uint mw = own_w[g];
+        if (mw == NONE) continue;
+        if (mw == bw[g]) lower(bhi + g, own_o[g]);
+        uint one = ~mask[g];
+        const uint og = order[g];
+        while (one) {
+            const uint s = ctz(one);
+            one &= one - 1;
+            if (s >= k) break;
             const size_t slot = (size_t)g * k + s;
             const uint j = nbr[slot];
             if (j == NONE) break;
-            const uint w = as_uint(wgt[slot]);
-            if (w == bg) mo = min(mo, order[j]);
-            if (!(msk >> s & 1u) && w == bw[j]) lower(bhi + j, og);
+            if (as_uint(wgt[slot]) == bw[j]) lower(bhi + j, og);
         }
-        if (mo != NONE) lower(bhi + g, mo);
     }
 }
 
