@@ -343,9 +343,15 @@ def curvature(points, radius, *, method="mls1", weights="uniform", normals=None,
             use = ref_normals
         elif how is None and op.normals != "values":
             use = None                      # MLS2 with the solver's sign for v0
+        elif op.flip is not None and run.cloud is not None:
+            use = "own"                     # orient the fit's own normals afterwards
         else:                               # None: 2dcov2/3dcov align them per ball
             use = _oriented(run, run.pca_normals(weights), how, None, vp, orient_k)
-        raw = run.operator(op, use, weights, kernel, h)
+        if isinstance(use, str):
+            raw = run.operator(op, None, weights, kernel, h)
+            use = op.flip(raw, _flip(run, raw["normals"], how, None, vp, orient_k))["normals"]
+        else:
+            raw = run.operator(op, use, weights, kernel, h)
     else:
         raw = run.operator(op, weights=weights)
         use = _oriented(run, raw, how, ref_normals, vp, orient_k)

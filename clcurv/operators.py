@@ -89,7 +89,10 @@ class Operator:
     ``options``: the keyword arguments of :func:`clcurv.curvature` it takes beyond the
     common ones (others given raise). ``reference(points, r, normals, weights, **options)``
     returns the same raw fields as the kernel (float64); ``finish(raw, points, r,
-    normals_used, user_normals)`` turns raw fields into result attributes.
+    normals_used, user_normals)`` turns raw fields into result attributes. ``flip(raw,
+    mask)``, for a 'sign' method, turns the raw fields of a run without reference normals
+    into those of the opposite normal where ``mask`` is True, so that the orientation can
+    use the method's own normals afterwards instead of a PCA pass first.
     """
     name: str
     title: str
@@ -100,6 +103,7 @@ class Operator:
     finish: Callable
     reference: Callable
     options: tuple = ()
+    flip: Callable | None = None
 
     @property
     def signed(self):
@@ -206,6 +210,19 @@ def _finish_cov(raw, pts, r, n, user):
     return {k: raw[k] for k in ("k1", "k2", "dir1", "dir2", "eigenvalues")} | {"normals": n}
 
 
+def _flip_mls2(raw, mask):
+    """MLS2's raw fields for the opposite normal where ``mask``: n -> -n, (k1, k2) ->
+    (-k2, -k1) and dir1 <-> dir2 (so that (dir1, dir2, n) stays right-handed: with
+    n x dir1 = dir2, (-n) x dir2 = dir1); the shift (the projection) is unchanged."""
+    m = np.flatnonzero(mask)
+    raw["normals"][m] *= -1
+    k1, k2 = raw["k1"][m], raw["k2"][m]
+    raw["k1"][m], raw["k2"][m] = -k2, -k1
+    d1, d2 = raw["dir1"][m], raw["dir2"][m]
+    raw["dir1"][m], raw["dir2"][m] = d2, d1
+    return raw
+
+
 def _finish_mls2(raw, pts, r, n, user):
     k1, k2 = raw["k1"], raw["k2"]
     return {"k1": k1, "k2": k2, "dir1": raw["dir1"], "dir2": raw["dir2"],
@@ -285,7 +302,8 @@ OPERATORS = {op.name: op for op in (
               Output("normals", 3, "1", "unit normals of the fitted quadric at the "
                      "projection, oriented as `orient` says"),
               Output("points", 3, "length", "the MLS2 projection of p")),
-             "sign", _finish_mls2, _ref_mls2, options=("kernel", "h", "projections")),
+             "sign", _finish_mls2, _ref_mls2, options=("kernel", "h", "projections"),
+             flip=_flip_mls2),
 )}
 
 #: the method names, in the registry's order
