@@ -15,8 +15,9 @@ from .validate import (as_count, as_normals, as_points, as_radius, as_viewpoint,
                        device_radius)
 
 ORIENTS = ("auto", "mst", "viewpoint", "normals", "up", None)   # or a direction (3 floats)
-#: largest ``orient_k``: Hoppe's graph needs about 10; more only costs time and memory
-MAX_ORIENT_K = 256
+#: largest ``orient_k`` (the device graph's longest neighbour list, clcurv.graph.KMAX):
+#: Hoppe's graph needs about 10; more only costs time and memory
+MAX_ORIENT_K = 32
 MLS_KERNELS = ("ball", "gaussian")
 
 
@@ -255,7 +256,7 @@ def curvature(points, radius, *, method="mls1", weights="uniform", normals=None,
     viewpoint : 3 floats, optional
         Scanner position: normals are turned towards it.
     orient_k : int
-        Neighbours per point of the 'mst' propagation graph, 1 to 256 (default 10).
+        Neighbours per point of the 'mst' propagation graph, 1 to 32 (default 10).
     kernel : {'ball', 'gaussian'}, optional
         MLS2 only: neighbour weights uniform in the ball (default), or
         exp(-|q - p|^2 / h^2).

@@ -210,3 +210,9 @@ def test_mls2_orients_its_own_normals():
     gap = (a.k1 - a.k2)[v] > 0.1                       # directions defined
     assert np.all(np.abs(np.einsum("ij,ij->i", a.dir1[v][gap], b.dir1[v][gap])) > 0.999)
     assert np.all(np.einsum("ij,ij->i", np.cross(a.normals, a.dir1)[v], a.dir2[v]) > 0.999)
+
+
+def test_orient_k_bound_is_the_graph_bound():
+    from clcurv.api import MAX_ORIENT_K
+    from clcurv.graph import KMAX
+    assert MAX_ORIENT_K == KMAX
