@@ -3,6 +3,7 @@ each operator kernel alone (``cloud.timings`` of :func:`clcurv.driver.run_kernel
 scale space and the pipeline; then the accuracy checks of those runs."""
 from __future__ import annotations
 
+import json
 import math
 
 import clcurv
@@ -12,9 +13,9 @@ from clcurv.operators import OPERATORS, PCA
 
 from .accuracy import check_against_reference, check_ops, check_scale_space
 from .harness import cap_interior, log, paired, run_python, timed, timeit
-from .ops import HEADLINE, NORMAL_OPS, POINT_OPS, SIGN_OPS, orient_none
+from .ops import (CALL_ROWS, HEADLINE, NORMAL_OPS, POINT_OPS, SIGN_OPS, SS_ITERATIONS,
+                  VARIANTS, call, orient_none)
 
-SS_ITERATIONS = 5         # scale-space iterations timed (and the pipeline's)
 PAIRED_REPEATS = 5        # interleaved (operator, clcurv.normals) pairs for the time ratios
 BUILD_PCA, KERNEL_PCA = f"build_{PCA.name}", f"kernel_{PCA.name}"   # cloud.timings keys
 #: the stages of one moments run (DeviceCloud, then run_kernel(PCA)), in order
@@ -61,24 +62,70 @@ def bench_split(pts, r, index, repeats):
     return {"warm": warm, "kernel_single_pass_s": single}
 
 
-def bench_e2e(clouds, r, index, repeats):
-    """Public API end to end (orient=None): the operators that need no normals, and normals.
+def bench_calls(clouds, nrm, r, index, repeats):
+    """The lead table: every row of ops.CALL_ROWS called with each of ops.VARIANTS (the
+    default arguments, orient=None, the exact normals), end to end on the random-order cloud,
+    min of ``repeats`` runs after a warm-up; and curvature(HEADLINE) with default arguments
+    on the spatially sorted copy.
 
-    Returns seconds per operator and the warm-up results used for the accuracy check."""
+    Returns ({row: {variant: seconds}}, {"<HEADLINE>_sorted_input": seconds}) and the
+    warm-up results of the orient=None runs of HEADLINE and normals (the accuracy check)."""
     pts = clouds["random"]
     seconds, results = {}, {}
-    for m in POINT_OPS:
-        call = lambda m=m: clcurv.curvature(pts, r, method=m, orient=None, device=index)
-        results[m] = call()  # warm-up
-        seconds[m] = timeit(call, repeats, warmup=0)
-    call = lambda: clcurv.normals(pts, r, orient=None, device=index)
-    results["normals"] = call()
-    seconds["normals"] = timeit(call, repeats, warmup=0)
-    sorted_pts = clouds["sorted"]
-    seconds[f"{HEADLINE}_sorted_input"] = timeit(
-        lambda: clcurv.curvature(sorted_pts, r, method=HEADLINE, orient=None, device=index),
-        repeats)
-    return seconds, results
+    for row in CALL_ROWS:
+        seconds[row] = {}
+        for variant in VARIANTS:
+            fn = call(row, variant, pts, r, nrm, index)
+            res = fn()  # warm-up (builds the programs)
+            if variant == "orient_none" and row in (HEADLINE, "normals"):
+                results[row] = res
+            seconds[row][variant] = timeit(fn, repeats, warmup=0)
+    extra = {f"{HEADLINE}_sorted_input": timeit(call(HEADLINE, "default", clouds["sorted"], r,
+                                                     device=index), repeats)}
+    return (seconds, extra), results
+
+
+_PEAK_RSS = r"""
+import json, sys, time
+import numpy as np
+from clcurv import shapes
+from bench.harness import radius_for
+from bench.ops import call
+n, k, index, row, variant = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4], sys.argv[5]
+def status_mb(key):
+    with open("/proc/self/status") as f:
+        return int(next(ln for ln in f if ln.startswith(key + ":")).split()[1]) / 1024
+small = shapes.sphere(20_000, 1.0, seed=3)["points"]   # the programs built, the context made
+call(row, variant, small, radius_for(k, 20_000), small, index)()
+pts = shapes.sphere(n, 1.0)["points"]
+nrm = pts / np.linalg.norm(pts, axis=1)[:, None] if variant == "normals" else None
+with open("/proc/self/clear_refs", "w") as f:       # the high-water mark := the current RSS
+    f.write("5")
+base = status_mb("VmRSS")
+t0 = time.perf_counter()
+call(row, variant, pts, radius_for(k, n), nrm, index)()
+print(json.dumps({"seconds": time.perf_counter() - t0, "base_mb": base,
+                  "peak_mb": status_mb("VmHWM")}))
+"""
+
+
+def peak_rss(n, k, index, row, variant="default"):
+    """Peak RSS of one call in a fresh process (Linux): the high-water mark VmHWM, reset
+    (/proc/self/clear_refs) just before the call, read after it; and the RSS before the call
+    (the interpreter, the OpenCL context and programs from a call on a 20k-point sphere, the
+    n-point input cloud): the call's own peak is the difference."""
+    try:
+        out = json.loads(run_python(_PEAK_RSS, n, k, index, row, variant).strip().splitlines()[-1])
+    except Exception as exc:  # noqa: BLE001 - reported in the table, the bench goes on
+        return {"error": str(exc)}
+    out["delta_mb"] = out["peak_mb"] - out["base_mb"]
+    return out
+
+
+def bench_peak_rss(col, index, variants=("default",)):
+    """Peak RSS (:func:`peak_rss`) of every lead-table row, one child process per call."""
+    return {row: {v: peak_rss(col["n"], col["k"], index, row, v) for v in variants}
+            for row in CALL_ROWS}
 
 
 def bench_ops(pts, nrm, r, index, repeats, cap):
@@ -94,12 +141,12 @@ def bench_ops(pts, nrm, r, index, repeats, cap):
     calls.update({orient_none(m): (lambda m=m: clcurv.curvature(pts, r, method=m, orient=None,
                                                                 device=index))
                   for m in SIGN_OPS})
-    for name, call in calls.items():
+    for name, fn in calls.items():
         if name in NORMAL_OPS:
-            res = call()  # warm-up (builds the program)
+            res = fn()  # warm-up (builds the program)
             kept[name] = {a: getattr(res, a)[cap] for a in ("count", "status", "k1", "k2")}
         # interleaved with clcurv.normals, for the time ratio (PAIRED_REPEATS pairs)
-        seconds[name], seconds[f"normals_paired_{name}"] = paired(call, normals,
+        seconds[name], seconds[f"normals_paired_{name}"] = paired(fn, normals,
                                                                   max(repeats, PAIRED_REPEATS))
     cloud = DeviceCloud(pts, r, device=index)
     runs = {m: (OPERATORS[m].kernel, nrm) for m in NORMAL_OPS}
@@ -118,8 +165,9 @@ def bench_ops(pts, nrm, r, index, repeats, cap):
 
 def bench_scale_space(pts, nrm, r, index, repeats, cap, iterations=SS_ITERATIONS):
     """MLS1 scale space: 1 iteration end to end; ``iterations`` iterations end to end with
-    their stats (of the fastest run); the pipeline curvature(mls2, scale_space=iterations,
-    normals=exact). Also the displacement after 2 iterations on the cap (for the check)."""
+    their stats (of the fastest run). Also the displacement after 2 iterations on the cap
+    (for the check). The pipeline curvature(mls2, scale_space=iterations) is a row of
+    :func:`bench_calls`."""
     ss = clcurv.scale_space
     out = {"iterations": iterations,
            "one_iteration_s": timeit(lambda: ss(pts, r, 1, device=index), repeats)}
@@ -132,8 +180,6 @@ def bench_scale_space(pts, nrm, r, index, repeats, cap, iterations=SS_ITERATIONS
                steps_s=stats["steps"],
                per_iteration_s=(stats["binning"] + stats["steps"]) / iterations)
     disp2 = ss(pts, r, 2, device=index)[cap] - pts[cap]
-    out["pipeline_s"] = timeit(lambda: clcurv.curvature(
-        pts, r, method="mls2", scale_space=iterations, normals=nrm, device=index), repeats)
     return out, disp2
 
 
@@ -146,8 +192,10 @@ def device_record(info):
             "driver": info.driver, "version": info.version, "compute_units": info.compute_units}
 
 
-def bench_device(info, cols, data, refs, repeats, guard):
-    """All clcurv measurements on one device, per column (size, neighbour count)."""
+def bench_device(info, cols, data, refs, repeats, guard, rss_min_points=1_000_000):
+    """All clcurv measurements on one device, per column (size, neighbour count); the peak
+    RSS of the lead table's default calls for the columns of at least ``rss_min_points``
+    points (one child process per call, outside the timed blocks)."""
     log(f"device {info}: cold build (no PoCL cache, subprocess)")
     out = {"device": device_record(info), "cold_build_no_cache": cold_build(info.index), "k": {}}
     c0 = cols[0]
@@ -159,9 +207,10 @@ def bench_device(info, cols, data, refs, repeats, guard):
         pts, nrm = d["random"], d["normals"]
 
         def measure():
-            log(f"  {cid}: stages, end to end")
+            log(f"  {cid}: stages")
             split = bench_split(pts, r, info.index, repeats)
-            seconds, results = bench_e2e(d, r, info.index, repeats)
+            log(f"  {cid}: public calls (default arguments, orient=None, normals=)")
+            seconds, results = bench_calls(d, nrm, r, info.index, repeats)
             log(f"  {cid}: {', '.join(NORMAL_OPS)}")
             op_s, kern, kept = bench_ops(pts, nrm, r, info.index, repeats, cap)
             log(f"  {cid}: scale space, pipeline")
@@ -170,10 +219,19 @@ def bench_device(info, cols, data, refs, repeats, guard):
 
         split, seconds, results, op_s, kern, kept, ss, disp2 = guard.block(
             clcurv_label(info.index, cid), measure)
+        calls, extra = seconds
+        seconds = {**extra, "normals": calls["normals"]["orient_none"],
+                   **{m: calls[m]["orient_none"] for m in POINT_OPS}}
+        ss["pipeline_s"] = calls["pipeline"]["normals"]
+        rss = None
+        if col["n"] >= rss_min_points:
+            log(f"  {cid}: peak RSS of the default calls (a child process each)")
+            rss = bench_peak_rss(col, info.index)
         ref = refs[cid]
         check = check_against_reference(results, ref["result"], cap, cap_interior(pts, cap, r),
                                         ref["result_f32_input"])
         out["k"][cid] = {"n": col["n"], "neighbours": col["k"], "radius": r,
+                         "calls_s": calls, "peak_rss": rss,
                          "e2e_s": {**seconds, **op_s}, "split": split, "ops_kernel": kern,
                          "scale_space": ss, "check": check, "check_ops": check_ops(kept, ref),
                          "check_scale_space": check_scale_space(disp2, ref, pts, cap, r),

@@ -1,5 +1,8 @@
 """Which operators the bench times, read from the registry (clcurv.operators): a newly
-registered operator is timed, checked and tabulated without touching the bench."""
+registered operator is timed, checked and tabulated without touching the bench; and the
+public calls of the bench's lead table (:func:`call`)."""
+import clcurv
+from clcurv.api import _orientation
 from clcurv.operators import OPERATORS
 
 _ORIENT_NONE = "_orient_none"
@@ -35,3 +38,44 @@ def base(key):
 def label(key):
     """'mls2_orient_none' -> 'mls2 orient=None'; an operator's name stays."""
     return key if key == base(key) else f"{base(key)} orient=None"
+
+
+# ----------------------------------------------------------------------------- public calls
+SS_ITERATIONS = 5         # scale-space iterations timed (and the paper's pipeline's)
+#: the rows of the lead table: every operator, clcurv.normals, and the paper's pipeline
+#: curvature(method="mls2", scale_space=SS_ITERATIONS)
+CALL_ROWS = tuple(OPERATORS) + ("normals", "pipeline")
+#: the arguments each row is called with: the defaults, orient=None, the exact normals
+VARIANTS = ("default", "orient_none", "normals")
+VARIANT_TEXT = {"default": "", "orient_none": ", orient=None", "normals": ", normals=N"}
+
+
+def call(row, variant, pts, r, nrm=None, device=None):
+    """The public call of a lead-table row, with the arguments of ``variant`` (VARIANTS)."""
+    kw = {"device": device}
+    if variant == "orient_none":
+        kw["orient"] = None
+    elif variant == "normals":
+        kw["normals"] = nrm
+    if row == "normals":
+        return lambda: clcurv.normals(pts, r, **kw)
+    if row == "pipeline":
+        return lambda: clcurv.curvature(pts, r, method="mls2", scale_space=SS_ITERATIONS, **kw)
+    return lambda: clcurv.curvature(pts, r, method=row, **kw)
+
+
+def call_text(row, variant="default"):
+    """'curvature(P, r, method="mls2")' and the like."""
+    extra = VARIANT_TEXT[variant]
+    if row == "normals":
+        return f"normals(P, r{extra})"
+    if row == "pipeline":
+        return f'curvature(P, r, method="mls2", scale_space={SS_ITERATIONS}{extra})'
+    return f'curvature(P, r, method="{row}"{extra})'
+
+
+def default_orientation(row):
+    """What the default orient='auto' does for a row given neither normals nor a viewpoint
+    (clcurv.api's own rule): 'mst' (Hoppe's propagation on the device) or None."""
+    signed = True if row in ("normals", "pipeline") else OPERATORS[row].signed
+    return _orientation("auto", None, None, signed)

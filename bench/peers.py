@@ -8,7 +8,7 @@ import time
 import numpy as np
 
 import clcurv
-from clcurv import orient, reference, shapes
+from clcurv import orient, reference
 from clcurv.operators import OPERATORS, PCA
 
 from .harness import device_coordinates, mpts, radius_for, timed, timeit
@@ -118,25 +118,64 @@ def bench_open3d(o3d, clouds, r, repeats):
     return out
 
 
-def bench_orientation(o3d, m, device):
-    """Hoppe orientation (k = 10) on m sphere points: clcurv (min of 2) vs Open3D (run once)."""
-    pts = shapes.sphere(m, 1.0, seed=1)["points"]
-    nrm = clcurv.normals(pts, radius_for(30, m), orient=None, device=device)
+#: the orientation graph's neighbour count (clcurv's default orient_k; Open3D's argument)
+ORIENT_K = 10
+#: the stages of clcurv.orient.flip_on_device, in its cloud.timings
+ORIENT_STAGES = ("orient_graph", "orient_forest", "orient_signs")
 
-    def outward(n):  # fraction of normals pointing outward, and consistency (either way)
-        frac = float(np.mean(np.einsum("ij,ij->i", n, pts) > 0))
-        return frac, max(frac, 1 - frac)
 
-    flip = orient.flip_by_propagation(pts, nrm, k=10)
-    seconds = timeit(lambda: orient.flip_by_propagation(pts, nrm, k=10), 2, warmup=0)
-    n_cl = nrm.copy()
-    n_cl[flip] *= -1
-    out = {"points": m, "clcurv_s": seconds, "clcurv_outward": outward(n_cl)[0]}
-    if o3d is not None:
-        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-        pcd.normals = o3d.utility.Vector3dVector(nrm)
-        t0 = time.perf_counter()
-        pcd.orient_normals_consistent_tangent_plane(10)
-        out["open3d_s"] = time.perf_counter() - t0
-        out["open3d_outward"], out["open3d_consistent"] = outward(np.asarray(pcd.normals))
+def outward(n, pts):
+    """Fraction of normals pointing outward on the unit sphere (n . p > 0)."""
+    return float(np.mean(np.einsum("ij,ij->i", n, pts) > 0))
+
+
+def oriented(nrm, flip):
+    n = nrm.copy()
+    n[flip] *= -1
+    return n
+
+
+def bench_orientation(o3d, clouds, host_points, device, repeats):
+    """Orientation alone (Hoppe, k = ORIENT_K nearest within the radius of ~30 neighbours) of
+    the unoriented normals (clcurv.normals, orient=None) of each cloud ({n: points}):
+    clcurv.orient.flip_on_device on a DeviceCloud binned beforehand (min of ``repeats`` runs
+    after a warm-up; its stage times from the fastest run), then one run of its stages by
+    hand for the forest's rounds (clcurv.graph.knn_graph, clcurv.forest.spanning_forest).
+    On the cloud of ``host_points`` also the host reference flip_by_propagation (same graph;
+    min of 2) and Open3D's orient_normals_consistent_tangent_plane(ORIENT_K) (one run)."""
+    from clcurv import forest, graph
+    from clcurv.cloud import DeviceCloud
+    out = {"k": ORIENT_K, "device": device, "sizes": {}}
+    for n, pts in sorted(clouds.items()):
+        r = radius_for(30, n)
+        nrm = clcurv.normals(pts, r, orient=None, device=device)
+        cloud = DeviceCloud(pts, r, device=device)
+        orient.flip_on_device(cloud, nrm, r, ORIENT_K)   # warm-up (builds the programs)
+        best, flip, stages = math.inf, None, None
+        for _ in range(repeats):
+            s, f = timed(lambda: orient.flip_on_device(cloud, nrm, r, ORIENT_K))
+            if s < best:
+                best, flip, stages = s, f, {k: cloud.timings[k] for k in ORIENT_STAGES}
+        g = graph.knn_graph(cloud, r, nrm, ORIENT_K)
+        fo = forest.spanning_forest(cloud, g)
+        rec = {"n": n, "radius": r, "seconds": best, "mpts": mpts(n, best), "stages": stages,
+               "graph": dict(g.timings), "rounds": fo.rounds,
+               "round_s": list(fo.timings["rounds"]), "forest_init_s": fo.timings["init"],
+               "forest_output_s": fo.timings["output"], "edge_counts": list(fo.edge_counts),
+               "components": int(len(np.unique(fo.label[fo.label >= 0]))),
+               "outward": outward(oriented(nrm, flip), pts)}
+        if n == host_points:
+            host = orient.flip_by_propagation(pts, nrm, k=ORIENT_K, radius=r)
+            rec["host_s"] = min(timeit(lambda: orient.flip_by_propagation(
+                pts, nrm, k=ORIENT_K, radius=r), 1, warmup=0) for _ in range(2))
+            rec["host_outward"] = outward(oriented(nrm, host), pts)
+            rec["host_agree"] = float(np.mean(host == flip))
+            if o3d is not None:
+                pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+                pcd.normals = o3d.utility.Vector3dVector(nrm)
+                t0 = time.perf_counter()
+                pcd.orient_normals_consistent_tangent_plane(ORIENT_K)
+                rec["open3d_s"] = time.perf_counter() - t0
+                rec["open3d_outward"] = outward(np.asarray(pcd.normals), pts)
+        out["sizes"][n] = rec
     return out

@@ -12,14 +12,16 @@ from clcurv.operators import OPERATORS
 from .accuracy import SS_HOPS, tolerance
 from .contention import describe_threads
 from .harness import log, mpts
-from .measure import BUILD_PCA, KERNEL_PCA, PAIRED_REPEATS, SS_ITERATIONS, STAGES
-from .ops import (HEADLINE, NORMAL_OPS, PAIRED, POINT_OPS, SIGN_OPS, SIGNED_NORMAL_OPS,
-                  UNSIGNED_NORMAL_OPS, base, label, orient_none)
-from .peers import JAK_FEATURES, ref_extrapolated
+from .measure import BUILD_PCA, KERNEL_PCA, PAIRED_REPEATS, STAGES
+from .ops import (CALL_ROWS, HEADLINE, NORMAL_OPS, PAIRED, POINT_OPS, SIGNED_NORMAL_OPS,
+                  SS_ITERATIONS, UNSIGNED_NORMAL_OPS, base, call_text,
+                  default_orientation, label)
+from .peers import JAK_FEATURES, ORIENT_K, ref_extrapolated
 from .targets import (AGREE_MIN, BINNING_OVER_KERNEL_MAX, COS_TOL, COV_VS_NORMALS,
-                      E2E_VS_OPEN3D, KERNEL_MPTS_AT_30, MLS2_VS_NORMALS, MLS2_VS_REFERENCE,
-                      ORIENT_VS_OPEN3D, PIPELINE_MAX_S, SS_TOL, SS_VS_OPEN3D,
-                      THREADS_MIN_GAIN, VAR_MEDIAN_TOL, VS_REFERENCE)
+                      DEFAULT_VARIATION_VS_OPEN3D, KERNEL_MPTS_AT_30, MLS2_VS_NORMALS,
+                      MLS2_VS_REFERENCE, ORIENT_MPTS, ORIENT_VS_OPEN3D, PIPELINE_DEFAULT_MAX_S,
+                      PIPELINE_MAX_S, SS_TOL, SS_VS_OPEN3D, THREADS_MIN_GAIN, VAR_MEDIAN_TOL,
+                      VS_REFERENCE)
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -28,7 +30,7 @@ RESULTS = Path(__file__).resolve().parent / "results"
 def ratios(n, dev_k, ref, o3d_k, jak_k):
     """Throughputs and ratios of one device in one column (None when not measured)."""
     e = dev_k["e2e_s"]
-    e2e = e[HEADLINE]
+    e2e = dev_k["calls_s"][HEADLINE]["default"]     # curvature(method=HEADLINE), defaults
     warm = dev_k["split"]["warm"]
     o3d_normals = o3d_k["sorted"]["normals_s"] if o3d_k else None
     ss = dev_k["scale_space"]
@@ -66,18 +68,28 @@ def at_most(name, v, thr, unit="x"):
 def evaluate_targets(dev, rat, orientation, cols):
     """(name, value, threshold, pass) rows; pass is None when the value was not measured."""
     tcols = [c["id"] for c in target_columns(cols)]
-    rows = [at_least(f"normals+variation e2e / Open3D estimate_normals (sorted), {cid}",
-                     rat[cid]["vs_open3d_normals_sorted"], E2E_VS_OPEN3D) for cid in tcols]
     c30 = min(tcols, key=lambda c: abs(dev["k"][c]["neighbours"] - 30))
+    v = dev["k"][c30]["calls_s"]["pipeline"]["default"]
+    rows = [at_most(f"{call_text('pipeline')} e2e, default arguments, seconds, {c30}", v,
+                    PIPELINE_DEFAULT_MAX_S, " s")]
+    rows += [at_least(f"{call_text(HEADLINE)} e2e, default arguments / Open3D estimate_normals "
+                      f"(sorted), {cid}", rat[cid]["vs_open3d_normals_sorted"],
+                      DEFAULT_VARIATION_VS_OPEN3D) for cid in tcols]
+    top = max(orientation["sizes"])
+    o = orientation["sizes"][top]
+    rows.append(at_least(f"orientation alone (flip_on_device) M pts/s, {top:,} pts", o["mpts"],
+                         ORIENT_MPTS, ""))
+    o = next((x for x in orientation["sizes"].values() if "open3d_s" in x), None)
+    rows.append(at_least(
+        f"orientation alone / Open3D orient_normals_consistent_tangent_plane({ORIENT_K})"
+        + (f", {o['n']:,} pts" if o else ""),
+        o["open3d_s"] / o["seconds"] if o else None, ORIENT_VS_OPEN3D))
     rows.append(at_least(f"kernel-only M pts/s (curvature kernel, λ0 refined), {c30}",
                          rat[c30]["kernel_mpts"], KERNEL_MPTS_AT_30, ""))
-    rows += [at_least(f"e2e variation / NumPy reference, {cid}", rat[cid]["vs_reference"],
+    rows += [at_least(f"e2e variation (defaults) / NumPy reference, {cid}", rat[cid]["vs_reference"],
                       VS_REFERENCE) for cid in tcols]
     rows += [at_most(f"binning / kernel time, {cid}", rat[cid]["binning_over_kernel"],
                      BINNING_OVER_KERNEL_MAX, "") for cid in tcols]
-    v = (orientation["open3d_s"] / orientation["clcurv_s"]) if "open3d_s" in orientation else None
-    rows.append(at_least(f"orientation (k=10, {orientation['points'] // 1000}k pts) / Open3D", v,
-                         ORIENT_VS_OPEN3D))
     for cid in tcols:
         ra, K = rat[cid], dev["k"][cid]
         for m in SIGNED_NORMAL_OPS:
@@ -89,7 +101,7 @@ def evaluate_targets(dev, rat, orientation, cols):
         rows += [at_most(f"{m} e2e (normals=) time / clcurv.normals time, {cid}",
                          ra["op_over_normals"][m], COV_VS_NORMALS) for m in UNSIGNED_NORMAL_OPS]
         v = K["scale_space"]["pipeline_s"]
-        rows.append((f"pipeline scale_space={SS_ITERATIONS} + MLS2 e2e, seconds, {cid}", v,
+        rows.append((f"{call_text('pipeline', 'normals')} e2e, seconds, {cid}", v,
                      f"< {PIPELINE_MAX_S:g} s", v < PIPELINE_MAX_S))
         rows.append(at_least(f"scale-space iteration ((binning+steps)/{SS_ITERATIONS}) / Open3D "
                              f"estimate_normals (sorted), {cid}", ra["ss_iteration_vs_open3d"],
@@ -138,16 +150,12 @@ def device_rows(dev, refs, o3d, jak, rat, cols):
 
     rows = [("radius", [f"{K[c]['radius']:.5f}" for c in ids]),
             ("mean neighbour count, point included", [f"{K[c]['mean_count']:.1f}" for c in ids]),
-            ("**end to end, orient=None, random order**", ["M pts/s (ms)"] * len(ids))]
-    rows += [(f"clcurv.curvature({m})", e2e(m)) for m in POINT_OPS]
-    rows.append(("clcurv.normals", e2e("normals")))
-    rows.append((f"curvature({HEADLINE}), sorted input (info)",
-                 [f"{mpts(N[c], K[c]['e2e_s'][f'{HEADLINE}_sorted_input']):.2f}" for c in ids]))
-    rows.append(("**end to end, exact normals given (normals=: operator alone)**",
+            (f"{call_text(HEADLINE)} on the spatially sorted copy, M pts/s (ms)",
+             e2e(f"{HEADLINE}_sorted_input"))]
+    rows.append(("**end to end, interleaved with normals(P, r, orient=None) (the ratios)**",
                  ["M pts/s (ms)"] * len(ids)))
-    rows += [(f"clcurv.curvature({m}, normals=)", e2e(m)) for m in NORMAL_OPS]
-    rows += [(f"clcurv.curvature({m}, orient=None) (its own PCA frame)", e2e(orient_none(m)))
-             for m in SIGN_OPS]
+    rows += [(f"{call_text(base(k), 'orient_none' if k != base(k) else 'normals')}", e2e(k))
+             for k in PAIRED]
     rows.append(("**stages, ms (min of warm runs)**", blank))
     rows += [(st, [ms(K[c]["split"]["warm"][st]) for c in ids]) for st in STAGES]
     first = dev["first_in_process"]
@@ -158,7 +166,7 @@ def device_rows(dev, refs, o3d, jak, rat, cols):
     if "error" not in cold:
         rows.append((f"build + {BUILD_PCA} with PoCL's disk cache off",
                      first_only(f"{ms(cold['build'])} + {ms(cold[BUILD_PCA])}")))
-    rows.append((f"host rest ≈ e2e {HEADLINE} − Σ warm stages (ms)",
+    rows.append((f"host rest ≈ e2e {HEADLINE} orient=None − Σ warm stages (ms)",
                  [ms(K[c]["e2e_s"][HEADLINE] - sum(K[c]["split"]["warm"].values()))
                   for c in ids]))
     rows.append(("kernel-only M pts/s (λ0 refined, curvature / one pass, normals)",
@@ -196,7 +204,7 @@ def scale_space_rows(K, ids, N):
               for c in ids]),
             (f"per iteration, (binning + steps) / {SS_ITERATIONS} (M pts/s)",
              [rate(c, "per_iteration_s") for c in ids]),
-            (f"pipeline curvature(mls2, scale_space={SS_ITERATIONS}, normals=) e2e",
+            (f"pipeline {call_text('pipeline', 'normals')} e2e",
              [ms(S[c]["pipeline_s"]) for c in ids])]
 
 
@@ -224,11 +232,13 @@ def peer_rows(refs, o3d, jak, ids, N):
 def ratio_rows(rat, ids, jak):
     col = lambda key, spec: [fmt(rat[c][key], spec, "x") for c in ids]
     rows = [("**ratios**", [""] * len(ids)),
-            ("e2e variation / Open3D estimate_normals (sorted)",
+            (f"e2e {call_text(HEADLINE)} / Open3D estimate_normals (sorted)",
              col("vs_open3d_normals_sorted", ".1f"))]
     if jak:
-        rows.append(("e2e variation / jakteristics (sorted)", col("vs_jakteristics_sorted", ".1f")))
-    rows.append(("e2e variation / NumPy reference (extrapolated)", col("vs_reference", ".0f")))
+        rows.append((f"e2e {call_text(HEADLINE)} / jakteristics (sorted)",
+                     col("vs_jakteristics_sorted", ".1f")))
+    rows.append((f"e2e {call_text(HEADLINE)} / NumPy reference (extrapolated)",
+                 col("vs_reference", ".0f")))
     rows += [(f"e2e {label(k)} / NumPy reference {base(k)} (extrapolated)",
               [fmt(rat[c]["op_vs_reference"][k], ".0f", "x") for c in ids]) for k in PAIRED]
     rows.append(("scale-space iteration / NumPy reference iteration",
@@ -288,6 +298,87 @@ def accuracy_rows(K, ids):
     return rows
 
 
+# ----------------------------------------------------------------------------- lead tables
+LEAD_HEADER = ["default orients", "defaults: M pts/s (ms)", "peak RSS MB (+rise)",
+               "orient=None", "normals=exact"]
+
+
+def lead_rows(K):
+    """One column's lead table: every public call with its default arguments, then the same
+    call with orient=None and with the exact normals; the default call's peak RSS."""
+    n = K["n"]
+    cell = lambda s: f"{mpts(n, s):.2f} ({ms(s)})"
+    rows = []
+    for row in CALL_ROWS:
+        S = K["calls_s"][row]
+        how = default_orientation(row)
+        rss = (K.get("peak_rss") or {}).get(row, {}).get("default")
+        if rss is None:
+            mem = "–"
+        elif "error" in rss:
+            mem = "error"
+        else:
+            mem = f"{rss['peak_mb']:.0f} (+{rss['delta_mb']:.0f})"
+        rows.append((call_text(row), ["MST on device" if how == "mst" else "none",
+                                      cell(S["default"]), mem, cell(S["orient_none"]),
+                                      cell(S["normals"])]))
+    return rows
+
+
+LEAD_NOTE = (
+    "Public calls end to end (numpy in, numpy out; random point order), min of the repeats "
+    "after a warm-up. 'defaults': the call as written (orient='auto': signed methods orient "
+    "their PCA normals on the device by Hoppe's MST, unsigned ones do not orient, so their "
+    "orient=None call is the same call timed again); 'orient=None': no global orientation; "
+    "'normals=exact': the sphere's exact normals given (the operators that read normals run "
+    "without their PCA pass; the others orient to them). Peak RSS: a fresh process runs the "
+    "default call once on the same cloud; its high-water mark (VmHWM, reset just before the "
+    "call) during the call, and in brackets the rise over its RSS before the call (the "
+    "interpreter, the OpenCL context and programs, the input cloud).")
+
+
+def orientation_rows(o):
+    """The orientation-alone section: a column per size."""
+    sizes = sorted(o["sizes"])
+    S = [o["sizes"][n] for n in sizes]
+    col = lambda f: [f(x) for x in S]
+    opt = lambda key, f: [f(x) if key in x else "" for x in S]
+    rows = [("radius (~30 neighbours)", col(lambda x: f"{x['radius']:.5f}")),
+            (f"clcurv.orient.flip_on_device (k={o['k']}), M pts/s (ms)",
+             col(lambda x: f"{x['mpts']:.2f} ({ms(x['seconds'])})")),
+            ("  k-NN graph (orient_graph), ms", col(lambda x: ms(x["stages"]["orient_graph"]))),
+            ("  spanning forest (orient_forest), ms",
+             col(lambda x: ms(x["stages"]["orient_forest"]))),
+            ("    one run by hand: Borůvka rounds, Σ round ms (init + output ms)",
+             col(lambda x: f"{x['rounds']}, {ms(sum(x['round_s']))} ({ms(x['forest_init_s'])} "
+                           f"+ {ms(x['forest_output_s'])})")),
+            ("    ms per round",
+             col(lambda x: " ".join(f"{t * 1e3:.0f}" for t in x["round_s"]))),
+            ("  signs (orient_signs), ms", col(lambda x: ms(x["stages"]["orient_signs"]))),
+            ("  components; outward fraction",
+             col(lambda x: f"{x['components']}; {x['outward']:.4%}")),
+            ("host reference flip_by_propagation (same graph), M pts/s (ms)",
+             opt("host_s", lambda x: f"{mpts(x['n'], x['host_s']):.3f} ({ms(x['host_s'])})")),
+            ("  outward fraction; flips equal to the device's",
+             opt("host_s", lambda x: f"{x['host_outward']:.4%}; {x['host_agree']:.4%}")),
+            (f"Open3D orient_normals_consistent_tangent_plane({o['k']}), one run, M pts/s (ms)",
+             opt("open3d_s",
+                 lambda x: f"{mpts(x['n'], x['open3d_s']):.3f} ({ms(x['open3d_s'])})")),
+            ("  outward fraction", opt("open3d_s", lambda x: f"{x['open3d_outward']:.4%}")),
+            ("device / host reference; device / Open3D",
+             opt("host_s", lambda x: f"{x['host_s'] / x['seconds']:.1f}x; " + (
+                 f"{x['open3d_s'] / x['seconds']:.1f}x" if "open3d_s" in x else "–")))]
+    return [f"{n:,} pts" for n in sizes], rows
+
+
+ORIENT_NOTE = (
+    "Orientation alone: the unoriented PCA normals (normals(P, r, orient=None)) of the bench "
+    "sphere oriented on a DeviceCloud binned beforehand (binning not included), min of the "
+    "repeats after a warm-up; stage times of the fastest run; the forest's rounds from one "
+    "more run of clcurv.graph.knn_graph + clcurv.forest.spanning_forest. The host reference "
+    "builds the same graph (k nearest within the radius) in float64.")
+
+
 # ----------------------------------------------------------------------------- rendering
 def render_text(header, rows):
     w0 = max(len(r[0]) for r in rows + [header]) + 2
@@ -344,23 +435,13 @@ def summary_text(env, args, threads, jak_note):
         "evaluated at the largest size."])
 
 
-def orientation_text(o):
-    line = (f"orientation, {o['points']:,} sphere points, k=10: clcurv flip_by_propagation "
-            f"{o['clcurv_s']:.2f} s ({o['points'] / o['clcurv_s'] / 1e3:.0f} k pts/s, "
-            f"{o['clcurv_outward'] * 100:.2f}% outward)")
-    if "open3d_s" in o:
-        line += (f"; Open3D orient_normals_consistent_tangent_plane(10) {o['open3d_s']:.2f} s, "
-                 f"one run ({o['points'] / o['open3d_s'] / 1e3:.0f} k pts/s, "
-                 f"{o['open3d_consistent'] * 100:.2f}% consistent)")
-    return line
-
-
 # ----------------------------------------------------------------------------- files
 def report(args, env, guard, cols, refs, o3d_res, jak_res, jak_note, orientation, devs):
-    """Print the tables and write JSON (one file per device kind) and bench.md."""
+    """Print the tables and write JSON (one file per device kind) and bench.md: per device,
+    the default calls first, then orientation alone, every row, the targets."""
     RESULTS.mkdir(parents=True, exist_ok=True)
     threads = guard.checks
-    text = [summary_text(env, args, threads, jak_note), orientation_text(orientation)]
+    text = [summary_text(env, args, threads, jak_note)]
     if guard.busy():
         text.append(f"WARNING: cores were busy around: {', '.join(guard.busy())}; their figures "
                     "are pessimistic and ratios involving them are unreliable: rerun on a quiet "
@@ -368,6 +449,7 @@ def report(args, env, guard, cols, refs, o3d_res, jak_res, jak_note, orientation
     md = ["# clcurv benchmark", "", "```", *text, "```"]
     kinds_seen = {}
     ids = [c["id"] for c in cols]
+    o_sizes, o_rows = orientation_rows(orientation)
     for dev in devs:
         rat = {c["id"]: ratios(c["n"], dev["k"][c["id"]], refs[c["id"]], o3d_res.get(c["id"]),
                                jak_res.get(c["id"])) for c in cols}
@@ -375,11 +457,25 @@ def report(args, env, guard, cols, refs, o3d_res, jak_res, jak_note, orientation
         title = (f"[{d['index']}] {d['name']} — {d['platform']} "
                  f"({env['platforms'].get(d['platform'], '?')}), driver {d['driver']}, "
                  f"{d['version']}, {d['compute_units']} compute units")
+        text += ["", title, "", "WHAT THE DEFAULT CALL COSTS", LEAD_NOTE]
+        md += ["", f"## {title}", "", "### What the default call costs", "", LEAD_NOTE]
+        for cid in ids:
+            K = dev["k"][cid]
+            head = (f"{cid} (r = {K['radius']:.5f}, {K['mean_count']:.1f} neighbours)",
+                    LEAD_HEADER)
+            lead = lead_rows(K)
+            text += ["", render_text(head, lead)]
+            md += ["", render_markdown(head, lead)]
+        if d["index"] == orientation.get("device"):
+            head = (f"orientation alone, k={orientation['k']}", o_sizes)
+            text += ["", "ORIENTATION ALONE", ORIENT_NOTE, render_text(head, o_rows)]
+            md += ["", "### Orientation alone", "", ORIENT_NOTE, "", render_markdown(head, o_rows)]
         header = ("n, neighbours", ids)
         rows = device_rows(dev, refs, o3d_res, jak_res, rat, cols)
         tgt = target_lines(evaluate_targets(dev, rat, orientation, cols))
-        text += ["", title, render_text(header, rows), "", "targets", render_targets(tgt)]
-        md += ["", f"## {title}", "", render_markdown(header, rows), "",
+        text += ["", "EVERY ROW", render_text(header, rows), "", "TARGETS (bench/targets.py)",
+                 render_targets(tgt)]
+        md += ["", "### Every row", "", render_markdown(header, rows), "", "### Targets", "",
                "| target | value | threshold | result |", "|---|---:|---|---|"]
         md += [md_row(list(t)) for t in tgt]
         kind = d["kind"]

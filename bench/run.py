@@ -5,6 +5,7 @@ Run from the repository root::
     python -m bench.run                 # 100k and 1M points, ~30 and ~100 neighbours, 3 repeats
     python -m bench.run --quick         # 100k points, ~30 neighbours: smoke run (< 1 min)
     python -m bench.run --sizes 1M --neighbours 30
+    python -m bench.run --sizes 1M      # only the 1M rows (orientation also at 100k)
     python -m bench.run --no-open3d --no-jakteristics
 
 The cloud is a uniform sample of the unit sphere (``clcurv.shapes.sphere``) in random order,
@@ -13,18 +14,24 @@ give ~k neighbours: r = sqrt(4 k / n) (area 4 pi, k = n pi r^2 / (4 pi)). Every 
 minimum of ``--repeats`` runs after an untimed warm-up (so program builds are cached), except
 where the table says otherwise.
 
-Measured, per device, size and neighbour count, for the operators of the registry
-(``clcurv.operators``): those whose kernel reads no normals (variation, mls0, mls1) and
-normals, ``orient=None``; those whose kernel reads normals (2dcov1, 2dcov2, 3dcov, mls2) with
-the exact normals given (``normals=``: the operator alone, no PCA pass), and those of them
-that only take a normal's sign (mls2) also with ``orient=None`` (their own PCA frame), each
-end to end and kernel only (``cloud.timings``); the MLS1 scale space (1 iteration end to end;
-5 iterations with ``return_stats``) and the pipeline ``curvature(method="mls2",
-scale_space=5, normals=...)``. Peers: the NumPy reference of every operator (timed once on a
-polar cap of the same cloud, extrapolated linearly), Open3D
-``estimate_normals``/``estimate_covariances`` and jakteristics ``compute_features``. Results
-are checked against the reference on the cap, with the tolerances of ``bench/targets.py``
-(those the tests assert), and the speed targets of that module are evaluated.
+Measured, per device, size and neighbour count, first what a user gets from the default
+call: every operator of the registry (``clcurv.operators``) as ``curvature(P, r, method=m)``,
+``normals(P, r)`` and the paper's pipeline ``curvature(P, r, method="mls2", scale_space=5)``,
+each with its default arguments (orient='auto': signed methods orient their PCA normals on
+the device, unsigned ones do not orient), with ``orient=None`` and with the exact normals
+(``normals=``), end to end; at sizes >= ``--rss-min-points`` (1M) the peak RSS of each default
+call (a fresh process running it once). Then orientation alone at every size and at
+``--orient-points`` (100k): ``clcurv.orient.flip_on_device`` split into the k-NN graph, the
+Boruvka rounds and the signs, against the host reference ``flip_by_propagation`` (same
+graph) and Open3D ``orient_normals_consistent_tangent_plane(10)`` at 100k, with the outward
+fraction of each. Then the detail: the stages of one moments run, each kernel alone
+(``cloud.timings``), the operators interleaved with ``normals(orient=None)`` for the time
+ratios, the MLS1 scale space (1 iteration; 5 with ``return_stats``). Peers: the NumPy
+reference of every operator (timed once on a polar cap of the same cloud, extrapolated
+linearly), Open3D ``estimate_normals``/``estimate_covariances`` and jakteristics
+``compute_features``. Results are checked against the reference on the cap, with the
+tolerances of ``bench/targets.py`` (those the tests assert), and the speed targets of that
+module are evaluated (PASS/FAIL).
 
 Each block (reference, clcurv per device and column, Open3D, jakteristics, orientation) runs
 between two checks that both cores are free (a PoCL kernel timed with 1 and 2 threads); busy
@@ -74,7 +81,11 @@ def parse_args(argv=None):
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--ref-points", type=int, default=100_000,
                     help="points of the NumPy reference subsample (at most n/4)")
-    ap.add_argument("--orient-points", type=int, default=100_000)
+    ap.add_argument("--orient-points", type=parse_size, default=100_000,
+                    help="size of the orientation cloud with the host reference and Open3D "
+                         "(the device orientation also runs at every --sizes)")
+    ap.add_argument("--rss-min-points", type=parse_size, default=1_000_000, metavar="N",
+                    help="peak RSS of the default calls (a child process each) at sizes >= N")
     ap.add_argument("--quick", action="store_true",
                     help="100k points, ~30 neighbours, 1 repeat, 20k-point subsamples (< 1 min)")
     ap.add_argument("--no-open3d", action="store_true")
@@ -118,7 +129,8 @@ def main(argv=None):
     refs = {c["id"]: guard.block(f"NumPy reference {c['id']}", lambda c=c: bench_reference(
         data[c["n"]]["random"], c["r"], c["cap"], data[c["n"]]["normals"])) for c in cols}
 
-    devs = [bench_device(info, cols, data, refs, args.repeats, guard) for info in infos]
+    devs = [bench_device(info, cols, data, refs, args.repeats, guard, args.rss_min_points)
+            for info in infos]
 
     o3d_res, jak_res = {}, {}
     for c in cols:
@@ -129,8 +141,10 @@ def main(argv=None):
                 label = f"{name} {c['id']}"
                 res[c["id"]] = guard.block(label, lambda: fn(mod, clouds, c["r"], args.repeats))
                 res[c["id"]]["threads"] = guard.gains(label)
+    oclouds = {n: data[n]["random"] if n in data else make_clouds(n)[0]
+               for n in sorted(set(args.sizes) | {args.orient_points})}
     orientation = guard.block("orientation", lambda: bench_orientation(
-        o3d, args.orient_points, infos[0].index))
+        o3d, oclouds, args.orient_points, infos[0].index, args.repeats))
 
     report(args, env, guard, cols, refs, o3d_res, jak_res, jak_note, orientation, devs)
 
