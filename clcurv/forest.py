@@ -158,30 +158,28 @@ def spanning_forest(cloud, graph):
     if m == 0:
         timings["rounds"].append(time.perf_counter() - ta)
     else:
-        lists = [[buf(4 * m) for _ in range(3)] for _ in range(2)]
-        _launch(dev, prg.next_lo, nb, graph.nbr, graph.wgt, cloud.order, mask, comp, u32(n), u32(k),
-                u32(BLOCK), offsets, bw, blo, *lists[0])
-    cur = 0
+        eu, ev, ew = (buf(4 * m) for _ in range(3))
+        _launch(dev, prg.next_lo, nb, graph.nbr, graph.wgt, cloud.order, mask, comp, u32(n),
+                u32(k), u32(BLOCK), offsets, bw, blo, eu, ev, ew)
+    # later rounds: the edges that still join two components at the start of each block
+    mtot, ne, dense = m, _blocks(m), 1
     while m > 0:
-        eu, ev, ew = lists[cur]
         if rounds > 1:
             ta = time.perf_counter()
-            nb = _blocks(m)
-            _launch(dev, prg.min_weight, nb, eu, ev, ew, u32(m), u32(BLOCK), comp, bw, counts)
-            _launch(dev, prg.scan_blocks, 1, counts, u32(nb), offsets, tot)
+            _launch(dev, prg.min_weight, ne, eu, ev, ew, u32(mtot), u32(BLOCK), u32(dense),
+                    comp, bw, counts)
+            dense = 0
+            _launch(dev, prg.scan_blocks, 1, counts, u32(ne), offsets, tot)
             cl.enqueue_copy(q, total, tot)
-            m2 = int(total[0])
-            edge_counts.append(m2)
-            if m2 == 0:
+            m = int(total[0])
+            edge_counts.append(m)
+            if m == 0:
                 timings["rounds"].append(time.perf_counter() - ta)
                 break
-            out = lists[1 - cur]
-            _launch(dev, prg.min_lo, nb, eu, ev, ew, u32(m), u32(BLOCK), offsets, comp,
-                    cloud.order, bw, blo, *out)
-            cur, m = 1 - cur, m2
-            eu, ev, ew = out
-        _launch(dev, prg.min_hi, _blocks(m), eu, ev, ew, u32(m), u32(BLOCK), comp, cloud.order,
-                bw, blo, bhi)
+            _launch(dev, prg.min_lo, ne, eu, ev, ew, u32(mtot), u32(BLOCK), u32(dense), counts,
+                    comp, cloud.order, bw, blo)
+        _launch(dev, prg.min_hi, ne, eu, ev, ew, u32(mtot), u32(BLOCK), u32(dense), counts,
+                comp, cloud.order, bw, blo, bhi)
         merge(0)
         rounds += 1
         timings["rounds"].append(time.perf_counter() - ta)

@@ -51,50 +51,54 @@ inline void lower(volatile __global uint *p, uint v)
     if (v < *p) atomic_min(p, v);
 }
 
-/* Pass 1 of a round: every component's lightest edge weight (bw), and the number of edges
- * of block b that join two components (counts[b]). */
-__kernel void min_weight(__global const uint *eu, __global const uint *ev,
-                         __global const uint *ew, const uint m, const uint B,
+/* Rounds 3 on use the edge list of round 2 in blocks of B edges: block b holds its live
+ * edges at its start, all B of them (or up to m) when dense, else counts[b]. */
+inline uint block_len(uint b, uint B, uint m, uint dense, __global const uint *counts)
+{
+    return dense ? min(B, m - b * B) : counts[b];
+}
+
+/* Pass 1 of a round: every component's lightest edge weight (bw); the edges of block b that
+ * join two components moved to the block's start, in order, and counted (counts[b]). */
+__kernel void min_weight(__global uint *eu, __global uint *ev, __global uint *ew,
+                         const uint m, const uint B, const uint dense,
                          __global const uint *comp, volatile __global uint *bw,
                          __global uint *counts)
 {
     const uint b = get_global_id(0);
     const uint e0 = b * B;
     if (e0 >= m) return;
-    const uint e1 = min(e0 + B, m);
-    uint c = 0;
-    for (uint e = e0; e < e1; ++e) {
-        const uint cu = comp[eu[e]], cv = comp[ev[e]];
-        if (cu == cv) continue;
-        ++c;
-        const uint w = ew[e];
-        lower(bw + cu, w);
-        lower(bw + cv, w);
-    }
-    counts[b] = c;
-}
-
-/* Pass 2: the edges of block b that join two components, compacted to offsets[b] on in the
- * output lists, and each component's smallest input index order[eu] among its edges of the
- * lightest weight (blo). */
-__kernel void min_lo(__global const uint *eu, __global const uint *ev, __global const uint *ew,
-                     const uint m, const uint B, __global const uint *offsets,
-                     __global const uint *comp, __global const uint *order,
-                     __global const uint *bw, volatile __global uint *blo,
-                     __global uint *eu2, __global uint *ev2, __global uint *ew2)
-{
-    const uint b = get_global_id(0);
-    const uint e0 = b * B;
-    if (e0 >= m) return;
-    const uint e1 = min(e0 + B, m);
-    uint o = offsets[b];
+    const uint e1 = e0 + block_len(b, B, m, dense, counts);
+    uint o = e0;
     for (uint e = e0; e < e1; ++e) {
         const uint u = eu[e], v = ev[e];
         const uint cu = comp[u], cv = comp[v];
         if (cu == cv) continue;
         const uint w = ew[e];
-        eu2[o] = u; ev2[o] = v; ew2[o] = w;
+        eu[o] = u; ev[o] = v; ew[o] = w;
         ++o;
+        lower(bw + cu, w);
+        lower(bw + cv, w);
+    }
+    counts[b] = o - e0;
+}
+
+/* Pass 2: each component's smallest input index order[eu] among its edges of the lightest
+ * weight (blo). */
+__kernel void min_lo(__global const uint *eu, __global const uint *ev, __global const uint *ew,
+                     const uint m, const uint B, const uint dense,
+                     __global const uint *counts, __global const uint *comp,
+                     __global const uint *order, __global const uint *bw,
+                     volatile __global uint *blo)
+{
+    const uint b = get_global_id(0);
+    const uint e0 = b * B;
+    if (e0 >= m) return;
+    const uint e1 = e0 + block_len(b, B, m, dense, counts);
+    for (uint e = e0; e < e1; ++e) {
+        const uint u = eu[e], v = ev[e];
+        const uint cu = comp[u], cv = comp[v];
+        const uint w = ew[e];
         const int tu = w == bw[cu], tv = w == bw[cv];
         if (tu | tv) {
             const uint lo = order[u];
@@ -107,14 +111,15 @@ __kernel void min_lo(__global const uint *eu, __global const uint *ev, __global 
 /* Pass 3: each component's largest-index endpoint order[ev] among its edges of weight bw
  * and smaller endpoint blo (bhi). */
 __kernel void min_hi(__global const uint *eu, __global const uint *ev, __global const uint *ew,
-                     const uint m, const uint B, __global const uint *comp,
+                     const uint m, const uint B, const uint dense,
+                     __global const uint *counts, __global const uint *comp,
                      __global const uint *order, __global const uint *bw,
                      __global const uint *blo, volatile __global uint *bhi)
 {
     const uint b = get_global_id(0);
     const uint e0 = b * B;
     if (e0 >= m) return;
-    const uint e1 = min(e0 + B, m);
+    const uint e1 = e0 + block_len(b, B, m, dense, counts);
     for (uint e = e0; e < e1; ++e) {
         const uint w = ew[e];
         const uint u = eu[e], v = ev[e];
