@@ -10,7 +10,10 @@
  * the last; wgt[g k + s] its edge weight (float)
  *     w = 1 - |n_g . n_j| + |d . n_g| |d . n_j| / |d|^2,   d = p_j - p_g   (0 when d = 0)
  * computed from the walk of the endpoint with the smaller input index, so both lists that
- * hold an edge hold the same bits.
+ * hold an edge hold the same bits (forest.cl relies on it: first_weight, next_weight take
+ * the lightest edge of a point from its own list, whichever copy that is). In g's list that
+ * is g's own walk when order[g] < order[j] (the lanes of the second pass, lane_weights),
+ * else edge_weight from j's walk.
  */
 #include "common.h"
 #include "neighbors.h"
@@ -18,14 +21,23 @@
 
 #define VSTOREV CAT(vstore, VW)
 
-/* Squared-distance bins of the first pass of knn_graph: bin b holds d^2 < r^2 (b + 1) / NBIN */
+/* Squared-distance bins of the first pass of knn_graph: a point at squared distance d2 is in
+ * bin min(floor(d2 NBIN / r^2), NBIN - 1) (monotone in d2, so the bins up to any one hold a
+ * nearest-first prefix of the ball) */
 #define NBIN 8
-/* Most candidates the second pass collects (those below the bin edge reached by k); a point
- * with more (many coincident points) takes the insertion path instead */
+/* Most candidates the second pass collects (those in the bins up to the one reached by k);
+ * a point with more (many coincident points) takes the insertion path instead */
 #define MCAP 48                 /* a multiple of 16 */
+#define KEY_NONE 0xffffffffffffffffUL
+#define ULONGV CAT(ulong, VW)
+#define LONGV CAT(long, VW)
+#define CONVERT_ULONGV CAT(convert_ulong, VW)
+#define CONVERT_LONGV CAT(convert_long, VW)
+#define CONVERT_FLOATV CAT(convert_float, VW)
+#define CONVERT_IREALV CAT(convert_, IREALV)
 #define FLOATV CAT(float, VW)
 #define VSTOREF CAT(vstore, VW)
-#define KEY_NONE 0xffffffffffffffffUL
+#define BYTES 0x00ff00ff00ff00ffUL
 
 /* Offsets q - p of the chunk at i as seen from a row (pr, neighbors.h) and its live lanes
  * (the ball test is the caller's, on sqdist, so both passes see the same numbers). */
@@ -42,6 +54,60 @@ inline IREALV lane_offsets(__global const REAL *X, __global const REAL *Y,
 inline REALV sqdist(REALV dx, REALV dy, REALV dz)
 {
     return fma(dz, dz, fma(dy, dy, dx * dx));
+}
+
+/* The bin of each lane (see NBIN; s = NBIN / r^2; NaN -> the last bin) */
+inline ULONGV bin_of(REALV d2, REAL s)
+{
+    return CONVERT_ULONGV(fmin(d2 * s, (REALV)(NBIN - 1)));
+}
+
+/* Is any lane of a mask set? (An OR tree: PoCL 3.1's any() made the second pass of
+ * knn_graph about twice as slow.) */
+inline int any_lane(IREALV m)
+{
+#if VW == 16
+    CAT(IREAL, 8) a = m.lo | m.hi;
+    CAT(IREAL, 4) b = a.lo | a.hi;
+#elif VW == 8
+    CAT(IREAL, 4) b = m.lo | m.hi;
+#elif VW == 4
+    CAT(IREAL, 4) b = m;
+#endif
+#if VW >= 4
+    CAT(IREAL, 2) c = b.lo | b.hi;
+    return (c.x | c.y) != 0;
+#else
+    return (m.x | m.y) != 0;
+#endif
+}
+
+/* Sum of the lanes of a ulong vector */
+inline ulong hsum_ul(ULONGV v)
+{
+#if VW == 16
+    ulong8 a = v.lo + v.hi;
+    ulong4 b = a.lo + a.hi;
+#elif VW == 8
+    ulong4 b = v.lo + v.hi;
+#elif VW == 4
+    ulong4 b = v;
+#endif
+#if VW >= 4
+    ulong2 c = b.lo + b.hi;
+    return c.x + c.y;
+#else
+    return v.x + v.y;
+#endif
+}
+
+/* Bin counts packed 8 bits per bin in each lane of acc (at most 255 chunks' worth), added to
+ * the totals tot (one lane per bin) */
+inline uint8 unpack_bins(ULONGV acc)
+{
+    const ulong e = hsum_ul(acc & BYTES), o = hsum_ul((acc >> 8) & BYTES);   /* 16-bit fields */
+    return convert_uint8((ulong8)(e, o, e >> 16, o >> 16, e >> 32, o >> 32, e >> 48, o >> 48)
+                         & (ulong8)0xffff);
 }
 
 /* The ordering key of a neighbour: its squared distance (as float: for double precision
@@ -74,13 +140,28 @@ inline float edge_weight(__global const REAL *X, __global const REAL *Y,
     return w > 0 ? (float)w : 0.0f;                    /* +0, never -0 */
 }
 
+/* The edge weights of the lanes (see the top) from the offsets d of g's walk, g's normal ng
+ * and the lanes' normals nj, with dot3's roundings. */
+inline FLOATV lane_weights(REALV dx, REALV dy, REALV dz, REAL3 ng, REALV njx, REALV njy,
+                           REALV njz)
+{
+    const REALV d2 = sqdist(dx, dy, dz);
+    const REALV a = fabs(fma(dz, (REALV)ng.z, fma(dy, (REALV)ng.y, dx * ng.x)));
+    const REALV b = fabs(fma(dz, njz, fma(dy, njy, dx * njx)));
+    const REALV t = select((REALV)0, (a * b) / d2, d2 > 0);
+    const REALV nn = fma((REALV)ng.z, njz, fma((REALV)ng.y, njy, ng.x * njx));
+    const REALV w = ((REALV)1 - fabs(nn)) + t;
+    return select((FLOATV)0, CONVERT_FLOATV(w), CAT(convert_int, VW)(w > 0));   /* +0, never -0 */
+}
+
 /* The k nearest neighbours of every sorted point and their edge weights (see the top).
  *
- * Pass 1 counts the valid points of the ball in NBIN squared-distance bins; the first bin
- * edge e below which at least k others lie bounds the k-th distance. Pass 2 collects the
- * (about k) others below e, and each one's rank among them (by (distance, input index)) is
- * its place in the list: no sorting. More than MCAP below e (coincident points): a
- * bounded insertion sort over the whole ball instead. */
+ * Pass 1 counts the valid points of the ball in NBIN squared-distance bins (8-bit counters
+ * packed in a ulong per lane, emptied every 255 chunks); the first bin up to which at least k
+ * others lie bounds the k-th distance. Pass 2 collects the (about k) others up to that bin
+ * with their weights, and each one's rank among them (by (distance, input index)) is its
+ * place in the list: no sorting. More than MCAP of them (coincident points): a bounded
+ * insertion sort over the whole ball instead. */
 __kernel void knn_graph(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
                         __global const REAL *NX, __global const REAL *NY,
                         __global const REAL *NZ, __global const uint *cell_of,
@@ -97,81 +178,101 @@ __kernel void knn_graph(__global const REAL *X, __global const REAL *Y, __global
         const uint co = cell_of[g];
         __global const REAL *XA = x_rows(X, co, n);
         const REAL3 p = (REAL3)(XA[g], Y[g], Z[g]);
+        const REAL3 ng = (REAL3)(NX[g], NY[g], NZ[g]);
+        const uint og = order[g];
+        const REAL s = (REAL)NBIN / ball.x;
         REALV dx, dy, dz;
-        REALV hist[NBIN];
-        REAL edge[NBIN];
-        for (int b = 0; b < NBIN; ++b) {
-            hist[b] = 0;
-            edge[b] = ball.x * (REAL)(b + 1) / (REAL)NBIN;
-        }
-        edge[NBIN - 1] = ball.x;
+        ULONGV acc = 0;
+        uint8 tot = 0;
+        uint nch = 0;
         NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, ball, i, end, pr)
             IREALV m = lane_offsets(XA, Y, Z, i, end, pr, &dx, &dy, &dz);
             const REALV d2 = sqdist(dx, dy, dz);
-            m &= ~isnan(VLOADV(0, NX + i));
-            for (int b = 0; b < NBIN; ++b)
-                hist[b] += select((REALV)0, (REALV)1, m & isless(d2, (REALV)edge[b]));
+            m &= ~isnan(VLOADV(0, NX + i)) & isless(d2, (REALV)ball.x);
+            acc += select((ULONGV)0, (ULONGV)1 << (bin_of(d2, s) << 3), CONVERT_LONGV(m));
+            if (++nch == 255) {
+                tot += unpack_bins(acc);
+                acc = 0;
+                nch = 0;
+            }
         NEIGHBOR_CHUNKS_END
-        /* the point itself is in every bin (d = 0) */
-        REAL e = ball.x;
-        uint below = (uint)hsum(hist[NBIN - 1]) - 1;
-        for (int b = NBIN - 2; b >= 0; --b) {
-            const uint c = (uint)hsum(hist[b]) - 1;
-            if (c >= k) { e = edge[b]; below = c; }
-        }
+        tot += unpack_bins(acc);
+        /* the point itself is in bin 0 (d = 0) */
+        uint c[NBIN];
+        c[0] = tot.s0 - 1; c[1] = c[0] + tot.s1; c[2] = c[1] + tot.s2; c[3] = c[2] + tot.s3;
+        c[4] = c[3] + tot.s4; c[5] = c[4] + tot.s5; c[6] = c[5] + tot.s6; c[7] = c[6] + tot.s7;
+        ulong bsel = NBIN - 1;
+        uint below = c[NBIN - 1];
+        for (int b = NBIN - 2; b >= 0; --b)
+            if (c[b] >= k) { bsel = b; below = c[b]; }
         if (below <= MCAP) {
             ulong key[MCAP + 16];          /* rounded up to 16 with KEY_NONE for the ranks */
             uint idx[MCAP + 1];
+            float wt[MCAP + 1];
             uchar row[MCAP + 1];
             REAL da[VW];
+            float wa[VW];
             IREAL ma[VW];
             NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, ball, i, end, pr)
                 IREALV m = lane_offsets(XA, Y, Z, i, end, pr, &dx, &dy, &dz);
                 const REALV d2 = sqdist(dx, dy, dz);
-                m &= ~isnan(VLOADV(0, NX + i)) & isless(d2, (REALV)e);
-                if (any(m)) {
+                m &= ~isnan(VLOADV(0, NX + i)) & isless(d2, (REALV)ball.x)
+                     & CONVERT_IREALV(bin_of(d2, s) <= bsel)
+                     & ((IREALV)(IREAL)(g - i) != LANES);
+                if (any_lane(m)) {
                     VSTOREV(d2, 0, da);
                     VSTOREV(m, 0, ma);
+                    VSTOREF(lane_weights(dx, dy, dz, ng, VLOADV(0, NX + i), VLOADV(0, NY + i),
+                                         VLOADV(0, NZ + i)), 0, wa);
                     const uchar rw = (uchar)(nb_z * 3 + nb_y);
                     for (int l = 0; l < VW; ++l) {        /* branch-free append */
                         const uint j = i + l;
                         key[cnt] = nkey(da[l], order[min(j, n - 1)]);
                         idx[cnt] = j;
+                        wt[cnt] = wa[l];
                         row[cnt] = rw;
-                        cnt = min(cnt + (uint)(ma[l] != 0 && j != g), (uint)MCAP);
+                        cnt = min(cnt + (uint)(ma[l] != 0), (uint)MCAP);
                     }
                 }
             NEIGHBOR_CHUNKS_END
             for (uint a = cnt; a < ((cnt + 15) & ~15u); ++a)
                 key[a] = KEY_NONE;
-            for (uint a = 0; a < cnt; ++a) {
-                const ulong16 ka = (ulong16)key[a];
-                long16 below16 = 0;                  /* -1 per key < key[a] */
-                for (uint b = 0; b < cnt; b += 16)
-                    below16 += ka > vload16(0, key + b);
-                const long8 s8 = below16.lo + below16.hi;
-                const long4 s4 = s8.lo + s8.hi;
-                const long2 s2 = s4.lo + s4.hi;
-                const uint rk = (uint)(-(s2.x + s2.y));
-                if (rk < k) {
-                    out[rk] = idx[a];
-                    outw[rk] = edge_weight(X, Y, Z, NX, NY, NZ, cell_of, order, n, ball.y, g,
-                                           idx[a], row[a]);
+            for (uint a0 = 0; a0 < cnt; a0 += 16) {
+                const ulong16 ka = vload16(0, key + a0);
+                long16 r16 = 0;                       /* -1 per key below each of ka */
+                for (uint b = 0; b < cnt; ++b)
+                    r16 += ka > (ulong16)key[b];
+                uint rk[16];
+                vstore16(convert_uint16(-r16), 0, rk);
+                for (uint a = a0; a < min(a0 + 16, cnt); ++a) {
+                    const uint r = rk[a - a0];
+                    if (r < k) {
+                        out[r] = idx[a];
+                        outw[r] = (uint)key[a] < og
+                            ? edge_weight(X, Y, Z, NX, NY, NZ, cell_of, order, n, ball.y, g,
+                                          idx[a], row[a])
+                            : wt[a];
+                    }
                 }
             }
             cnt = min(cnt, k);
         } else {                           /* insertion over the whole ball, k kept */
             ulong key[KMAX];
             uint idx[KMAX];
+            float wt[KMAX];
             uchar row[KMAX];
             REAL da[VW];
+            float wa[VW];
             IREAL ma[VW];
             NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, ball, i, end, pr)
                 IREALV m = lane_offsets(XA, Y, Z, i, end, pr, &dx, &dy, &dz);
                 const REALV d2 = sqdist(dx, dy, dz);
                 m &= ~isnan(VLOADV(0, NX + i)) & isless(d2, (REALV)ball.x);
+                if (!any_lane(m)) continue;
                 VSTOREV(d2, 0, da);
                 VSTOREV(m, 0, ma);
+                VSTOREF(lane_weights(dx, dy, dz, ng, VLOADV(0, NX + i), VLOADV(0, NY + i),
+                                     VLOADV(0, NZ + i)), 0, wa);
                 for (int l = 0; l < VW; ++l) {
                     const uint j = i + l;
                     if (!ma[l] || j == g) continue;
@@ -181,16 +282,19 @@ __kernel void knn_graph(__global const REAL *X, __global const REAL *Y, __global
                     else if (kc < key[k - 1]) pos = k - 1;
                     else continue;
                     while (pos > 0 && kc < key[pos - 1]) {
-                        key[pos] = key[pos - 1]; idx[pos] = idx[pos - 1]; row[pos] = row[pos - 1];
+                        key[pos] = key[pos - 1]; idx[pos] = idx[pos - 1]; wt[pos] = wt[pos - 1];
+                        row[pos] = row[pos - 1];
                         --pos;
                     }
-                    key[pos] = kc; idx[pos] = j; row[pos] = (uchar)(nb_z * 3 + nb_y);
+                    key[pos] = kc; idx[pos] = j; wt[pos] = wa[l]; row[pos] = (uchar)(nb_z * 3 + nb_y);
                 }
             NEIGHBOR_CHUNKS_END
             for (uint s = 0; s < cnt; ++s) {
                 out[s] = idx[s];
-                outw[s] = edge_weight(X, Y, Z, NX, NY, NZ, cell_of, order, n, ball.y, g,
-                                      idx[s], row[s]);
+                outw[s] = (uint)key[s] < og
+                    ? edge_weight(X, Y, Z, NX, NY, NZ, cell_of, order, n, ball.y, g, idx[s],
+                                  row[s])
+                    : wt[s];
             }
         }
     }

@@ -286,3 +286,63 @@ def test_double_precision(device):
     assert np.array_equal(sorted_edges(fo.edges), kruskal(len(p), lo, hi, w))
     u, v = fo.edges[:, 0], fo.edges[:, 1]
     assert np.array_equal(fo.parity[u] ^ fo.parity[v], np.sum(nrm[u] * nrm[v], 1) < 0)
+
+
+def test_coincident_points_and_dense_balls(device):
+    """Balls with more close candidates than the ranked collection holds (knn.cl: MCAP): 60
+    copies of some points (their lists: the other copies by input index), and a blob of
+    3000 points in a tiny ball (more than 255 chunks of candidates: the packed bin counters
+    are emptied on the way); lists, weights (off the blob) and forest against the host
+    references."""
+    s = shapes.sphere(8000, 1.0, seed=16)
+    p, nrm = s["points"], random_signs(s["normals"], 17)
+    rng = np.random.default_rng(18)
+    src = rng.choice(len(p), 20, replace=False)
+    copies = np.repeat(src, 60)
+    blob = p[0] + rng.normal(scale=1e-3, size=(3000, 3))
+    pts = np.concatenate([p, p[copies], blob])
+    nr = np.concatenate([nrm, nrm[copies], np.tile(nrm[0], (3000, 1))])
+    nr[-3000:] += rng.normal(scale=0.1, size=(3000, 3))
+    nr /= np.linalg.norm(nr, axis=1)[:, None]
+    cloud, graph, fo = run(pts, nr, 0.06, device)
+    check_forest(nr, graph, fo)
+    nb = graph.neighbors()
+    # weights away from the blob (in it, float32 offsets of ~1e-4 carry ~1e-4 of the weight)
+    m = len(p) + len(copies)
+    i, s = np.nonzero((nb[:m] >= 0) & (nb[:m] < m))
+    j = nb[i, s]
+    w = graph.weights()
+    assert (w[nb >= 0] >= 0).all() and not np.signbit(w[nb >= 0]).any()
+    e = pts[j] - pts[i]
+    ln = np.linalg.norm(e, axis=1)
+    e = np.divide(e, ln[:, None], out=np.zeros_like(e), where=ln[:, None] > 0)
+    ref = (1 - np.abs(np.sum(nr[i] * nr[j], 1))
+           + np.abs(np.sum(e * nr[i], 1)) * np.abs(np.sum(e * nr[j], 1)))
+    assert np.allclose(w[i, s], ref, atol=WEIGHT_TOL)
+    for c in range(len(src)):
+        same = np.concatenate([[src[c]], len(p) + np.arange(60 * c, 60 * c + 60)])
+        for i in same[::7]:
+            assert np.array_equal(nb[i], same[same != i][:K]), (i, nb[i])
+    # the blob: exact distances, no ties to speak of
+    idx = np.arange(len(pts) - 3000, len(pts))
+    tree = cKDTree(pts)
+    d, j = tree.query(pts[idx[::50]], k=K + 1)
+    for row, i in enumerate(idx[::50]):
+        dd = np.linalg.norm(pts[nb[i]] - pts[i], axis=1)
+        assert np.allclose(dd, d[row][1:], rtol=1e-3, atol=1e-9), (i, dd, d[row][1:])
+
+
+def test_weights_symmetric_to_the_bit(device):
+    """An edge in both lists carries the same weight bits in both (forest.cl takes a point's
+    lightest edge from its own list, whichever copy it holds)."""
+    p, nrm = noisy_bumpy(20000)
+    cloud = DeviceCloud(p, 0.04, device=device)
+    graph = knn_graph(cloud, 0.04, random_signs(nrm, 19), K)
+    nb, w = graph.neighbors(), graph.weights().view(np.uint32)
+    i, s = np.nonzero(nb >= 0)
+    j = nb[i, s]
+    pos = {(a, b): x for a, b, x in zip(i.tolist(), j.tolist(), w[i, s].tolist())}
+    both = [(x, pos[(b, a)]) for (a, b), x in pos.items() if (b, a) in pos]
+    assert len(both) > 0.5 * len(pos)
+    a, b = np.array(both).T
+    assert np.array_equal(a, b)
