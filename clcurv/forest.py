@@ -160,26 +160,25 @@ def spanning_forest(cloud, graph):
     else:
         eu, ev, ew = (buf(4 * m) for _ in range(3))
         _launch(dev, prg.next_lo, nb, graph.nbr, graph.wgt, cloud.order, mask, comp, u32(n),
-                u32(k), u32(BLOCK), offsets, bw, blo, eu, ev, ew)
-    # later rounds: the edges that still join two components at the start of each block
-    mtot, ne, dense = m, _blocks(m), 1
+                u32(k), u32(BLOCK), offsets, counts, bw, blo, eu, ev, ew)
+    # later rounds: block b of the points of round 2 holds its edges that may still join
+    # two components at [offsets[b], offsets[b] + counts[b])
     while m > 0:
         if rounds > 1:
             ta = time.perf_counter()
-            _launch(dev, prg.min_weight, ne, eu, ev, ew, u32(mtot), u32(BLOCK), u32(dense),
-                    comp, bw, counts)
-            dense = 0
-            _launch(dev, prg.scan_blocks, 1, counts, u32(ne), offsets, tot)
+            _launch(dev, prg.min_weight, nb, eu, ev, ew, u32(nb), offsets, counts, comp,
+                    cloud.order, bw)
+            _launch(dev, prg.total, 1, counts, u32(nb), tot)
             cl.enqueue_copy(q, total, tot)
             m = int(total[0])
             edge_counts.append(m)
             if m == 0:
                 timings["rounds"].append(time.perf_counter() - ta)
                 break
-            _launch(dev, prg.min_lo, ne, eu, ev, ew, u32(mtot), u32(BLOCK), u32(dense), counts,
-                    comp, cloud.order, bw, blo)
-        _launch(dev, prg.min_hi, ne, eu, ev, ew, u32(mtot), u32(BLOCK), u32(dense), counts,
-                comp, cloud.order, bw, blo, bhi)
+            _launch(dev, prg.min_lo, nb, eu, ev, ew, u32(nb), offsets, counts, comp,
+                    cloud.order, bw, blo)
+        _launch(dev, prg.min_hi, nb, eu, ev, ew, u32(nb), offsets, counts, comp, cloud.order,
+                bw, blo, bhi)
         merge(0)
         rounds += 1
         timings["rounds"].append(time.perf_counter() - ta)

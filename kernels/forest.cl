@@ -44,6 +44,15 @@ __kernel void scan_blocks(__global const uint *counts, const uint m, __global ui
     total[0] = s;
 }
 
+/* The sum of counts[0 .. m) into total[0] (one work-item). */
+__kernel void total(__global const uint *counts, const uint m, __global uint *total)
+{
+    if (get_global_id(0) != 0) return;
+    uint s = 0;
+    for (uint b = 0; b < m; ++b) s += counts[b];
+    total[0] = s;
+}
+
 /* Lower *p to v (values only ever decrease within a pass, so a read that is already <= v
  * makes the atomic unnecessary). */
 inline void lower(volatile __global uint *p, uint v)
@@ -51,50 +60,101 @@ inline void lower(volatile __global uint *p, uint v)
     if (v < *p) atomic_min(p, v);
 }
 
-/* Rounds 3 on use the edge list of round 2 in blocks of B edges: block b holds its live
- * edges at its start, all B of them (or up to m) when dense, else counts[b]. */
-inline uint block_len(uint b, uint B, uint m, uint dense, __global const uint *counts)
+/* The edge list of round 2 is kept in blocks: block b's live edges are [offsets[b],
+ * offsets[b] + counts[b]) (block b of the points of round 2). Edges are written through a
+ * small table of component pairs (PAIRS entries, direct mapped): of two edges that join the
+ * same two components only the lighter one (in the strict order) is kept, as the other can
+ * never be a component's lightest edge, in this round or a later one. A block's edges are
+ * written back in place (the write position never passes the read position). */
+#define PAIRS 8
+
+typedef struct {
+    uint cu[PAIRS], cv[PAIRS], u[PAIRS], v[PAIRS], w[PAIRS];
+} pair_table;
+
+/* Is edge (w, u, v) lighter than entry h (u, v: order[u] < order[v])? */
+inline int lighter(const pair_table *t, uint h, uint w, uint u, uint v,
+                   __global const uint *order)
 {
-    return dense ? min(B, m - b * B) : counts[b];
+    if (w != t->w[h]) return w < t->w[h];
+    const uint a = order[u], a2 = order[t->u[h]];
+    return a != a2 ? a < a2 : order[v] < order[t->v[h]];
+}
+
+/* Writes entry h at *o (and lowers both components' bw when push). */
+inline void emit(const pair_table *t, uint h, uint *o, __global uint *eu, __global uint *ev,
+                 __global uint *ew, volatile __global uint *bw, int push)
+{
+    eu[*o] = t->u[h]; ev[*o] = t->v[h]; ew[*o] = t->w[h];
+    ++*o;
+    if (push) {
+        lower(bw + t->cu[h], t->w[h]);
+        lower(bw + t->cv[h], t->w[h]);
+    }
+}
+
+/* Puts edge (u, v, w) between components cu != cv into the table (evicting another pair's
+ * edge to *o). */
+inline void put(pair_table *t, uint cu, uint cv, uint u, uint v, uint w, uint *o,
+                __global uint *eu, __global uint *ev, __global uint *ew,
+                volatile __global uint *bw, int push, __global const uint *order)
+{
+    const uint a = min(cu, cv), c = max(cu, cv);
+    const uint h = ((a * 0x9e3779b1u) ^ (c * 0x85ebca77u)) >> 29;     /* PAIRS = 2^3 */
+    if (t->cu[h] == a && t->cv[h] == c) {
+        if (!lighter(t, h, w, u, v, order)) return;
+    } else if (t->cu[h] != NONE) {
+        emit(t, h, o, eu, ev, ew, bw, push);
+    }
+    t->cu[h] = a; t->cv[h] = c; t->u[h] = u; t->v[h] = v; t->w[h] = w;
+}
+
+inline void clear(pair_table *t)
+{
+    for (uint h = 0; h < PAIRS; ++h) t->cu[h] = NONE;
+}
+
+inline void flush(const pair_table *t, uint *o, __global uint *eu, __global uint *ev,
+                  __global uint *ew, volatile __global uint *bw, int push)
+{
+    for (uint h = 0; h < PAIRS; ++h)
+        if (t->cu[h] != NONE) emit(t, h, o, eu, ev, ew, bw, push);
 }
 
 /* Pass 1 of a round: every component's lightest edge weight (bw); the edges of block b that
- * join two components moved to the block's start, in order, and counted (counts[b]). */
+ * join two components, one per pair of components, moved to the block's start (counts[b]). */
 __kernel void min_weight(__global uint *eu, __global uint *ev, __global uint *ew,
-                         const uint m, const uint B, const uint dense,
-                         __global const uint *comp, volatile __global uint *bw,
-                         __global uint *counts)
+                         const uint nb, __global const uint *offsets, __global uint *counts,
+                         __global const uint *comp, __global const uint *order,
+                         volatile __global uint *bw)
 {
     const uint b = get_global_id(0);
-    const uint e0 = b * B;
-    if (e0 >= m) return;
-    const uint e1 = e0 + block_len(b, B, m, dense, counts);
+    if (b >= nb) return;
+    const uint e0 = offsets[b], e1 = e0 + counts[b];
+    if (e0 == e1) return;
+    pair_table t;
+    clear(&t);
     uint o = e0;
     for (uint e = e0; e < e1; ++e) {
         const uint u = eu[e], v = ev[e];
         const uint cu = comp[u], cv = comp[v];
         if (cu == cv) continue;
-        const uint w = ew[e];
-        eu[o] = u; ev[o] = v; ew[o] = w;
-        ++o;
-        lower(bw + cu, w);
-        lower(bw + cv, w);
+        put(&t, cu, cv, u, v, ew[e], &o, eu, ev, ew, bw, 1, order);
     }
+    flush(&t, &o, eu, ev, ew, bw, 1);
     counts[b] = o - e0;
 }
 
 /* Pass 2: each component's smallest input index order[eu] among its edges of the lightest
  * weight (blo). */
 __kernel void min_lo(__global const uint *eu, __global const uint *ev, __global const uint *ew,
-                     const uint m, const uint B, const uint dense,
-                     __global const uint *counts, __global const uint *comp,
-                     __global const uint *order, __global const uint *bw,
-                     volatile __global uint *blo)
+                     const uint nb, __global const uint *offsets, __global const uint *counts,
+                     __global const uint *comp, __global const uint *order,
+                     __global const uint *bw, volatile __global uint *blo)
 {
     const uint b = get_global_id(0);
-    const uint e0 = b * B;
-    if (e0 >= m) return;
-    const uint e1 = e0 + block_len(b, B, m, dense, counts);
+    if (b >= nb) return;
+    const uint e0 = offsets[b], e1 = e0 + counts[b];
     for (uint e = e0; e < e1; ++e) {
         const uint u = eu[e], v = ev[e];
         const uint cu = comp[u], cv = comp[v];
@@ -111,15 +171,14 @@ __kernel void min_lo(__global const uint *eu, __global const uint *ev, __global 
 /* Pass 3: each component's largest-index endpoint order[ev] among its edges of weight bw
  * and smaller endpoint blo (bhi). */
 __kernel void min_hi(__global const uint *eu, __global const uint *ev, __global const uint *ew,
-                     const uint m, const uint B, const uint dense,
-                     __global const uint *counts, __global const uint *comp,
-                     __global const uint *order, __global const uint *bw,
-                     __global const uint *blo, volatile __global uint *bhi)
+                     const uint nb, __global const uint *offsets, __global const uint *counts,
+                     __global const uint *comp, __global const uint *order,
+                     __global const uint *bw, __global const uint *blo,
+                     volatile __global uint *bhi)
 {
     const uint b = get_global_id(0);
-    const uint e0 = b * B;
-    if (e0 >= m) return;
-    const uint e1 = e0 + block_len(b, B, m, dense, counts);
+    if (b >= nb) return;
+    const uint e0 = offsets[b], e1 = e0 + counts[b];
     for (uint e = e0; e < e1; ++e) {
         const uint w = ew[e];
         const uint u = eu[e], v = ev[e];
@@ -259,14 +318,16 @@ __kernel void next_weight(__global const uint *nbr, __global const float *wgt,
 __kernel void next_lo(__global const uint *nbr, __global const float *wgt,
                       __global const uint *order, __global const uint *mask,
                       __global const uint *comp, const uint n, const uint k, const uint B,
-                      __global const uint *offsets, __global const uint *bw,
-                      volatile __global uint *blo, __global uint *eu, __global uint *ev,
-                      __global uint *ew)
+                      __global const uint *offsets, __global uint *counts,
+                      __global const uint *bw, volatile __global uint *blo,
+                      __global uint *eu, __global uint *ev, __global uint *ew)
 {
     const uint b = get_global_id(0);
     const uint g0 = b * B;
     if (g0 >= n) return;
     const uint g1 = min(g0 + B, n);
+    pair_table t;
+    clear(&t);
     uint o = offsets[b], rc = NONE, rl = NONE;
     for (uint g = g0; g < g1; ++g) {
         const uint cg = comp[g], og = order[g], msk = mask[g];
@@ -284,18 +345,17 @@ __kernel void next_lo(__global const uint *nbr, __global const float *wgt,
             const uint w = as_uint(wgt[slot]), oj = order[j];
             const uint two = msk >> s & 1u;
             const int g_first = og < oj;
-            if (!two | g_first) {
-                eu[o] = g_first ? g : j;
-                ev[o] = g_first ? j : g;
-                ew[o] = w;
-                ++o;
-            }
+            if (!two | g_first)
+                put(&t, cg, cj, g_first ? g : j, g_first ? j : g, w, &o, eu, ev, ew, blo, 0,
+                    order);
             const uint lo = min(og, oj);
             if (w == bg) rl = min(rl, lo);
             if (!two && w == bw[cj]) lower(blo + cj, lo);
         }
     }
     if (rl != NONE) lower(blo + rc, rl);
+    flush(&t, &o, eu, ev, ew, blo, 0);
+    counts[b] = o - offsets[b];
 }
 
 /* Every root g hooks onto the component across its lightest edge: link[g] = D << 1 | parity
