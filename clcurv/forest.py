@@ -23,8 +23,8 @@ import numpy as np
 
 from .program import build, launch
 
-#: Edges (first_*, next_*: points) per work-item of the edge kernels: a block's kept edges are
-#: written in order from its offset (a prefix sum over the blocks).
+#: Points per work-item of the kernels that read the neighbour lists; the edges that these
+#: points' lists give stay in the block's own stride of BLOCK * k edges, compacted in place.
 BLOCK = 256
 #: Longest hook chain followed link by link in a round; longer ones are finished by pointer
 #: jumping (a launch and a read-back per halving).
@@ -110,8 +110,7 @@ def spanning_forest(cloud, graph):
     nx, ny, nz = graph.normals
     _launch(dev, prg.forest_init, n, u32(n), cloud.order, comp, par, rank, bw, blo, bhi, flo)
     nb = _blocks(n)
-    counts = buf(4 * max(nb, _blocks(n * k)))
-    offsets = buf(4 * max(nb, _blocks(n * k)))
+    counts = buf(4 * nb)
     tot = buf(4)
     q.finish()
     t1 = time.perf_counter()
@@ -147,38 +146,31 @@ def spanning_forest(cloud, graph):
     merge(1)
     rounds += 1
     timings["rounds"].append(time.perf_counter() - ta)
-    # round 2 on the neighbour lists, writing the edges that join two components
-    ta = time.perf_counter()
-    _launch(dev, prg.next_weight, nb, graph.nbr, graph.wgt, cloud.order, mask, comp, u32(n), u32(k),
-            u32(BLOCK), bw, counts)
-    _launch(dev, prg.scan_blocks, 1, counts, u32(nb), offsets, tot)
-    cl.enqueue_copy(q, total, tot)
-    m = int(total[0])
-    edge_counts.append(m)
-    if m == 0:
-        timings["rounds"].append(time.perf_counter() - ta)
-    else:
-        eu, ev, ew = (buf(4 * m) for _ in range(3))
-        _launch(dev, prg.next_lo, nb, graph.nbr, graph.wgt, cloud.order, mask, comp, u32(n),
-                u32(k), u32(BLOCK), offsets, counts, bw, blo, eu, ev, ew)
-    # later rounds: block b of the points of round 2 holds its edges that may still join
-    # two components at [offsets[b], offsets[b] + counts[b])
+    # round 2 on the neighbour lists, writing the edges that join two components (at most
+    # one per pair of components and block) into blocks of stride edges; later rounds
+    # compact each block in place
+    stride = BLOCK * k
+    eu, ev, ew = (buf(4 * nb * stride) for _ in range(3))
+    m = 1
     while m > 0:
-        if rounds > 1:
-            ta = time.perf_counter()
-            _launch(dev, prg.min_weight, nb, eu, ev, ew, u32(nb), offsets, counts, comp,
+        ta = time.perf_counter()
+        if rounds == 1:
+            _launch(dev, prg.next_edges, nb, graph.nbr, graph.wgt, cloud.order, mask, comp,
+                    u32(n), u32(k), u32(BLOCK), u32(stride), counts, bw, eu, ev, ew)
+        else:
+            _launch(dev, prg.min_weight, nb, eu, ev, ew, u32(nb), u32(stride), counts, comp,
                     cloud.order, bw)
-            _launch(dev, prg.total, 1, counts, u32(nb), tot)
-            cl.enqueue_copy(q, total, tot)
-            m = int(total[0])
-            edge_counts.append(m)
-            if m == 0:
-                timings["rounds"].append(time.perf_counter() - ta)
-                break
-            _launch(dev, prg.min_lo, nb, eu, ev, ew, u32(nb), offsets, counts, comp,
-                    cloud.order, bw, blo)
-        _launch(dev, prg.min_hi, nb, eu, ev, ew, u32(nb), offsets, counts, comp, cloud.order,
-                bw, blo, bhi)
+        _launch(dev, prg.total, 1, counts, u32(nb), tot)
+        cl.enqueue_copy(q, total, tot)
+        m = int(total[0])
+        edge_counts.append(m)
+        if m == 0:
+            timings["rounds"].append(time.perf_counter() - ta)
+            break
+        _launch(dev, prg.min_lo, nb, eu, ev, ew, u32(nb), u32(stride), counts, comp,
+                cloud.order, bw, blo)
+        _launch(dev, prg.min_hi, nb, eu, ev, ew, u32(nb), u32(stride), counts, comp,
+                cloud.order, bw, blo, bhi)
         merge(0)
         rounds += 1
         timings["rounds"].append(time.perf_counter() - ta)

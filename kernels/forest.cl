@@ -19,7 +19,7 @@
  * work-group size or the scheduling. Rounds 1 and 2 read the neighbour lists (first_*,
  * next_*); round 2 writes the edge list of the edges that still join two components, and
  * later rounds compact it. Kernels take blocks of B consecutive points or edges per
- * work-item; kept edges are compacted in order (per-block counts, a prefix sum).
+ * work-item; a block's edges are compacted in place, in order (per-block counts).
  *
  * Components: comp[g] is the sorted index of g's root, par[g] g's sign parity relative to it
  * (1: g's normal must be negated to agree with the root's along the tree). A hook of root C
@@ -29,20 +29,6 @@
  */
 #include "common.h"
 #include "orient.h"
-
-/* Exclusive prefix sum of counts[0 .. m) into offsets, the sum into total[0]. One work-item:
- * m is the number of blocks, a few ten thousand at most per 10^7 edges. */
-__kernel void scan_blocks(__global const uint *counts, const uint m, __global uint *offsets,
-                          __global uint *total)
-{
-    if (get_global_id(0) != 0) return;
-    uint s = 0;
-    for (uint b = 0; b < m; ++b) {
-        offsets[b] = s;
-        s += counts[b];
-    }
-    total[0] = s;
-}
 
 /* The sum of counts[0 .. m) into total[0] (one work-item). */
 __kernel void total(__global const uint *counts, const uint m, __global uint *total)
@@ -60,13 +46,14 @@ inline void lower(volatile __global uint *p, uint v)
     if (v < *p) atomic_min(p, v);
 }
 
-/* The edge list of round 2 is kept in blocks: block b's live edges are [offsets[b],
- * offsets[b] + counts[b]) (block b of the points of round 2). Edges are written through a
+/* The edge list is kept in blocks: block b's live edges are [b stride, b stride +
+ * counts[b]), written by next_edges from block b of the points. Edges are written through a
  * small table of component pairs (PAIRS entries, direct mapped): of two edges that join the
  * same two components only the lighter one (in the strict order) is kept, as the other can
  * never be a component's lightest edge, in this round or a later one. A block's edges are
  * written back in place (the write position never passes the read position). */
-#define PAIRS 8
+#define PAIRS_LOG2 6
+#define PAIRS (1u << PAIRS_LOG2)
 
 typedef struct {
     uint cu[PAIRS], cv[PAIRS], u[PAIRS], v[PAIRS], w[PAIRS];
@@ -82,7 +69,7 @@ inline int lighter(const pair_table *t, uint h, uint w, uint u, uint v,
 }
 
 /* Writes entry h at *o (and lowers both components' bw when push). */
-inline void emit(const pair_table *t, uint h, uint *o, __global uint *eu, __global uint *ev,
+inline void emit(const pair_table *t, uint h, size_t *o, __global uint *eu, __global uint *ev,
                  __global uint *ew, volatile __global uint *bw, int push)
 {
     eu[*o] = t->u[h]; ev[*o] = t->v[h]; ew[*o] = t->w[h];
@@ -95,12 +82,12 @@ inline void emit(const pair_table *t, uint h, uint *o, __global uint *eu, __glob
 
 /* Puts edge (u, v, w) between components cu != cv into the table (evicting another pair's
  * edge to *o). */
-inline void put(pair_table *t, uint cu, uint cv, uint u, uint v, uint w, uint *o,
+inline void put(pair_table *t, uint cu, uint cv, uint u, uint v, uint w, size_t *o,
                 __global uint *eu, __global uint *ev, __global uint *ew,
                 volatile __global uint *bw, int push, __global const uint *order)
 {
     const uint a = min(cu, cv), c = max(cu, cv);
-    const uint h = ((a * 0x9e3779b1u) ^ (c * 0x85ebca77u)) >> 29;     /* PAIRS = 2^3 */
+    const uint h = ((a * 0x9e3779b1u) ^ (c * 0x85ebca77u)) >> (32 - PAIRS_LOG2);
     if (t->cu[h] == a && t->cv[h] == c) {
         if (!lighter(t, h, w, u, v, order)) return;
     } else if (t->cu[h] != NONE) {
@@ -114,7 +101,7 @@ inline void clear(pair_table *t)
     for (uint h = 0; h < PAIRS; ++h) t->cu[h] = NONE;
 }
 
-inline void flush(const pair_table *t, uint *o, __global uint *eu, __global uint *ev,
+inline void flush(const pair_table *t, size_t *o, __global uint *eu, __global uint *ev,
                   __global uint *ew, volatile __global uint *bw, int push)
 {
     for (uint h = 0; h < PAIRS; ++h)
@@ -124,38 +111,38 @@ inline void flush(const pair_table *t, uint *o, __global uint *eu, __global uint
 /* Pass 1 of a round: every component's lightest edge weight (bw); the edges of block b that
  * join two components, one per pair of components, moved to the block's start (counts[b]). */
 __kernel void min_weight(__global uint *eu, __global uint *ev, __global uint *ew,
-                         const uint nb, __global const uint *offsets, __global uint *counts,
+                         const uint nb, const uint stride, __global uint *counts,
                          __global const uint *comp, __global const uint *order,
                          volatile __global uint *bw)
 {
     const uint b = get_global_id(0);
     if (b >= nb) return;
-    const uint e0 = offsets[b], e1 = e0 + counts[b];
+    const size_t e0 = (size_t)b * stride, e1 = e0 + counts[b];
     if (e0 == e1) return;
     pair_table t;
     clear(&t);
-    uint o = e0;
-    for (uint e = e0; e < e1; ++e) {
+    size_t o = e0;
+    for (size_t e = e0; e < e1; ++e) {
         const uint u = eu[e], v = ev[e];
         const uint cu = comp[u], cv = comp[v];
         if (cu == cv) continue;
         put(&t, cu, cv, u, v, ew[e], &o, eu, ev, ew, bw, 1, order);
     }
     flush(&t, &o, eu, ev, ew, bw, 1);
-    counts[b] = o - e0;
+    counts[b] = (uint)(o - e0);
 }
 
 /* Pass 2: each component's smallest input index order[eu] among its edges of the lightest
  * weight (blo). */
 __kernel void min_lo(__global const uint *eu, __global const uint *ev, __global const uint *ew,
-                     const uint nb, __global const uint *offsets, __global const uint *counts,
+                     const uint nb, const uint stride, __global const uint *counts,
                      __global const uint *comp, __global const uint *order,
                      __global const uint *bw, volatile __global uint *blo)
 {
     const uint b = get_global_id(0);
     if (b >= nb) return;
-    const uint e0 = offsets[b], e1 = e0 + counts[b];
-    for (uint e = e0; e < e1; ++e) {
+    const size_t e0 = (size_t)b * stride, e1 = e0 + counts[b];
+    for (size_t e = e0; e < e1; ++e) {
         const uint u = eu[e], v = ev[e];
         const uint cu = comp[u], cv = comp[v];
         const uint w = ew[e];
@@ -171,15 +158,15 @@ __kernel void min_lo(__global const uint *eu, __global const uint *ev, __global 
 /* Pass 3: each component's largest-index endpoint order[ev] among its edges of weight bw
  * and smaller endpoint blo (bhi). */
 __kernel void min_hi(__global const uint *eu, __global const uint *ev, __global const uint *ew,
-                     const uint nb, __global const uint *offsets, __global const uint *counts,
+                     const uint nb, const uint stride, __global const uint *counts,
                      __global const uint *comp, __global const uint *order,
                      __global const uint *bw, __global const uint *blo,
                      volatile __global uint *bhi)
 {
     const uint b = get_global_id(0);
     if (b >= nb) return;
-    const uint e0 = offsets[b], e1 = e0 + counts[b];
-    for (uint e = e0; e < e1; ++e) {
+    const size_t e0 = (size_t)b * stride, e1 = e0 + counts[b];
+    for (size_t e = e0; e < e1; ++e) {
         const uint w = ew[e];
         const uint u = eu[e], v = ev[e];
         const uint cu = comp[u], cv = comp[v];
@@ -279,83 +266,40 @@ __kernel void first_other(__global const uint *nbr, __global const float *wgt,
     }
 }
 
-/* Round 2, pass 1: counts[b], the kept slots of block b that join two components, and bw. */
-__kernel void next_weight(__global const uint *nbr, __global const float *wgt,
-                          __global const uint *order, __global const uint *mask,
-                          __global const uint *comp, const uint n, const uint k, const uint B,
-                          volatile __global uint *bw, __global uint *counts)
+/* Round 2, pass 1: the kept slots of the points of block b that join two components go
+ * through the pair table to the block's edges [b stride, b stride + counts[b]); bw is
+ * lowered by every edge written (min_lo and min_hi follow on the edges). */
+__kernel void next_edges(__global const uint *nbr, __global const float *wgt,
+                         __global const uint *order, __global const uint *mask,
+                         __global const uint *comp, const uint n, const uint k, const uint B,
+                         const uint stride, __global uint *counts, volatile __global uint *bw,
+                         __global uint *eu, __global uint *ev, __global uint *ew)
 {
     const uint b = get_global_id(0);
     const uint g0 = b * B;
     if (g0 >= n) return;
     const uint g1 = min(g0 + B, n);
-    uint c = 0, rc = NONE, rm = NONE;
-    for (uint g = g0; g < g1; ++g) {
-        const uint cg = comp[g], og = order[g], msk = mask[g];
-        if (cg != rc) {
-            if (rm != NONE) lower(bw + rc, rm);
-            rc = cg; rm = NONE;
-        }
-        for (uint s = 0; s < k; ++s) {
-            const size_t slot = (size_t)g * k + s;
-            const uint j = nbr[slot];
-            if (j == NONE) break;
-            const uint cj = comp[j];
-            if (cj == cg) continue;
-            const uint w = as_uint(wgt[slot]);
-            const uint two = msk >> s & 1u;
-            rm = min(rm, w);
-            if (!two) lower(bw + cj, w);
-            c += !two | (og < order[j]);
-        }
-    }
-    if (rm != NONE) lower(bw + rc, rm);
-    counts[b] = c;
-}
-
-/* Round 2, pass 2: the kept slots that join two components as edges from offsets[b] on, and
- * blo. */
-__kernel void next_lo(__global const uint *nbr, __global const float *wgt,
-                      __global const uint *order, __global const uint *mask,
-                      __global const uint *comp, const uint n, const uint k, const uint B,
-                      __global const uint *offsets, __global uint *counts,
-                      __global const uint *bw, volatile __global uint *blo,
-                      __global uint *eu, __global uint *ev, __global uint *ew)
-{
-    const uint b = get_global_id(0);
-    const uint g0 = b * B;
-    if (g0 >= n) return;
-    const uint g1 = min(g0 + B, n);
+    const size_t e0 = (size_t)b * stride;
     pair_table t;
     clear(&t);
-    uint o = offsets[b], rc = NONE, rl = NONE;
+    size_t o = e0;
     for (uint g = g0; g < g1; ++g) {
         const uint cg = comp[g], og = order[g], msk = mask[g];
-        if (cg != rc) {
-            if (rl != NONE) lower(blo + rc, rl);
-            rc = cg; rl = NONE;
-        }
-        const uint bg = bw[cg];
         for (uint s = 0; s < k; ++s) {
             const size_t slot = (size_t)g * k + s;
             const uint j = nbr[slot];
             if (j == NONE) break;
             const uint cj = comp[j];
             if (cj == cg) continue;
-            const uint w = as_uint(wgt[slot]), oj = order[j];
-            const uint two = msk >> s & 1u;
+            const uint oj = order[j];
             const int g_first = og < oj;
-            if (!two | g_first)
-                put(&t, cg, cj, g_first ? g : j, g_first ? j : g, w, &o, eu, ev, ew, blo, 0,
-                    order);
-            const uint lo = min(og, oj);
-            if (w == bg) rl = min(rl, lo);
-            if (!two && w == bw[cj]) lower(blo + cj, lo);
+            if (!(msk >> s & 1u) | g_first)
+                put(&t, cg, cj, g_first ? g : j, g_first ? j : g, as_uint(wgt[slot]), &o,
+                    eu, ev, ew, bw, 1, order);
         }
     }
-    if (rl != NONE) lower(blo + rc, rl);
-    flush(&t, &o, eu, ev, ew, blo, 0);
-    counts[b] = o - offsets[b];
+    flush(&t, &o, eu, ev, ew, bw, 1);
+    counts[b] = (uint)(o - e0);
 }
 
 /* Every root g hooks onto the component across its lightest edge: link[g] = D << 1 | parity
