@@ -119,8 +119,12 @@ def spanning_forest(cloud, graph):
 
     def merge(first):
         """Hook every root across its lightest edge, follow the chains, relabel."""
-        _launch(dev, prg.hook, n, u32(n), comp, par, cloud.order, u32(first), rank, nx, ny, nz,
-                bw, blo, bhi, links[0], flo, fhi)
+        if first:       # own_o in links[1], own_j in blo
+            _launch(dev, prg.first_hook, n, u32(n), cloud.order, rank, nx, ny, nz, links[1],
+                    blo, bw, bhi, links[0], flo, fhi)
+        else:
+            _launch(dev, prg.hook, n, u32(n), comp, par, rank, nx, ny, nz, bw, blo, bhi,
+                    links[0], flo, fhi)
         _launch(dev, prg.break_pairs, n, u32(n), comp, cloud.order, links[0], links[1], flo)
         # hook chains: followed to their end (resolve), pointer jumping for a chain longer
         # than CHASE
@@ -138,9 +142,9 @@ def spanning_forest(cloud, graph):
 
     # round 1 on the neighbour lists (every point its own component)
     ta = time.perf_counter()
-    # own_w, own_o in links[0], links[1] (free until hook)
+    # own_w, own_o, own_j in links[0], links[1] (free until hook), blo (free in round 1)
     _launch(dev, prg.first_weight, nb, graph.nbr, graph.wgt, cloud.order, u32(n), u32(k),
-            u32(BLOCK), bw, mask, links[0], links[1])
+            u32(BLOCK), bw, mask, links[0], links[1], blo)
     _launch(dev, prg.first_other, nb, graph.nbr, graph.wgt, cloud.order, mask, links[0],
             links[1], u32(n), u32(k), u32(BLOCK), bw, bhi)
     merge(1)

@@ -211,14 +211,14 @@ inline uint listed(__global const uint *nbr, uint k, uint j, uint g)
 __kernel void first_weight(__global const uint *nbr, __global const float *wgt,
                            __global const uint *order, const uint n, const uint k,
                            const uint B, volatile __global uint *bw, __global uint *mask,
-                           __global uint *own_w, __global uint *own_o)
+                           __global uint *own_w, __global uint *own_o, __global uint *own_j)
 {
     const uint b = get_global_id(0);
     const uint g0 = b * B;
     if (g0 >= n) return;
     const uint g1 = min(g0 + B, n);
     for (uint g = g0; g < g1; ++g) {
-        uint mw = NONE, mo = NONE, msk = 0;
+        uint mw = NONE, mo = NONE, mj = NONE, msk = 0;
         for (uint s = 0; s < k; ++s) {
             const size_t slot = (size_t)g * k + s;
             const uint j = nbr[slot];
@@ -226,12 +226,14 @@ __kernel void first_weight(__global const uint *nbr, __global const float *wgt,
             const uint w = as_uint(wgt[slot]), oj = order[j];
             const uint two = listed(nbr, k, j, g);
             msk |= two << s;
-            mo = w < mw ? oj : (w == mw ? min(mo, oj) : mo);
+            const int better = w < mw || (w == mw && oj < mo);
+            mo = better ? oj : mo;
+            mj = better ? j : mj;
             mw = min(mw, w);
             if (!two) lower(bw + j, w);
         }
         mask[g] = msk;
-        own_w[g] = mw; own_o[g] = mo;
+        own_w[g] = mw; own_o[g] = mo; own_j[g] = mj;
         if (mw != NONE) lower(bw + g, mw);
     }
 }
@@ -306,7 +308,6 @@ __kernel void next_edges(__global const uint *nbr, __global const float *wgt,
  * of g relative to D (g << 1 for a root without edges); its edge goes to (flo, fhi) (input
  * indices). Resets the root's bw, blo, bhi for the next round. */
 __kernel void hook(const uint n, __global const uint *comp, __global const uchar *par,
-                   __global const uint *order, const uint first,
                    __global const uint *rank, __global const REAL *NX,
                    __global const REAL *NY, __global const REAL *NZ, __global uint *bw,
                    __global uint *blo, __global uint *bhi, __global uint *link,
@@ -318,9 +319,7 @@ __kernel void hook(const uint n, __global const uint *comp, __global const uchar
         link[g] = g << 1;
         return;
     }
-    /* round 1 (first_*): bhi[g] is the other endpoint's input index */
-    const uint og = order[g], ot = bhi[g];
-    const uint lo = first ? min(og, ot) : blo[g], hi = first ? max(og, ot) : ot;
+    const uint lo = blo[g], hi = bhi[g];
     const uint a = rank[lo], b = rank[hi];
     const int a_in = comp[a] == g;
     const uint u = a_in ? a : b, v = a_in ? b : a;
@@ -328,6 +327,30 @@ __kernel void hook(const uint n, __global const uint *comp, __global const uchar
     link[g] = comp[v] << 1 | ((uint)par[u] ^ pe ^ (uint)par[v]);
     flo[g] = lo; fhi[g] = hi;
     bw[g] = NONE; blo[g] = NONE; bhi[g] = NONE;
+}
+
+/* hook for round 1 (every point a root): the other endpoint is own_j[g] when g's own list
+ * holds the lightest edge, else found by rank. Resets bw, bhi and own_j (blo). */
+__kernel void first_hook(const uint n, __global const uint *order, __global const uint *rank,
+                         __global const REAL *NX, __global const REAL *NY,
+                         __global const REAL *NZ, __global const uint *own_o,
+                         __global uint *own_j, __global uint *bw, __global uint *bhi,
+                         __global uint *link, __global uint *flo, __global uint *fhi)
+{
+    const uint g = get_global_id(0);
+    if (g >= n) return;
+    if (bw[g] == NONE) {
+        link[g] = g << 1;
+        return;
+    }
+    const uint og = order[g], ot = bhi[g];
+    const uint v = ot == own_o[g] ? own_j[g] : rank[ot];
+    const int g_lo = og < ot;
+    const uint a = g_lo ? g : v, b = g_lo ? v : g;
+    const uint pe = dot3((REAL3)(NX[a], NY[a], NZ[a]), (REAL3)(NX[b], NY[b], NZ[b])) < 0;
+    link[g] = v << 1 | pe;
+    flo[g] = g_lo ? og : ot; fhi[g] = g_lo ? ot : og;
+    bw[g] = NONE; bhi[g] = NONE; own_j[g] = NONE;
 }
 
 /* Mutual hooks (C onto D and D onto C, through the same edge): the root with the smaller
