@@ -13,7 +13,7 @@
  * hold an edge hold the same bits (forest.cl relies on it: first_weight, next_weight take
  * the lightest edge of a point from its own list, whichever copy that is). In g's list that
  * is g's own walk when order[g] < order[j] (the lanes of the second pass, lane_weights),
- * else edge_weight from j's walk.
+ * else mirror_weight, from j's walk.
  */
 #include "common.h"
 #include "neighbors.h"
@@ -117,26 +117,23 @@ inline ulong nkey(REAL d2, uint input)
     return (ulong)as_uint((float)d2) << 32 | input;
 }
 
-/* The weight of the edge {g, j} (see the top), symmetric to the bit: the offset is the one
- * the walk of the endpoint with the smaller input index computes (row: the row of the walk
- * of g in which j lies). */
-inline float edge_weight(__global const REAL *X, __global const REAL *Y,
-                         __global const REAL *Z, __global const REAL *NX,
-                         __global const REAL *NY, __global const REAL *NZ,
-                         __global const uint *cell_of, __global const uint *order, uint n,
-                         REAL c, uint g, uint j, int row)
+/* The weight of the edge {g, j} (see the top) when order[j] < order[g]: from the offset of
+ * j's walk, in which g lies in the mirrored row ((dz, dy) of g's row change sign), with the
+ * products of lane_weights in the same order, so that both lists hold the same bits
+ * (row: the row of g's walk in which j lies; p, ng: g's point and normal). */
+inline float mirror_weight(__global const REAL *X, __global const REAL *Y,
+                           __global const REAL *Z, __global const REAL *NX,
+                           __global const REAL *NY, __global const REAL *NZ,
+                           __global const uint *cell_of, uint n, REAL c, REAL3 p, REAL3 ng,
+                           uint g, uint j, int row)
 {
-    const int gfirst = order[g] < order[j];
-    const uint a = gfirst ? g : j, b = gfirst ? j : g;
-    /* rows are mirrored from b's walk to a's: (dz, dy) of the row change sign */
-    const REAL sy = (REAL)(gfirst ? 1 - row % 3 : row % 3 - 1);
-    const REAL sz = (REAL)(gfirst ? 1 - row / 3 : row / 3 - 1);
-    __global const REAL *XA = x_rows(X, cell_of[a], n);
-    const REAL3 d = (REAL3)(XA[b] - XA[a], Y[b] - (Y[a] + sy * c), Z[b] - (Z[a] + sz * c));
-    const REAL3 na = (REAL3)(NX[a], NY[a], NZ[a]), nb = (REAL3)(NX[b], NY[b], NZ[b]);
+    const REAL sy = (REAL)(row % 3 - 1), sz = (REAL)(row / 3 - 1);
+    __global const REAL *XA = x_rows(X, cell_of[j], n);
+    const REAL3 d = (REAL3)(XA[g] - XA[j], p.y - (Y[j] + sy * c), p.z - (Z[j] + sz * c));
+    const REAL3 na = (REAL3)(NX[j], NY[j], NZ[j]);
     const REAL d2 = dot3(d, d);
-    const REAL t = d2 > 0 ? (fabs(dot3(d, na)) * fabs(dot3(d, nb))) / d2 : (REAL)0;
-    const REAL w = ((REAL)1 - fabs(dot3(na, nb))) + t;
+    const REAL t = d2 > 0 ? (fabs(dot3(d, na)) * fabs(dot3(d, ng))) / d2 : (REAL)0;
+    const REAL w = ((REAL)1 - fabs(dot3(na, ng))) + t;
     return w > 0 ? (float)w : 0.0f;                    /* +0, never -0 */
 }
 
@@ -249,8 +246,8 @@ __kernel void knn_graph(__global const REAL *X, __global const REAL *Y, __global
                     if (r < k) {
                         out[r] = idx[a];
                         outw[r] = (uint)key[a] < og
-                            ? edge_weight(X, Y, Z, NX, NY, NZ, cell_of, order, n, ball.y, g,
-                                          idx[a], row[a])
+                            ? mirror_weight(X, Y, Z, NX, NY, NZ, cell_of, n, ball.y, p, ng, g,
+                                            idx[a], row[a])
                             : wt[a];
                     }
                 }
@@ -292,8 +289,8 @@ __kernel void knn_graph(__global const REAL *X, __global const REAL *Y, __global
             for (uint s = 0; s < cnt; ++s) {
                 out[s] = idx[s];
                 outw[s] = (uint)key[s] < og
-                    ? edge_weight(X, Y, Z, NX, NY, NZ, cell_of, order, n, ball.y, g, idx[s],
-                                  row[s])
+                    ? mirror_weight(X, Y, Z, NX, NY, NZ, cell_of, n, ball.y, p, ng, g, idx[s],
+                                    row[s])
                     : wt[s];
             }
         }
