@@ -291,11 +291,10 @@ __kernel void next_edges(__global const uint *nbr, __global const float *wgt,
             const size_t slot = (size_t)g * k + s;
             const uint j = nbr[slot];
             if (j == NONE) break;
-            const uint cj = comp[j];
-            if (cj == cg) continue;
-            const uint oj = order[j];
-            const int g_first = og < oj;
-            if (!(msk >> s & 1u) | g_first)
+            const uint cj = comp[j], oj = order[j];
+            const uint g_first = og < oj;
+            /* one branch: joins two components and is the kept slot */
+            if ((cj != cg) & (!(msk >> s & 1u) | g_first))
                 put(&t, cg, cj, g_first ? g : j, g_first ? j : g, as_uint(wgt[slot]), &o,
                     eu, ev, ew, bw, 1, order);
         }
