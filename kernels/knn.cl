@@ -82,6 +82,29 @@ inline int any_lane(IREALV m)
 #endif
 }
 
+#define UINTV CAT(uint, VW)
+#define CONVERT_UINTV CAT(convert_uint, VW)
+#define CONVERT_INTV CAT(convert_int, VW)
+
+/* OR of the lanes of a uint vector */
+inline uint or_lanes(UINTV v)
+{
+#if VW == 16
+    uint8 a = v.lo | v.hi;
+    uint4 b = a.lo | a.hi;
+#elif VW == 8
+    uint4 b = v.lo | v.hi;
+#elif VW == 4
+    uint4 b = v;
+#endif
+#if VW >= 4
+    uint2 c = b.lo | b.hi;
+    return c.x | c.y;
+#else
+    return v.x | v.y;
+#endif
+}
+
 /* Sum of the lanes of a ulong vector */
 inline ulong hsum_ul(ULONGV v)
 {
@@ -180,13 +203,19 @@ __kernel void knn_graph(__global const REAL *X, __global const REAL *Y, __global
         const REAL s = (REAL)NBIN / ball.x;
         REALV dx, dy, dz;
         ULONGV acc = 0;
+        UINTV rowor[9];                    /* per row, the bins its lanes met */
+        for (int r = 0; r < 9; ++r)
+            rowor[r] = 0;
         uint8 tot = 0;
         uint nch = 0;
         NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, ball, i, end, pr)
             IREALV m = lane_offsets(XA, Y, Z, i, end, pr, &dx, &dy, &dz);
             const REALV d2 = sqdist(dx, dy, dz);
             m &= ~isnan(VLOADV(0, NX + i)) & isless(d2, (REALV)ball.x);
-            acc += select((ULONGV)0, (ULONGV)1 << (bin_of(d2, s) << 3), CONVERT_LONGV(m));
+            const ULONGV bn = bin_of(d2, s);
+            acc += select((ULONGV)0, (ULONGV)1 << (bn << 3), CONVERT_LONGV(m));
+            rowor[nb_z * 3 + nb_y] |= select((UINTV)0, (UINTV)1 << CONVERT_UINTV(bn),
+                                             CONVERT_INTV(m));
             if (++nch == 255) {
                 tot += unpack_bins(acc);
                 acc = 0;
@@ -202,6 +231,9 @@ __kernel void knn_graph(__global const REAL *X, __global const REAL *Y, __global
         uint below = c[NBIN - 1];
         for (int b = NBIN - 2; b >= 0; --b)
             if (c[b] >= k) { bsel = b; below = c[b]; }
+        uint need = 0;                     /* the rows that hold a bin up to bsel */
+        for (int r = 0; r < 9; ++r)
+            need |= (uint)((or_lanes(rowor[r]) & ((2u << bsel) - 1)) != 0) << r;
         if (below <= MCAP) {
             ulong key[MCAP + 16];          /* rounded up to 16 with KEY_NONE for the ranks */
             uint idx[MCAP + 1];
@@ -211,6 +243,7 @@ __kernel void knn_graph(__global const REAL *X, __global const REAL *Y, __global
             float wa[VW];
             IREAL ma[VW];
             NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, ball, i, end, pr)
+                if (!(need >> (nb_z * 3 + nb_y) & 1)) break;    /* to the next row */
                 IREALV m = lane_offsets(XA, Y, Z, i, end, pr, &dx, &dy, &dz);
                 const REALV d2 = sqdist(dx, dy, dz);
                 m &= ~isnan(VLOADV(0, NX + i)) & isless(d2, (REALV)ball.x)
