@@ -117,28 +117,43 @@ def spanning_forest(cloud, graph):
     timings = {"init": t1 - t0, "rounds": []}
     edge_counts, rounds = [], 0
 
-    def merge(first):
-        """Hook every root across its lightest edge, follow the chains, relabel."""
+    rlists = [buf(4 * n), buf(4 * n)]
+    rcounts, roffsets, rtot = buf(4 * nb), buf(4 * nb), buf(4)
+    nroots = np.empty(1, np.uint32)
+
+    def merge(nr, rl):
+        """Hook the nr roots of the round (rl; None: all points, round 1) across their
+        lightest edges, follow the chains, relabel; the roots that stay, in order, into the
+        other root list (their number in rtot)."""
+        first = rl is None
+        every = u32(first)
+        rl = rl if rl is not None else rlists[0]
         if first:       # own_o in links[1], own_j in blo
             _launch(dev, prg.first_hook, n, u32(n), cloud.order, rank, nx, ny, nz, links[1],
                     blo, bw, bhi, links[0], flo, fhi)
         else:
-            _launch(dev, prg.hook, n, u32(n), comp, par, rank, nx, ny, nz, bw, blo, bhi,
+            _launch(dev, prg.hook, nr, u32(nr), rl, comp, par, rank, nx, ny, nz, bw, blo, bhi,
                     links[0], flo, fhi)
-        _launch(dev, prg.break_pairs, n, u32(n), comp, cloud.order, links[0], links[1], flo)
+        _launch(dev, prg.break_pairs, nr, u32(nr), rl, every, cloud.order, links[0], links[1],
+                flo)
         # hook chains: followed to their end (resolve), pointer jumping for a chain longer
         # than CHASE
         cl.enqueue_copy(q, flag, one)
-        _launch(dev, prg.resolve, n, u32(n), comp, links[1], u32(CHASE), links[0], flag)
+        _launch(dev, prg.resolve, nr, u32(nr), rl, every, links[1], u32(CHASE), links[0], flag)
         a = 0
         cl.enqueue_copy(q, total, flag)
         while total[0] != 1:
             cl.enqueue_copy(q, flag, one)
-            _launch(dev, prg.jump, n, u32(n), comp, links[a], links[1 - a], flag)
+            _launch(dev, prg.jump, nr, u32(nr), rl, every, links[a], links[1 - a], flag)
             a = 1 - a
             cl.enqueue_copy(q, total, flag)
         _launch(dev, prg.relabel, n, u32(n), comp, par, links[a])
-        q.finish()
+        out = rlists[1] if rl is rlists[0] else rlists[0]
+        nrb = _blocks(nr)
+        _launch(dev, prg.count_roots, nrb, u32(nr), rl, every, u32(BLOCK), comp, rcounts)
+        _launch(dev, prg.scan_blocks, 1, rcounts, u32(nrb), roffsets, rtot)
+        _launch(dev, prg.write_roots, nrb, u32(nr), rl, every, u32(BLOCK), comp, roffsets, out)
+        return out
 
     # round 1 on the neighbour lists (every point its own component)
     ta = time.perf_counter()
@@ -147,7 +162,7 @@ def spanning_forest(cloud, graph):
             u32(BLOCK), bw, mask, links[0], links[1], blo)
     _launch(dev, prg.first_other, nb, graph.nbr, graph.wgt, cloud.order, mask, links[0],
             links[1], u32(n), u32(k), u32(BLOCK), bw, bhi)
-    merge(1)
+    rl = merge(n, None)
     rounds += 1
     timings["rounds"].append(time.perf_counter() - ta)
     # round 2 on the neighbour lists, writing the edges that join two components (at most
@@ -165,6 +180,7 @@ def spanning_forest(cloud, graph):
             _launch(dev, prg.min_weight, nb, eu, ev, ew, u32(nb), u32(stride), counts, comp,
                     cloud.order, bw)
         _launch(dev, prg.total, 1, counts, u32(nb), tot)
+        cl.enqueue_copy(q, nroots, rtot, is_blocking=False)
         cl.enqueue_copy(q, total, tot)
         m = int(total[0])
         edge_counts.append(m)
@@ -175,7 +191,7 @@ def spanning_forest(cloud, graph):
                 cloud.order, bw, blo)
         _launch(dev, prg.min_hi, nb, eu, ev, ew, u32(nb), u32(stride), counts, comp,
                 cloud.order, bw, blo, bhi)
-        merge(0)
+        rl = merge(int(nroots[0]), rl)
         rounds += 1
         timings["rounds"].append(time.perf_counter() - ta)
     t2 = time.perf_counter()

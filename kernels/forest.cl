@@ -306,14 +306,16 @@ __kernel void next_edges(__global const uint *nbr, __global const float *wgt,
 /* Every root g hooks onto the component across its lightest edge: link[g] = D << 1 | parity
  * of g relative to D (g << 1 for a root without edges); its edge goes to (flo, fhi) (input
  * indices). Resets the root's bw, blo, bhi for the next round. */
-__kernel void hook(const uint n, __global const uint *comp, __global const uchar *par,
+__kernel void hook(const uint n, __global const uint *roots, __global const uint *comp,
+                   __global const uchar *par,
                    __global const uint *rank, __global const REAL *NX,
                    __global const REAL *NY, __global const REAL *NZ, __global uint *bw,
                    __global uint *blo, __global uint *bhi, __global uint *link,
                    __global uint *flo, __global uint *fhi)
 {
-    const uint g = get_global_id(0);
-    if (g >= n || comp[g] != g) return;
+    const uint i = get_global_id(0);
+    if (i >= n) return;
+    const uint g = roots[i];
     if (bw[g] == NONE) {
         link[g] = g << 1;
         return;
@@ -352,14 +354,18 @@ __kernel void first_hook(const uint n, __global const uint *order, __global cons
     bw[g] = NONE; bhi[g] = NONE; own_j[g] = NONE;
 }
 
-/* Mutual hooks (C onto D and D onto C, through the same edge): the root with the smaller
+/* Kernels of the roots of a round take them from roots[0 .. n) (all: 0 .. n - 1).
+ *
+ * Mutual hooks (C onto D and D onto C, through the same edge): the root with the smaller
  * input index stays a root. link -> link2; the edge of a root that stays one is dropped. */
-__kernel void break_pairs(const uint n, __global const uint *comp, __global const uint *order,
+__kernel void break_pairs(const uint n, __global const uint *roots, const uint all,
+                          __global const uint *order,
                           __global const uint *link, __global uint *link2,
                           __global uint *flo)
 {
-    const uint g = get_global_id(0);
-    if (g >= n || comp[g] != g) return;
+    const uint i = get_global_id(0);
+    if (i >= n) return;
+    const uint g = all ? i : roots[i];
     const uint L = link[g];
     const uint d = L >> 1;
     if (d != g && link[d] >> 1 == g && order[g] < order[d]) {
@@ -373,11 +379,13 @@ __kernel void break_pairs(const uint n, __global const uint *comp, __global cons
 /* Every root of the round to the end of its hook chain: B[g] = (final root, parity of g
  * relative to it), following A. A chain longer than chase stops at an intermediate root
  * (a correct pair) and lowers *unfinished to 0: then jump finishes. */
-__kernel void resolve(const uint n, __global const uint *comp, __global const uint *A,
+__kernel void resolve(const uint n, __global const uint *roots, const uint all,
+                      __global const uint *A,
                       const uint chase, __global uint *B, volatile __global uint *unfinished)
 {
-    const uint g = get_global_id(0);
-    if (g >= n || comp[g] != g) return;
+    const uint i = get_global_id(0);
+    if (i >= n) return;
+    const uint g = all ? i : roots[i];
     uint L = A[g];
     for (uint step = 0; ; ++step) {
         const uint L2 = A[L >> 1];
@@ -393,15 +401,64 @@ __kernel void resolve(const uint n, __global const uint *comp, __global const ui
 
 /* One step of pointer jumping over the roots of the round: B[g] = A[A[g]] with the parities
  * composed; *changed lowered to 0 when a link moved. */
-__kernel void jump(const uint n, __global const uint *comp, __global const uint *A,
+__kernel void jump(const uint n, __global const uint *roots, const uint all,
+                   __global const uint *A,
                    __global uint *B, volatile __global uint *changed)
 {
-    const uint g = get_global_id(0);
-    if (g >= n || comp[g] != g) return;
+    const uint i = get_global_id(0);
+    if (i >= n) return;
+    const uint g = all ? i : roots[i];
     const uint L = A[g];
     const uint L2 = A[L >> 1];
     B[g] = (L2 & ~1u) | ((L ^ L2) & 1u);
     if (L2 >> 1 != L >> 1) lower(changed, 0);
+}
+
+/* The roots of the round (roots[0 .. n)) that are still roots, in order, into out: per block
+ * of B entries a count (count_roots), a prefix sum (scan_blocks), the writes (write_roots).
+ * all: the entries are 0 .. n - 1 (roots unused). */
+__kernel void count_roots(const uint n, __global const uint *roots, const uint all,
+                          const uint B, __global const uint *comp, __global uint *counts)
+{
+    const uint b = get_global_id(0);
+    const uint i0 = b * B;
+    if (i0 >= n) return;
+    const uint i1 = min(i0 + B, n);
+    uint c = 0;
+    for (uint i = i0; i < i1; ++i) {
+        const uint g = all ? i : roots[i];
+        c += comp[g] == g;
+    }
+    counts[b] = c;
+}
+
+__kernel void write_roots(const uint n, __global const uint *roots, const uint all,
+                          const uint B, __global const uint *comp,
+                          __global const uint *offsets, __global uint *out)
+{
+    const uint b = get_global_id(0);
+    const uint i0 = b * B;
+    if (i0 >= n) return;
+    const uint i1 = min(i0 + B, n);
+    uint o = offsets[b];
+    for (uint i = i0; i < i1; ++i) {
+        const uint g = all ? i : roots[i];
+        if (comp[g] == g) out[o++] = g;
+    }
+}
+
+/* Exclusive prefix sum of counts[0 .. m) into offsets, the sum into total[0]. One work-item:
+ * m is a few thousand blocks. */
+__kernel void scan_blocks(__global const uint *counts, const uint m, __global uint *offsets,
+                          __global uint *total)
+{
+    if (get_global_id(0) != 0) return;
+    uint s = 0;
+    for (uint b = 0; b < m; ++b) {
+        offsets[b] = s;
+        s += counts[b];
+    }
+    total[0] = s;
 }
 
 /* Every point to its new root: comp[g] from the old root's final link, parities composed. */
