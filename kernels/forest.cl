@@ -207,18 +207,21 @@ inline uint listed(__global const uint *nbr, uint k, uint j, uint g)
  *
  * Round 1: every point is its own component; among the edges of g of weight bw[g] the
  * order (smaller, larger input index) is the order of the other endpoint's input index, so
- * two passes suffice: the weights (bw, and mask), then the other endpoint (into bhi). */
+ * two passes suffice: the weights (bw, mask, and fmask: bit s set when order[g] is the
+ * smaller input index), then the other endpoint (into bhi). */
 __kernel void first_weight(__global const uint *nbr, __global const float *wgt,
                            __global const uint *order, const uint n, const uint k,
                            const uint B, volatile __global uint *bw, __global uint *mask,
-                           __global uint *own_w, __global uint *own_o, __global uint *own_j)
+                           __global uint *fmask, __global uint *own_w, __global uint *own_o,
+                           __global uint *own_j)
 {
     const uint b = get_global_id(0);
     const uint g0 = b * B;
     if (g0 >= n) return;
     const uint g1 = min(g0 + B, n);
     for (uint g = g0; g < g1; ++g) {
-        uint mw = NONE, mo = NONE, mj = NONE, msk = 0;
+        const uint og = order[g];
+        uint mw = NONE, mo = NONE, mj = NONE, msk = 0, fm = 0;
         for (uint s = 0; s < k; ++s) {
             const size_t slot = (size_t)g * k + s;
             const uint j = nbr[slot];
@@ -226,13 +229,14 @@ __kernel void first_weight(__global const uint *nbr, __global const float *wgt,
             const uint w = as_uint(wgt[slot]), oj = order[j];
             const uint two = listed(nbr, k, j, g);
             msk |= two << s;
+            fm |= (uint)(og < oj) << s;
             const int better = w < mw || (w == mw && oj < mo);
             mo = better ? oj : mo;
             mj = better ? j : mj;
             mw = min(mw, w);
             if (!two) lower(bw + j, w);
         }
-        mask[g] = msk;
+        mask[g] = msk; fmask[g] = fm;
         own_w[g] = mw; own_o[g] = mo; own_j[g] = mj;
         if (mw != NONE) lower(bw + g, mw);
     }
@@ -273,8 +277,8 @@ __kernel void first_other(__global const uint *nbr, __global const float *wgt,
  * lowered by every edge written (min_lo and min_hi follow on the edges). */
 __kernel void next_edges(__global const uint *nbr, __global const float *wgt,
                          __global const uint *order, __global const uint *mask,
-                         __global const uint *comp, const uint n, const uint k, const uint B,
-                         const uint stride, __global uint *counts, volatile __global uint *bw,
+                         __global const uint *fmask, __global const uint *comp, const uint n,
+                         const uint k, const uint B, const uint stride, __global uint *counts, volatile __global uint *bw,
                          __global uint *eu, __global uint *ev, __global uint *ew)
 {
     const uint b = get_global_id(0);
@@ -286,15 +290,15 @@ __kernel void next_edges(__global const uint *nbr, __global const float *wgt,
     clear(&t);
     size_t o = e0;
     for (uint g = g0; g < g1; ++g) {
-        const uint cg = comp[g], og = order[g], msk = mask[g];
+        const uint cg = comp[g], fm = fmask[g], kept = ~mask[g] | fm;
         for (uint s = 0; s < k; ++s) {
             const size_t slot = (size_t)g * k + s;
             const uint j = nbr[slot];
             if (j == NONE) break;
-            const uint cj = comp[j], oj = order[j];
-            const uint g_first = og < oj;
+            const uint cj = comp[j];
+            const uint g_first = fm >> s & 1u;
             /* one branch: joins two components and is the kept slot */
-            if ((cj != cg) & (!(msk >> s & 1u) | g_first))
+            if ((cj != cg) & (kept >> s & 1u))
                 put(&t, cg, cj, g_first ? g : j, g_first ? j : g, as_uint(wgt[slot]), &o,
                     eu, ev, ew, bw, 1, order);
         }
