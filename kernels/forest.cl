@@ -278,7 +278,8 @@ __kernel void first_other(__global const uint *nbr, __global const float *wgt,
 __kernel void next_edges(__global const uint *nbr, __global const float *wgt,
                          __global const uint *order, __global const uint *mask,
                          __global const uint *fmask, __global const uint *comp, const uint n,
-                         const uint k, const uint B, const uint stride, __global uint *counts, volatile __global uint *bw,
+                         const uint k, const uint B, const uint stride,
+                         __global uint *counts, volatile __global uint *bw,
                          __global uint *eu, __global uint *ev, __global uint *ew)
 {
     const uint b = get_global_id(0);
