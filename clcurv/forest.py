@@ -195,7 +195,8 @@ def spanning_forest(cloud, graph):
         rounds += 1
         timings["rounds"].append(time.perf_counter() - ta)
     t2 = time.perf_counter()
-    label, parity, elo, ehi = buf(4 * n), buf(n), buf(4 * n), buf(4 * n)
+    # outputs in buffers free by now (no fresh pages to fault in)
+    label, parity, elo, ehi = bw, links[0], blo, bhi
     _launch(dev, prg.forest_out, n, u32(n), cloud.order, nx, comp, par, flo, fhi, label, parity,
            elo, ehi)
     h_label = np.empty(n, np.int32)
@@ -205,8 +206,10 @@ def spanning_forest(cloud, graph):
     for h, b in ((h_label, label), (h_par, parity), (h_lo, elo), (h_hi, ehi)):
         cl.enqueue_copy(q, h, b)
     q.finish()
-    hooked = h_lo >= 0
-    edges = np.stack([h_lo[hooked], h_hi[hooked]], axis=1).astype(np.int64)
+    hooked = np.flatnonzero(h_lo >= 0)
+    edges = np.empty((len(hooked), 2), np.int64)
+    edges[:, 0] = h_lo[hooked]
+    edges[:, 1] = h_hi[hooked]
     res = Forest(h_label.astype(np.int64), h_par.view(bool), edges, rounds, timings,
                  edge_counts)
     timings["output"] = time.perf_counter() - t2
