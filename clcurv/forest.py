@@ -101,7 +101,7 @@ def spanning_forest(cloud, graph):
     u32 = np.uint32
     t0 = time.perf_counter()
     buf = lambda nbytes: cl.Buffer(ctx, mf.READ_WRITE, size=max(int(nbytes), 4))
-    comp, rank, bw, blo, bhi, flo, fhi, mask, fmask = (buf(4 * n) for _ in range(9))
+    comp, rank, bw, blo, bhi, flo, fhi, fmask = (buf(4 * n) for _ in range(8))
     links = [buf(4 * n), buf(4 * n)]
     par = buf(n)
     flag = buf(4)
@@ -159,8 +159,8 @@ def spanning_forest(cloud, graph):
     ta = time.perf_counter()
     # own_w, own_o, own_j in links[0], links[1] (free until hook), blo (free in round 1)
     _launch(dev, prg.first_weight, nb, graph.nbr, graph.wgt, cloud.order, u32(n), u32(k),
-            u32(BLOCK), bw, mask, fmask, links[0], links[1], blo)
-    _launch(dev, prg.first_other, nb, graph.nbr, graph.wgt, cloud.order, mask, links[0],
+            u32(BLOCK), bw, fmask, links[0], links[1], blo)
+    _launch(dev, prg.first_other, nb, graph.nbr, graph.wgt, cloud.order, links[0],
             links[1], u32(n), u32(k), u32(BLOCK), bw, bhi)
     rl = merge(n, None)
     rounds += 1
@@ -174,7 +174,7 @@ def spanning_forest(cloud, graph):
     while m > 0:
         ta = time.perf_counter()
         if rounds == 1:
-            _launch(dev, prg.next_edges, nb, graph.nbr, graph.wgt, cloud.order, mask, fmask,
+            _launch(dev, prg.next_edges, nb, graph.nbr, graph.wgt, cloud.order, fmask,
                     comp, u32(n), u32(k), u32(BLOCK), u32(stride), counts, bw, eu, ev, ew)
         else:
             _launch(dev, prg.min_weight, nb, eu, ev, ew, u32(nb), u32(stride), counts, comp,

@@ -199,21 +199,20 @@ inline uint listed(__global const uint *nbr, uint k, uint j, uint g)
 }
 
 /* Rounds 1 and 2 read the neighbour lists directly. An undirected edge is met in every list
- * that holds it, with the same weight bits and the same (smaller, larger input index) pair.
- * A point's own slots update its own component (a running minimum over consecutive points
- * of one component, then one atomic); a slot g -> j also updates j's component only when g
- * is not in j's list (mask[g] bit s clear: a one-sided edge), as j's own list covers the
- * rest. The edge list (kept slots, see the top) is written in round 2.
+ * that holds it, with the same weight bits and the same (smaller, larger input index) pair,
+ * so meeting it twice changes no minimum. A slot g -> j updates both endpoints; g's own
+ * list is reduced in registers first. Round 2 writes the edge list: the kept slots (see the
+ * top; the test of j's list only for slots that join two components and whose point has
+ * the larger input index).
  *
  * Round 1: every point is its own component; among the edges of g of weight bw[g] the
  * order (smaller, larger input index) is the order of the other endpoint's input index, so
- * two passes suffice: the weights (bw, mask, and fmask: bit s set when order[g] is the
- * smaller input index), then the other endpoint (into bhi). */
+ * two passes suffice: the weights (bw; and fmask: bit s set when order[g] is the smaller
+ * input index of slot s), then the other endpoint (into bhi). */
 __kernel void first_weight(__global const uint *nbr, __global const float *wgt,
                            __global const uint *order, const uint n, const uint k,
-                           const uint B, volatile __global uint *bw, __global uint *mask,
-                           __global uint *fmask, __global uint *own_w, __global uint *own_o,
-                           __global uint *own_j)
+                           const uint B, volatile __global uint *bw, __global uint *fmask,
+                           __global uint *own_w, __global uint *own_o, __global uint *own_j)
 {
     const uint b = get_global_id(0);
     const uint g0 = b * B;
@@ -221,31 +220,28 @@ __kernel void first_weight(__global const uint *nbr, __global const float *wgt,
     const uint g1 = min(g0 + B, n);
     for (uint g = g0; g < g1; ++g) {
         const uint og = order[g];
-        uint mw = NONE, mo = NONE, mj = NONE, msk = 0, fm = 0;
+        uint mw = NONE, mo = NONE, mj = NONE, fm = 0;
         for (uint s = 0; s < k; ++s) {
             const size_t slot = (size_t)g * k + s;
             const uint j = nbr[slot];
             if (j == NONE) break;
             const uint w = as_uint(wgt[slot]), oj = order[j];
-            const uint two = listed(nbr, k, j, g);
-            msk |= two << s;
             fm |= (uint)(og < oj) << s;
             const int better = w < mw || (w == mw && oj < mo);
             mo = better ? oj : mo;
             mj = better ? j : mj;
             mw = min(mw, w);
-            if (!two) lower(bw + j, w);
+            lower(bw + j, w);
         }
-        mask[g] = msk; fmask[g] = fm;
+        fmask[g] = fm;
         own_w[g] = mw; own_o[g] = mo; own_j[g] = mj;
         if (mw != NONE) lower(bw + g, mw);
     }
 }
 
-/* own_w, own_o: the lightest edge of g's own list (weight, other endpoint's input index);
- * only the one-sided slots (mask bits clear) can reach another point's lightest edge. */
+/* own_w, own_o: the lightest edge of g's own list (weight, other endpoint's input index). */
 __kernel void first_other(__global const uint *nbr, __global const float *wgt,
-                          __global const uint *order, __global const uint *mask,
+                          __global const uint *order,
                           __global const uint *own_w, __global const uint *own_o,
                           const uint n, const uint k, const uint B, __global const uint *bw,
                           volatile __global uint *bhi)
@@ -258,12 +254,8 @@ __kernel void first_other(__global const uint *nbr, __global const float *wgt,
         const uint mw = own_w[g];
         if (mw == NONE) continue;
         if (mw == bw[g]) lower(bhi + g, own_o[g]);
-        uint one = ~mask[g];
         const uint og = order[g];
-        while (one) {
-            const uint s = ctz(one);
-            one &= one - 1;
-            if (s >= k) break;
+        for (uint s = 0; s < k; ++s) {
             const size_t slot = (size_t)g * k + s;
             const uint j = nbr[slot];
             if (j == NONE) break;
@@ -276,8 +268,8 @@ __kernel void first_other(__global const uint *nbr, __global const float *wgt,
  * through the pair table to the block's edges [b stride, b stride + counts[b]); bw is
  * lowered by every edge written (min_lo and min_hi follow on the edges). */
 __kernel void next_edges(__global const uint *nbr, __global const float *wgt,
-                         __global const uint *order, __global const uint *mask,
-                         __global const uint *fmask, __global const uint *comp, const uint n,
+                         __global const uint *order, __global const uint *fmask,
+                         __global const uint *comp, const uint n,
                          const uint k, const uint B, const uint stride,
                          __global uint *counts, volatile __global uint *bw,
                          __global uint *eu, __global uint *ev, __global uint *ew)
@@ -291,15 +283,15 @@ __kernel void next_edges(__global const uint *nbr, __global const float *wgt,
     clear(&t);
     size_t o = e0;
     for (uint g = g0; g < g1; ++g) {
-        const uint cg = comp[g], fm = fmask[g], kept = ~mask[g] | fm;
+        const uint cg = comp[g], fm = fmask[g];
         for (uint s = 0; s < k; ++s) {
             const size_t slot = (size_t)g * k + s;
             const uint j = nbr[slot];
             if (j == NONE) break;
             const uint cj = comp[j];
             const uint g_first = fm >> s & 1u;
-            /* one branch: joins two components and is the kept slot */
-            if ((cj != cg) & (kept >> s & 1u))
+            if (cj == cg) continue;
+            if (g_first || !listed(nbr, k, j, g))
                 put(&t, cg, cj, g_first ? g : j, g_first ? j : g, as_uint(wgt[slot]), &o,
                     eu, ev, ew, bw, 1, order);
         }
