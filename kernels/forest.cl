@@ -6,9 +6,9 @@
  * are the sorted SoA columns NX, NY, NZ of clcurv.cloud.upload_sorted, a row of NaN for an
  * invalid normal (the host sets whole rows).
  *
- * The graph is knn.cl's: nbr[g k + s] and wgt[g k + s] (NONE past a list's end). The edge
- * list keeps each undirected edge once: in the list of the endpoint with the smaller input
- * index when both lists hold it.
+ * The graph is knn.cl's: nbr[g k + s] and wgt[g k + s] (NONE past a list's end). An edge
+ * held by both lists has the same weight bits in both (knn.cl computes it from the smaller
+ * input index's side), so the kernels may meet it twice: no minimum changes.
  *
  * Edge lists: eu, ev (sorted indices, order[eu] < order[ev]) and ew (weight bits: weights are
  * >= +0, whose bits order like the floats). Edges are strictly ordered by (ew, order[eu],
@@ -17,9 +17,9 @@
  * input index among the edges of that weight, then the larger). Atomics are used only for
  * min, whose result does not depend on the order of the updates: no result depends on the
  * work-group size or the scheduling. Rounds 1 and 2 read the neighbour lists (first_*,
- * next_*); round 2 writes the edge list of the edges that still join two components, and
- * later rounds compact it. Kernels take blocks of B consecutive points or edges per
- * work-item; a block's edges are compacted in place, in order (per-block counts).
+ * next_*); round 2 writes the edge list of the edges that still join two components (one
+ * per pair of components, mostly), and later rounds compact it. Kernels take blocks of B
+ * consecutive points per work-item; a block's edges are compacted in place, in order.
  *
  * Components: comp[g] is the sorted index of g's root, par[g] g's sign parity relative to it
  * (1: g's normal must be negated to agree with the root's along the tree). A hook of root C
@@ -183,27 +183,10 @@ __kernel void min_hi(__global const uint *eu, __global const uint *ev, __global 
     }
 }
 
-/* Is g in the list of j? */
-inline uint listed(__global const uint *nbr, uint k, uint j, uint g)
-{
-    __global const uint *lj = nbr + (size_t)j * k;
-    const uint4 g4 = (uint4)(g);
-    int4 f = (int4)(0);
-    uint t = 0;
-    for (; t + 4 <= k; t += 4)              /* branch-free: the list is one or two lines */
-        f |= vload4(0, lj + t) == g4;
-    uint found = (f.x | f.y | f.z | f.w) != 0;
-    for (; t < k; ++t)
-        found |= lj[t] == g;
-    return found;
-}
-
 /* Rounds 1 and 2 read the neighbour lists directly. An undirected edge is met in every list
  * that holds it, with the same weight bits and the same (smaller, larger input index) pair,
  * so meeting it twice changes no minimum. A slot g -> j updates both endpoints; g's own
- * list is reduced in registers first. Round 2 writes the edge list: the kept slots (see the
- * top; the test of j's list only for slots that join two components and whose point has
- * the larger input index).
+ * list is reduced in registers first. Round 2 writes the edge list (next_edges).
  *
  * Round 1: every point is its own component; among the edges of g of weight bw[g] the
  * order (smaller, larger input index) is the order of the other endpoint's input index, so
@@ -264,9 +247,10 @@ __kernel void first_other(__global const uint *nbr, __global const float *wgt,
     }
 }
 
-/* Round 2, pass 1: the kept slots of the points of block b that join two components go
- * through the pair table to the block's edges [b stride, b stride + counts[b]); bw is
- * lowered by every edge written (min_lo and min_hi follow on the edges). */
+/* Round 2, pass 1: the slots of the points of block b that join two components go through
+ * the pair table to the block's edges [b stride, b stride + counts[b]); bw is lowered by
+ * every edge written (min_lo and min_hi follow on the edges). Both slots of an edge held by
+ * both lists go in (the table usually merges them; an edge met twice changes no minimum). */
 __kernel void next_edges(__global const uint *nbr, __global const float *wgt,
                          __global const uint *order, __global const uint *fmask,
                          __global const uint *comp, const uint n,
@@ -290,8 +274,7 @@ __kernel void next_edges(__global const uint *nbr, __global const float *wgt,
             if (j == NONE) break;
             const uint cj = comp[j];
             const uint g_first = fm >> s & 1u;
-            if (cj == cg) continue;
-            if (g_first || !listed(nbr, k, j, g))
+            if (cj != cg)
                 put(&t, cg, cj, g_first ? g : j, g_first ? j : g, as_uint(wgt[slot]), &o,
                     eu, ev, ew, bw, 1, order);
         }
