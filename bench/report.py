@@ -328,7 +328,7 @@ def lead_rows(K):
 LEAD_NOTE = (
     "Public calls end to end (numpy in, numpy out; random point order), min of the repeats "
     "after a warm-up. 'defaults': the call as written (orient='auto': signed methods orient "
-    "their PCA normals on the device by Hoppe's MST, unsigned ones do not orient, so their "
+    "their normals on the device by Hoppe's MST, unsigned ones do not orient, so their "
     "orient=None call is the same call timed again); 'orient=None': no global orientation; "
     "'normals=exact': the sphere's exact normals given (the operators that read normals run "
     "without their PCA pass; the others orient to them). Peak RSS: a fresh process runs the "
