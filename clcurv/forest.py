@@ -25,7 +25,7 @@ from .program import build, launch
 
 #: Points per work-item of the kernels that read the neighbour lists; the edges that these
 #: points' lists give stay in the block's own stride of BLOCK * k edges, compacted in place.
-BLOCK = 256
+BLOCK = 512
 #: Longest hook chain followed link by link in a round; longer ones are finished by pointer
 #: jumping (a launch and a read-back per halving).
 CHASE = 64
