@@ -184,6 +184,8 @@ def spanning_forest(cloud, graph):
         cl.enqueue_copy(q, total, tot)
         m = int(total[0])
         edge_counts.append(m)
+        if rounds == 1 and int(nroots[0]) == n:
+            rounds = 0          # round 1 hooked nothing: no edges at all
         if m == 0:
             timings["rounds"].append(time.perf_counter() - ta)
             break
@@ -195,22 +197,24 @@ def spanning_forest(cloud, graph):
         rounds += 1
         timings["rounds"].append(time.perf_counter() - ta)
     t2 = time.perf_counter()
-    # outputs in buffers free by now (no fresh pages to fault in)
-    label, parity, elo, ehi = bw, links[0], blo, bhi
+    # outputs in buffers free by now (when large enough: eu and ev hold BLOCK k uints a block)
+    fits = lambda b, nbytes: b if b.size >= nbytes else buf(nbytes)
+    label, parity, elo, ehi = fits(eu, 8 * n), links[0], blo, bhi
     _launch(dev, prg.forest_out, n, u32(n), cloud.order, nx, comp, par, flo, fhi, label, parity,
-           elo, ehi)
-    h_label = np.empty(n, np.int32)
+            elo, ehi)
+    _launch(dev, prg.count_edges, nb, u32(n), u32(BLOCK), elo, counts)
+    _launch(dev, prg.scan_blocks, 1, counts, u32(nb), fmask, tot)
+    h_label = np.empty(n, np.int64)
     h_par = np.empty(n, np.uint8)
-    h_lo = np.empty(n, np.int32)
-    h_hi = np.empty(n, np.int32)
-    for h, b in ((h_label, label), (h_par, parity), (h_lo, elo), (h_hi, ehi)):
-        cl.enqueue_copy(q, h, b)
+    cl.enqueue_copy(q, h_label, label, is_blocking=False)
+    cl.enqueue_copy(q, h_par, parity, is_blocking=False)
+    cl.enqueue_copy(q, total, tot)
+    edges = np.empty((int(total[0]), 2), np.int64)
+    if len(edges):
+        out = fits(ev, edges.nbytes)
+        _launch(dev, prg.write_edges, nb, u32(n), u32(BLOCK), elo, ehi, fmask, out)
+        cl.enqueue_copy(q, edges, out)
     q.finish()
-    hooked = np.flatnonzero(h_lo >= 0)
-    edges = np.empty((len(hooked), 2), np.int64)
-    edges[:, 0] = h_lo[hooked]
-    edges[:, 1] = h_hi[hooked]
-    res = Forest(h_label.astype(np.int64), h_par.view(bool), edges, rounds, timings,
-                 edge_counts)
+    res = Forest(h_label, h_par.view(bool), edges, rounds, timings, edge_counts)
     timings["output"] = time.perf_counter() - t2
     return res

@@ -470,15 +470,47 @@ __kernel void forest_init(const uint n, __global const uint *order, __global uin
 __kernel void forest_out(const uint n, __global const uint *order, __global const REAL *NX,
                          __global const uint *comp, __global const uchar *par,
                          __global const uint *flo, __global const uint *fhi,
-                         __global uint *label, __global uchar *parity, __global uint *elo,
+                         __global long *label, __global uchar *parity, __global uint *elo,
                          __global uint *ehi)
 {
     const uint g = get_global_id(0);
     if (g >= n) return;
     const uint i = order[g];
     const int ok = !isnan(NX[g]);
-    label[i] = ok ? order[comp[g]] : NONE;
+    label[i] = ok ? (long)order[comp[g]] : -1;
     parity[i] = ok ? par[g] : 0;
     elo[i] = flo[g];
     ehi[i] = fhi[g];
+}
+
+/* The forest's edges in input order of the point that hooked (elo[i] != NONE): per block
+ * of B input indices a count, a prefix sum (scan_blocks), the (lo, hi) rows as longs. */
+__kernel void count_edges(const uint n, const uint B, __global const uint *elo,
+                          __global uint *counts)
+{
+    const uint b = get_global_id(0);
+    const uint i0 = b * B;
+    if (i0 >= n) return;
+    const uint i1 = min(i0 + B, n);
+    uint c = 0;
+    for (uint i = i0; i < i1; ++i) c += elo[i] != NONE;
+    counts[b] = c;
+}
+
+__kernel void write_edges(const uint n, const uint B, __global const uint *elo,
+                          __global const uint *ehi, __global const uint *offsets,
+                          __global long *edges)
+{
+    const uint b = get_global_id(0);
+    const uint i0 = b * B;
+    if (i0 >= n) return;
+    const uint i1 = min(i0 + B, n);
+    size_t o = offsets[b];
+    for (uint i = i0; i < i1; ++i) {
+        const uint lo = elo[i];
+        if (lo == NONE) continue;
+        edges[2 * o] = lo;
+        edges[2 * o + 1] = ehi[i];
+        ++o;
+    }
 }
