@@ -30,9 +30,14 @@ def _valid_normals(normals, n):
     a = np.asarray(normals, dtype=np.float64)
     if a.shape != (n, 3):
         raise ValueError(f"normals must have shape ({n}, 3), got {a.shape}")
-    ok = np.isfinite(a).all(axis=1)
-    ok &= (a != 0).any(axis=1)
+    # one pass: |n|^2 is finite and > 0 exactly for the finite nonzero rows (but for
+    # overflow of huge components, which the full test below then settles)
+    sq = np.einsum("ij,ij->i", a, a)
+    ok = np.isfinite(sq) & (sq > 0)
     nvalid = int(np.count_nonzero(ok))
+    if nvalid < n:
+        ok = np.isfinite(a).all(axis=1) & (a != 0).any(axis=1)
+        nvalid = int(np.count_nonzero(ok))
     if nvalid < n:
         a = a.copy()
         a[~ok] = np.nan
