@@ -262,6 +262,11 @@ def component_signs(points, normals, labels, parity=None):
     u = np.asarray(normals, dtype=np.float64)
     sgn = np.ones(len(u)) if parity is None else np.where(parity, -1.0, 1.0)
     ncomp = int(labels.max()) + 1 if len(labels) else 0
+    if len(labels) and labels.min() == ncomp - 1:      # one component: plain sums (BLAS)
+        vote = (sgn @ _rowdot(u, p)) - (sgn @ u) @ p.mean(axis=0)
+        flip = np.zeros(ncomp, dtype=bool)
+        flip[-1] = vote < 0
+        return flip
     size = np.bincount(labels, minlength=ncomp).astype(np.float64)
     col = lambda w: np.bincount(labels, weights=w, minlength=ncomp)
     cen = np.stack([col(p[:, j]) for j in range(3)], axis=1) / np.maximum(size, 1)[:, None]
@@ -305,7 +310,10 @@ def orient_components(points, normals, labels, parity):
     not trusted: each of their points faces away from the centroid of all points."""
     p = np.asarray(points, dtype=np.float64)
     u = np.asarray(normals, dtype=np.float64)
-    f = parity ^ component_signs(p, u, labels, parity)[labels]
+    signs = component_signs(p, u, labels, parity)
+    if len(labels) >= MIN_COMPONENT and labels.min() == labels.max():
+        return parity ^ signs[labels[0]]            # one component: no gathers
+    f = parity ^ signs[labels]
     small = np.flatnonzero(np.bincount(labels)[labels] < MIN_COMPONENT)
     if len(small):
         f[small] = _negative(_rowdot(u[small], p[small] - p.mean(axis=0)))
