@@ -76,3 +76,13 @@ def assert_clean_failure(outcome, code=3, what="", max_seconds=MAX_SECONDS,
     assert outcome.lines[0].startswith("clcurv: error: "), (what, outcome.lines)
     assert outcome.seconds < max_seconds, (what, outcome.seconds)
     assert outcome.peak_mb < max_mb, (what, outcome.peak_mb)
+
+
+def lzf_literals(data):
+    """A valid LZF stream made of literal runs only (for crafting binary_compressed PCD)."""
+    out = bytearray()
+    for i in range(0, len(data), 32):
+        chunk = data[i:i + 32]
+        out.append(len(chunk) - 1)
+        out += chunk
+    return bytes(out)

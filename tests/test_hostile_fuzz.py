@@ -25,6 +25,7 @@ import pytest
 
 import clcurv
 from clcurv import io as cio
+from hostile import lzf_literals
 
 SEED = 20240610
 CASES = int(os.environ.get("CLCURV_FUZZ_CASES", "3000"))
@@ -60,15 +61,6 @@ def _cloud(n=N_BASE, seed=3):
     return pts, nrm, fields
 
 
-def _lzf_literals(data):
-    out = bytearray()
-    for i in range(0, len(data), 32):
-        chunk = data[i:i + 32]
-        out.append(len(chunk) - 1)
-        out += chunk
-    return bytes(out)
-
-
 def _pcd(data, pts, nrm, fields):
     """PCD with x y z, normals, a packed rgb, a COUNT 2 field and a label."""
     n = len(pts)
@@ -93,7 +85,7 @@ def _pcd(data, pts, nrm, fields):
     if data == "binary":
         return head, head + rec.tobytes(), []
     soa = b"".join(np.ascontiguousarray(rec[name]).tobytes() for name in dtype.names)
-    comp = _lzf_literals(soa)
+    comp = lzf_literals(soa)
     sizes = [(len(head), 4), (len(head) + 4, 4)]  # compressed, uncompressed size words
     return head, head + struct.pack("<II", len(comp), len(soa)) + comp, sizes
 

@@ -173,40 +173,16 @@ def test_point_count_is_checked_against_the_file_size(tmp_path, kind):
     assert_corrupt(path, *words)
 
 
-def test_offset_to_points_past_the_end(tmp_path):
-    path, words = craft(tmp_path, "offset_past_end")
-    assert_corrupt(path, *words)
-
-
-@pytest.mark.parametrize("kind", ["scale_nan", "scale_zero", "scale_inf", "offset_inf"])
-def test_non_finite_or_zero_scales_and_offsets(tmp_path, kind):
+@pytest.mark.parametrize("kind,extra", [
+    ("offset_past_end", ()), ("scale_nan", ()), ("scale_zero", ()), ("scale_inf", ()),
+    ("offset_inf", ()), ("format_unknown", ("point format",)), ("record_short", ()),
+    ("truncated_in_vlrs", ()), ("legacy_disagrees", ()), ("version", ())])
+def test_corrupt_header_fields(tmp_path, kind, extra):
+    """Offsets past the end, non-finite or zero scales and offsets, an unknown point
+    format, a record shorter than its format, VLRs cut short, 1.4 counts that disagree, an
+    unknown version: one CorruptFileError naming the claimed value."""
     path, words = craft(tmp_path, kind)
-    assert_corrupt(path, *words)
-
-
-def test_unknown_point_format(tmp_path):
-    path, words = craft(tmp_path, "format_unknown")
-    assert_corrupt(path, *words, "point format")
-
-
-def test_record_length_shorter_than_the_format(tmp_path):
-    path, words = craft(tmp_path, "record_short")
-    assert_corrupt(path, *words)
-
-
-def test_truncated_in_the_vlrs(tmp_path):
-    path, words = craft(tmp_path, "truncated_in_vlrs")
-    assert_corrupt(path, *words)
-
-
-def test_legacy_and_64bit_counts_disagree(tmp_path):
-    path, words = craft(tmp_path, "legacy_disagrees")
-    assert_corrupt(path, *words)
-
-
-def test_unknown_version(tmp_path):
-    path, words = craft(tmp_path, "version")
-    assert_corrupt(path, *words)
+    assert_corrupt(path, *words, *extra)
 
 
 @needs_laz

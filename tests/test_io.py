@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from clcurv import io as cio
+from hostile import lzf_literals
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 MILK = "pcl_milk_cartoon_all_small_clorox"
@@ -359,16 +360,6 @@ def test_nan_points_written_then_dropped_on_read(tmp_path):
 
 
 # ------------------------------------------------------------------ PCD variants
-
-def lzf_literals(data):
-    """A valid LZF stream made of literal runs only."""
-    out = bytearray()
-    for i in range(0, len(data), 32):
-        chunk = data[i:i + 32]
-        out.append(len(chunk) - 1)
-        out += chunk
-    return bytes(out)
-
 
 def pcd_bytes(fields, types, rows, data, width, height, counts=None):
     counts = counts or [1] * len(fields)
