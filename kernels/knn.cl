@@ -140,6 +140,21 @@ inline ulong nkey(REAL d2, uint input)
     return (ulong)as_uint((float)d2) << 32 | input;
 }
 
+/* The ordering keys (nkey) of the lanes of the chunk at sorted index i (d2: their squared
+ * distances) */
+inline ULONGV lane_keys(REALV d2, __global const uint *order, uint i, uint n)
+{
+    UINTV o;
+    if (i + VW <= n) {
+        o = CAT(vload, VW)(0, order + i);
+    } else {                               /* the cloud's last chunk: order is not padded */
+        uint t[VW];
+        for (uint l = 0; l < VW; ++l) t[l] = order[min(i + l, n - 1)];
+        o = CAT(vload, VW)(0, t);
+    }
+    return CONVERT_ULONGV(CAT(as_uint, VW)(CONVERT_FLOATV(d2))) << 32 | CONVERT_ULONGV(o);
+}
+
 /* The weight of the edge {g, j} (see the top) when order[j] < order[g]: from the offset of
  * j's walk, in which g lies in the mirrored row ((dz, dy) of g's row change sign), with the
  * products of lane_weights in the same order, so that both lists hold the same bits
@@ -236,12 +251,13 @@ __kernel void knn_graph(__global const REAL *X, __global const REAL *Y, __global
             need |= (uint)((or_lanes(rowor[r]) & ((2u << bsel) - 1)) != 0) << r;
         if (below <= MCAP) {
             ulong key[MCAP + 16];          /* rounded up to 16 with KEY_NONE for the ranks */
-            uint idx[MCAP + 1];
-            float wt[MCAP + 1];
-            uchar row[MCAP + 1];
-            REAL da[VW];
-            float wa[VW];
+            uint ref[MCAP + 1];            /* the candidate's chunk slot * VW + lane */
+            uint cbase[MCAP + 1];          /* per chunk slot: its first sorted index, row */
+            uchar crow[MCAP + 1];
+            float cw[(MCAP + 1) * VW];     /* per chunk slot: the lanes' weights */
+            ulong ka[VW];
             IREAL ma[VW];
+            uint nc = 0;
             NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, ball, i, end, pr)
                 if (!(need >> (nb_z * 3 + nb_y) & 1)) break;    /* to the next row */
                 IREALV m = lane_offsets(XA, Y, Z, i, end, pr, &dx, &dy, &dz);
@@ -250,38 +266,38 @@ __kernel void knn_graph(__global const REAL *X, __global const REAL *Y, __global
                      & CONVERT_IREALV(bin_of(d2, s) <= bsel)
                      & ((IREALV)(IREAL)(g - i) != LANES);
                 if (any_lane(m)) {
-                    VSTOREV(d2, 0, da);
+                    VSTOREV(lane_keys(d2, order, i, n), 0, ka);
                     VSTOREV(m, 0, ma);
                     VSTOREF(lane_weights(dx, dy, dz, ng, VLOADV(0, NX + i), VLOADV(0, NY + i),
-                                         VLOADV(0, NZ + i)), 0, wa);
-                    const uchar rw = (uchar)(nb_z * 3 + nb_y);
-                    for (int l = 0; l < VW; ++l) {        /* branch-free append */
-                        const uint j = i + l;
-                        key[cnt] = nkey(da[l], order[min(j, n - 1)]);
-                        idx[cnt] = j;
-                        wt[cnt] = wa[l];
-                        row[cnt] = rw;
-                        cnt = min(cnt + (uint)(ma[l] != 0), (uint)MCAP);
+                                         VLOADV(0, NZ + i)), nc, cw);
+                    cbase[nc] = i;
+                    crow[nc] = (uchar)(nb_z * 3 + nb_y);
+                    for (uint l = 0; l < VW; ++l) {       /* branch-free append */
+                        key[cnt] = ka[l];
+                        ref[cnt] = nc * VW + l;
+                        cnt = min(cnt + (uint)(ma[l] & 1), (uint)MCAP);
                     }
+                    nc = min(nc + 1, (uint)MCAP);
                 }
             NEIGHBOR_CHUNKS_END
             for (uint a = cnt; a < ((cnt + 15) & ~15u); ++a)
                 key[a] = KEY_NONE;
             for (uint a0 = 0; a0 < cnt; a0 += 16) {
-                const ulong16 ka = vload16(0, key + a0);
-                long16 r16 = 0;                       /* -1 per key below each of ka */
+                const ulong16 kb = vload16(0, key + a0);
+                long16 r16 = 0;                       /* -1 per key below each of kb */
                 for (uint b = 0; b < cnt; ++b)
-                    r16 += ka > (ulong16)key[b];
+                    r16 += kb > (ulong16)key[b];
                 uint rk[16];
                 vstore16(convert_uint16(-r16), 0, rk);
                 for (uint a = a0; a < min(a0 + 16, cnt); ++a) {
                     const uint r = rk[a - a0];
                     if (r < k) {
-                        out[r] = idx[a];
+                        const uint c = ref[a] / VW, j = cbase[c] + ref[a] % VW;
+                        out[r] = j;
                         outw[r] = (uint)key[a] < og
                             ? mirror_weight(X, Y, Z, NX, NY, NZ, cell_of, n, ball.y, p, ng, g,
-                                            idx[a], row[a])
-                            : wt[a];
+                                            j, crow[c])
+                            : cw[ref[a]];
                     }
                 }
             }
