@@ -24,7 +24,7 @@ import warnings
 import numpy as np
 
 from . import demo, io, job
-from .device import APT_HINT, NoDeviceError, devices, get_device
+from .device import APT_HINT, NoDeviceError, devices
 from .job import UsageError
 from .operators import METHODS
 from .program import PrecisionError
@@ -54,16 +54,27 @@ def render_cmd(args, out=print):
 
 
 def devices_cmd(args, out=print):
-    """``clcurv devices``: one line per OpenCL device, the default marked ``*``."""
+    """``clcurv devices``: one line per OpenCL device, the default marked ``*`` and why,
+    simulators marked, then the ICD files the loader read."""
     devs = devices()
     if not devs:
-        raise NoDeviceError(APT_HINT)
-    default = get_device().info.index
+        raise NoDeviceError(APT_HINT + "; ICD folders read: " + ", ".join(devs.vendors))
     for d in devs:
-        mark = "*" if d.index == default else " "
+        mark = "*" if d.index == devs.default else " "
+        sim = " | simulator: used only when named" if d.simulator else ""
         out(f"{mark} {d.index}: {d.name} | {d.platform} | {d.kind} | driver {d.driver} | "
-            f"fp64 {'yes' if d.fp64 else 'no'} | {d.global_mem / 2**30:.1f} GiB")
-    out("(* = default; choose with --device or CLCURV_DEVICE)")
+            f"fp64 {'yes' if d.fp64 else 'no'} | {d.global_mem / 2**30:.1f} GiB{sim}")
+    out(f"* = default: {devs.reason}" if devs.default is not None
+        else f"no default device: {devs.reason}")
+    out("choose with --device (index, 'platform:device', kind, or platform/device name) "
+        "or CLCURV_DEVICE")
+    out("ICD files read (OCL_ICD_VENDORS, else /etc/OpenCL/vendors; and pyopencl's own):")
+    for icd in devs.icds:
+        out(f"  {icd}")
+    idle = devs.idle_venv_icds
+    if idle:
+        out(f"  not read: {len(idle)} ICD file(s) in {idle[0].rsplit('/', 1)[0]} "
+            f"(export OCL_ICD_VENDORS={idle[0].rsplit('/', 1)[0]} to use them)")
 
 
 def demo_cmd(args, out=print):

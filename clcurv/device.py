@@ -1,20 +1,43 @@
-"""OpenCL device choice and capability record.
+"""OpenCL device choice, capability record, and the ICD files the loader read.
 
 Order of choice: the ``device=`` argument, else the ``CLCURV_DEVICE`` environment
-variable, else the first GPU found, else the first CPU device (PoCL on Debian).
+variable, else the first GPU found, else the first CPU device (PoCL on Debian), else the
+first other device. Simulators and emulators (Oclgrind, Intel's FPGA emulator: see
+:data:`SIMULATOR_WORDS`) are never chosen by default nor by a kind (``"gpu"``, ``"cpu"``):
+they are about 1000x slower and are used only when named (``device="oclgrind"``).
 
 A device specification is an int (index in :func:`devices`), a ``"platform:device"``
-pair of indices, or a case-insensitive substring of the device or platform name
-(``"pocl"``, ``"nvidia"``, ``"cpu"``, ``"gpu"``).
+pair of indices, a kind (``"gpu"``, ``"cpu"``, ``"accelerator"``), or a case-insensitive
+substring of the platform name or vendor (``"pocl"`` matches PoCL, whose platform is
+"Portable Computing Language" by "The pocl project"; ``"intel"``, ``"nvidia"``,
+``"oclgrind"``), else of the device name. A platform match wins over a device-name
+match, a real device over a simulator, then the lower index.
+
+Which OpenCL implementations exist is decided by the ICD loader: it reads the ``.icd``
+files of the folder ``OCL_ICD_VENDORS`` names (else ``/etc/OpenCL/vendors``), and the
+pyopencl wheel's loader also those in ``pyopencl/.libs``. Each file names one library.
+:func:`devices` reports those files (``devices().icds``) and which library each device
+came from, so that an ICD whose library is missing (the Intel wheel's own ``.icd`` names a
+placeholder path) shows up. ``make intel-opencl`` and ``make oclgrind`` write ``.icd``
+files into ``.venv/etc/OpenCL/vendors``; ``make test`` and ``make bench`` point
+``OCL_ICD_VENDORS`` there.
 """
 from __future__ import annotations
 
+import ctypes
 import os
+import sys
 from dataclasses import dataclass
 from functools import lru_cache
+from pathlib import Path
 
 APT_HINT = ("no OpenCL platform found; on Debian/Ubuntu install PoCL with: "
             "apt-get install -y pocl-opencl-icd ocl-icd-libopencl1")
+
+#: lower-case words that mark a simulator or emulator in a platform or device name
+SIMULATOR_WORDS = ("oclgrind", "emulat", "simulat")
+
+KINDS = ("gpu", "cpu", "accelerator")
 
 
 class NoDeviceError(RuntimeError):
@@ -28,7 +51,7 @@ class DeviceInfo:
     name: str
     platform: str
     vendor: str
-    kind: str                 # "gpu", "cpu" or "other"
+    kind: str                 # "gpu", "cpu", "accelerator" or "other"
     driver: str
     version: str
     fp64: bool
@@ -37,9 +60,47 @@ class DeviceInfo:
     local_mem: int            # bytes
     max_work_group: int
     compute_units: int
+    simulator: bool = False   # a simulator or emulator: never the default
+    library: str | None = None  # the ICD library it came from (None where unknown)
 
     def __str__(self):
-        return f"[{self.index}] {self.name} ({self.platform}, {self.kind}, fp64={'yes' if self.fp64 else 'no'})"
+        sim = ", simulator" if self.simulator else ""
+        return (f"[{self.index}] {self.name} ({self.platform}, {self.kind}{sim}, "
+                f"fp64={'yes' if self.fp64 else 'no'})")
+
+
+@dataclass(frozen=True)
+class Icd:
+    """One ``.icd`` file the loader read: the library it names, and how many devices came
+    from that library (0: the library is missing, failed to load, or has no device)."""
+    path: str
+    library: str
+    devices: int
+
+    def __str__(self):
+        if self.devices:
+            return f"{self.path} -> {self.library}: {self.devices} device(s)"
+        missing = os.path.isabs(self.library) and not os.path.exists(self.library)
+        why = "library not found" if missing else "loaded no device"
+        return f"{self.path} -> {self.library}: {why}"
+
+
+class DeviceList(list):
+    """The :class:`DeviceInfo` records of :func:`devices`, with what the loader read.
+
+    ``icds``: the :class:`Icd` files found; ``vendors``: the folders they were read from;
+    ``default``: the index of the default device (None when there is none) and
+    ``reason``: why it is the default, or why there is none; ``idle_venv_icds``: the
+    ``.icd`` files of :func:`venv_vendors` when the loader did not read that folder.
+    """
+
+    def __init__(self, infos, icds, vendors, default, reason):
+        super().__init__(infos)
+        self.icds, self.vendors, self.default, self.reason = icds, vendors, default, reason
+        venv = venv_vendors()
+        read = {os.path.realpath(v) for v in vendors}
+        self.idle_venv_icds = ([str(f) for f in sorted(venv.glob("*.icd"))]
+                               if venv.is_dir() and os.path.realpath(venv) not in read else [])
 
 
 def _cl():
@@ -72,7 +133,18 @@ def _kind(dev):
         return "gpu"
     if dev.type & cl.device_type.CPU:
         return "cpu"
+    if dev.type & cl.device_type.ACCELERATOR:
+        return "accelerator"
     return "other"
+
+
+def _is_simulator(platform, dev):
+    """A simulator or emulator: named so, or claiming to be a CPU and a GPU at once
+    (Oclgrind sets every device-type bit)."""
+    cl = _cl()
+    names = f"{platform.name} {platform.vendor} {dev.name}".lower()
+    both = dev.type & cl.device_type.CPU and dev.type & cl.device_type.GPU
+    return bool(both) or any(w in names for w in SIMULATOR_WORDS)
 
 
 def _info(index, platform, dev) -> DeviceInfo:
@@ -82,47 +154,175 @@ def _info(index, platform, dev) -> DeviceInfo:
         version=dev.version, fp64=bool(dev.double_fp_config),
         global_mem=dev.global_mem_size, max_alloc=dev.max_mem_alloc_size,
         local_mem=dev.local_mem_size, max_work_group=dev.max_work_group_size,
-        compute_units=dev.max_compute_units)
+        compute_units=dev.max_compute_units, simulator=_is_simulator(platform, dev),
+        library=_platform_library(platform))
+
+
+# ------------------------------------------------------------------------ ICD files
+def vendor_dirs():
+    """The folders whose ``.icd`` files the loader reads: ``OCL_ICD_VENDORS`` (a folder)
+    or ``/etc/OpenCL/vendors``, and the pyopencl wheel's own ``pyopencl/.libs``."""
+    env = os.environ.get("OCL_ICD_VENDORS")
+    dirs = [Path(env) if env else Path("/etc/OpenCL/vendors")]
+    try:
+        import pyopencl
+        bundled = Path(pyopencl.__file__).parent / ".libs"
+        if bundled.is_dir():
+            dirs.append(bundled)
+    except ImportError:  # pragma: no cover - dependency declared in pyproject
+        pass
+    return dirs
+
+
+def venv_vendors():
+    """``<sys.prefix>/etc/OpenCL/vendors``, where ``make intel-opencl`` and ``make
+    oclgrind`` write their ``.icd`` files (it may not exist)."""
+    return Path(sys.prefix) / "etc" / "OpenCL" / "vendors"
+
+
+def _icd_files():
+    """(path, library) of every ``.icd`` file in :func:`vendor_dirs`."""
+    out = []
+    for d in vendor_dirs():
+        if d.is_file():   # OCL_ICD_VENDORS may name one library or .icd directly
+            out.append((str(d), d.read_text().strip() if d.suffix == ".icd" else str(d)))
+            continue
+        for f in sorted(d.glob("*.icd")) if d.is_dir() else []:
+            try:
+                out.append((str(f), f.read_text().strip()))
+            except OSError:
+                out.append((str(f), "(unreadable)"))
+    return out
+
+
+def _mapped_libraries():
+    """(start, end, path) of the libraries mapped into this process (Linux only)."""
+    maps = []
+    try:
+        with open("/proc/self/maps") as fh:
+            for line in fh:
+                parts = line.split()
+                if len(parts) >= 6 and parts[5].startswith("/"):
+                    lo, hi = (int(x, 16) for x in parts[0].split("-"))
+                    maps.append((lo, hi, parts[5]))
+    except OSError:
+        pass
+    return maps
+
+
+def _platform_library(platform):
+    """The library a platform came from: an ICD platform object starts with a pointer to
+    its dispatch table, which lies in the ICD's library; None where that cannot be read."""
+    try:
+        table = ctypes.c_void_p.from_address(platform.int_ptr).value
+    except (ValueError, TypeError, OSError):
+        return None
+    for lo, hi, path in _mapped_libraries():
+        if table is not None and lo <= table < hi:
+            return path
+    return None
+
+
+def _same_library(named, loaded):
+    if loaded is None:
+        return False
+    if os.path.isabs(named):
+        return os.path.realpath(named) == os.path.realpath(loaded)
+    return os.path.basename(named) in (os.path.basename(loaded),
+                                       os.path.basename(os.path.realpath(loaded)))
+
+
+def _icds(infos):
+    return [Icd(path, lib, sum(_same_library(lib, i.library) for i in infos))
+            for path, lib in _icd_files()]
+
+
+# ------------------------------------------------------------------------ choice
+def _default(infos):
+    """(index, reason) of the default device, or (None, why there is none)."""
+    for kind, why in (("gpu", "the first GPU"), ("cpu", "the first CPU device (no GPU)"),
+                      (None, "the first device (no GPU nor CPU device)")):
+        for i in infos:
+            if not i.simulator and (kind is None or i.kind == kind):
+                return i.index, why
+    sims = ", ".join(f"{i.name} | {i.platform}" for i in infos)
+    return None, (f"only simulators or emulators found ({sims}): they are used only when "
+                  "named (device=..., CLCURV_DEVICE); " + APT_HINT)
+
+
+@lru_cache(maxsize=None)
+def _infos():
+    return tuple(_info(i, p, d) for i, (p, d) in enumerate(_all_devices()))
 
 
 def devices():
-    """List the OpenCL devices clcurv can use, as :class:`DeviceInfo` records."""
-    return [_info(i, p, d) for i, (p, d) in enumerate(_all_devices())]
+    """List the OpenCL devices as :class:`DeviceInfo` records, in a :class:`DeviceList`
+    that also says which ICD files were found and which device is the default, and why."""
+    found = _all_devices()
+    infos = list(_infos())
+    env = os.environ.get("CLCURV_DEVICE") or None
+    if env is not None and found:
+        try:
+            default, reason = _match(env, infos), f"CLCURV_DEVICE={env!r}"
+        except NoDeviceError as exc:
+            default, reason = None, str(exc)
+    else:
+        default, reason = _default(infos) if found else (None, APT_HINT)
+    return DeviceList(infos, _icds(infos), [str(d) for d in vendor_dirs()], default, reason)
 
 
-def _match(spec, found):
+def _match(spec, infos):
     if isinstance(spec, int) or (isinstance(spec, str) and spec.strip().isdigit()):
         i = int(spec)
-        if 0 <= i < len(found):
+        if 0 <= i < len(infos):
             return i
-        raise NoDeviceError(f"device index {i} out of range: {len(found)} device(s) found: "
-                            f"{_listing(found)}")
+        raise NoDeviceError(f"device index {i} out of range: {len(infos)} device(s) found: "
+                            f"{_listing(infos)}")
     if isinstance(spec, str) and ":" in spec:
-        return _match_pair(spec, found)
+        return _match_pair(spec, infos)
     if isinstance(spec, str):
-        s = spec.lower()
-        for i, (p, d) in enumerate(found):
-            if s in d.name.lower() or s in p.name.lower() or s == _kind(d):
-                return i
-        names = ", ".join(d.name.strip() for _, d in found)
-        raise NoDeviceError(f"no OpenCL device matches {spec!r}; available: {names}")
+        return _match_name(spec, infos)
     raise TypeError(f"device must be an int or a str, got {type(spec).__name__}")
 
 
-def _listing(found):
+def _match_name(spec, infos):
+    """A kind (real devices only), else the best substring match of the platform name or
+    vendor, then of the device name (real devices before simulators, then by index)."""
+    s = spec.strip().lower()
+    if s in KINDS:
+        for i in infos:
+            if i.kind == s and not i.simulator:
+                return i.index
+        raise NoDeviceError(f"no OpenCL {s} device (simulators are used only when named); "
+                            f"devices: {_listing(infos)}")
+    found = _all_devices()
+    ranked = []
+    for i in infos:
+        p, d = found[i.index]
+        if s in f"{p.name} {p.vendor}".lower():
+            ranked.append((0, i.simulator, i.index))
+        elif s in d.name.lower():
+            ranked.append((1, i.simulator, i.index))
+    if ranked:
+        return min(ranked)[2]
+    raise NoDeviceError(f"no OpenCL device matches {spec!r} (by platform or device name); "
+                        f"devices: {_listing(infos)}")
+
+
+def _listing(infos):
     """'index: device | platform' of every device, for error messages."""
-    return "; ".join(f"{i}: {d.name.strip()} | {p.name.strip()}"
-                     for i, (p, d) in enumerate(found))
+    return "; ".join(f"{i.index}: {i.name} | {i.platform}" for i in infos) or "none"
 
 
-def _match_pair(spec, found):
+def _match_pair(spec, infos):
     """The index of ``'platform:device'`` (two integers, as ``clcurv devices`` numbers the
     platforms and their devices), or NoDeviceError listing what exists."""
     try:
         pi, di = (int(s) for s in spec.split(":", 1))
     except ValueError:
         raise NoDeviceError(f"device {spec!r}: 'platform:device' takes two integers; "
-                            f"devices: {_listing(found)}") from None
+                            f"devices: {_listing(infos)}") from None
+    found = _all_devices()
     plats = []
     for p, _ in found:
         if p not in plats:
@@ -132,14 +332,7 @@ def _match_pair(spec, found):
         if 0 <= di < len(devs):
             return found.index((plats[pi], devs[di]))
     raise NoDeviceError(f"no device {spec!r} ({len(plats)} platform(s)); devices: "
-                        f"{_listing(found)}")
-
-
-def _default(found):
-    for i, (_, d) in enumerate(found):
-        if _kind(d) == "gpu":
-            return i
-    return 0
+                        f"{_listing(infos)}")
 
 
 class Device:
@@ -147,8 +340,8 @@ class Device:
 
     def __init__(self, index):
         cl = _cl()
-        platform, dev = _all_devices()[index]
-        self.info = _info(index, platform, dev)
+        _, dev = _all_devices()[index]
+        self.info = _infos()[index]
         self.cl_device = dev
         self.context = cl.Context([dev])
         self.queue = cl.CommandQueue(self.context)
@@ -169,7 +362,13 @@ def get_device(device=None) -> Device:
     found = _all_devices()
     if not found:
         raise NoDeviceError(APT_HINT)
+    infos = _infos()
     if device is None:
         device = os.environ.get("CLCURV_DEVICE") or None
-    index = _default(found) if device is None else _match(device, found)
+    if device is None:
+        index, reason = _default(infos)
+        if index is None:
+            raise NoDeviceError(reason)
+    else:
+        index = _match(device, infos)
     return _device_at(index)

@@ -4,10 +4,18 @@ Programs are built with ``-I <kernels dir>`` so that ``#include "common.h"`` wor
 the host's constants (:func:`clcurv.constants.kernel_defines`) and ``-D`` options for
 precision, vector width and the operator's own defines. Built programs are memoised per
 (context, file, options); a failed build raises :class:`BuildError` carrying the log.
+
+A successful build's log is read: pyopencl's ``CompilerWarning`` ("non-empty compiler
+output") is silenced during the build because Intel's CPU runtime always logs its progress
+and vectoriser remarks ("Compilation started", "remark: loop not vectorized", "Kernel ...
+was successfully vectorized"); the lines that say ``warning`` or ``error`` are re-raised
+as a :class:`BuildWarning` naming the file, so a real compiler warning is never hidden.
 """
 from __future__ import annotations
 
+import re
 import threading
+import warnings
 from pathlib import Path
 
 from .constants import kernel_defines
@@ -15,6 +23,10 @@ from .constants import kernel_defines
 
 class BuildError(RuntimeError):
     """An OpenCL program failed to build; the message contains the build log."""
+
+
+class BuildWarning(UserWarning):
+    """A kernel built, but its compiler warned; the message holds the log's warning lines."""
 
 
 class PrecisionError(RuntimeError):
@@ -76,11 +88,31 @@ def build(device, filename, defines=None):
         source = (kdir / filename).read_text()
         options = ["-I", str(kdir)] + [f"-D{k}={v}" for k, v in sorted(defines.items())]
         try:
-            prg = Program(cl.Program(device.context, source).build(options=options))
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", cl.CompilerWarning)   # read below
+                built = cl.Program(device.context, source).build(options=options)
         except cl.Error as exc:
             raise BuildError(f"building {filename} with {options} failed:\n{exc}") from exc
+        _warn_from_log(device, filename, built)
+        prg = Program(built)
         _cache[key] = prg
         return prg
+
+
+_WARNING_LINE = re.compile(r"\b(warning|error)\b", re.IGNORECASE)
+
+
+def _warn_from_log(device, filename, program):
+    """Raise a :class:`BuildWarning` with the build log's warning/error lines, if any."""
+    import pyopencl as cl
+    try:
+        log = program.get_build_info(device.cl_device, cl.program_build_info.LOG) or ""
+    except cl.Error:
+        return
+    lines = [ln for ln in log.splitlines() if _WARNING_LINE.search(ln)]
+    if lines:
+        warnings.warn(f"{filename} on {device.info.name}: " + "\n".join(lines),
+                      BuildWarning, stacklevel=3)
 
 
 def local_size(device, kernel, limit=128):
