@@ -103,6 +103,10 @@ class DeviceCloud:
         See :func:`clcurv.device.get_device`.
     precision : {'float', 'double'}
         Device arithmetic; 'double' needs cl_khr_fp64.
+    frame : clcurv.grid.Frame, optional
+        Bin in this frame (of cell size ``cell``) rather than the points' own bounding box:
+        a tile binned in the whole cloud's frame, its points in the whole cloud's order,
+        gets the same results as the whole cloud's run (clcurv.tiled).
 
     A DeviceCloud can be passed to :func:`clcurv.curvature` and :func:`clcurv.normals` in
     place of the points: the cloud is then binned once for several operators (at any radius
@@ -117,7 +121,7 @@ class DeviceCloud:
     :class:`Plan` of every stage run on it.
     """
 
-    def __init__(self, points, cell, *, device=None, precision="float"):
+    def __init__(self, points, cell, *, device=None, precision="float", frame=None):
         import pyopencl as cl
         self.points = points = as_points(points)
         self.cell = device_radius(as_radius(cell), precision)
@@ -131,7 +135,7 @@ class DeviceCloud:
         if self.n == 0:
             raise ValueError("DeviceCloud needs at least one point")
         t0 = time.perf_counter()
-        self.grid = g = bin_points(points, self.cell, self.dtype)
+        self.grid = g = bin_points(points, self.cell, self.dtype, frame)
         check_pairs(g, points, self.cell)       # the walk visits the cells: cell = radius
         t1 = time.perf_counter()
         self.timings["binning"] = t1 - t0

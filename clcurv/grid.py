@@ -99,6 +99,19 @@ def _sort_keys(key, ncells_box):
     return order, key[order]
 
 
+def _check_inside(points, frame, cell):
+    """Refuse a frame of another cell size, or one some point lies outside of."""
+    if float(cell) != frame.cell:
+        raise ValueError(f"frame cell {frame.cell} differs from cell {cell}")
+    if len(points):
+        lo, hi = _bounding_box(points)
+        ijk_lo, ijk_hi = frame.cells_of(np.stack([lo, hi]))
+        if (ijk_lo < 0).any() or (ijk_hi >= np.asarray(frame.dims)).any():
+            raise ValueError(f"points from {_fmt(lo)} to {_fmt(hi)} lie outside the frame "
+                             f"of origin {_fmt(frame.origin)} and {frame.dims} cells of "
+                             f"size {cell:.6g}")
+
+
 class ExtentError(ValueError):
     """The cloud's bounding box has more than 2^62 cells of the requested size (a far
     outlier such as a 3.4e38 "no data" value, or a radius tiny for the extent)."""
@@ -134,13 +147,45 @@ def _outlier(points, lo, hi):
             f"{_fmt(points[far])}. ")
 
 
-def bin_points(points, cell, dtype=np.float32):
-    """Bin ``points`` (N, 3) float64 into cells of size ``cell``; see the module docstring."""
+@dataclass(frozen=True)
+class Frame:
+    """The cells of one grid: cell (0, 0, 0) has its corner at ``origin`` (float64), cells
+    have size ``cell``, and ``dims`` (nx, ny, nz) of them cover the points. Points binned
+    in one frame get the same cell-relative coordinates, cell keys and order within a cell
+    whatever subset of the cloud they are binned with: the tiles of clcurv.tiled share the
+    frame of the whole cloud, so each computes exactly what the whole cloud's run does."""
+    origin: tuple
+    cell: float
+    dims: tuple
+
+    @classmethod
+    def covering(cls, lo, hi, cell, points=None):
+        """The frame whose origin is ``lo``, covering the box [lo, hi] (ExtentError when
+        more than 2^62 cells; ``points`` only name the farthest one in the message)."""
+        lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+        dims = _dims(points if points is not None else np.stack([lo, hi]), lo, hi, cell)
+        return cls(tuple(float(v) for v in lo), float(cell), dims)
+
+    def cells_of(self, points):
+        """(N, 3) int64 cell coordinates of float64 ``points`` (as :func:`bin_points`)."""
+        u = (np.asarray(points, np.float64) - np.asarray(self.origin)) * (1.0 / self.cell)
+        return u.astype(np.int64)
+
+
+def bin_points(points, cell, dtype=np.float32, frame=None):
+    """Bin ``points`` (N, 3) float64 into cells of size ``cell``; see the module docstring.
+
+    ``frame`` (a :class:`Frame` of cell size ``cell`` containing every point) bins them in
+    that frame instead of the one of their own bounding box."""
     points = np.ascontiguousarray(points, dtype=np.float64)
     n = len(points)
-    lo, hi = _bounding_box(points)
+    if frame is None:
+        lo, hi = _bounding_box(points)
+        nx, ny, nz = _dims(points, lo, hi, cell)
+    else:
+        lo, (nx, ny, nz) = np.asarray(frame.origin, np.float64), frame.dims
+        _check_inside(points, frame, cell)
     inv = 1.0 / cell
-    nx, ny, nz = _dims(points, lo, hi, cell)
     box = float(nx) * float(ny) * float(nz)
     key, i = np.empty(n, np.int64), np.empty(n, np.int64)
     rel = np.empty((3, n), dtype)

@@ -144,3 +144,53 @@ def thin_box(spacing, thickness, side=1.0, *, seed=0):
     pts, nrm = np.concatenate(pts), np.concatenate(nrm)
     zero = np.zeros(len(pts))
     return _finish(rng, pts, nrm, zero, zero.copy(), 0.0)
+
+
+def aerial_scene(n, extent=(97.3, 61.9), *, origin=(481200.25, 4390100.5, 12.0), seed=0):
+    """A synthetic aerial LiDAR scene of about ``n`` points (x, y, z in metres, z up): rolling
+    terrain, gable-roofed houses with vertical walls, and trees (noisy crowns on trunks),
+    over an ``extent`` (x, y) from ``origin`` (a UTM-like offset, so coordinates are large).
+
+    Returns a dict with ``points`` (N, 3) and ``kind`` (N,) uint8: 2 ground, 6 building,
+    5 vegetation (the ASPRS LAS classes). No analytic curvature: a scene for the tiled
+    engine and the features, not an accuracy test."""
+    rng = np.random.default_rng(seed)
+    ex, ey = extent
+    ox, oy, oz = origin
+
+    def ground(x, y):
+        return 1.5 * np.sin(x / 17.0) * np.cos(y / 23.0) + 0.02 * x
+
+    m_ground, m_house, m_tree = int(0.6 * n), int(0.25 * n), n - int(0.6 * n) - int(0.25 * n)
+    x, y = rng.uniform(0, ex, m_ground), rng.uniform(0, ey, m_ground)
+    parts = [(np.stack([x, y, ground(x, y)], axis=1), 2)]
+    houses = max(1, int(ex * ey / 900))
+    per = max(1, m_house // houses)
+    for _ in range(houses):
+        cx, cy = rng.uniform(8, ex - 8), rng.uniform(8, ey - 8)
+        w, d, hw, hr = rng.uniform(5, 8), rng.uniform(4, 6), rng.uniform(3, 5), rng.uniform(1, 2.5)
+        base = ground(cx, cy)
+        k = per // 2
+        u, v = rng.uniform(-w, w, k), rng.uniform(-d, d, k)           # gable roof
+        roof = np.stack([cx + u, cy + v, base + hw + hr * (1 - np.abs(v) / d)], axis=1)
+        t = rng.uniform(0, 4 * (w + d), per - k)                       # four walls
+        s = rng.uniform(0, hw, per - k)
+        wx = np.where(t < 2 * w, -w + t, np.where(t < 2 * w + 2 * d, w, np.where(
+            t < 4 * w + 2 * d, w - (t - 2 * w - 2 * d), -w)))
+        wy = np.where(t < 2 * w, -d, np.where(t < 2 * w + 2 * d, -d + (t - 2 * w), np.where(
+            t < 4 * w + 2 * d, d, d - (t - 4 * w - 2 * d))))
+        walls = np.stack([cx + np.clip(wx, -w, w), cy + np.clip(wy, -d, d), base + s], axis=1)
+        parts.append((np.concatenate([roof, walls]), 6))
+    trees = max(1, int(ex * ey / 400))
+    per = max(1, m_tree // trees)
+    for _ in range(trees):
+        cx, cy = rng.uniform(2, ex - 2), rng.uniform(2, ey - 2)
+        c = rng.normal(size=(per, 3))
+        c /= np.linalg.norm(c, axis=1)[:, None]
+        c *= rng.uniform(0.6, 1.0, (per, 1)) * np.array([2.5, 2.5, 3.0])
+        crown = c + [cx, cy, ground(cx, cy) + 6.0]
+        parts.append((crown, 5))
+    pts = np.concatenate([p for p, _ in parts])
+    kind = np.concatenate([np.full(len(p), k, np.uint8) for p, k in parts])
+    perm = rng.permutation(len(pts))                    # scanner order is not spatial
+    return {"points": pts[perm] + np.asarray(origin, float), "kind": kind[perm]}

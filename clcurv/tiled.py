@@ -1,0 +1,675 @@
+"""Out-of-core operators: a cloud larger than memory in tiles with an exact halo.
+
+    clcurv.curvature_file("survey.laz", "out.laz", 3.0, method="mls2", memory="2GiB")
+    clcurv compute survey.laz -o out.laz --radius 3 --memory 2GiB [--tile-size 500]
+
+What a tiled run computes is what the in-memory run (:func:`clcurv.curvature` on the whole
+cloud) computes, bit for bit on the same device. How:
+
+* **One frame.** Every tile bins its points in the grid frame of the whole cloud
+  (:class:`clcurv.grid.Frame`: the origin at the cloud's minimum corner, cells of the
+  radius), so a point's float32 cell-relative coordinates, its cell key and its place
+  among the points of its cell are those of the in-memory run; a tile's points are kept in
+  input order (global id), as the in-memory run's stable binning keeps them.
+* **Tiles are blocks of cells.** A tile is ``size x size`` cells in x and y (all of z), and
+  owns the points of its cells: half-open bounds on the global grid, so every point has
+  exactly one owner (lidR's chunks are the model; a point on a tile edge belongs to the
+  tile whose cell holds it, as in the in-memory binning).
+* **An exact halo, in whole cells.** The kernels walk the 27 cells around a point's cell as
+  9 runs of consecutive points in a fixed order, several at a time (neighbors.h): the
+  floating-point sums are those of the in-memory run only when every one of those cells is
+  complete. So a tile reads ``halo`` more cells around its own, ``halo`` = the number of
+  neighbourhood passes that feed each other (:func:`halo_cells`): 1 for an operator on the
+  points alone, 2 when it reads its neighbours' PCA normals (2dcov1, 2dcov2, 3dcov without
+  normals from the file), twice that with density weights (a weight is a neighbour count).
+  A distance halo of the radius is not enough: a missing cell two radii away shifts the
+  vector lanes of the sums (tests/test_tiled.py shows the difference).
+* **Orientation.** Normals from the file, a viewpoint, "up" (or a direction) and no
+  orientation are decided point by point, so they are exact in tiles. Hoppe's MST
+  propagation walks the whole cloud: a tiled run refuses ``orient="mst"`` and signed
+  methods' ``orient="auto"`` without file normals or a viewpoint, and says to use
+  ``"up"`` (the CLI's default for LAS/LAZ) or a viewpoint.
+* **Not yet tiled:** the MLS1 scale space (``scale_space > 0``) and ``projections`` (they
+  move the points; refused with a message), input other than LAS/LAZ/NPY, output other
+  than LAS/LAZ/NPZ.
+
+Passes and files. (1) The input is read once in chunks (:mod:`clcurv.io.stream`) and each
+point is appended, with its global id, to an on-disk bucket of a coarse 2-D grid (files
+opened per write, so their number is not bounded by the open-file limit); the exact
+bounds are taken on the way. (2) Each tile gathers its cells and halo from the buckets
+that overlap them, runs the operator on a :class:`clcurv.DeviceCloud` in the global frame,
+and writes its own points' fields into memory-mapped arrays indexed by global id. (3) The
+output is written in input order from those arrays (LAS/LAZ: the input's header, scales,
+offsets, VLRs and records kept, the fields as extra bytes), atomically
+(:func:`clcurv.io.atomic_output`). The workspace (buckets, arrays, the list of finished
+tiles) is a folder beside the output, ``.<output name>.clcurv-tiles``; a run interrupted
+or killed is resumed by the same command (finished tiles are skipped), and the folder is
+removed at the end.
+
+Memory: peak RSS is about the baseline (interpreter, OpenCL) plus the largest tile (its
+core and halo) times :data:`TILE_BYTES_PER_POINT`, whatever the size of the cloud; the
+tile size comes from the budget (``memory=``) and the density measured in pass (1).
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import shutil
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from . import io
+from .grid import Frame
+from .io import stream
+from .operators import METHODS, OPERATORS
+from .validate import as_radius, choice
+
+#: peak host bytes per point of a tile's run (its points with their halo): the records of
+#: the buckets, the float64 points, the DeviceCloud's host arrays, the result and its fields
+#: (measured on an MLS2 run; see bench/tiled.py)
+TILE_BYTES_PER_POINT = 900
+#: peak host bytes per point of an in-memory file job (clcurv.job.run), to decide whether a
+#: cloud fits memory="auto"
+IN_MEMORY_BYTES_PER_POINT = 1300
+#: fraction of the available RAM that memory="auto" uses
+AUTO_FRACTION = 0.5
+#: points per read chunk of pass (1)
+READ_CHUNK = 1 << 20
+#: most buckets of pass (1) (a coarse grid; each is a file)
+MAX_BUCKETS = 4096
+#: tiles per side of a bucket: buckets are this many times smaller than a tile, so a tile
+#: reads little more than its own cells and halo
+BUCKETS_PER_TILE = 2
+
+
+class TilingError(ValueError):
+    """A tiled run cannot be planned: a budget too small for one tile, a tile smaller than
+    its halo, or options a tiled run does not take."""
+
+
+# --------------------------------------------------------------------------- memory
+
+def parse_memory(memory):
+    """Bytes of a budget: an int, or a string like ``"2GiB"``, ``"500MB"``, ``"1.5G"``."""
+    if isinstance(memory, (int, np.integer)) and not isinstance(memory, bool):
+        value = int(memory)
+    else:
+        m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+)\s*([kKmMgGtT]?)(i?[bB]?)\s*", str(memory))
+        if not m:
+            raise ValueError(f"memory must be 'auto', a number of bytes or a size like "
+                             f"'2GiB', got {memory!r}")
+        unit = m.group(2).upper()
+        base = 1024 if m.group(3).lower().startswith("i") or not m.group(3) else 1000
+        value = int(float(m.group(1)) * base ** " KMGT".index(unit or " "))
+    if value <= 0:
+        raise ValueError(f"memory must be positive, got {memory!r}")
+    return value
+
+
+def available_memory():
+    """Bytes of RAM available now (Linux MemAvailable; else total / 2)."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") // 2
+    except (ValueError, OSError):
+        return 4 << 30
+
+
+def budget_of(memory):
+    """The byte budget of ``memory`` ('auto': AUTO_FRACTION of the available RAM)."""
+    if memory is None or memory == "auto":
+        return int(available_memory() * AUTO_FRACTION)
+    return parse_memory(memory)
+
+
+# --------------------------------------------------------------------------- geometry
+
+def halo_cells(method, weights="uniform", file_normals=False):
+    """Cells of halo a tile needs for ``method`` so that its own points' results are exact:
+    one per neighbourhood pass that feeds the next (see the module docstring)."""
+    op = OPERATORS[method]
+    passes = 2 if (op.kernel.reads_normals and op.normals == "values"
+                   and not file_normals) else 1
+    return passes * (2 if weights == "density" else 1)
+
+
+@dataclass(frozen=True)
+class Tiling:
+    """Tiles of ``size`` x ``size`` cells (x, y) of ``frame``, each reading ``halo`` more
+    cells around; tile t = tx + ntx * ty."""
+    frame: Frame
+    size: int
+    halo: int
+
+    @property
+    def shape(self):
+        nx, ny, _ = self.frame.dims
+        return -(-nx // self.size), -(-ny // self.size)
+
+    @property
+    def count(self):
+        a, b = self.shape
+        return a * b
+
+    def cells(self, t, halo=True):
+        """(cx0, cx1, cy0, cy1): the half-open cell ranges of tile t (with its halo)."""
+        ntx, _ = self.shape
+        tx, ty = t % ntx, t // ntx
+        h = self.halo if halo else 0
+        return (tx * self.size - h, (tx + 1) * self.size + h,
+                ty * self.size - h, (ty + 1) * self.size + h)
+
+    def box(self, t):
+        """(lo, hi) x-y coordinates of tile t with its halo (for the bucket search)."""
+        cx0, cx1, cy0, cy1 = self.cells(t)
+        o, c = self.frame.origin, self.frame.cell
+        return (o[0] + cx0 * c, o[1] + cy0 * c), (o[0] + cx1 * c, o[1] + cy1 * c)
+
+
+def _within(cells, rng):
+    cx0, cx1, cy0, cy1 = rng
+    return ((cells[:, 0] >= cx0) & (cells[:, 0] < cx1)
+            & (cells[:, 1] >= cy0) & (cells[:, 1] < cy1))
+
+
+# --------------------------------------------------------------------------- buckets
+
+class Buckets:
+    """Pass (1): the points, with their global ids (and the file's normals), appended to the
+    files of a coarse x-y grid of ``side`` from ``origin`` (indices clamped to the grid, so
+    a point outside the expected box still lands in an edge bucket); exact bounds and
+    counts taken on the way."""
+
+    def __init__(self, folder, origin, side, shape, normals):
+        self.folder = Path(folder)
+        self.origin, self.side, self.shape = np.asarray(origin, float), float(side), shape
+        fields = [("id", "<i8"), ("p", "<f8", (3,))]
+        if normals:
+            fields.append(("n", "<f8", (3,)))
+        self.dtype = np.dtype(fields)
+        self.counts = np.zeros(shape, np.int64)
+        self.lo = np.full(3, np.inf)
+        self.hi = np.full(3, -np.inf)
+        self.normals_finite = True
+
+    def _index(self, xy):
+        ij = np.floor((xy - self.origin) / self.side).astype(np.int64)
+        np.clip(ij[:, 0], 0, self.shape[0] - 1, out=ij[:, 0])
+        np.clip(ij[:, 1], 0, self.shape[1] - 1, out=ij[:, 1])
+        return ij
+
+    def path(self, i, j):
+        return self.folder / f"b{i}_{j}.bin"
+
+    def add(self, start, xyz, nrm):
+        m = len(xyz)
+        self.lo = np.minimum(self.lo, xyz.min(axis=0))
+        self.hi = np.maximum(self.hi, xyz.max(axis=0))
+        rec = np.empty(m, self.dtype)
+        rec["id"] = np.arange(start, start + m)
+        rec["p"] = xyz
+        if "n" in self.dtype.names:
+            rec["n"] = nrm
+            self.normals_finite &= bool(np.isfinite(nrm).all())
+        ij = self._index(xyz[:, :2])
+        flat = ij[:, 0] * self.shape[1] + ij[:, 1]
+        order = np.argsort(flat, kind="stable")
+        flat, rec = flat[order], rec[order]
+        cuts = np.flatnonzero(np.diff(flat)) + 1
+        for a, b in zip(np.r_[0, cuts], np.r_[cuts, m]):
+            i, j = divmod(int(flat[a]), self.shape[1])
+            with open(self.path(i, j), "ab") as f:
+                rec[a:b].tofile(f)
+            self.counts[i, j] += b - a
+
+    def overlapping(self, lo, hi):
+        """(i, j) of the non-empty buckets that may hold points of the box [lo, hi) (x-y)."""
+        ij = self._index(np.array([lo, hi], float))
+        for i in range(ij[0, 0], ij[1, 0] + 1):
+            for j in range(ij[0, 1], ij[1, 1] + 1):
+                if self.counts[i, j]:
+                    yield i, j
+
+    def gather(self, tiling, t, block=1 << 20):
+        """The records of the points in tile t's cells and halo, in global-id order."""
+        lo, hi = tiling.box(t)
+        rng = tiling.cells(t)
+        parts = []
+        for i, j in self.overlapping(lo, hi):
+            with open(self.path(i, j), "rb") as f:
+                while True:
+                    rec = np.fromfile(f, self.dtype, count=block)
+                    if not len(rec):
+                        break
+                    keep = _within(tiling.frame.cells_of(rec["p"]), rng)
+                    if keep.any():
+                        parts.append(rec[keep])
+        if not parts:
+            return np.empty(0, self.dtype)
+        rec = np.concatenate(parts)
+        return rec[np.argsort(rec["id"], kind="stable")]
+
+    def state(self):
+        return {"origin": self.origin.tolist(), "side": self.side, "shape": list(self.shape),
+                "counts": self.counts.tolist(), "lo": self.lo.tolist(),
+                "hi": self.hi.tolist(), "normals_finite": self.normals_finite,
+                "normals": "n" in self.dtype.names}
+
+    @classmethod
+    def from_state(cls, folder, s):
+        b = cls(folder, s["origin"], s["side"], tuple(s["shape"]), s["normals"])
+        b.counts = np.asarray(s["counts"], np.int64).reshape(b.shape)
+        b.lo, b.hi = np.asarray(s["lo"]), np.asarray(s["hi"])
+        b.normals_finite = s["normals_finite"]
+        return b
+
+
+def _bucket_grid(src, target_points):
+    """(origin, side, shape) of the coarse bucket grid: buckets of about target_points /
+    BUCKETS_PER_TILE^2 points over the header's box (LAS) or the exact box (NPY, a cheap
+    memory-mapped scan), at most MAX_BUCKETS."""
+    box = src.bounds_hint()
+    if box is None:
+        lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+        for _, xyz, _ in src.chunks(READ_CHUNK * 4):
+            lo, hi = np.minimum(lo, xyz.min(axis=0)), np.maximum(hi, xyz.max(axis=0))
+        box = (lo, hi) if src.n else (np.zeros(3), np.zeros(3))
+    lo, hi = box
+    ext = np.maximum(hi[:2] - lo[:2], 1e-300)
+    area = float(ext[0] * ext[1])
+    per_bucket = max(target_points / BUCKETS_PER_TILE ** 2, 1.0)
+    side = math.sqrt(area * per_bucket / max(src.n, 1))
+    side = max(side, float(max(ext)) / math.sqrt(MAX_BUCKETS))
+    shape = tuple(max(1, min(int(math.ceil(e / side)), MAX_BUCKETS)) for e in ext)
+    return lo[:2], side, shape
+
+
+# --------------------------------------------------------------------------- planning
+
+def plan_tiles(buckets, radius, halo, budget, tile=None):
+    """The :class:`Tiling` of the whole cloud: its frame from the exact bounds, and tiles of
+    ``tile`` (length) or, from the budget, as large as the densest tile allows."""
+    frame = Frame.covering(buckets.lo, buckets.hi, radius)
+    limit = max(int(budget // TILE_BYTES_PER_POINT), 1)
+    if tile is not None:
+        size = int(math.floor(float(tile) / frame.cell))
+        if size < max(halo, 1):
+            raise TilingError(f"tile size {tile} is smaller than the halo: a tile needs at "
+                              f"least {halo} cell(s) of the radius {radius:.6g}, i.e. "
+                              f"--tile-size >= {max(halo, 1) * frame.cell:.6g}")
+        return Tiling(frame, size, halo)
+    nx, ny, _ = frame.dims
+    size = max(nx, ny)
+    while True:
+        tiling = Tiling(frame, size, halo)
+        worst = _densest(buckets, tiling)
+        if worst <= limit:
+            return tiling
+        if size <= max(halo, 1):
+            raise TilingError(
+                f"the memory budget ({budget / 2**20:.0f} MiB) is too small for one tile: "
+                f"the densest tile of {size} x {size} cells of the radius holds about "
+                f"{worst} points with its halo, {TILE_BYTES_PER_POINT} bytes each; give "
+                "more memory (--memory) or a smaller radius")
+        size = max(max(halo, 1), int(size * min(0.7, math.sqrt(limit / worst))))
+
+
+def _densest(buckets, tiling):
+    """An estimate of the most points a tile of ``tiling`` reads: the buckets' counts
+    spread uniformly over their area."""
+    b = buckets
+    ntx, nty = tiling.shape
+    cell = tiling.frame.cell
+    reach = (tiling.size + 2 * tiling.halo) * cell
+    density = b.counts / (b.side * b.side)
+    worst = 0.0
+    step = max(1, int(max(ntx, nty) // 256))
+    for t in range(0, tiling.count, step if tiling.count > 65536 else 1):
+        lo, hi = tiling.box(t)
+        est = 0.0
+        for i, j in b.overlapping(lo, hi):
+            bx0 = b.origin[0] + i * b.side
+            by0 = b.origin[1] + j * b.side
+            ox = max(0.0, min(hi[0], bx0 + b.side) - max(lo[0], bx0))
+            oy = max(0.0, min(hi[1], by0 + b.side) - max(lo[1], by0))
+            edge = i in (0, b.shape[0] - 1) or j in (0, b.shape[1] - 1)
+            est += b.counts[i, j] if edge and ox * oy > 0 else density[i, j] * ox * oy
+        worst = max(worst, est)
+        if reach >= 1e300:
+            break
+    return int(worst)
+
+
+# --------------------------------------------------------------------------- the run
+
+@dataclass
+class _Params:
+    method: str
+    radius: float
+    weights: str
+    orient: object
+    viewpoint: object
+    kernel: object
+    h: object
+    device: object
+    precision: str
+    ignore_normals: bool
+
+    def key(self):
+        d = dict(self.__dict__)
+        d["orient"] = (np.asarray(d["orient"]).tolist()
+                       if d["orient"] is not None and not isinstance(d["orient"], str)
+                       else d["orient"])
+        d["viewpoint"] = None if d["viewpoint"] is None else list(map(float, d["viewpoint"]))
+        d["device"] = None if d["device"] is None else str(d["device"])
+        return d
+
+
+def _orientation(params, src, file_normals):
+    """The API orient of a tile run, or TilingError for one that needs the whole cloud."""
+    op = OPERATORS[params.method]
+    how = params.orient
+    if isinstance(how, str) and how == "auto":
+        if source_aerial(src) and params.viewpoint is None and not file_normals:
+            return "up"                      # as clcurv.job.orientation: PDAL's always_up
+        if file_normals:
+            return "auto"
+        if params.viewpoint is not None:
+            return "auto"
+        if not op.signed:
+            return "auto"
+        how = "mst"
+    if isinstance(how, str) and how == "mst":
+        raise TilingError(
+            f"orient='mst' (Hoppe's propagation, the default of the signed method "
+            f"{params.method!r} without normals or a viewpoint) walks the whole cloud and "
+            "is not available in a tiled run yet: use orient='up' (the CLI's default for "
+            "LAS/LAZ), a direction, a viewpoint, or normals in the file")
+    return how
+
+
+def source_aerial(src):
+    return src.format in ("las", "laz")
+
+
+def _workspace(dst, workdir):
+    dst = Path(dst)
+    return Path(workdir) if workdir is not None else dst.parent / f".{dst.name}.clcurv-tiles"
+
+
+def _source_key(src):
+    st = os.stat(src.path)
+    return {"path": str(Path(src.path).resolve()), "size": st.st_size,
+            "mtime_ns": st.st_mtime_ns, "n": int(src.n)}
+
+
+def _field_specs(method, precision, want_normals):
+    """(name, width, dtype) of the stored fields, as clcurv.job.result_fields names them."""
+    op = OPERATORS[method]
+    real = np.float64
+    specs = [(name, None, real) for name in op.file_fields()]
+    specs += [("neighbours", None, np.int32), ("status", None, np.uint8)]
+    if want_normals:
+        specs.append(("normals", 3, np.float64))     # as the in-memory run writes them
+    return specs
+
+
+class _Store:
+    """The output fields, memory-mapped NPY arrays indexed by global id in the workspace."""
+
+    def __init__(self, folder, n, specs, fresh):
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self.arrays = {}
+        for name, width, dtype in specs:
+            p = self.folder / f"{name}.npy"
+            shape = (n,) if width is None else (n, width)
+            if fresh or not p.exists():
+                a = np.lib.format.open_memmap(p, mode="w+", dtype=dtype, shape=shape)
+            else:
+                a = np.load(p, mmap_mode="r+")
+            self.arrays[name] = a
+
+    def put(self, ids, values):
+        for name, a in values.items():
+            self.arrays[name][ids] = a
+
+    def flush(self):
+        for a in self.arrays.values():
+            a.flush()
+
+
+def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient="auto",
+                   viewpoint=None, kernel=None, h=None, scale_space=0, projections=0,
+                   memory="auto", tile=None, workdir=None, fields=None,
+                   ignore_normals=False, device=None, precision="float", progress=None,
+                   out=None):
+    """Run ``method`` on the cloud of file ``src`` and write ``dst``, in tiles when the cloud
+    does not fit the memory budget (see the module docstring).
+
+    Parameters
+    ----------
+    src, dst : path
+        Input LAS/LAZ or NPY; output LAS/LAZ (only from LAS/LAZ input: header and records
+        kept) or NPZ. Non-tiled runs (the cloud fits) go through :func:`clcurv.job.run` and
+        take every format it takes.
+    radius : float
+        Ball radius in the file's unit.
+    method, weights, orient, viewpoint, kernel, h, device, precision
+        As :func:`clcurv.curvature`; ``orient='auto'`` of a signed method without normals
+        in the file or a viewpoint is MST propagation, which a tiled run refuses (use
+        'up' for aerial data).
+    memory : 'auto', int or str
+        Host memory budget ('auto': half the available RAM). The run tiles when about
+        N x IN_MEMORY_BYTES_PER_POINT exceeds it, or when ``tile`` is given.
+    tile : float, optional
+        Tile side in the file's unit (default: from the budget).
+    workdir : path, optional
+        Workspace folder (default: beside ``dst``); kept between an interrupted run and
+        the same command run again (finished tiles are skipped), removed at the end.
+    fields : list of str, optional
+        The fields to write (as ``clcurv compute --fields``); default all and the normals.
+    progress : callable(done, total, points) or None
+        Called after each tile.
+    out : callable(str) or None
+        Receives one line per stage (the CLI prints them).
+
+    Returns
+    -------
+    dict
+        ``tiled`` (bool), ``tiles``, ``points``, ``halo`` (cells), ``times`` (seconds per
+        stage), ``status`` counts, ``dst``.
+    """
+    say = out or (lambda s: None)
+    choice(method, "method", METHODS)
+    r = as_radius(radius)
+    dst = io.check_output(dst)
+    source = stream.open_source(src)
+    budget = budget_of(memory)
+    if int(scale_space) or int(projections):
+        raise TilingError("a tiled run does not take scale_space or projections yet (they "
+                          "move the points across tiles): run them in memory")
+    ext = dst.suffix.lower()
+    if ext not in stream.STREAM_WRITES:
+        raise TilingError(f"{dst}: a tiled run writes {', '.join(stream.STREAM_WRITES)}")
+    if ext in (".las", ".laz") and source.format not in ("las", "laz"):
+        raise TilingError(f"{dst}: a tiled run writes LAS/LAZ from LAS/LAZ input only (it "
+                          "keeps the input's header); write .npz")
+    params = _Params(method, r, weights, orient, viewpoint, kernel, h, device, precision,
+                     bool(ignore_normals))
+    if tile is None and fits_memory(source.n, budget):
+        return _in_memory(src, dst, params, fields, say)
+    return _run(source, dst, params, budget, tile, _workspace(dst, workdir), fields,
+                progress, say)
+
+
+def _manifest(ws, source, params, budget, tile):
+    return {"version": 1, "source": _source_key(source), "params": params.key(),
+            "tile": tile, "budget": budget if tile is None else None}
+
+
+def _prepare(ws, source, params, budget, tile, say):
+    """Pass (1), or its state from an interrupted run with the same manifest."""
+    want = _manifest(ws, source, params, budget, tile)
+    mf = ws / "manifest.json"
+    if mf.exists():
+        try:
+            have = json.loads(mf.read_text())
+        except ValueError:
+            have = None
+        if have and have.get("key") == want and have.get("buckets"):
+            say(f"resuming from {ws}")
+            return Buckets.from_state(ws / "buckets", have["buckets"]), have, False
+    if ws.exists():
+        shutil.rmtree(ws)
+    (ws / "buckets").mkdir(parents=True)
+    target = max(budget // TILE_BYTES_PER_POINT, 1)
+    origin, side, shape = _bucket_grid(source, target)
+    b = Buckets(ws / "buckets", origin, side, shape, source.has_normals)
+    for start, xyz, nrm in source.chunks(READ_CHUNK):
+        b.add(start, xyz, nrm)
+    if source.n == 0:
+        raise TilingError(f"{source.path}: no points")
+    state = {"key": want, "buckets": b.state()}
+    _write_json(mf, state)
+    return b, state, True
+
+
+def _write_json(path, obj):
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(obj))
+    os.replace(tmp, path)
+
+
+def _run(source, dst, params, budget, tile, ws, wanted, progress, say):
+    from .device import get_device
+    times = {}
+    t0 = time.perf_counter()
+    buckets, state, fresh = _prepare(ws, source, params, budget, tile, say)
+    times["bucketing"] = time.perf_counter() - t0
+    file_normals = (buckets.normals_finite and "n" in buckets.dtype.names
+                    and not params.ignore_normals)
+    how = _orientation(params, source, file_normals)
+    halo = halo_cells(params.method, params.weights, file_normals)
+    tiling = plan_tiles(buckets, params.radius, halo, budget, tile)
+    want_normals = not wanted or "normals" in wanted
+    specs = _field_specs(params.method, params.precision, want_normals)
+    if wanted:
+        names = {s[0] for s in specs} | {"normals"}
+        unknown = sorted(set(wanted) - names)
+        if unknown:
+            raise ValueError(f"unknown field(s) {', '.join(unknown)} for method "
+                             f"{params.method}; available: {', '.join(sorted(names))}")
+        specs = [s for s in specs if s[0] in wanted]
+    store = _Store(ws / "fields", source.n, specs, fresh)
+    done_dir = ws / "done"
+    done_dir.mkdir(exist_ok=True)
+    device = get_device(params.device)
+    say(f"{source.n} points in {tiling.count} tile(s) of {tiling.size} x {tiling.size} "
+        f"cells of {tiling.frame.cell:.6g} (halo {halo} cell(s)), budget "
+        f"{budget / 2**20:.0f} MiB")
+    t1 = time.perf_counter()
+    computed = 0
+    for t in range(tiling.count):
+        marker = done_dir / str(t)
+        if marker.exists():
+            continue
+        computed += _run_tile(t, tiling, buckets, params, how, file_normals, device, store)
+        store.flush()
+        marker.touch()
+        if progress is not None:
+            progress(t + 1, tiling.count, computed)
+    times["tiles"] = time.perf_counter() - t1
+    t2 = time.perf_counter()
+    _write_output(dst, source, store, specs)
+    times["writing"] = time.perf_counter() - t2
+    status = np.bincount(np.asarray(store.arrays["status"]), minlength=4).tolist() \
+        if "status" in store.arrays else None
+    del store
+    shutil.rmtree(ws, ignore_errors=True)
+    return {"tiled": True, "tiles": tiling.count, "tile_cells": tiling.size, "halo": halo,
+            "points": source.n, "times": times, "status": status, "dst": dst}
+
+
+def fits_memory(n, budget):
+    """Does an in-memory run of ``n`` points fit ``budget`` bytes?"""
+    return n * IN_MEMORY_BYTES_PER_POINT <= budget
+
+
+def _in_memory(src, dst, params, fields, say):
+    """The cloud fits: the in-memory file job (clcurv.job.run)."""
+    from .job import Job, run
+    orient = params.orient
+    if not isinstance(orient, str) and orient is not None:
+        raise TilingError("a direction orient= is for tiled runs and the API; the file job "
+                          "takes 'auto', 'mst', 'up' or None")
+    job = Job(src, dst, method=params.method, radius=params.radius, weights=params.weights,
+              kernel=params.kernel, h=params.h, device=params.device,
+              precision=params.precision, fields=fields, viewpoint=params.viewpoint,
+              orient="none" if orient is None else orient,
+              ignore_normals=params.ignore_normals, quiet=True)
+    t0 = time.perf_counter()
+    done = run(job, out=lambda line: None)
+    return {"tiled": False, "tiles": 1, "halo": 0, "points": len(done.points),
+            "times": {"in memory": time.perf_counter() - t0},
+            "status": np.bincount(done.result.status, minlength=4).tolist(), "dst": dst}
+
+
+def _run_tile(t, tiling, buckets, params, how, file_normals, device, store):
+    """Compute tile t and store its own points' fields; returns how many it owns."""
+    from .api import curvature
+    from .cloud import DeviceCloud
+    from .job import result_fields
+    rec = buckets.gather(tiling, t)
+    if not len(rec):
+        return 0
+    cells = tiling.frame.cells_of(rec["p"])
+    own = _within(cells, tiling.cells(t, halo=False))
+    if not own.any():
+        return 0
+    cloud = DeviceCloud(rec["p"], params.radius, device=device, precision=params.precision,
+                        frame=tiling.frame)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)     # per tile: summed by the caller
+        res = curvature(cloud, params.radius, method=params.method, weights=params.weights,
+                        normals=rec["n"] if file_normals else None, orient=how,
+                        viewpoint=params.viewpoint, kernel=params.kernel, h=params.h)
+    f = result_fields(res)
+    values = {k: v[own] for k, v in f.items() if k in store.arrays}
+    if "normals" in store.arrays:
+        values["normals"] = res.normals[own]
+    store.put(rec["id"][own], values)
+    return int(own.sum())
+
+
+def _write_output(dst, source, store, specs):
+    arrays = dict(store.arrays)
+    normals = arrays.pop("normals", None)
+    fields = {name: arrays[name] for name, _, _ in specs if name in arrays}
+    with io.atomic_output(dst) as tmp:
+        if dst.suffix.lower() in (".las", ".laz"):
+            stream.write_las(tmp, source, fields, normals)
+        else:
+            pts = source.array[:, :3] if source.format == "npy" else _las_points(source)
+            stream.write_npz(tmp, pts, fields, normals)
+
+
+def _las_points(source):
+    """The float64 points of a LAS source, for an NPZ output (one pass, (N, 3) in memory:
+    24 bytes per point)."""
+    out = np.empty((source.n, 3))
+    for start, xyz, _ in source.chunks(READ_CHUNK):
+        out[start:start + len(xyz)] = xyz
+    return out
