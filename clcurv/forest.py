@@ -41,9 +41,10 @@ class Forest:
     parity : (N,) bool
         True where the point's normal must be negated to agree with its root's normal
         along the tree (XOR of ``n_u . n_v < 0`` over the tree path to the root).
-    edges : (M, 2) int64
+    edges : (M, 2) int64, or None
         The forest's edges (input indices, lo < hi), M = valid points - components; row
         order: by the input index of the component root that hooked through the edge.
+        None when :func:`spanning_forest` was called with ``edges=False``.
     rounds : int
         Boruvka rounds that hooked components.
     timings : dict
@@ -79,7 +80,7 @@ def _blocks(m):
     return -(-m // BLOCK)
 
 
-def spanning_forest(cloud, graph):
+def spanning_forest(cloud, graph, edges=True):
     """Boruvka's minimum spanning forest of ``graph`` (:func:`clcurv.graph.knn_graph`) on its device.
 
     Edges are ordered strictly by (float32 weight, smaller input index, larger input
@@ -87,6 +88,8 @@ def spanning_forest(cloud, graph):
     (three passes of 32-bit ``atomic_min``), hooks onto the component across it (of a
     mutual pair the root with the smaller input index stays root), roots are pointer-jumped
     with their parities, and edges inside a component are dropped from the list.
+    ``edges=False`` skips the edge output (``Forest.edges`` is None): orienting needs only
+    the labels and parities.
 
     Returns
     -------
@@ -200,21 +203,23 @@ def spanning_forest(cloud, graph):
     # outputs in buffers free by now (when large enough: eu and ev hold BLOCK k uints a block)
     fits = lambda b, nbytes: b if b.size >= nbytes else buf(nbytes)
     label, parity, elo, ehi = fits(eu, 8 * n), links[0], blo, bhi
-    _launch(dev, prg.forest_out, n, u32(n), cloud.order, nx, comp, par, flo, fhi, label, parity,
-            elo, ehi)
-    _launch(dev, prg.count_edges, nb, u32(n), u32(BLOCK), elo, counts)
-    _launch(dev, prg.scan_blocks, 1, counts, u32(nb), fmask, tot)
+    _launch(dev, prg.forest_out, n, u32(n), cloud.order, nx, comp, par, flo, fhi, u32(edges),
+            label, parity, elo, ehi)
     h_label = np.empty(n, np.int64)
     h_par = np.empty(n, np.uint8)
     cl.enqueue_copy(q, h_label, label, is_blocking=False)
     cl.enqueue_copy(q, h_par, parity, is_blocking=False)
-    cl.enqueue_copy(q, total, tot)
-    edges = np.empty((int(total[0]), 2), np.int64)
-    if len(edges):
-        out = fits(ev, edges.nbytes)
-        _launch(dev, prg.write_edges, nb, u32(n), u32(BLOCK), elo, ehi, fmask, out)
-        cl.enqueue_copy(q, edges, out)
+    h_edges = None
+    if edges:
+        _launch(dev, prg.count_edges, nb, u32(n), u32(BLOCK), elo, counts)
+        _launch(dev, prg.scan_blocks, 1, counts, u32(nb), fmask, tot)
+        cl.enqueue_copy(q, total, tot)
+        h_edges = np.empty((int(total[0]), 2), np.int64)
+        if len(h_edges):
+            out = fits(ev, h_edges.nbytes)
+            _launch(dev, prg.write_edges, nb, u32(n), u32(BLOCK), elo, ehi, fmask, out)
+            cl.enqueue_copy(q, h_edges, out)
     q.finish()
-    res = Forest(h_label, h_par.view(bool), edges, rounds, timings, edge_counts)
+    res = Forest(h_label, h_par.view(bool), h_edges, rounds, timings, edge_counts)
     timings["output"] = time.perf_counter() - t2
     return res

@@ -260,10 +260,12 @@ def component_signs(points, normals, labels, parity=None):
     """
     p = np.asarray(points, dtype=np.float64)
     u = np.asarray(normals, dtype=np.float64)
-    sgn = np.ones(len(u)) if parity is None else np.where(parity, -1.0, 1.0)
+    sgn = np.ones(len(u)) if parity is None else 1.0 - 2.0 * np.asarray(parity, dtype=bool)
     ncomp = int(labels.max()) + 1 if len(labels) else 0
     if len(labels) and labels.min() == ncomp - 1:      # one component: plain sums (BLAS)
-        vote = (sgn @ _rowdot(u, p)) - (sgn @ u) @ p.mean(axis=0)
+        # sum <s u, p - c>; (sgn @ (u p)).sum() and ones @ p / N are BLAS products
+        # (einsum's row dots and mean(axis=0)'s 3-wide inner loop are 2-10x slower)
+        vote = (sgn @ (u * p)).sum() - (sgn @ u) @ ((np.ones(len(p)) @ p) / len(p))
         flip = np.zeros(ncomp, dtype=bool)
         flip[-1] = vote < 0
         return flip
@@ -408,7 +410,7 @@ def flip_on_device(cloud, normals, radius, k=10):
     t0 = time.perf_counter()
     graph = knn.knn_graph(cloud, radius, n, k)
     t1 = time.perf_counter()
-    fo = forest.spanning_forest(cloud, graph)
+    fo = forest.spanning_forest(cloud, graph, edges=False)
     t2 = time.perf_counter()
     flip = np.zeros(len(n), dtype=bool)
     valid = fo.label >= 0

@@ -464,12 +464,12 @@ __kernel void forest_init(const uint n, __global const uint *order, __global uin
     bw[g] = NONE; blo[g] = NONE; bhi[g] = NONE; flo[g] = NONE;
 }
 
-/* Results in input order: the root's input index (NONE for an invalid normal), the parity,
- * and the forest edge by which a point's component hooked, at the point's input index (NONE
- * where none). */
+/* Results in input order: the root's input index (-1 for an invalid normal), the parity,
+ * and (when edges) the forest edge by which a point's component hooked, at the point's input
+ * index (NONE where none). */
 __kernel void forest_out(const uint n, __global const uint *order, __global const REAL *NX,
                          __global const uint *comp, __global const uchar *par,
-                         __global const uint *flo, __global const uint *fhi,
+                         __global const uint *flo, __global const uint *fhi, const uint edges,
                          __global long *label, __global uchar *parity, __global uint *elo,
                          __global uint *ehi)
 {
@@ -479,8 +479,10 @@ __kernel void forest_out(const uint n, __global const uint *order, __global cons
     const int ok = !isnan(NX[g]);
     label[i] = ok ? (long)order[comp[g]] : -1;
     parity[i] = ok ? par[g] : 0;
-    elo[i] = flo[g];
-    ehi[i] = fhi[g];
+    if (edges) {
+        elo[i] = flo[g];
+        ehi[i] = fhi[g];
+    }
 }
 
 /* The forest's edges in input order of the point that hooked (elo[i] != NONE): per block

@@ -241,9 +241,11 @@ def test_deterministic_and_independent_of_blocking_and_chasing(device, monkeypat
     monkeypatch.setattr(forest, "BLOCK", 7)
     monkeypatch.setattr(forest, "CHASE", 1)          # pointer jumping finishes the chains
     f3 = forest.spanning_forest(cloud, g2)
+    f4 = forest.spanning_forest(cloud, g2, edges=False)    # what orienting asks for
+    assert f4.edges is None
     assert np.array_equal(g1.neighbors(), g2.neighbors())
     assert g1.weights().tobytes() == g2.weights().tobytes()
-    for f in (f2, f3):
+    for f in (f2, f3, f4):
         assert np.array_equal(f1.label, f.label)
         assert np.array_equal(f1.parity, f.parity)
     assert np.array_equal(f1.edges, f2.edges)
