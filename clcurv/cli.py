@@ -113,6 +113,12 @@ def _compute_parser(sub):
                    help="write the input positions or the smoothed/projected ones")
     c.add_argument("--ignore-normals", action="store_true",
                    help="do not use normals stored in the input file")
+    c.add_argument("--memory", default="auto", metavar="SIZE",
+                   help="host memory budget, e.g. 2GiB (default auto: half the available "
+                   "RAM). LAS/LAZ/NPY input that does not fit runs in tiles with an exact "
+                   "halo (same results as in memory), output LAS/LAZ/NPZ")
+    c.add_argument("--tile-size", type=float, default=None, metavar="S",
+                   help="run in tiles of S x S (file unit) even if the cloud fits")
     c.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
 
 

@@ -71,6 +71,8 @@ class Job:
     positions: str = "original"
     ignore_normals: bool = False
     quiet: bool = False
+    memory: str | int | None = "auto"
+    tile_size: float | None = None
 
     @classmethod
     def from_args(cls, args):
@@ -270,6 +272,9 @@ def run(job, out=print):
     """Run ``job`` (a :class:`Job`), print its summary on ``out``; return a :class:`Done`."""
     check_options(job)
     io.check_output(job.output)             # before any work: extension, folder, rights
+    from . import tiled
+    if tiled.wants_tiles(job):
+        return tiled.run_job(job, out)
     st = Stages(job.quiet)
     with st.stage("reading"):
         cloud = io.read(job.input)

@@ -53,6 +53,7 @@ tile size comes from the budget (``memory=``) and the density measured in pass (
 from __future__ import annotations
 
 import json
+import sys
 import math
 import os
 import re
@@ -673,3 +674,63 @@ def _las_points(source):
     for start, xyz, _ in source.chunks(READ_CHUNK):
         out[start:start + len(xyz)] = xyz
     return out
+
+
+# --------------------------------------------------------------------------- the file job
+
+def wants_tiles(job):
+    """Does the file job ``job`` (clcurv.job.Job) run tiled: a tile size was given, or its
+    LAS/LAZ/NPY input does not fit the memory budget (its point count from the header)."""
+    if job.tile_size is not None:
+        return True
+    if Path(job.input).suffix.lower() not in stream.STREAM_READS:
+        return False
+    try:
+        n = stream.open_source(job.input).n
+    except Exception:                       # the in-memory reader reports it
+        return False
+    return not fits_memory(n, budget_of(job.memory))
+
+
+def run_job(job, out=print):
+    """The file job ``job`` in tiles (:func:`curvature_file`); prints a summary on ``out``
+    and returns the summary dict."""
+    from .job import ORIENT_CHOICES, UsageError
+    if job.radius == "auto" or job.radius is None:
+        raise UsageError("a tiled run needs --radius (a number in the file's unit): 'auto' "
+                         "samples the whole cloud")
+    if job.positions != "original":
+        raise UsageError("a tiled run writes the original positions (--positions original)")
+    bar = None
+    if not job.quiet:
+        from tqdm import tqdm
+        bar = tqdm(desc="tiles", unit="tile", file=sys.stderr, leave=True)
+
+    def progress(done, total, points):
+        if bar is not None:
+            if bar.total != total:
+                bar.reset(total=total)
+            bar.set_postfix_str(f"{points} points", refresh=False)
+            bar.update(done - bar.n)
+    try:
+        summary = curvature_file(
+            job.input, job.output, float(job.radius), method=job.method,
+            weights=job.weights, orient=ORIENT_CHOICES.get(job.orient, job.orient),
+            viewpoint=job.viewpoint, kernel=job.kernel, h=job.h,
+            scale_space=job.scale_space, projections=job.projections, memory=job.memory,
+            tile=job.tile_size, fields=job.fields, ignore_normals=job.ignore_normals,
+            device=job.device, precision=job.precision, progress=progress,
+            out=None if job.quiet else (lambda s: print(s, file=sys.stderr)))
+    except TilingError as exc:
+        raise UsageError(str(exc)) from exc
+    finally:
+        if bar is not None:
+            bar.close()
+    times = ", ".join(f"{k} {v:.2f} s" for k, v in summary["times"].items())
+    st = summary["status"] or []
+    ok = st[0] / max(sum(st), 1) if st else float("nan")
+    out(f"\n{summary['points']} points from {job.input} in {summary['tiles']} tile(s) "
+        f"(halo {summary['halo']} cell(s)); status ok {ok:.1%}")
+    out(f"time: {times}")
+    out(f"wrote {job.output}")
+    return summary
