@@ -5,8 +5,10 @@ Reference: J. Digne, J.-M. Morel, *Numerical analysis of differential operators 
 clouds*, Numerische Mathematik 127 (2014), DOI 10.1007/s00211-013-0584-y.
 """
 from .api import curvature, normals, project
+from .features import features, FeatureResult
 from .operators import METHODS, OPERATORS
 from .smoothing import scale_space
+from .tiled import curvature_file
 from .cloud import DeviceCloud
 from .device import devices, get_device, NoDeviceError
 from .program import BuildError, PrecisionError
@@ -14,7 +16,7 @@ from .result import CurvatureResult
 from . import data, io, render, shapes
 
 __version__ = "0.1.0"
-__all__ = ["curvature", "normals", "project", "scale_space", "METHODS", "OPERATORS",
+__all__ = ["curvature", "normals", "project", "features", "FeatureResult", "scale_space", "METHODS", "OPERATORS",
            "DeviceCloud", "devices", "get_device", "NoDeviceError", "BuildError",
            "PrecisionError", "CurvatureResult", "data", "io", "render", "shapes",
            "__version__"]

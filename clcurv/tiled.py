@@ -558,13 +558,19 @@ def _run(source, dst, params, budget, tile, ws, wanted, progress, say):
     from .device import get_device
     times = {}
     t0 = time.perf_counter()
-    buckets, state, fresh = _prepare(ws, source, params, budget, tile, say)
-    times["bucketing"] = time.perf_counter() - t0
-    file_normals = (buckets.normals_finite and "n" in buckets.dtype.names
-                    and not params.ignore_normals)
-    how = _orientation(params, source, file_normals)
-    halo = halo_cells(params.method, params.weights, file_normals)
-    tiling = plan_tiles(buckets, params.radius, halo, budget, tile)
+    try:
+        buckets, state, fresh = _prepare(ws, source, params, budget, tile, say)
+        times["bucketing"] = time.perf_counter() - t0
+        file_normals = (buckets.normals_finite and "n" in buckets.dtype.names
+                        and not params.ignore_normals)
+        how = _orientation(params, source, file_normals)
+        halo = halo_cells(params.method, params.weights, file_normals)
+        tiling = plan_tiles(buckets, params.radius, halo, budget, tile)
+    except (io.ReadError, ValueError):
+        # bad input or options: the same command cannot succeed, so nothing is kept to
+        # resume from (an interruption or a failure while computing keeps the workspace)
+        shutil.rmtree(ws, ignore_errors=True)
+        raise
     want_normals = not wanted or "normals" in wanted
     specs = _field_specs(params.method, params.precision, want_normals)
     if wanted:
@@ -582,10 +588,11 @@ def _run(source, dst, params, budget, tile, ws, wanted, progress, say):
         f"cells of {tiling.frame.cell:.6g} (halo {halo} cell(s)), budget "
         f"{budget / 2**20:.0f} MiB")
     t1 = time.perf_counter()
-    computed = 0
+    computed, skipped = 0, 0
     for t in range(tiling.count):
         marker = done_dir / str(t)
         if marker.exists():
+            skipped += 1
             continue
         computed += _run_tile(t, tiling, buckets, params, how, file_normals, device, store)
         store.flush()
@@ -600,7 +607,8 @@ def _run(source, dst, params, budget, tile, ws, wanted, progress, say):
         if "status" in store.arrays else None
     del store
     shutil.rmtree(ws, ignore_errors=True)
-    return {"tiled": True, "tiles": tiling.count, "tile_cells": tiling.size, "halo": halo,
+    return {"tiled": True, "tiles": tiling.count, "skipped": skipped,
+            "tile_cells": tiling.size, "halo": halo,
             "points": source.n, "times": times, "status": status, "dst": dst}
 
 

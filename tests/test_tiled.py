@@ -1,0 +1,204 @@
+"""The tiled engine (clcurv.tiled): tiles equal the in-memory run bit for bit, every point is
+written once in input order, a halo too small shows, bad input fails cleanly, and an
+interrupted run resumes."""
+import os
+
+import numpy as np
+import pytest
+
+import clcurv
+from clcurv import tiled
+from clcurv.io._common import CorruptFileError
+
+laspy = pytest.importorskip("laspy")
+
+R = 1.0                    # radius = cell size: tile edges at whole metres from the corner
+SCALE = 2.0 ** -7          # LAS scale: coordinates are exact binary fractions
+
+
+def _scene(n=30_000, seed=3):
+    """An aerial scene (terrain, gable roofs, walls, trees) whose extent does not align
+    with the tiles, plus points exactly on tile edges and corners and duplicate points."""
+    s = clcurv.shapes.aerial_scene(n, extent=(47.3, 38.9), seed=seed)
+    p = np.round(s["points"] / SCALE) * SCALE           # on the LAS grid
+    lo = p.min(axis=0)
+    rng = np.random.default_rng(seed)
+    # edges and corners of 8 m tiles: x or y (or both) at lo + 8 k exactly
+    k = rng.integers(0, 5, size=(400, 2)) * 8.0
+    edge = p[rng.integers(0, len(p), 400)].copy()
+    edge[:200, 0] = lo[0] + k[:200, 0]
+    edge[200:300, 1] = lo[1] + k[200:300, 1]
+    edge[300:, :2] = lo[:2] + k[300:]
+    dup = p[rng.integers(0, len(p), 300)]                # duplicates
+    pts = np.concatenate([p, edge, dup])
+    kind = np.concatenate([s["kind"], np.full(700, 2, np.uint8)])
+    perm = rng.permutation(len(pts))
+    return pts[perm], kind[perm]
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    d = tmp_path_factory.mktemp("tiled")
+    pts, kind = _scene()
+    paths = {}
+    for ext in ("las", "laz"):
+        hdr = laspy.LasHeader(point_format=3, version="1.2")
+        hdr.scales = [SCALE] * 3
+        hdr.offsets = np.floor(pts.min(axis=0))
+        las = laspy.LasData(hdr)
+        las.x, las.y, las.z = pts.T
+        las.classification = kind
+        paths[ext] = d / f"scene.{ext}"
+        las.write(str(paths[ext]))
+    back = laspy.read(str(paths["las"]))
+    assert np.array_equal(np.column_stack([back.x, back.y, back.z]), pts)   # exact grid
+    return d, paths, pts
+
+
+def _dims(path):
+    las = laspy.read(str(path))
+    return las, {n: np.asarray(las[n]) for n in las.point_format.dimension_names}
+
+
+def _assert_same(a, b):
+    la, da = _dims(a)
+    lb, db = _dims(b)
+    assert la.header.point_count == lb.header.point_count
+    assert list(da) == list(db)
+    diff = [n for n in da if not np.array_equal(da[n], db[n], equal_nan=True)]
+    assert diff == [], f"fields differ between tiled and in-memory output: {diff}"
+
+
+@pytest.mark.parametrize("method", clcurv.METHODS)
+def test_tiles_equal_the_in_memory_run_bit_for_bit(scene, method):
+    d, paths, pts = scene
+    mem = tiled.curvature_file(paths["laz"], d / f"mem_{method}.laz", R, method=method,
+                               memory="64GiB")
+    til = tiled.curvature_file(paths["laz"], d / f"til_{method}.laz", R, method=method,
+                               tile=8.0, memory="64GiB")
+    assert not mem["tiled"] and til["tiled"] and til["tiles"] >= 20
+    assert til["halo"] == tiled.halo_cells(method)
+    _assert_same(d / f"mem_{method}.laz", d / f"til_{method}.laz")
+    las, dims = _dims(d / f"til_{method}.laz")
+    # every point once, in input order, its record as read (X, Y, Z, classification)
+    assert np.array_equal(np.column_stack([las.x, las.y, las.z]), pts)
+    assert (dims["status"] == 0).mean() > 0.9
+
+
+def test_density_weights_and_las_output_tile_exactly(scene):
+    d, paths, _ = scene
+    for name, tile in (("mem", None), ("til", 6.0)):
+        tiled.curvature_file(paths["las"], d / f"{name}_dens.las", R, method="2dcov2",
+                             weights="density", tile=tile, memory="64GiB")
+    assert tiled.halo_cells("2dcov2", "density") == 4
+    _assert_same(d / "mem_dens.las", d / "til_dens.las")
+
+
+def test_npy_with_normals_to_npz(tmp_path):
+    s = clcurv.shapes.torus(40_000, 2.0, 0.7, seed=5)
+    arr = np.column_stack([s["points"], s["normals"]])     # 6 columns of unit normals
+    src = tmp_path / "torus.npy"
+    np.save(src, arr)
+    out = {}
+    for name, tile in (("mem", None), ("til", 1.0)):
+        summary = tiled.curvature_file(src, tmp_path / f"{name}.npz", 0.15, method="3dcov",
+                                       tile=tile, memory="64GiB")
+        out[name] = np.load(tmp_path / f"{name}.npz")
+    assert summary["halo"] == 1          # normals from the file: no PCA pass to feed
+    assert sorted(out["mem"].files) == sorted(out["til"].files)
+    for k in out["mem"].files:
+        assert np.array_equal(out["mem"][k], out["til"][k], equal_nan=True), k
+    assert np.array_equal(out["til"]["points"], s["points"])
+    # and the file's (outward) normals orient the result
+    assert np.all(np.einsum("ij,ij->i", out["til"]["normals"], s["normals"]) > 0)
+
+
+def test_a_halo_too_small_changes_the_results(scene, monkeypatch):
+    """Negative control: with the halo forced to 0 cells (a distance halo of nothing), the
+    tiles' border points lose neighbours and their values change."""
+    d, paths, _ = scene
+    tiled.curvature_file(paths["laz"], d / "ref_var.laz", R, method="variation",
+                         memory="64GiB")
+    monkeypatch.setattr(tiled, "halo_cells", lambda *a, **k: 0)
+    tiled.curvature_file(paths["laz"], d / "bad_var.laz", R, method="variation", tile=8.0,
+                         memory="64GiB")
+    _, a = _dims(d / "ref_var.laz")
+    _, b = _dims(d / "bad_var.laz")
+    changed = np.mean(a["neighbours"] != b["neighbours"])
+    assert changed > 0.05, changed
+
+
+def test_mst_orientation_is_refused_in_tiles(scene, tmp_path):
+    _, paths, _ = scene
+    with pytest.raises(tiled.TilingError, match="mst"):
+        tiled.curvature_file(paths["laz"], tmp_path / "o.laz", R, method="mls2",
+                             orient="mst", tile=8.0)
+    assert not (tmp_path / "o.laz").exists()
+
+
+def test_bad_input_fails_cleanly(scene, tmp_path):
+    _, paths, _ = scene
+    out = tmp_path / "out.laz"
+    out.write_bytes(b"previous result")
+    # a truncated LAZ (a partial download)
+    cut = tmp_path / "cut.laz"
+    data = paths["laz"].read_bytes()
+    cut.write_bytes(data[: len(data) * 2 // 3])
+    with pytest.raises(CorruptFileError):
+        tiled.curvature_file(cut, out, R, method="variation", tile=8.0)
+    # a tile smaller than its halo
+    with pytest.raises(tiled.TilingError, match="smaller than the halo"):
+        tiled.curvature_file(paths["laz"], out, R, method="3dcov", tile=1.5)
+    # a budget too small for one tile
+    with pytest.raises(tiled.TilingError, match="too small for one tile"):
+        tiled.curvature_file(paths["laz"], out, R, method="variation", memory="200KB")
+    assert out.read_bytes() == b"previous result"        # never destroyed
+    # no partial output, no temporary, no workspace left behind
+    assert sorted(os.listdir(tmp_path)) == ["cut.laz", "out.laz"]
+
+
+def test_an_interrupted_run_resumes(scene, tmp_path):
+    _, paths, _ = scene
+    ref = tmp_path / "ref.laz"
+    tiled.curvature_file(paths["laz"], ref, R, method="mls1", memory="64GiB")
+    out = tmp_path / "out.laz"
+
+    def stop_after_5(done, total, points):
+        if done == 5:
+            raise KeyboardInterrupt
+    with pytest.raises(KeyboardInterrupt):
+        tiled.curvature_file(paths["laz"], out, R, method="mls1", tile=8.0,
+                             progress=stop_after_5)
+    assert not out.exists()
+    ws = tmp_path / ".out.laz.clcurv-tiles"
+    assert len(os.listdir(ws / "done")) == 5
+    summary = tiled.curvature_file(paths["laz"], out, R, method="mls1", tile=8.0)
+    assert summary["skipped"] == 5
+    assert not ws.exists()                                 # cleaned at the end
+    _assert_same(ref, out)
+
+
+def test_memory_budget_decides(tmp_path):
+    assert tiled.parse_memory("2GiB") == 2 << 30
+    assert tiled.parse_memory("500MB") == 500_000_000
+    assert tiled.parse_memory(4096) == 4096
+    for bad in ("-1G", "lots", 0):
+        with pytest.raises(ValueError):
+            tiled.parse_memory(bad)
+    assert tiled.fits_memory(1000, 10 ** 9)
+    assert not tiled.fits_memory(10 ** 9, 1 << 30)
+
+
+def test_cli_tiles_equal_the_cli_in_memory(scene, tmp_path):
+    from tests.hostile import run_cli
+    _, paths, _ = scene
+    a, b = tmp_path / "mem.laz", tmp_path / "til.laz"
+    r1 = run_cli("compute", paths["laz"], "-o", a, "--radius", "1", "-q")
+    r2 = run_cli("compute", paths["laz"], "-o", b, "--radius", "1", "-q", "--tile-size", "8")
+    assert r1.code == 0 and r2.code == 0, (r1.stderr, r2.stderr)
+    assert "tile(s)" in r2.stdout
+    _assert_same(a, b)
+    bad = run_cli("compute", paths["laz"], "-o", tmp_path / "x.laz", "--radius", "1", "-q",
+                  "--tile-size", "0.5")
+    assert bad.code == 2 and "smaller than the halo" in bad.stderr
+    assert not (tmp_path / "x.laz").exists()
