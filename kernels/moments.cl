@@ -52,23 +52,8 @@ __kernel void moments(OPERATOR_ARGS)
         if (st == ST_OK) {
             const uint co = cell_of[g];
             __global const REAL *XA = x_rows(X, co, n);
-            const REAL3 p = (REAL3)(XA[g], Y[g], Z[g]);
-            /* h = <q - o, v0> = <q - p, v0> - <o - p, v0>: both terms are heights above the
-               tangent plane, small on a smooth surface, so the split costs no accuracy */
-            const REAL h0 = dot(mu, v0);
-            REALV s0 = 0;
-            REALV dx, dy, dz;
-            NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, ball, i, end, pr)
-                const IREALV m = chunk_offsets(XA, Y, Z, i, end, pr, ball, &dx, &dy, &dz);
-                const REALV h = dx * v0.x + dy * v0.y + dz * v0.z - h0;
-#if DENSITY
-                s0 += chunk_weights(W, i, dx, dy, dz, m, (REAL)0) * h * h;
-#else
-                const REALV hm = select((REALV)0, h, m);
-                s0 += hm * hm;
-#endif
-            NEIGHBOR_CHUNKS_END
-            lam.x = hsum(s0) * pb.iw[k];
+            lam.x = pca_refine_l0(XA, Y, Z, W, ranges, co & CELL_MASK,
+                                  (REAL3)(XA[g], Y[g], Z[g]), ball, v0, mu, pb.iw[k]);
         }
 #endif
         /* record: normal | eigenvalues (ascending) | variation | shift o - p | count | status */

@@ -1,0 +1,233 @@
+/* features.cl -- the covariance ("dimensionality") features of the balls N_r(p) of every
+ * point, at up to four radii in one neighbour walk (clcurv/features.py).
+ *
+ * A sibling of moments.cl: the same weighted PCA (pca.h: PCA_ACCUMULATE, pca_store_sums,
+ * pca_decompose, PCA_REFINE_ACCUMULATE), so that its eigenvalues and normals are those of
+ * the moments kernel bit for bit. The walk runs once over the candidates of the cloud's
+ * cells (cell >= the largest radius) and accumulates the sums of every ball: ball j's lanes
+ * are chunk_offsets' mask at r_j^2, the same mask and the same additions in the same order
+ * as a single-radius walk, so every radius's record is bit-identical to a call at that
+ * radius alone on the same cloud. The lambda0 refinement (moments.cl) is one second walk
+ * for all the balls.
+ *
+ * Eigenvalues: l1 >= l2 >= l3 of the count-normalised covariance sum (q - o)(q - o)^T / n,
+ * times n / (n - ddof) (ddof = par.z: 1 gives the sample covariance of jakteristics).
+ * Features (clcurv/features.py documents them with their sources):
+ *   EIGENVALUE_SUM l1 + l2 + l3       OMNIVARIANCE cbrt(l1 l2 l3)
+ *   EIGENENTROPY -sum li ln li (0 ln 0 = 0)
+ *   ANISOTROPY (l1 - l3) / l1         PLANARITY (l2 - l3) / l1    LINEARITY (l1 - l2) / l1
+ *   PCA1 l1 / sum                     PCA2 l2 / sum               SURFACE_VARIATION l3 / sum
+ *   SPHERICITY l3 / l1                VERTICALITY 1 - |e3_z|
+ *   GUINARD_VERTICALITY |u_z| / |u|, u = l1 |e1| + l2 |e2| + l3 |e3| (componentwise |.|)
+ *   EIGENVALUE1..3 l1, l2, l3         DENSITY n / (4/3 pi r^3)
+ *   NORMALS e3 (unoriented, 3 columns)
+ * with e1, e2, e3 the unit eigenvectors of l1, l2, l3.
+ *
+ * Build options: NR (1..4) radii, their r^2 in r2s (x, y, z, w), or with POINT_RADIUS (NR = 1)
+ * each point's own r^2 in W (radius.h); the records of radius j
+ * go to out (j = 0), out1, out2, out3 (one record per point, REC_INDEX); REFINE_L0, DENSITY,
+ * MIN_COUNT, COL_COUNT, COL_STATUS and one COL_<FEATURE> per feature wanted
+ * (clcurv/features.py).
+ */
+#include "common.h"
+#include "neighbors.h"
+#include "weights.h"
+#include "pca.h"
+#include "radius.h"
+
+#if !defined(NR) || NR < 1 || NR > 4 || !defined(REFINE_L0) || !defined(MIN_COUNT) \
+    || !defined(COL_COUNT) || !defined(COL_STATUS)
+#error "features.cl needs NR (1..4), REFINE_L0, MIN_COUNT and its record columns (clcurv/features.py)"
+#endif
+
+#if REAL_IS_DOUBLE
+#define FOUR_THIRDS_PI 4.18879020478639098
+#else
+#define FOUR_THIRDS_PI 4.18879020f
+#endif
+
+/* The PCA of the NR balls of the VW consecutive sorted points g0 .. g0 + kn - 1: one walk
+ * per point at the cloud's cells, ball j's lanes masked at r2[j]. */
+inline void features_pca(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
+                         __global const REAL *W, __global const uint *cell_of,
+                         __global const uint2 *ranges, uint n, uint g0, uint kn, REAL2 ball,
+                         const REAL r2[NR], pca_batch_t pb[NR])
+{
+    for (uint k = 0; k < VW; ++k) {
+        if (k >= kn) {                                  /* unused lane: the identity */
+            for (int j = 0; j < NR; ++j) {
+                for (int e = 0; e < 6; ++e) pb[j].c[e][k] = (REAL)(e == 0 || e == 3 || e == 5);
+                pb[j].count[k] = 0;
+            }
+            continue;
+        }
+        const uint g = g0 + k;
+        const uint co = cell_of[g];
+        __global const REAL *XA = x_rows(X, co, n);
+        const REAL3 p = (REAL3)(XA[g], Y[g], Z[g]);
+        REALV sc[NR], sw[NR], sx[NR], sy[NR], sz[NR];
+        REALV sxx[NR], sxy[NR], sxz[NR], syy[NR], syz[NR], szz[NR];
+        for (int j = 0; j < NR; ++j) {
+            sc[j] = sw[j] = sx[j] = sy[j] = sz[j] = 0;
+            sxx[j] = sxy[j] = sxz[j] = syy[j] = syz[j] = szz[j] = 0;
+        }
+        REALV dx, dy, dz;
+        NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, ball, i, end, pr)
+            for (int j = 0; j < NR; ++j) {
+                const REAL2 bj = (REAL2)(BALL_R2(W, g, r2[j]), ball.y);
+                const IREALV m = chunk_offsets(XA, Y, Z, i, end, pr, bj, &dx, &dy, &dz);
+                const REALV w = chunk_weights(W, i, dx, dy, dz, m, (REAL)0);
+                PCA_ACCUMULATE(w, m, dx, dy, dz, sc[j], sw[j], sx[j], sy[j], sz[j], sxx[j],
+                               sxy[j], sxz[j], syy[j], syz[j], szz[j])
+            }
+        NEIGHBOR_CHUNKS_END
+        for (int j = 0; j < NR; ++j)
+            pca_store_sums(sc[j], sw[j], sx[j], sy[j], sz[j], sxx[j], sxy[j], sxz[j], syy[j],
+                           syz[j], szz[j], &pb[j], k);
+    }
+    for (int j = 0; j < NR; ++j) pca_decompose(&pb[j]);
+}
+
+/* lambda0 of the balls of sorted point g (lane k) whose status is OK, one second walk
+ * (pca_refine_l0's sums, ball by ball). */
+inline void features_refine(__global const REAL *X, __global const REAL *Y,
+                            __global const REAL *Z, __global const REAL *W,
+                            __global const uint *cell_of, __global const uint2 *ranges, uint n,
+                            uint g, uint k, REAL2 ball, const REAL r2[NR],
+                            const pca_batch_t pb[NR], const uchar st[NR], REAL l0[NR])
+{
+    const uint co = cell_of[g];
+    __global const REAL *XA = x_rows(X, co, n);
+    const REAL3 p = (REAL3)(XA[g], Y[g], Z[g]);
+    REAL3 v0[NR];
+    REAL h0[NR];
+    REALV s0[NR];
+    int any = 0;
+    for (int j = 0; j < NR; ++j) {
+        v0[j] = (REAL3)(pb[j].v0x[k], pb[j].v0y[k], pb[j].v0z[k]);
+        h0[j] = dot((REAL3)(pb[j].mux[k], pb[j].muy[k], pb[j].muz[k]), v0[j]);
+        s0[j] = 0;
+        any |= st[j] == ST_OK;
+    }
+    if (!any) return;
+    REALV dx, dy, dz;
+    NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, ball, i, end, pr)
+        for (int j = 0; j < NR; ++j) {
+            const REAL2 bj = (REAL2)(BALL_R2(W, g, r2[j]), ball.y);
+            const IREALV m = chunk_offsets(XA, Y, Z, i, end, pr, bj, &dx, &dy, &dz);
+            PCA_REFINE_ACCUMULATE(s0[j], W, i, dx, dy, dz, m, v0[j], h0[j])
+        }
+    NEIGHBOR_CHUNKS_END
+    for (int j = 0; j < NR; ++j)
+        if (st[j] == ST_OK) l0[j] = hsum(s0[j]) * pb[j].iw[k];
+}
+
+/* x ln x, 0 at 0 (its limit) */
+inline REAL xlogx(REAL x)
+{
+    return x > 0 ? x * log(x) : (REAL)0;
+}
+
+/* The record of one ball: the features of the descending eigenvalues L (scaled by
+ * n / (n - ddof)) and the eigenvectors e1 (largest), e3 (smallest). */
+inline REAL16 features_record(uint count, uchar st, REAL3 L, REAL3 e1, REAL3 e3, REAL r2)
+{
+    REAL16 rec = (REAL16)(NAN);
+    if (st == ST_OK) {
+        const REAL sum = L.x + L.y + L.z, i1 = (REAL)1 / L.x;
+#ifdef COL_EIGENVALUE_SUM
+        rec.COL_EIGENVALUE_SUM = sum;
+#endif
+#ifdef COL_OMNIVARIANCE
+        rec.COL_OMNIVARIANCE = cbrt(L.x) * cbrt(L.y) * cbrt(L.z);
+#endif
+#ifdef COL_EIGENENTROPY
+        rec.COL_EIGENENTROPY = -(xlogx(L.x) + xlogx(L.y) + xlogx(L.z));
+#endif
+#ifdef COL_ANISOTROPY
+        rec.COL_ANISOTROPY = (L.x - L.z) * i1;
+#endif
+#ifdef COL_PLANARITY
+        rec.COL_PLANARITY = (L.y - L.z) * i1;
+#endif
+#ifdef COL_LINEARITY
+        rec.COL_LINEARITY = (L.x - L.y) * i1;
+#endif
+#ifdef COL_PCA1
+        rec.COL_PCA1 = L.x / sum;
+#endif
+#ifdef COL_PCA2
+        rec.COL_PCA2 = L.y / sum;
+#endif
+#ifdef COL_SURFACE_VARIATION
+        rec.COL_SURFACE_VARIATION = L.z / sum;
+#endif
+#ifdef COL_SPHERICITY
+        rec.COL_SPHERICITY = L.z * i1;
+#endif
+#ifdef COL_VERTICALITY
+        rec.COL_VERTICALITY = 1 - fabs(e3.z);
+#endif
+#ifdef COL_GUINARD_VERTICALITY
+        {
+            const REAL3 e2 = normalize(cross(e3, e1));
+            const REAL3 u = L.x * fabs(e1) + L.y * fabs(e2) + L.z * fabs(e3);
+            rec.COL_GUINARD_VERTICALITY = u.z / length(u);
+        }
+#endif
+#ifdef COL_EIGENVALUE1
+        rec.COL_EIGENVALUE1 = L.x;
+#endif
+#ifdef COL_EIGENVALUE2
+        rec.COL_EIGENVALUE2 = L.y;
+#endif
+#ifdef COL_EIGENVALUE3
+        rec.COL_EIGENVALUE3 = L.z;
+#endif
+#ifdef COL_DENSITY
+        rec.COL_DENSITY = (REAL)count / (FOUR_THIRDS_PI * r2 * sqrt(r2));
+#endif
+#ifdef COL_NORMALS
+        rec.COL_NORMALS = e3;
+#endif
+    }
+    REC_COUNT_STATUS(rec, count, st);
+    return rec;
+}
+
+/* One work-item per VW consecutive sorted points (global size >= ceil(n / VW)). */
+__kernel void features(OPERATOR_ARGS, const REAL4 r2s, __global REAL *out1,
+                       __global REAL *out2, __global REAL *out3)
+{
+    const uint g0 = first + get_global_id(0) * VW;
+    if (g0 >= stop) return;
+    const uint kn = min((uint)VW, stop - g0);
+    const uint ddof = (uint)par.z;
+    const REAL all_r2[4] = {r2s.x, r2s.y, r2s.z, r2s.w};
+    REAL r2[NR];
+    for (int j = 0; j < NR; ++j) r2[j] = all_r2[j];
+    pca_batch_t pb[NR];
+    features_pca(X, Y, Z, W, cell_of, ranges, n, g0, kn, ball, r2, pb);
+    for (uint k = 0; k < kn; ++k) {
+        const uint g = g0 + k;
+        uchar st[NR];
+        REAL l0[NR];
+        for (int j = 0; j < NR; ++j) {
+            st[j] = pca_status(&pb[j], k, MIN_COUNT);
+            l0[j] = pb[j].l0[k];
+        }
+#if REFINE_L0
+        features_refine(X, Y, Z, W, cell_of, ranges, n, g, k, ball, r2, pb, st, l0);
+#endif
+        for (int j = 0; j < NR; ++j) {
+            const uint c = pb[j].count[k];
+            const REAL s = c > ddof ? (REAL)c / (REAL)(c - ddof) : (REAL)1;
+            const REAL3 L = (REAL3)(pb[j].l2[k], pb[j].l1[k], l0[j]) * s;
+            const REAL3 e1 = (REAL3)(pb[j].v2x[k], pb[j].v2y[k], pb[j].v2z[k]);
+            const REAL3 e3 = (REAL3)(pb[j].v0x[k], pb[j].v0y[k], pb[j].v0z[k]);
+            const REAL16 rec = features_record(c, st[j], L, e1, e3, BALL_R2(W, g, r2[j]));
+            __global REAL *o = j == 0 ? out : j == 1 ? out1 : j == 2 ? out2 : out3;
+            REC_STORE(rec, REC_INDEX(g), o);
+        }
+    }
+}
