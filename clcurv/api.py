@@ -217,8 +217,12 @@ def curvature(points, radius, *, method="mls1", weights="uniform", normals=None,
         (computed in float64), so georeferenced ones lose no precision. A
         :class:`~clcurv.DeviceCloud` (binned once, cell >= radius) is reused as it is, so
         several operators can run on one binning.
-    radius : float
-        Ball radius, in the points' length unit (about 30 neighbours is a good start).
+    radius : float or sequence of floats
+        Ball radius, in the points' length unit (about 30 neighbours is a good start). A
+        list of radii (methods 'variation', '2dcov1', '2dcov2', '3dcov') returns a list of
+        results, one per radius, each bit-identical to a call at that radius alone on the
+        same DeviceCloud: the cloud is binned once at the largest radius and 'variation'
+        walks the neighbours once for all of them (see :func:`_radius_list`).
     method : str
         One of :data:`clcurv.METHODS` (the registry, :mod:`clcurv.operators`):
         'variation': surface variation l0/(l0+l1+l2) (Pauly et al.; Theorem 4 of Digne &
@@ -300,6 +304,11 @@ def curvature(points, radius, *, method="mls1", weights="uniform", normals=None,
     True
     """
     op = OPERATORS[choice(method, "method", METHODS)]
+    if np.ndim(radius) > 0:
+        return _radius_list(op, points, radius, dict(
+            weights=weights, normals=normals, orient=orient, viewpoint=viewpoint,
+            orient_k=orient_k, kernel=kernel, h=h, projections=projections,
+            scale_space=scale_space, device=device, precision=precision, backend=backend))
     kernel, h, projections = _check_options(op, kernel, h, projections)
     points, cloud = _cloud_points(points)
     pts, r, ref_normals, vp, how = _inputs(points, radius, weights, backend, orient, normals,
@@ -424,3 +433,43 @@ def normals(points, radius, *, weights="uniform", normals=None, orient="auto", v
     raw = run.pca_normals(weights)
     _warn_sparse(raw["status"], r, PCA.min_count)
     return _oriented(run, raw, how, ref_normals, vp, orient_k)
+
+
+#: the methods that take a list of radii (their results do not depend on an orientation)
+MULTI_RADIUS_METHODS = ("variation", "2dcov1", "2dcov2", "3dcov")
+
+
+def _radius_list(op, points, radius, kw):
+    """:func:`curvature` at every radius of a list: one result per radius, in the order
+    given, each bit-identical to a call at that radius alone on the same DeviceCloud. The
+    cloud is binned once at the largest radius (unless a DeviceCloud is given); 'variation'
+    with its defaults (uniform weights, no normals, no orientation, no scale space) walks the
+    neighbours once for all the radii (the features kernel, which shares the moments
+    kernel's PCA); the covariance operators and the other cases run once per radius."""
+    from .features import _radii
+    if op.name not in MULTI_RADIUS_METHODS:
+        raise ValueError(f"a list of radii is for methods {', '.join(MULTI_RADIUS_METHODS)} "
+                         f"(and clcurv.features), not {op.name!r}")
+    radii, _ = _radii(radius)
+    points, cloud = _cloud_points(points)
+    if kw["backend"] == "opencl" and cloud is None and len(as_points(points)):
+        from .cloud import DeviceCloud
+        cloud = DeviceCloud(points, max(radii), device=kw["device"], precision=kw["precision"])
+    plain = (op.name == "variation" and cloud is not None and kw["weights"] == "uniform"
+             and kw["normals"] is None and kw["viewpoint"] is None
+             and kw["orient"] in ("auto", None) and not kw["scale_space"])
+    if not plain:
+        return [curvature(points if cloud is None else cloud, r, method=op.name, **kw)
+                for r in radii]
+    from .features import run_features
+    names = ("eigenvalue3", "eigenvalue2", "eigenvalue1", "surface_variation", "normals")
+    out = []
+    for r, (vals, count, status) in zip(radii, run_features(cloud, radii, names)):
+        _warn_sparse(status, r, op.min_count)
+        eig = np.stack([vals[n] for n in names[:3]], axis=1)
+        res = _result(op, r, "uniform", count, status,
+                      {"normals": vals["normals"], "eigenvalues": eig,
+                       "variation": vals["surface_variation"]})
+        res.info["orientation"] = None
+        out.append(res)
+    return out

@@ -134,7 +134,8 @@ inline REAL16 features_record(uint count, uchar st, REAL3 L, REAL3 e1, REAL3 e3,
 {
     REAL16 rec = (REAL16)(NAN);
     if (st == ST_OK) {
-        const REAL sum = L.x + L.y + L.z, i1 = (REAL)1 / L.x;
+        /* summed as moments.cl does (l0 + l1 + l2): surface_variation is its variation */
+        const REAL sum = L.z + L.y + L.x, i1 = (REAL)1 / L.x;
 #ifdef COL_EIGENVALUE_SUM
         rec.COL_EIGENVALUE_SUM = sum;
 #endif

@@ -158,7 +158,9 @@ def test_same_eigenvalues_as_moments(device):
     pts = clcurv.shapes.torus(20000, noise=0.003, seed=4)["points"]
     cloud = clcurv.DeviceCloud(pts, 0.12, device=device)
     v = clcurv.curvature(cloud, 0.12, method="variation", orient=None)
-    f = clcurv.features(cloud, 0.12, ["eigenvalue1", "eigenvalue2", "eigenvalue3", "normals"])
+    f = clcurv.features(cloud, 0.12, ["eigenvalue1", "eigenvalue2", "eigenvalue3", "normals",
+                                      "surface_variation"])
+    np.testing.assert_array_equal(f["surface_variation"], v.variation)
     np.testing.assert_array_equal(f["eigenvalue3"], v.eigenvalues[:, 0])
     np.testing.assert_array_equal(f["eigenvalue2"], v.eigenvalues[:, 1])
     np.testing.assert_array_equal(f["eigenvalue1"], v.eigenvalues[:, 2])
