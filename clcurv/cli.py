@@ -119,6 +119,13 @@ def _compute_parser(sub):
                    "halo (same results as in memory), output LAS/LAZ/NPZ")
     c.add_argument("--tile-size", type=float, default=None, metavar="S",
                    help="run in tiles of S x S (file unit) even if the cloud fits")
+    w = c.add_mutually_exclusive_group()
+    w.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="run the tiles on a local Dask cluster of N worker processes "
+                   '(pip install "clcurv[dask]")')
+    w.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="run the tiles on the Dask cluster at ADDRESS (its workers must see "
+                   "the input and the output's folder at the same paths)")
     c.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
 
 

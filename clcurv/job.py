@@ -73,6 +73,8 @@ class Job:
     quiet: bool = False
     memory: str | int | None = "auto"
     tile_size: float | None = None
+    workers: int | None = None
+    scheduler: str | None = None
 
     @classmethod
     def from_args(cls, args):

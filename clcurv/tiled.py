@@ -456,7 +456,7 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
                    viewpoint=None, kernel=None, h=None, scale_space=0, projections=0,
                    memory="auto", tile=None, workdir=None, fields=None,
                    ignore_normals=False, device=None, precision="float", progress=None,
-                   out=None):
+                   out=None, client=None, workers=None):
     """Run ``method`` on the cloud of file ``src`` and write ``dst``, in tiles when the cloud
     does not fit the memory budget (see the module docstring).
 
@@ -484,6 +484,11 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
         The fields to write (as ``clcurv compute --fields``); default all and the normals.
     progress : callable(done, total, points) or None
         Called after each tile.
+    client : dask.distributed.Client, optional
+        Run the tiles on this cluster (:mod:`clcurv.cluster`; the workspace must be on a
+        file system the workers share).
+    workers : int, optional
+        Run the tiles on a LocalCluster of this many worker processes.
     out : callable(str) or None
         Receives one line per stage (the CLI prints them).
 
@@ -510,10 +515,10 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
                           "keeps the input's header); write .npz")
     params = _Params(method, r, weights, orient, viewpoint, kernel, h, device, precision,
                      bool(ignore_normals))
-    if tile is None and fits_memory(source.n, budget):
+    if tile is None and fits_memory(source.n, budget) and client is None and not workers:
         return _in_memory(src, dst, params, fields, say)
     return _run(source, dst, params, budget, tile, _workspace(dst, workdir), fields,
-                progress, say)
+                progress, say, client, workers)
 
 
 def _manifest(ws, source, params, budget, tile):
@@ -554,8 +559,8 @@ def _write_json(path, obj):
     os.replace(tmp, path)
 
 
-def _run(source, dst, params, budget, tile, ws, wanted, progress, say):
-    from .device import get_device
+def _run(source, dst, params, budget, tile, ws, wanted, progress, say, client=None,
+         workers=None):
     times = {}
     t0 = time.perf_counter()
     try:
@@ -566,11 +571,44 @@ def _run(source, dst, params, budget, tile, ws, wanted, progress, say):
         how = _orientation(params, source, file_normals)
         halo = halo_cells(params.method, params.weights, file_normals)
         tiling = plan_tiles(buckets, params.radius, halo, budget, tile)
+        specs = _wanted_specs(params, wanted)
     except (io.ReadError, ValueError):
         # bad input or options: the same command cannot succeed, so nothing is kept to
         # resume from (an interruption or a failure while computing keeps the workspace)
         shutil.rmtree(ws, ignore_errors=True)
         raise
+    (ws / "tiles").mkdir(exist_ok=True)
+    say(f"{source.n} points in {tiling.count} tile(s) of {tiling.size} x {tiling.size} "
+        f"cells of {tiling.frame.cell:.6g} (halo {halo} cell(s)), budget "
+        f"{budget / 2**20:.0f} MiB")
+    todo = [t for t in range(tiling.count) if not _tile_file(ws, t).exists()]
+    skipped = tiling.count - len(todo)
+    tasks = [TileTask(str(ws), t, tiling, state["buckets"], params, how, file_normals,
+                      specs) for t in todo]
+    t1 = time.perf_counter()
+    computed, finished = 0, skipped
+    for _, owned in _execute(tasks, client, workers):
+        computed += owned
+        finished += 1
+        if progress is not None:
+            progress(finished, tiling.count, computed)
+    times["tiles"] = time.perf_counter() - t1
+    t2 = time.perf_counter()
+    store = _merge(ws, source.n, tiling.count, specs)
+    times["merging"] = time.perf_counter() - t2
+    t3 = time.perf_counter()
+    _write_output(dst, source, store, specs)
+    times["writing"] = time.perf_counter() - t3
+    status = np.bincount(np.asarray(store.arrays["status"]), minlength=4).tolist() \
+        if "status" in store.arrays else None
+    del store
+    shutil.rmtree(ws, ignore_errors=True)
+    return {"tiled": True, "tiles": tiling.count, "skipped": skipped,
+            "tile_cells": tiling.size, "halo": halo,
+            "points": source.n, "times": times, "status": status, "dst": dst}
+
+
+def _wanted_specs(params, wanted):
     want_normals = not wanted or "normals" in wanted
     specs = _field_specs(params.method, params.precision, want_normals)
     if wanted:
@@ -580,36 +618,34 @@ def _run(source, dst, params, budget, tile, ws, wanted, progress, say):
             raise ValueError(f"unknown field(s) {', '.join(unknown)} for method "
                              f"{params.method}; available: {', '.join(sorted(names))}")
         specs = [s for s in specs if s[0] in wanted]
-    store = _Store(ws / "fields", source.n, specs, fresh)
-    done_dir = ws / "done"
-    done_dir.mkdir(exist_ok=True)
-    device = get_device(params.device)
-    say(f"{source.n} points in {tiling.count} tile(s) of {tiling.size} x {tiling.size} "
-        f"cells of {tiling.frame.cell:.6g} (halo {halo} cell(s)), budget "
-        f"{budget / 2**20:.0f} MiB")
-    t1 = time.perf_counter()
-    computed, skipped = 0, 0
-    for t in range(tiling.count):
-        marker = done_dir / str(t)
-        if marker.exists():
-            skipped += 1
+    return specs
+
+
+def _tile_file(ws, t):
+    return Path(ws) / "tiles" / f"{t}.npy"
+
+
+def _merge(ws, n, count, specs):
+    """The tiles' files scattered into the store by global id; every point exactly once
+    (else RuntimeError: a bug, never a silently incomplete output)."""
+    store = _Store(Path(ws) / "fields", n, specs, fresh=True)
+    seen = np.lib.format.open_memmap(Path(ws) / "seen.npy", mode="w+", dtype=np.uint8,
+                                     shape=(n,))
+    total = 0
+    for t in range(count):
+        rec = np.load(_tile_file(ws, t))
+        if not len(rec):
             continue
-        computed += _run_tile(t, tiling, buckets, params, how, file_normals, device, store)
-        store.flush()
-        marker.touch()
-        if progress is not None:
-            progress(t + 1, tiling.count, computed)
-    times["tiles"] = time.perf_counter() - t1
-    t2 = time.perf_counter()
-    _write_output(dst, source, store, specs)
-    times["writing"] = time.perf_counter() - t2
-    status = np.bincount(np.asarray(store.arrays["status"]), minlength=4).tolist() \
-        if "status" in store.arrays else None
-    del store
-    shutil.rmtree(ws, ignore_errors=True)
-    return {"tiled": True, "tiles": tiling.count, "skipped": skipped,
-            "tile_cells": tiling.size, "halo": halo,
-            "points": source.n, "times": times, "status": status, "dst": dst}
+        ids = rec["id"]
+        seen[ids] += 1
+        total += len(ids)
+        store.put(ids, {name: rec[name] for name, _, _ in specs})
+    if total != n or not np.all(seen == 1):
+        raise RuntimeError(f"the tiles wrote {total} points for {n}, "
+                           f"{int(np.count_nonzero(seen == 0))} never and "
+                           f"{int(np.count_nonzero(seen > 1))} more than once")
+    store.flush()
+    return store
 
 
 def fits_memory(n, budget):
@@ -636,31 +672,88 @@ def _in_memory(src, dst, params, fields, say):
             "status": np.bincount(done.result.status, minlength=4).tolist(), "dst": dst}
 
 
-def _run_tile(t, tiling, buckets, params, how, file_normals, device, store):
-    """Compute tile t and store its own points' fields; returns how many it owns."""
+@dataclass
+class TileTask:
+    """What a worker needs to compute one tile (small: no arrays; the worker reads the
+    buckets from the workspace, on a file system it shares with the client)."""
+    ws: str
+    t: int
+    tiling: Tiling
+    buckets: dict
+    params: _Params
+    how: object
+    file_normals: bool
+    specs: list
+
+
+def compute_tile(task, device=None):
+    """Compute tile ``task.t`` and write its own points' fields (with their global ids) to
+    the workspace, atomically; returns (t, points owned)."""
     from .api import curvature
     from .cloud import DeviceCloud
     from .job import result_fields
-    rec = buckets.gather(tiling, t)
-    if not len(rec):
-        return 0
-    cells = tiling.frame.cells_of(rec["p"])
-    own = _within(cells, tiling.cells(t, halo=False))
-    if not own.any():
-        return 0
-    cloud = DeviceCloud(rec["p"], params.radius, device=device, precision=params.precision,
-                        frame=tiling.frame)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)     # per tile: summed by the caller
-        res = curvature(cloud, params.radius, method=params.method, weights=params.weights,
-                        normals=rec["n"] if file_normals else None, orient=how,
-                        viewpoint=params.viewpoint, kernel=params.kernel, h=params.h)
-    f = result_fields(res)
-    values = {k: v[own] for k, v in f.items() if k in store.arrays}
-    if "normals" in store.arrays:
-        values["normals"] = res.normals[own]
-    store.put(rec["id"][own], values)
-    return int(own.sum())
+    params, tiling = task.params, task.tiling
+    buckets = Buckets.from_state(Path(task.ws) / "buckets", task.buckets)
+    rec = buckets.gather(tiling, task.t)
+    cells = tiling.frame.cells_of(rec["p"]) if len(rec) else np.empty((0, 3), np.int64)
+    own = _within(cells, tiling.cells(task.t, halo=False))
+    out = np.empty(int(own.sum()), _tile_dtype(task.specs))
+    if len(out):
+        if device is None:
+            device = _worker_device(params.device)
+        cloud = DeviceCloud(rec["p"], params.radius, device=device,
+                            precision=params.precision, frame=tiling.frame)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)   # per tile; summed at the end
+            res = curvature(cloud, params.radius, method=params.method,
+                            weights=params.weights,
+                            normals=rec["n"] if task.file_normals else None, orient=task.how,
+                            viewpoint=params.viewpoint, kernel=params.kernel, h=params.h)
+        f = result_fields(res)
+        f["normals"] = res.normals
+        out["id"] = rec["id"][own]
+        for name, _, _ in task.specs:
+            out[name] = f[name][own]
+    path = _tile_file(task.ws, task.t)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "wb") as fh:
+        np.save(fh, out)
+    os.replace(tmp, path)
+    return task.t, len(out)
+
+
+def _tile_dtype(specs):
+    return np.dtype([("id", "<i8")] + [(name, dtype) if width is None else
+                                       (name, dtype, (width,)) for name, width, dtype in specs])
+
+
+_DEVICES = {}
+
+
+def _worker_device(spec):
+    """The device of this process (one OpenCL context per process): the one the Dask
+    worker plugin chose (:class:`ClcurvWorker`), else ``spec``."""
+    try:
+        from distributed import get_worker
+        chosen = getattr(get_worker(), "clcurv_device", None)
+    except (ImportError, ValueError):
+        chosen = None
+    key = chosen if chosen is not None else spec
+    if key not in _DEVICES:
+        from .device import get_device
+        _DEVICES[key] = get_device(key)
+    return _DEVICES[key]
+
+
+def _execute(tasks, client, workers):
+    """(t, owned) of every task as it finishes: in this process, on a Dask ``client``, or
+    on a LocalCluster of ``workers`` processes started (and closed) here."""
+    if client is None and not workers:
+        for task in tasks:
+            yield compute_tile(task)
+        return
+    from . import cluster
+    yield from cluster.map_tiles(compute_tile, tasks, client=client, workers=workers)
 
 
 def _write_output(dst, source, store, specs):
@@ -689,7 +782,7 @@ def _las_points(source):
 def wants_tiles(job):
     """Does the file job ``job`` (clcurv.job.Job) run tiled: a tile size was given, or its
     LAS/LAZ/NPY input does not fit the memory budget (its point count from the header)."""
-    if job.tile_size is not None:
+    if job.tile_size is not None or job.workers or job.scheduler:
         return True
     if Path(job.input).suffix.lower() not in stream.STREAM_READS:
         return False
@@ -709,6 +802,12 @@ def run_job(job, out=print):
                          "samples the whole cloud")
     if job.positions != "original":
         raise UsageError("a tiled run writes the original positions (--positions original)")
+    if job.workers is not None and job.workers < 1:
+        raise UsageError(f"--workers must be >= 1, got {job.workers}")
+    client = None
+    if job.scheduler:
+        from .cluster import _import
+        client = _import().Client(job.scheduler)
     bar = None
     if not job.quiet:
         from tqdm import tqdm
@@ -728,12 +827,15 @@ def run_job(job, out=print):
             scale_space=job.scale_space, projections=job.projections, memory=job.memory,
             tile=job.tile_size, fields=job.fields, ignore_normals=job.ignore_normals,
             device=job.device, precision=job.precision, progress=progress,
-            out=None if job.quiet else (lambda s: print(s, file=sys.stderr)))
+            out=None if job.quiet else (lambda s: print(s, file=sys.stderr)),
+            client=client, workers=job.workers)
     except TilingError as exc:
         raise UsageError(str(exc)) from exc
     finally:
         if bar is not None:
             bar.close()
+        if client is not None:
+            client.close()
     times = ", ".join(f"{k} {v:.2f} s" for k, v in summary["times"].items())
     st = summary["status"] or []
     ok = st[0] / max(sum(st), 1) if st else float("nan")

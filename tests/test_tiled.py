@@ -171,7 +171,7 @@ def test_an_interrupted_run_resumes(scene, tmp_path):
                              progress=stop_after_5)
     assert not out.exists()
     ws = tmp_path / ".out.laz.clcurv-tiles"
-    assert len(os.listdir(ws / "done")) == 5
+    assert len(os.listdir(ws / "tiles")) == 5
     summary = tiled.curvature_file(paths["laz"], out, R, method="mls1", tile=8.0)
     assert summary["skipped"] == 5
     assert not ws.exists()                                 # cleaned at the end
@@ -202,3 +202,35 @@ def test_cli_tiles_equal_the_cli_in_memory(scene, tmp_path):
                   "--tile-size", "0.5")
     assert bad.code == 2 and "smaller than the halo" in bad.stderr
     assert not (tmp_path / "x.laz").exists()
+
+
+def test_dask_workers_equal_one_process_and_survive_a_killed_worker(scene, tmp_path):
+    """Two LocalCluster workers give the single-process tiled output byte for byte; one of
+    them killed while tiles run, the run still completes with the same output."""
+    distributed = pytest.importorskip("distributed")
+    _, paths, _ = scene
+    one, two, killed = (tmp_path / f"{k}.laz" for k in ("one", "two", "killed"))
+    tiled.curvature_file(paths["laz"], one, R, method="mls2", tile=8.0)
+    summary = tiled.curvature_file(paths["laz"], two, R, method="mls2", tile=8.0, workers=2)
+    assert summary["tiled"] and summary["tiles"] >= 20
+    assert one.read_bytes() == two.read_bytes()
+
+    cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                       dashboard_address=None)
+    client = distributed.Client(cluster)
+    try:
+        import signal
+        victim = min(client.run(os.getpid).values())        # a worker process
+        state = {"killed": False}
+
+        def kill_once(done, total, points):
+            if done >= 3 and not state["killed"]:
+                state["killed"] = True
+                os.kill(victim, signal.SIGKILL)             # its nanny starts another
+        tiled.curvature_file(paths["laz"], killed, R, method="mls2", tile=8.0,
+                             client=client, progress=kill_once)
+    finally:
+        client.close()
+        cluster.close()
+    assert state["killed"]
+    assert one.read_bytes() == killed.read_bytes()
