@@ -25,9 +25,11 @@ class _Run:
     """Where a call's operators run: the kernels on one DeviceCloud binned once for every
     pass of the call, or (backend='numpy') the float64 reference on the same points."""
 
-    def __init__(self, backend, points, radius, device, precision, cloud=None):
+    def __init__(self, backend, points, radius, device, precision, cloud=None, knn=None):
         self.points, self.radius = points, radius
         self.cloud = None
+        # the k-NN radius (clcurv.knn_radius.KnnRadii): per-point balls, radius the largest
+        self.point_r2 = None if knn is None else knn.r2_sorted
         if backend == "opencl":                # DeviceCloud checks the radius and the pairs
             from .cloud import DeviceCloud
             self.cloud = cloud if cloud is not None else DeviceCloud(
@@ -52,7 +54,7 @@ class _Run:
         if kernel == "gaussian" and h is None:
             h = self.radius / 2
         return run_kernel(op.kernel, self.cloud, self.radius, normals=normals, weights=weights,
-                          h=h if kernel == "gaussian" else None)
+                          h=h if kernel == "gaussian" else None, point_r2=self.point_r2)
 
     def mst_flips(self, normals, k):
         """Flip mask of Hoppe's propagation over the ``k``-nearest-neighbour graph within the
@@ -68,7 +70,7 @@ class _Run:
             return reference.moments(self.points, self.radius, weights=weights)
         from .driver import run_kernel
         return run_kernel(PCA, self.cloud, self.radius, weights=weights, fields=("normals",),
-                          defines={"REFINE_L0": 0})
+                          defines={"REFINE_L0": 0}, point_r2=self.point_r2)
 
 
 DEFER_MIN = 100_000     # from this size, user normals are checked while the cloud is binned
@@ -205,9 +207,9 @@ def _check_options(op, kernel, h, projections):
     return kernel, h, projections
 
 
-def curvature(points, radius, *, method="mls1", weights="uniform", normals=None, orient="auto",
-              viewpoint=None, orient_k=10, kernel=None, h=None, projections=0, scale_space=0,
-              device=None, precision="float", backend="opencl"):
+def curvature(points, radius=None, *, method="mls1", weights="uniform", normals=None,
+              orient="auto", viewpoint=None, orient_k=10, kernel=None, h=None, projections=0,
+              scale_space=0, device=None, precision="float", backend="opencl", k=None):
     """Differential operators on the ball N_r(p) = {q : |q - p| < radius} of every point.
 
     Parameters
@@ -282,6 +284,15 @@ def curvature(points, radius, *, method="mls1", weights="uniform", normals=None,
         Device arithmetic ('double' needs a device with cl_khr_fp64).
     backend : {'opencl', 'numpy'}
         'numpy' runs the float64 NumPy/SciPy reference instead of the kernels.
+    k : int, optional
+        Adaptive radius (``radius=None``, or ``radius="knn:K"``): each point's ball radius is
+        the distance to its k-th nearest point (the point itself the first), found on the
+        device with the grid (:mod:`clcurv.knn_radius`, which documents k > N, duplicates
+        and isolated points), and every operator uses that point's radius in its constants
+        (H = 4 <p - o, n> / r^2, the 2 / r factors). The paper's analysis is for a fixed r.
+        ``result.radius`` is then the (N,) array of radii. Not with weights='density',
+        kernel='gaussian', scale_space, projections or backend='numpy'; the MST
+        orientation graph uses the largest radius.
 
     Returns
     -------
@@ -309,6 +320,11 @@ def curvature(points, radius, *, method="mls1", weights="uniform", normals=None,
             weights=weights, normals=normals, orient=orient, viewpoint=viewpoint,
             orient_k=orient_k, kernel=kernel, h=h, projections=projections,
             scale_space=scale_space, device=device, precision=precision, backend=backend))
+    knn = None
+    if k is not None or isinstance(radius, str):
+        knn, radius = _knn(points, radius, k, weights, kernel, scale_space, projections, device,
+                           precision, backend)
+        points = knn.cloud
     kernel, h, projections = _check_options(op, kernel, h, projections)
     points, cloud = _cloud_points(points)
     pts, r, ref_normals, vp, how = _inputs(points, radius, weights, backend, orient, normals,
@@ -344,7 +360,7 @@ def curvature(points, radius, *, method="mls1", weights="uniform", normals=None,
                         else orient, **same, **mls)
         res.info["projections"] = projections
         return res
-    run = _Run(backend, pts, r, device, precision, cloud)   # bins while the normals are checked
+    run = _Run(backend, pts, r, device, precision, cloud, knn)  # bins while the normals are checked
     ref_normals = _resolved(ref_normals)
     if op.kernel.reads_normals:
         # the normal-based operators and MLS2 need only oriented normals: with the user's
@@ -365,10 +381,15 @@ def curvature(points, radius, *, method="mls1", weights="uniform", normals=None,
     else:
         raw = run.operator(op, weights=weights)
         use = _oriented(run, raw, how, ref_normals, vp, orient_k)
+    if knn is not None:                 # each point's own radius in the constants
+        r = knn.radius
+        raw["status"][knn.isolated] = TOO_FEW
     _warn_sparse(raw["status"], r, op.min_count)
     res = _result(op, r, weights, raw["count"], raw["status"],
                   op.finish(raw, pts, r, use, ref_normals))
     res.info["orientation"] = how
+    if knn is not None:
+        res.info["k"] = knn.k
     return res
 
 
@@ -473,3 +494,23 @@ def _radius_list(op, points, radius, kw):
         res.info["orientation"] = None
         out.append(res)
     return out
+
+
+def _knn(points, radius, k, weights, kernel, scale_space, projections, device, precision,
+         backend):
+    """(KnnRadii, the largest radius) of a k-NN radius call (radius='knn:K' or k=K)."""
+    from .features import _parse_knn
+    from .knn_radius import knn_radii
+    if isinstance(radius, str):
+        k = _parse_knn(radius, k)
+    elif radius is not None:
+        raise ValueError("give either radius or k (or radius='knn:K'), not both")
+    for bad, what in ((weights == "density", "weights='density' (every ball holds k points, "
+                       "so the weights would be 1/k)"), (kernel == "gaussian",
+                      "kernel='gaussian'"), (scale_space, "scale_space"),
+                      (projections, "projections"), (backend == "numpy", "backend='numpy'")):
+        if bad:
+            raise ValueError(f"a k-NN radius does not combine with {what}")
+    points, _ = _cloud_points(points)
+    knn = knn_radii(points, k, device=device, precision=precision)
+    return knn, knn.cloud.cell

@@ -45,7 +45,7 @@ def _par(cloud, r, h):
 
 
 def run_kernel(kernel, cloud, radius, *, normals=None, weights="uniform", h=None,
-               fields=None, defines=None):
+               fields=None, defines=None, point_r2=None):
     """Run the operator kernel ``kernel`` (a :class:`clcurv.operators.Kernel`) on ``cloud``.
 
     Parameters
@@ -64,6 +64,10 @@ def run_kernel(kernel, cloud, radius, *, normals=None, weights="uniform", h=None
         The record fields to bring back (``count`` and ``status`` always are).
     defines : dict, optional
         Extra build options (e.g. ``REFINE_L0=0``).
+    point_r2 : pyopencl.Buffer, optional
+        Per-point squared radii in the cloud's sorted order (the k-NN radius,
+        :mod:`clcurv.knn_radius`): each point's ball (kernels/radius.h); ``radius`` is then
+        the largest. Not with ``weights='density'``.
 
     Returns
     -------
@@ -75,8 +79,10 @@ def run_kernel(kernel, cloud, radius, *, normals=None, weights="uniform", h=None
     if normals is not None and not kernel.reads_normals:
         raise ValueError(f"the {kernel.name} kernel takes no normals")
     opts = dict(cloud.defines, **kernel.build_defines())
+    if point_r2 is not None and weights == "density":
+        raise ValueError("per-point radii and density weights exclude each other")
     opts.update(defines or {}, DENSITY=int(weights == "density"), GAUSSIAN=int(h is not None),
-                REF_NORMALS=int(normals is not None))
+                REF_NORMALS=int(normals is not None), POINT_RADIUS=int(point_r2 is not None))
     keep = set(kernel.layout) if fields is None else set(fields) | {"count", "status"}
     layout = {k: v for k, v in kernel.layout.items() if k in keep}
     item = np.dtype(cloud.dtype).itemsize
@@ -92,6 +98,7 @@ def run_kernel(kernel, cloud, radius, *, normals=None, weights="uniform", h=None
     cloud.device.queue.finish()
     t.append(time.perf_counter())
     wbuf = device_counts(cloud, r) if weights == "density" else cloud.x
+    wbuf = point_r2 if point_r2 is not None else wbuf
     chunked = plan.count > 1
     rec = record_buffer(cloud, plan.chunk)
     out = empty_fields(layout, cloud.n)

@@ -304,13 +304,15 @@ def _parse_knn(spec, k):
 
 
 def _knn_features(pts, k, names, ddof, device, precision, backend):
-    from .knn_radius import knn_radii
+    from .knn_radius import check_k, knn_radii
     if len(pts) == 0:
         return _empty(names, np.empty(0), ddof)
+    check_k(k, len(pts))
     if backend == "numpy":
         from . import reference_features as ref
-        r = ref.knn_radii(pts, k)
-        return FeatureResult(r, *ref.features(pts, r, names, ddof=ddof), ddof=ddof)
+        r = ref.knn_radii(pts, k)        # the closed ball of radius d_k: k points
+        return FeatureResult(r, *ref.features(pts, r * (1 + 1e-12), names, ddof=ddof),
+                             ddof=ddof)
     radii = knn_radii(pts, k, device=device, precision=precision)
     vals, count, status = run_features(radii.cloud, [radii.cloud.cell], names, ddof,
                                        point_r2=radii.r2_sorted)[0]

@@ -344,5 +344,13 @@ def program_variants(precision_defines):
     for k in {op.kernel.name: op.kernel for op in OPERATORS.values()}.values():
         gaussian = any("kernel" in op.options for op in OPERATORS.values() if op.kernel is k)
         out.append((k.file, dict(base, **k.build_defines(), DENSITY=1, GAUSSIAN=int(gaussian),
-                                 REF_NORMALS=int(k.reads_normals))))
+                                 REF_NORMALS=int(k.reads_normals), POINT_RADIUS=0)))
+        # the k-NN radius (kernels/radius.h): per-point balls, which exclude DENSITY
+        out.append((k.file, dict(base, **k.build_defines(), DENSITY=0, GAUSSIAN=0,
+                                 REF_NORMALS=int(k.reads_normals), POINT_RADIUS=1)))
+    from .features import FEATURES, layouts, program_defines
+    for group in layouts(tuple(FEATURES)):               # clcurv.features: every column
+        out.append(("features.cl", dict(base, **program_defines(group, 4))))
+        out.append(("features.cl", dict(base, **program_defines(group, 1, True))))
+    out.append(("knn_radius.cl", dict(base, KNN_K=30)))
     return out

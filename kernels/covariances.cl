@@ -26,7 +26,7 @@
  * Outputs per point (one record, input order): count, status, eigenvalues (descending; 2
  * or 3), the curvature magnitudes k1 >= k2 >= 0 (1/length) and the unit tangent directions
  * dir1, dir2 (dir2 = n x dir1). A NaN normal anywhere in the ball gives status DEGENERATE.
- * Build options: COV_METHOD, DENSITY, MIN_COUNT and the record columns COL_EIGENVALUES (2,
+ * Build options: COV_METHOD, DENSITY, POINT_RADIUS (radius.h), MIN_COUNT and the record columns COL_EIGENVALUES (2,
  * or 3 for 3dcov), COL_K1, COL_K2, COL_DIR1 (3), COL_DIR2 (3), COL_COUNT, COL_STATUS
  * (clcurv/operators.py).
  */
@@ -35,6 +35,7 @@
 #include "weights.h"
 #include "frame.h"
 #include "eig3.h"
+#include "radius.h"
 
 #if !defined(COV_METHOD) || !defined(MIN_COUNT) || !defined(COL_EIGENVALUES) \
     || !defined(COL_K1) || !defined(COL_K2) || !defined(COL_DIR1) || !defined(COL_DIR2) \
@@ -174,7 +175,8 @@ __kernel void covariance(OPERATOR_ARGS)
             const uint co = cell_of[g];
             __global const REAL *XA = x_rows(X, co, n);
             cnt[k] = cov_ball(XA, Y, Z, NX, NY, NZ, W, ranges, co & CELL_MASK,
-                              (REAL3)(XA[g], Y[g], Z[g]), nrm, t1, t2, ball, c);
+                              (REAL3)(XA[g], Y[g], Z[g]), nrm, t1, t2,
+                              POINT_BALL(W, g, ball), c);
         }
         int f = 1;
         for (int e = 0; e < 6; ++e) {
@@ -203,7 +205,7 @@ __kernel void covariance(OPERATOR_ARGS)
         lam3 = (REAL3)(l2[k], l1[k], l0[k]);                             /* descending */
         e3 = (REAL3)(ex[k], ey[k], ez[k]);
 #endif
-        cov_finish(cnt[k], fin[k], cs[0][k], cs[1][k], cs[3][k], nrm, t1, t2, r, lam3, e3,
-                   REC_INDEX(g), out);
+        cov_finish(cnt[k], fin[k], cs[0][k], cs[1][k], cs[3][k], nrm, t1, t2, BALL_R(W, g, r),
+                   lam3, e3, REC_INDEX(g), out);
     }
 }

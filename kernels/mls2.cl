@@ -189,7 +189,7 @@ __kernel void mls2(OPERATOR_ARGS)
             const uint g = g0 + k;
             const uint co = cell_of[g];
             st[k] = mls2_system(x_rows(X, co, n), Y, Z, NX, NY, NZ, W, ranges, co & CELL_MASK, g,
-                                &pb, k, r, ih2, ball, fr, Ml, bl);
+                                &pb, k, r, ih2, POINT_BALL(W, g, ball), fr, Ml, bl);
         } else {
             identity_system(Ml, bl, k);
             for (int e = 0; e < 12; ++e) fr[e][k] = (REAL)(e == 0 || e == 4 || e == 8);

@@ -53,7 +53,8 @@ __kernel void moments(OPERATOR_ARGS)
             const uint co = cell_of[g];
             __global const REAL *XA = x_rows(X, co, n);
             lam.x = pca_refine_l0(XA, Y, Z, W, ranges, co & CELL_MASK,
-                                  (REAL3)(XA[g], Y[g], Z[g]), ball, v0, mu, pb.iw[k]);
+                                  (REAL3)(XA[g], Y[g], Z[g]), POINT_BALL(W, g, ball), v0,
+                                  mu, pb.iw[k]);
         }
 #endif
         /* record: normal | eigenvalues (ascending) | variation | shift o - p | count | status */

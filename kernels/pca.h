@@ -15,6 +15,7 @@
 #include "neighbors.h"
 #include "weights.h"
 #include "eig3.h"
+#include "radius.h"
 
 #if REAL_IS_DOUBLE
 #define DEGENERATE_RATIO 1e-10
@@ -122,8 +123,8 @@ inline void pca_batch(__global const REAL *X, __global const REAL *Y, __global c
             const uint g = g0 + k;
             const uint co = cell_of[g];
             __global const REAL *XA = x_rows(X, co, n);
-            pca_ball(XA, Y, Z, W, ranges, co & CELL_MASK, (REAL3)(XA[g], Y[g], Z[g]), ball, ih2,
-                     b, k);
+            pca_ball(XA, Y, Z, W, ranges, co & CELL_MASK, (REAL3)(XA[g], Y[g], Z[g]),
+                     POINT_BALL(W, g, ball), ih2, b, k);
         } else {                     /* unused lane: the identity */
             for (int e = 0; e < 6; ++e) b->c[e][k] = (REAL)(e == 0 || e == 3 || e == 5);
             b->count[k] = 0;

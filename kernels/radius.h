@@ -7,7 +7,11 @@
  * options exclude each other (clcurv refuses weights='density' with a k-NN radius). Their
  * build option is absent (scale_space.cl) or 0 for a fixed radius.
  *
- *   ball_r2(W, g, r2)   the squared radius of sorted point g's ball (r2: the fixed one)
+ *   BALL_R2(W, g, r2)   the squared radius of sorted point g's ball (r2: the fixed one)
+ *   BALL_R(W, g, r)     its radius (r: the fixed one), for the constants (2 / r, ...)
+ *   POINT_BALL(W, g, ball)  its (r^2, cell) for the neighbour walk (neighbors.h)
+ * The MLS2 fit scales its coordinates by the fixed r (par.x, the cloud's largest radius),
+ * which cancels out of its curvatures: only the ball changes per point there.
  */
 #ifndef CLCURV_RADIUS_H
 #define CLCURV_RADIUS_H
@@ -18,8 +22,10 @@
 #error "per-point radii (POINT_RADIUS) and density weights (DENSITY) share W"
 #endif
 #define BALL_R2(W, g, r2) ((W)[(g)])
+#define BALL_R(W, g, r) sqrt((W)[(g)])
 #else
 #define BALL_R2(W, g, r2) (r2)
+#define BALL_R(W, g, r) (r)
 #endif
 
 /* The (r^2, cell) of sorted point g's ball (neighbors.h), from the cloud's ball. */

@@ -1,0 +1,169 @@
+"""The k-nearest-neighbour radius: each point's ball radius is the distance to its k-th
+nearest point (the point itself the first), found on the device with the grid
+(``kernels/knn_radius.cl``), so that every ball holds k points however the density varies.
+
+How: the cloud is binned at a cell c (a first guess from the bounding box, assuming a
+surface); the kernel keeps the k smallest squared distances among the candidates within c
+of each point; a point with fewer than k candidates within c is unresolved, and the cloud
+is binned again at 2c (up to :data:`ISOLATION` times the median k-NN radius: points still
+unresolved are isolated). The operators then run on one cloud whose cell is the largest
+radius (binned again at it when the last level's cell is much larger), with each point's
+squared radius recomputed on that cloud, so that their ball test holds exactly the k
+points: r^2 = d_k^2 (1 + :data:`MARGIN_ULPS` ulps) in the device precision (ties, and
+distances within a few ulps of d_k, are included too).
+
+Documented behaviour:
+
+- ``k`` larger than the number of points: ValueError; ``k`` < 1 or > :data:`MAX_K`:
+  ValueError.
+- k or more coincident points: radius 0, a ball of the coincident points only (status 2,
+  degenerate: NaN).
+- isolated points (the k-th neighbour farther than ISOLATION x the median k-NN radius):
+  radius NaN, status 1 (too few neighbours), NaN outputs; they change no other result.
+- weights='density' is refused with a k-NN radius: every ball holds k points, so the
+  density weights 1 / #N_r(q) would be 1 / k everywhere.
+
+Caveat: Digne & Morel's asymptotic analysis (the constants H = 4 <p - o, n> / r^2, the 2 / r
+factors, Theorem 4) is for one fixed r. Each point uses its own r in them, which is the
+fixed-radius formula applied to that point's ball; the bias terms then vary from point to
+point with r(p), and nothing in the paper bounds the error of a radius that varies in space.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .constants import PAD
+from .validate import as_points
+
+#: largest k (the kernel keeps k distances per work-item in private memory)
+MAX_K = 256
+#: a point whose k-th neighbour is farther than this many times the median k-NN radius is
+#: isolated (status 1): the grid would otherwise need cells as large as its distance
+ISOLATION = 16.0
+#: the ball's r^2 is d_k^2 widened by this many ulps of the device precision, so that the
+#: k-th point passes the operators' strict test d^2 < r^2 whatever the rounding order
+MARGIN_ULPS = 8
+#: bin again at the largest radius when the last level's cell exceeds it by this factor
+REBIN_FACTOR = 1.5
+_MAX_LEVELS = 64
+
+
+@dataclass
+class KnnRadii:
+    """The k-NN radii of a cloud: ``radius`` (N,) float64 input order (NaN: isolated),
+    ``isolated`` (N,) bool, ``cloud`` the DeviceCloud the operators run on (cell >= every
+    radius), ``r2_sorted`` a device buffer of the per-point r^2 in its sorted order (device
+    precision, padded; 0 for isolated points), ``levels`` the cells binned."""
+    k: int
+    radius: np.ndarray
+    isolated: np.ndarray
+    cloud: object
+    r2_sorted: object
+    levels: list = field(default_factory=list)
+    timings: dict = field(default_factory=dict)
+
+
+def check_k(k, n):
+    """``k`` as an int in [1, min(MAX_K, n)], or ValueError."""
+    try:
+        kk = int(k)
+    except (TypeError, ValueError):
+        raise TypeError(f"k must be an integer, got {k!r}") from None
+    if kk != k or kk < 1 or kk > MAX_K:
+        raise ValueError(f"k must be an integer in [1, {MAX_K}], got {k!r}")
+    if kk > n:
+        raise ValueError(f"k={kk} exceeds the number of points ({n}): no point has a "
+                         f"{kk}-th neighbour")
+    return kk
+
+
+def _first_cell(pts, k):
+    """A first cell size: the radius holding ~1.5 k points if the cloud were a surface
+    spread evenly over the two largest extents of its bounding box."""
+    ext = np.sort(np.ptp(pts, axis=0))[::-1]
+    n = len(pts)
+    if ext[1] > 0:
+        c = 1.5 * np.sqrt(k * ext[0] * ext[1] / (np.pi * n))
+    elif ext[0] > 0:
+        c = 1.5 * ext[0] * k / n
+    else:
+        c = 1.0                                   # all coincident: any cell holds them
+    return float(c)
+
+
+def kth_squared(cloud, k):
+    """The squared distance to the k-th nearest point within the cloud's cell (device
+    values as float64, input order; +inf where fewer than k points lie within it)."""
+    import pyopencl as cl
+    from .program import build, launch
+    prg = build(cloud.device, "knn_radius.cl", dict(cloud.defines, KNN_K=int(k)))
+    out = cl.Buffer(cloud.device.context, cl.mem_flags.WRITE_ONLY,
+                    size=cloud.n * np.dtype(cloud.dtype).itemsize)
+    launch(cloud.device, prg.kth_distance, cloud.n, cloud.x, cloud.y, cloud.z,
+           cloud.cell_of, cloud.ranges, np.uint32(cloud.n), cloud.ball(cloud.cell), out)
+    host = np.empty(cloud.n, cloud.dtype)
+    cl.enqueue_copy(cloud.device.queue, host, out)
+    res = np.empty(cloud.n)
+    res[cloud.grid.order] = host
+    return res
+
+
+def knn_radii(points, k, *, device=None, precision="float"):
+    """The :class:`KnnRadii` of ``points`` for ``k`` (see the module notes)."""
+    from .cloud import DeviceCloud
+    pts = as_points(points)
+    k = check_k(k, len(pts))
+    t0 = time.perf_counter()
+    diag = float(np.linalg.norm(np.ptp(pts, axis=0)))
+    c = _first_cell(pts, k)
+    cap = None
+    levels = []
+    while True:
+        cloud = DeviceCloud(pts, c, device=device, precision=precision)
+        d2 = kth_squared(cloud, k)
+        levels.append(c)
+        ok = np.isfinite(d2)
+        if cap is None and ok.mean() >= 0.5:
+            cap = ISOLATION * float(np.sqrt(np.median(d2[ok])))
+        if ok.all() or c > diag or (cap is not None and c >= cap) \
+                or len(levels) >= _MAX_LEVELS:
+            break
+        c = 2.0 * c if cap is None else min(2.0 * c, max(cap, c))
+    isolated = ~ok
+    if cap is not None:                          # beyond the cap within the last cell
+        isolated |= np.sqrt(np.where(ok, d2, 0.0)) > cap
+    live = ~isolated
+    top = float(np.sqrt(d2[live].max())) if live.any() else c
+    if live.any() and c > REBIN_FACTOR * top and top > 0:
+        # the operators' walk at the largest radius, not at the last level's cell
+        tight = DeviceCloud(pts, top * (1 + 1e-3), device=device, precision=precision)
+        d2t = kth_squared(tight, k)
+        if np.isfinite(d2t[live]).all():
+            cloud, d2 = tight, d2t
+            levels.append(tight.cell)
+    radius = np.where(isolated, np.nan, np.sqrt(np.where(isolated, 0.0, d2)))
+    r2 = _margin(np.where(isolated, 0.0, d2), cloud.dtype)
+    r2[isolated] = 0
+    buf = _upload_sorted_r2(cloud, r2)
+    return KnnRadii(k, radius, isolated, cloud, buf, levels,
+                    {"knn_radius": time.perf_counter() - t0})
+
+
+def _margin(d2, dtype):
+    """d2 widened by MARGIN_ULPS ulps in ``dtype`` (at least the smallest normal, so that
+    coincident points, d2 = 0, pass d^2 < r^2)."""
+    x = d2.astype(dtype)
+    eps = np.finfo(dtype).eps
+    return np.maximum(x * dtype(1 + MARGIN_ULPS * eps), np.finfo(dtype).tiny).astype(dtype)
+
+
+def _upload_sorted_r2(cloud, r2_input):
+    """The per-point r^2 (input order) as a padded device buffer in the sorted order."""
+    import pyopencl as cl
+    host = np.zeros(cloud.n + PAD, cloud.dtype)
+    host[:cloud.n] = r2_input[cloud.grid.order]
+    return cl.Buffer(cloud.device.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
+                     hostbuf=host)

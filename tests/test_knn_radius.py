@@ -1,0 +1,122 @@
+"""The k-NN radius (clcurv.knn_radius, kernels/knn_radius.cl): radii against a k-d tree,
+balls of k points, each operator's constants at its point's own radius, the 10x
+density-varying sphere, and k > N, duplicates, isolated points."""
+import numpy as np
+import pytest
+
+import clcurv
+from clcurv.constants import DEGENERATE, OK, TOO_FEW
+from clcurv.knn_radius import knn_radii
+from clcurv.reference_features import knn_radii as ref_knn_radii
+
+
+def sphere_10x(n, R=1.0, seed=0):
+    """A sphere whose point density grows 10x from the north pole (z = R) to the south pole
+    (z = -R): the area density is proportional to 1 + 9 u, u = (1 - z/R) / 2 (z is uniform on
+    a uniformly sampled sphere, so u is drawn with the pdf (1 + 9 u) / 5.5 by inversion)."""
+    rng = np.random.default_rng(seed)
+    t = rng.uniform(0, 1, n)
+    u = (-1 + np.sqrt(1 + 99 * t)) / 9
+    z = R * (1 - 2 * u)
+    phi = rng.uniform(0, 2 * np.pi, n)
+    s = np.sqrt(np.maximum(R * R - z * z, 0))
+    return np.c_[s * np.cos(phi), s * np.sin(phi), z]
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    return sphere_10x(40000)
+
+
+@pytest.mark.parametrize("k", [1, 4, 30, 100])
+def test_radii_against_kdtree(sphere, device, k):
+    got = knn_radii(sphere[::2], k, device=device)
+    ref = ref_knn_radii(sphere[::2], k)
+    assert not got.isolated.any()
+    # float32 offsets from the cell corner, then sqrt: a few float32 ulps of r
+    np.testing.assert_allclose(got.radius, ref, rtol=4e-6, atol=0 if k > 1 else 0)
+    assert got.cloud.cell >= np.nanmax(got.radius)
+
+
+def test_balls_hold_k_points(sphere, device):
+    """The ball of each point at its own radius holds exactly k points (the margin of a few
+    ulps adds only exact ties, absent here); the reference's closed balls of radius d_k agree,
+    and so do the features."""
+    f = clcurv.features(sphere, k=30, device=device)
+    assert (f.count == 30).mean() > 0.999 and (f.count >= 30).all()
+    ref = clcurv.features(sphere, k=30, backend="numpy")
+    assert (ref.count == 30).all()
+    np.testing.assert_allclose(f.radius, ref.radius, rtol=4e-6)
+    same = f.count == ref.count
+    np.testing.assert_allclose(f["planarity"][same], ref["planarity"][same], atol=2e-5)
+
+
+def test_mls2_adapts_where_a_fixed_radius_fails(sphere, device):
+    """MLS2 with k=30 gives H within 3% of 1/R everywhere; a fixed radius picked for 30
+    neighbours at the dense pole leaves more than 10% of the sparse cap NaN or more than 5%
+    off."""
+    res = clcurv.curvature(sphere, method="mls2", k=30, device=device)
+    assert (res.status == OK).all()
+    assert np.max(np.abs(res.mean - 1.0)) < 0.03
+    assert res.radius.shape == (len(sphere),)
+    z = sphere[:, 2]
+    dense, sparse = z < -0.9, z > 0.9
+    r_dense = float(np.median(res.radius[dense]))
+    assert np.median(res.radius[sparse]) > 2.5 * r_dense        # ~sqrt(10) apart
+    fixed = clcurv.curvature(sphere, r_dense, method="mls2", device=device)
+    H = fixed.mean[sparse]
+    assert np.isnan(H).mean() > 0.10 or np.mean(np.abs(H - 1) > 0.05) > 0.0
+
+
+def test_each_point_uses_its_own_radius(sphere, device):
+    """The constants take each point's radius: MLS1 H = -4 <o - p, n> r(p)^-2 (host), 2dcov2
+    and 3dcov k = 2 / r(p) sqrt(l) (kernel), 2dcov1's Theorem 1 inverted at r(p): all close
+    to 1/R on the unit sphere, at 10x density contrast."""
+    pts = sphere[::2]
+    for method, tol in (("mls1", 0.05), ("2dcov1", 0.35), ("2dcov2", 0.2), ("3dcov", 0.2)):
+        res = clcurv.curvature(pts, method=method, k=30, device=device)
+        val = res.mean if method == "mls1" else 0.5 * (res.k1 + res.k2)
+        assert abs(np.median(val) - 1.0) < tol, (method, np.median(val))
+        if method in ("2dcov2", "3dcov"):
+            np.testing.assert_allclose(res.k1, 2 / res.radius * np.sqrt(res.eigenvalues[:, 0]),
+                                       rtol=1e-5)
+    mls1 = clcurv.curvature(pts, method="mls1", k=30, device=device)
+    var = clcurv.curvature(pts, method="variation", k=30, device=device)
+    assert np.array_equal(mls1.radius, var.radius)
+
+
+def test_k_larger_than_n_and_bad_k(device):
+    pts = clcurv.shapes.sphere(50, 1.0)["points"]
+    with pytest.raises(ValueError, match="exceeds the number of points"):
+        clcurv.curvature(pts, method="variation", k=51, device=device)
+    with pytest.raises(ValueError, match="k must be"):
+        clcurv.features(pts, k=0, device=device)
+    with pytest.raises(ValueError, match="knn:K"):
+        clcurv.features(pts, "knn:many", device=device)
+    with pytest.raises(ValueError, match="not both"):
+        clcurv.curvature(pts, 0.1, method="variation", k=5, device=device)
+    with pytest.raises(ValueError, match="density"):
+        clcurv.curvature(pts, method="variation", k=5, weights="density", device=device)
+    # k = N: every ball is the whole cloud
+    whole = clcurv.features(pts, k=50, device=device)
+    assert (whole.count == 50).all()
+
+
+def test_duplicates_and_isolated_points(device):
+    """k coincident points: radius 0, a ball of the coincident points, status 2 (NaN). An
+    isolated point (its k-th neighbour farther than 16x the median k-NN radius): radius
+    NaN, status 1, and no other result changes."""
+    base = clcurv.shapes.sphere(5000, 1.0, seed=3)["points"]
+    dup = np.vstack([base, np.repeat(base[:1], 12, axis=0)])     # 13 copies of point 0
+    f = clcurv.features(dup, k=10, device=device)
+    copies = np.r_[0, np.arange(5000, 5012)]
+    assert (f.radius[copies] == 0).all() and (f.status[copies] == DEGENERATE).all()
+    assert (f.count[copies] == 13).all() and np.isnan(f["planarity"][copies]).all()
+    far = np.vstack([base, [[500.0, 0, 0]]])
+    with_far = clcurv.curvature(far, method="variation", k=10, device=device)
+    alone = clcurv.curvature(base, method="variation", k=10, device=device)
+    assert with_far.status[-1] == TOO_FEW and np.isnan(with_far.radius[-1])
+    assert np.isnan(with_far.variation[-1])
+    np.testing.assert_allclose(with_far.radius[:-1], alone.radius, rtol=1e-6)
+    np.testing.assert_allclose(with_far.variation[:-1], alone.variation, rtol=1e-4,
+                               atol=1e-7)
