@@ -53,11 +53,11 @@ tile size comes from the budget (``memory=``) and the density measured in pass (
 from __future__ import annotations
 
 import json
-import sys
 import math
 import os
 import re
 import shutil
+import sys
 import time
 import warnings
 from dataclasses import dataclass
@@ -80,8 +80,8 @@ TILE_BYTES_PER_POINT = 900
 IN_MEMORY_BYTES_PER_POINT = 1300
 #: fraction of the available RAM that memory="auto" uses
 AUTO_FRACTION = 0.5
-#: points per read chunk of pass (1)
-READ_CHUNK = 1 << 20
+#: points per read chunk of pass (1) and per written chunk of pass (3)
+READ_CHUNK = 1 << 18
 #: most buckets of pass (1) (a coarse grid; each is a file)
 MAX_BUCKETS = 4096
 #: tiles per side of a bucket: buckets are this many times smaller than a tile, so a tile
@@ -427,31 +427,6 @@ def _field_specs(method, precision, want_normals):
     return specs
 
 
-class _Store:
-    """The output fields, memory-mapped NPY arrays indexed by global id in the workspace."""
-
-    def __init__(self, folder, n, specs, fresh):
-        self.folder = Path(folder)
-        self.folder.mkdir(parents=True, exist_ok=True)
-        self.arrays = {}
-        for name, width, dtype in specs:
-            p = self.folder / f"{name}.npy"
-            shape = (n,) if width is None else (n, width)
-            if fresh or not p.exists():
-                a = np.lib.format.open_memmap(p, mode="w+", dtype=dtype, shape=shape)
-            else:
-                a = np.load(p, mmap_mode="r+")
-            self.arrays[name] = a
-
-    def put(self, ids, values):
-        for name, a in values.items():
-            self.arrays[name][ids] = a
-
-    def flush(self):
-        for a in self.arrays.values():
-            a.flush()
-
-
 def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient="auto",
                    viewpoint=None, kernel=None, h=None, scale_space=0, projections=0,
                    memory="auto", tile=None, workdir=None, fields=None,
@@ -590,22 +565,32 @@ def _run(source, dst, params, budget, tile, ws, wanted, progress, say, client=No
     for _, owned in _execute(tasks, client, workers):
         computed += owned
         finished += 1
+        _trim()
         if progress is not None:
             progress(finished, tiling.count, computed)
     times["tiles"] = time.perf_counter() - t1
     t2 = time.perf_counter()
-    store = _merge(ws, source.n, tiling.count, specs)
+    windows = _partition(ws, source.n, tiling.count, specs)
+    _trim()
     times["merging"] = time.perf_counter() - t2
     t3 = time.perf_counter()
-    _write_output(dst, source, store, specs)
+    _write_output(dst, source, windows, specs)
     times["writing"] = time.perf_counter() - t3
-    status = np.bincount(np.asarray(store.arrays["status"]), minlength=4).tolist() \
-        if "status" in store.arrays else None
-    del store
     shutil.rmtree(ws, ignore_errors=True)
     return {"tiled": True, "tiles": tiling.count, "skipped": skipped,
             "tile_cells": tiling.size, "halo": halo,
-            "points": source.n, "times": times, "status": status, "dst": dst}
+            "points": source.n, "times": times, "status": windows.status.tolist(),
+            "dst": dst}
+
+
+def _trim():
+    """Give the heap's free pages back to the system (glibc keeps them after a tile's
+    large temporaries, and the next pass would run on top of them)."""
+    try:
+        import ctypes
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
 
 
 def _wanted_specs(params, wanted):
@@ -625,27 +610,77 @@ def _tile_file(ws, t):
     return Path(ws) / "tiles" / f"{t}.npy"
 
 
-def _merge(ws, n, count, specs):
-    """The tiles' files scattered into the store by global id; every point exactly once
-    (else RuntimeError: a bug, never a silently incomplete output)."""
-    store = _Store(Path(ws) / "fields", n, specs, fresh=True)
-    seen = np.lib.format.open_memmap(Path(ws) / "seen.npy", mode="w+", dtype=np.uint8,
-                                     shape=(n,))
-    total = 0
+#: points per id window of the merge (its records are what the writing pass holds; a
+#: multiple of READ_CHUNK, so a written chunk never spans two windows)
+WINDOW = 1 << 18
+
+
+class Windows:
+    """The tiles' records regrouped by windows of WINDOW consecutive global ids (one file
+    each), read back one window at a time in input order: the writing pass holds one
+    window, never the whole cloud's fields (no memory maps either: their pages would stay
+    in the resident set)."""
+
+    def __init__(self, folder, n, dtype):
+        self.folder, self.n, self.dtype = Path(folder), n, dtype
+        self.count = -(-n // WINDOW)
+        self.status = np.zeros(4, np.int64)
+        self._w, self._rec = -1, None
+
+    def path(self, w):
+        return self.folder / f"w{w}.bin"
+
+    def window(self, w):
+        """The records of window w, indexed by id - w * WINDOW; RuntimeError unless every
+        id of the window is there exactly once (a bug, never a silently partial output)."""
+        if w != self._w:
+            lo, hi = w * WINDOW, min(self.n, (w + 1) * WINDOW)
+            p = self.path(w)
+            rec = np.fromfile(p, self.dtype) if p.exists() else np.empty(0, self.dtype)
+            seen = np.bincount(rec["id"] - lo, minlength=hi - lo)
+            if len(seen) != hi - lo or not np.all(seen == 1):
+                raise RuntimeError(
+                    f"the tiles wrote ids {lo}..{hi - 1} wrongly: "
+                    f"{int(np.count_nonzero(seen[:hi - lo] == 0))} missing, "
+                    f"{int(np.count_nonzero(seen > 1))} more than once")
+            out = np.empty(hi - lo, self.dtype)
+            out[rec["id"] - lo] = rec
+            self._w, self._rec = w, out
+        return self._rec
+
+    def rows(self, start, stop):
+        """The records of ids start..stop-1 (may span windows)."""
+        parts = []
+        while start < stop:
+            w = start // WINDOW
+            rec = self.window(w)
+            end = min(stop, (w + 1) * WINDOW)
+            parts.append(rec[start - w * WINDOW:end - w * WINDOW])
+            start = end
+        return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+
+def _partition(ws, n, count, specs):
+    """Pass (3a): the tile files' records appended to the id windows' files."""
+    dtype = _tile_dtype(specs)
+    win = Windows(Path(ws) / "windows", n, dtype)
+    if win.folder.exists():
+        shutil.rmtree(win.folder)
+    win.folder.mkdir()
     for t in range(count):
         rec = np.load(_tile_file(ws, t))
         if not len(rec):
             continue
-        ids = rec["id"]
-        seen[ids] += 1
-        total += len(ids)
-        store.put(ids, {name: rec[name] for name, _, _ in specs})
-    if total != n or not np.all(seen == 1):
-        raise RuntimeError(f"the tiles wrote {total} points for {n}, "
-                           f"{int(np.count_nonzero(seen == 0))} never and "
-                           f"{int(np.count_nonzero(seen > 1))} more than once")
-    store.flush()
-    return store
+        if "status" in rec.dtype.names:
+            win.status += np.bincount(rec["status"], minlength=4)[:4]
+        w = rec["id"] // WINDOW
+        order = np.argsort(w, kind="stable")
+        w, rec = w[order], rec[order]
+        cuts = np.flatnonzero(np.diff(w)) + 1
+        for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(rec)]):
+            with open(win.path(int(w[a])), "ab") as f:
+                rec[a:b].tofile(f)
+    return win
 
 
 def fits_memory(n, budget):
@@ -756,25 +791,16 @@ def _execute(tasks, client, workers):
     yield from cluster.map_tiles(compute_tile, tasks, client=client, workers=workers)
 
 
-def _write_output(dst, source, store, specs):
-    arrays = dict(store.arrays)
-    normals = arrays.pop("normals", None)
-    fields = {name: arrays[name] for name, _, _ in specs if name in arrays}
+def _write_output(dst, source, windows, specs):
+    """Pass (3b): the output in input order, a window at a time, atomically."""
+    names = [name for name, _, _ in specs]
     with io.atomic_output(dst) as tmp:
         if dst.suffix.lower() in (".las", ".laz"):
-            stream.write_las(tmp, source, fields, normals)
+            stream.write_las(tmp, source, names, windows.rows, chunk=READ_CHUNK)
         else:
-            pts = source.array[:, :3] if source.format == "npy" else _las_points(source)
-            stream.write_npz(tmp, pts, fields, normals)
-
-
-def _las_points(source):
-    """The float64 points of a LAS source, for an NPZ output (one pass, (N, 3) in memory:
-    24 bytes per point)."""
-    out = np.empty((source.n, 3))
-    for start, xyz, _ in source.chunks(READ_CHUNK):
-        out[start:start + len(xyz)] = xyz
-    return out
+            stream.write_npz(tmp, source, names, windows.rows, windows.n,
+                             {name: (width, dtype) for name, width, dtype in specs},
+                             chunk=READ_CHUNK)
 
 
 # --------------------------------------------------------------------------- the file job

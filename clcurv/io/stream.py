@@ -17,8 +17,8 @@ any point is decoded (clcurv.io.las), a LAZ file that ends early or decodes fewe
 than its header claims is a :class:`CorruptFileError` (never a partial cloud), and NPY data
 must be a numeric (N, >= 3) array of finite coordinates.
 
-Writers (:func:`write_las`, :func:`write_npz`) take the output fields as arrays that may be
-memory maps and write them chunk by chunk, in input order.
+Writers (:func:`write_las`, :func:`write_npz`) take the output fields as a function giving
+the records of a range of points, and write them chunk by chunk, in input order.
 """
 from __future__ import annotations
 
@@ -107,6 +107,9 @@ class NpySource:
             raise CorruptFileError(f"{path}: a tiled run reads an (N, >= 3) numeric NPY "
                                    f"array, got shape {a.shape} dtype {a.dtype}")
         self.array, self.n = a, a.shape[0]
+        # rows are read with plain file reads (memory-mapped pages would stay resident)
+        self.offset = a.offset if a.flags.c_contiguous else None
+        self.row = a.dtype.itemsize * a.shape[1]
         self.has_normals = a.shape[1] == 6 and self._unit_normals()
 
     def _unit_normals(self, step=1 << 22):
@@ -114,7 +117,7 @@ class NpySource:
         row is a unit vector), checked a block at a time."""
         seen = False
         for s in range(0, self.n, step):
-            block = np.asarray(self.array[s:s + step, 3:6], np.float64)
+            block = self._rows(s, min(step, self.n - s))[:, 3:6]
             fin = np.isfinite(block).all(axis=1)
             if fin.any():
                 seen = True
@@ -125,9 +128,17 @@ class NpySource:
     def bounds_hint(self):
         return None
 
+    def _rows(self, s, m):
+        if self.offset is None:                       # Fortran order: through the map
+            return np.asarray(self.array[s:s + m], np.float64)
+        with open(self.path, "rb") as f:
+            f.seek(self.offset + s * self.row)
+            a = np.fromfile(f, self.array.dtype, count=m * self.array.shape[1])
+        return a.reshape(m, self.array.shape[1]).astype(np.float64, copy=False)
+
     def chunks(self, size):
         for s in range(0, self.n, size):
-            block = np.asarray(self.array[s:s + size], np.float64)
+            block = self._rows(s, min(size, self.n - s))
             xyz = np.ascontiguousarray(block[:, :3])
             bad = ~np.isfinite(xyz).all(axis=1)
             if bad.any():
@@ -141,25 +152,30 @@ class NpySource:
 
 # --------------------------------------------------------------------------- writing
 
-def write_las(path, src, fields, normals=None, chunk=1_000_000):
-    """Write a LAS/LAZ ``path`` holding the points of LAS/LAZ ``src`` (a :class:`LasSource`;
-    its header, scales, offsets, VLRs and every dimension kept, records copied as read) with
-    ``fields`` (name -> (N,) array, may be memory maps) added as extra-bytes dimensions (or
-    overwriting a dimension of that name) and ``normals`` ((N, 3) or None) as ``nx ny nz``.
-    Written chunk by chunk in input order."""
+def write_las(path, src, names, rows, chunk=1_000_000):
+    """Write a LAS/LAZ ``path`` holding the points of LAS/LAZ ``src`` (a :class:`LasSource`:
+    its header, scales, offsets, VLRs and every dimension kept, the records copied as read)
+    with the fields ``names`` added as extra-bytes dimensions (float32 for real fields, or
+    overwriting a dimension of that name); ``"normals"`` becomes ``nx ny nz``.
+    ``rows(start, stop)`` gives the structured records (one field per name) of the points
+    start..stop-1. Written chunk by chunk in input order."""
     import copy
     from . import las
     laspy = las._import_laspy(path, las._is_laz(path))
     header = copy.deepcopy(src.header)
-    columns = {}
-    if normals is not None:
-        columns.update(nx=normals[:, 0], ny=normals[:, 1], nz=normals[:, 2])
-    columns.update(fields)
-    probe = {k: np.asarray(v[:1]) for k, v in columns.items()}
-    new = las._extra_dims(laspy, path, probe, header)
+
+    def columns(rec):
+        out = {}
+        for name in sorted(names, key=lambda k: k != "normals"):     # nx ny nz first
+            if name == "normals":
+                out.update(nx=rec[name][:, 0], ny=rec[name][:, 1], nz=rec[name][:, 2])
+            else:
+                out[name] = rec[name]
+        return out
+    new = las._extra_dims(laspy, path, columns(rows(0, min(1, src.n))), header)
     if new:
         header.add_extra_dims(new)
-    names = set(header.point_format.dimension_names)
+    dims = set(header.point_format.dimension_names)
     with laspy.open(str(src.path)) as reader, \
             laspy.open(str(path), mode="w", header=header) as writer:
         start = 0
@@ -168,19 +184,50 @@ def write_las(path, src, fields, normals=None, chunk=1_000_000):
             out = laspy.ScaleAwarePointRecord.zeros(m, header=header)
             for dim in rec.array.dtype.names:         # the raw records: integers as read
                 out.array[dim] = rec.array[dim]
-            for name, a in columns.items():
-                if name in names:
-                    out[name] = np.asarray(a[start:start + m])
+            for name, a in columns(rows(start, start + m)).items():
+                if name in dims:
+                    out[name] = a
             writer.write_points(out)
             start += m
 
 
-def write_npz(path, points, fields, normals=None):
-    """Write an NPZ (``points``, ``normals``, fields) from arrays that may be memory maps;
-    numpy writes each member in bounded buffers."""
-    arrays = {"points": points}
-    if normals is not None:
-        arrays["normals"] = normals
-    arrays.update(fields)
-    with open(path, "wb") as f:
-        np.savez(f, **arrays)
+def write_npz(path, src, names, rows, n, specs, chunk=1_000_000):
+    """Write an NPZ (``points``, ``normals``, then the fields, as :mod:`clcurv.io.npy`
+    writes) from the points of ``src`` and the records ``rows(start, stop)``, in one pass
+    over the points: each member goes first to a raw file beside ``path``, then into the
+    (uncompressed, ZIP64) archive."""
+    import zipfile
+    folder = Path(path).parent
+    order = ["points"] + [k for k in names if k == "normals"] + \
+        [k for k in names if k != "normals"]
+    shapes = {"points": ((n, 3), np.dtype(np.float64))}
+    for name in names:
+        width, dtype = specs[name]
+        shapes[name] = ((n,) if width is None else (n, width), np.dtype(dtype))
+    raws = {k: folder / f".{Path(path).name}.{k}.raw" for k in order}
+    try:
+        files = {k: open(p, "wb") for k, p in raws.items()}
+        try:
+            for start, xyz, _ in src.chunks(chunk):
+                files["points"].write(np.ascontiguousarray(xyz).tobytes())
+                rec = rows(start, start + len(xyz))
+                for k in order[1:]:
+                    files[k].write(np.ascontiguousarray(rec[k], shapes[k][1]).tobytes())
+        finally:
+            for f in files.values():
+                f.close()
+        with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED, allowZip64=True) as z:
+            for k in order:
+                shape, dtype = shapes[k]
+                with z.open(f"{k}.npy", "w", force_zip64=True) as m, open(raws[k], "rb") as r:
+                    np.lib.format.write_array_header_2_0(
+                        m, {"descr": np.lib.format.dtype_to_descr(dtype),
+                            "fortran_order": False, "shape": shape})
+                    while True:
+                        block = r.read(1 << 24)
+                        if not block:
+                            break
+                        m.write(block)
+    finally:
+        for p in raws.values():
+            p.unlink(missing_ok=True)
