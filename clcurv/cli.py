@@ -1,8 +1,9 @@
-"""The ``clcurv`` command line: compute, devices, render, demo.
+"""The ``clcurv`` command line: compute, features, devices, render, demo.
 
     clcurv compute INPUT -o OUTPUT --method mls2 --radius auto --scale-space 3
+    clcurv features INPUT -o OUTPUT --radius 0.5,1,2 --features planarity,Scattering
     clcurv devices
-    clcurv render OUTPUT.ply --field mean_curvature -o picture.png
+    clcurv render OUTPUT.ply --field mean_curvature -o picture.png [--up z]
     clcurv demo
 
 This module parses the arguments and maps errors to exit codes; the work is done by
@@ -26,6 +27,7 @@ import numpy as np
 from . import demo, io, job
 from .device import APT_HINT, NoDeviceError, devices
 from .job import UsageError
+from .features import DEFAULT_FEATURES as FEATURE_NAMES
 from .operators import METHODS
 from .program import PrecisionError
 
@@ -48,8 +50,42 @@ def render_cmd(args, out=print):
         raise UsageError(f"{args.input} has no field {args.field!r}; it has: "
                          f"{', '.join(cloud.attributes) or 'none'}")
     path = render(cloud.points, np.asarray(values, dtype=float), args.output, field=args.field,
-                  unit=args.unit)
+                  unit=args.unit, up=args.up, source=args.input)
     out(f"wrote {path}")
+    return path
+
+
+def features_cmd(args, out=print):
+    """``clcurv features``: covariance features (:func:`clcurv.features`) of a file's points
+    at one radius, several (fields named ``<feature>_r<radius>``) or a k-NN radius (plus a
+    ``knn_radius`` field), written with the input's points (LAS/LAZ: header kept)."""
+    from .features import features, radius_suffix
+    io.check_output(args.output)            # before reading and computing
+    if (args.radius is None) == (args.k is None):
+        raise UsageError("give --radius R[,R2,...] or --k K")
+    try:
+        radius = None if args.radius is None else [float(r) for r in args.radius.split(",")]
+    except ValueError:
+        raise UsageError(f"--radius takes numbers separated by commas, got {args.radius!r}")
+    cloud = io.read(args.input)
+    res = features(cloud.points, radius if radius is None or len(radius) > 1 else radius[0],
+                   args.features, k=args.k, ddof=args.ddof, device=args.device,
+                   precision=args.precision)
+    normals = None
+    if isinstance(res, list):
+        fields = {}
+        for r, f in zip(radius, res):
+            fields.update(f.file_fields(radius_suffix(r)))
+    else:
+        fields = res.file_fields()
+        if "normals" in res.values:         # the file's own normals slot
+            normals = res.values["normals"]
+            for a in ("nx", "ny", "nz"):
+                del fields[a]
+        if args.k is not None:
+            fields["knn_radius"] = res.radius
+    path = io.write(args.output, cloud.points, fields, normals=normals, like=cloud)
+    out(f"wrote {path}: {len(cloud.points)} points, {len(fields)} fields")
     return path
 
 
@@ -139,7 +175,24 @@ def build_parser():
     r.add_argument("input")
     r.add_argument("--field", default="mean_curvature")
     r.add_argument("--unit", default="1/length")
+    r.add_argument("--up", default="auto", help="the cloud's up axis: auto (default: z for "
+                   "LAS/LAZ, the thin axis of a flat cloud, else y), x, y, z, -z, ...; "
+                   "terrain is drawn from the top and obliquely")
     r.add_argument("-o", "--output", required=True)
+    f = sub.add_parser("features", help="covariance features (planarity, linearity, ...)")
+    f.add_argument("input")
+    f.add_argument("-o", "--output", required=True, help=".ply, .las/.laz, .npz, .csv, .txt")
+    f.add_argument("--radius", default=None, help="ball radius in the file's unit, or several "
+                   "separated by commas (one neighbour walk; fields named <feature>_r<radius>)")
+    f.add_argument("--k", type=int, default=None, help="per-point radius: the distance to "
+                   "the k-th nearest point")
+    f.add_argument("--features", default=",".join(FEATURE_NAMES), help="comma-separated "
+                   "names (jakteristics or PDAL spellings) or 'all'")
+    f.add_argument("--ddof", type=int, default=0, choices=[0, 1],
+                   help="covariance divided by n - ddof (1: jakteristics)")
+    f.add_argument("--device", default=None)
+    f.add_argument("--precision", default="float", choices=["float", "double"])
+    f.add_argument("-q", "--quiet", action="store_true")
     d = sub.add_parser("demo", help="run the pipeline on the bundled bunny")
     d.add_argument("--outdir", default="out")
     d.add_argument("--device", default=None)
@@ -179,7 +232,8 @@ def _warn_line(message, category, filename, lineno, file=None, line=None):
 def main(argv=None):
     """Entry point of the ``clcurv`` command; returns the exit code."""
     args = build_parser().parse_args(argv)
-    run = {"compute": compute, "devices": devices_cmd, "render": render_cmd, "demo": demo_cmd}
+    run = {"compute": compute, "devices": devices_cmd, "render": render_cmd, "demo": demo_cmd,
+           "features": features_cmd}
     with warnings.catch_warnings():
         warnings.showwarning = _warn_line
         try:

@@ -20,14 +20,24 @@ left      -x                   +z, +y              smaller x
 top       +y                   +x, -z              larger y
 bottom    -y                   +x, +z              smaller y
 iso       (+1, +1, +1)         oblique, y up       larger x+y+z
+oblique   40 deg above +z      +x, tilted up       towards +z and up
 ========  ===================  ==================  ===============
 
-For z-up data (LiDAR, terrain) pass e.g. ``views=("top", "front", "side")`` and read
-"front" as a vertical section; all views of one figure share the same scale.
+The table is in the frame where the cloud's up axis is +y. ``up`` names the cloud's up axis
+(:func:`up_axis`): ``"auto"`` takes +Z for LAS/LAZ input (``source``), else the axis of
+smallest extent of a flat cloud (terrain in any format), else +Y (scanned objects); or
+``"x"``, ``"-z"``, ... or three numbers. The cloud is turned so that up becomes +y before the
+views, so with up = +Z the top view shows x to the right and y up, as a map. Terrain (a
+cloud whose extent along up is under a quarter of its horizontal extents,
+:func:`default_views`) leads with the top view and an oblique view; other clouds get
+front, side and top. All views of one figure share the same scale.
 
-Points are sorted by depth so that near points are drawn last (over far ones). Signed fields
-use a diverging colormap centred on 0 ("RdBu_r", symmetric limits); unsigned ones "viridis".
-Colour limits are robust percentiles of the finite values; NaN values are drawn light grey.
+Points are sorted by depth so that near points are drawn last (over far ones); points whose
+value is NaN are drawn first, beneath every valued point, so that they never hide one.
+Signed fields use a diverging colormap centred on 0 ("RdBu_r", symmetric limits); unsigned
+ones "viridis". Colour limits are robust percentiles of the finite values; NaN values are
+drawn light grey. The colour bar's label is kept inside the picture (the figure is widened,
+or the label's font reduced, when it would not fit).
 
 The picture format follows the extension of the output (:data:`IMAGE_FORMATS`: PNG, JPEG,
 PDF, SVG, TIFF, WebP); any other extension, a point cloud's included, is refused before
@@ -47,8 +57,8 @@ import numpy as np
 from .io import atomic_output, check_output
 from .operators import OPERATORS, signed_file_fields
 
-__all__ = ["render", "check_image_output", "MissingMatplotlibError", "VIEWS", "SIGNED_FIELDS",
-           "IMAGE_FORMATS"]
+__all__ = ["render", "figure", "check_image_output", "MissingMatplotlibError", "VIEWS",
+           "SIGNED_FIELDS", "IMAGE_FORMATS", "up_axis", "default_views"]
 
 #: Extensions :func:`render` writes (lower case) -> the format given to matplotlib's
 #: ``savefig`` (Agg canvas; JPEG, TIFF and WebP through Pillow, a matplotlib dependency).
@@ -77,7 +87,14 @@ VIEWS = {
     "top": ((1, 0, 0), (0, 0, -1), (0, 1, 0)),
     "bottom": ((1, 0, 0), (0, 0, 1), (0, -1, 0)),
     "iso": ((_S2, 0, -_S2), (-_S6, 2 * _S6, -_S6), (_S3, _S3, _S3)),
+    "oblique": ((1, 0, 0), (0, np.cos(np.radians(40)), -np.sin(np.radians(40))),
+                (0, np.sin(np.radians(40)), np.cos(np.radians(40)))),
 }
+#: LAS/LAZ clouds are z-up (ASPRS: Z is elevation)
+Z_UP_SUFFIXES = (".las", ".laz")
+#: a cloud whose extent along up is below this fraction of its horizontal extents is terrain
+TERRAIN_RATIO = 0.25
+_AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
 
 _AXIS_NAMES = {(1, 0, 0): "x", (0, 1, 0): "y", (0, 0, 1): "z"}
 _NAN_GREY = "#c8c8c8"
@@ -151,6 +168,63 @@ def _point_diameter_px(u, v, scale_px, n_drawn):
     return float(np.clip(d, 0.9, 9.0))
 
 
+def up_axis(up="auto", points=None, source=None):
+    """The cloud's up direction as a unit float64 3-vector.
+
+    ``up``: "auto" (+Z when ``source``, a file name, is LAS/LAZ; else the axis of smallest
+    extent when ``points`` are flat: that extent under :data:`TERRAIN_RATIO` times the
+    middle one; else +Y), an axis name "x", "+y", "-z", or three numbers.
+    """
+    if up is None or (isinstance(up, str) and up == "auto"):
+        if source is not None and Path(str(source)).suffix.lower() in Z_UP_SUFFIXES:
+            return np.array(_AXES["z"])
+        if points is not None and len(points):
+            pts = np.asarray(points, dtype=np.float64)
+            ext = np.ptp(pts[np.isfinite(pts).all(axis=1)], axis=0) if len(pts) else None
+            if ext is not None and ext.size:
+                order = np.argsort(ext)
+                if ext[order[0]] < TERRAIN_RATIO * ext[order[1]]:
+                    return np.eye(3)[order[0]]
+        return np.array(_AXES["y"])
+    if isinstance(up, str):
+        s = up.strip().lower()
+        sign = -1.0 if s.startswith("-") else 1.0
+        axis = _AXES.get(s.lstrip("+-"))
+        if axis is None:
+            raise ValueError(f"up must be 'auto', an axis (x, y, z, -z, ...) or 3 numbers, "
+                             f"got {up!r}")
+        return sign * np.array(axis)
+    v = np.asarray(up, dtype=np.float64).reshape(-1)
+    if v.shape != (3,) or not np.isfinite(v).all() or not np.any(v):
+        raise ValueError(f"up must be 'auto', an axis or 3 finite numbers, got {up!r}")
+    return v / np.linalg.norm(v)
+
+
+def _frame(up):
+    """Rows (x', y' = up, z' = x' x y'): the rotation that makes ``up`` the +y of the view
+    table (x' the first of x, y, z not along up, made orthogonal to it)."""
+    ex = next(np.array(a) for a in _AXES.values() if abs(np.dot(a, up)) < 0.9)
+    ex = ex - np.dot(ex, up) * up
+    ex /= np.linalg.norm(ex)
+    return np.array([ex, up, np.cross(ex, up)])
+
+
+def is_terrain(points, up):
+    """True when the extent of ``points`` along ``up`` is below TERRAIN_RATIO times both
+    horizontal extents (in the frame of :func:`_frame`)."""
+    pts = np.asarray(points, dtype=np.float64)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    if len(pts) < 2:
+        return False
+    ext = np.ptp(pts @ _frame(up).T, axis=0)
+    return bool(ext[1] < TERRAIN_RATIO * min(ext[0], ext[2]))
+
+
+def default_views(points, up):
+    """("top", "oblique") for terrain (:func:`is_terrain`), else ("front", "side", "top")."""
+    return ("top", "oblique") if is_terrain(points, up) else ("front", "side", "top")
+
+
 def check_image_output(path) -> Path:
     """Check that :func:`render` can write ``path``, without drawing or writing; return it.
 
@@ -169,7 +243,7 @@ def check_image_output(path) -> Path:
 
 
 def render(points, values, path, *, field="mean_curvature", unit="1/length unit",
-           signed=None, views=("front", "side", "top"), max_points=200_000,
+           signed=None, views=None, up="auto", source=None, max_points=200_000,
            percentiles=(2, 98), title=None, dpi=110, seed=0) -> Path:
     """Write a picture of ``points`` coloured by ``values`` seen from ``views``; return its path.
 
@@ -189,8 +263,14 @@ def render(points, values, path, *, field="mean_curvature", unit="1/length unit"
         Diverging colormap centred on 0 (True) or sequential (False). None: signed when the
         robust range contains both signs, or when ``field`` is a curvature name
         (:data:`SIGNED_FIELDS`) and the values take both signs.
-    views : sequence of str
-        1 to 6 names from :data:`VIEWS`, drawn left to right at a common scale.
+    views : sequence of str, optional
+        1 to 6 names from :data:`VIEWS`, drawn left to right at a common scale. Default
+        :func:`default_views`: top and oblique for terrain, else front, side and top.
+    up : "auto", axis name or 3 numbers
+        The cloud's up axis (:func:`up_axis`; "auto": +Z for LAS/LAZ ``source``, the thin
+        axis of a flat cloud, else +Y).
+    source : str or Path, optional
+        The file the points come from (its extension decides "auto" for LAS/LAZ).
     max_points : int
         Draw at most this many points, a uniform random subsample (``seed``) when N is larger.
     percentiles : (lo, hi)
@@ -218,6 +298,21 @@ def render(points, values, path, *, field="mean_curvature", unit="1/length unit"
         matplotlib is not installed (an ``ImportError``).
     """
     path = check_image_output(path)
+    fig, _ = figure(points, values, field=field, unit=unit, signed=signed, views=views, up=up,
+                    source=source, max_points=max_points, percentiles=percentiles, title=title,
+                    dpi=dpi, seed=seed)
+    with atomic_output(path) as tmp:
+        fig.savefig(tmp, dpi=dpi, format=IMAGE_FORMATS[path.suffix.lower()], facecolor="white")
+    return path
+
+
+def figure(points, values, *, field="mean_curvature", unit="1/length unit", signed=None,
+           views=None, up="auto", source=None, max_points=200_000, percentiles=(2, 98),
+           title=None, dpi=110, seed=0):
+    """The matplotlib Figure that :func:`render` writes (same parameters, no path), and a
+    dict: ``views``, ``up`` (unit vector), ``terrain``, ``label_bbox`` (the colour-bar
+    label's (x0, y0, x1, y1) in pixels of the written picture, origin bottom left) and
+    ``size`` (width, height) in pixels."""
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"points must be an (N, 3) array, got shape {pts.shape}")
@@ -227,6 +322,9 @@ def render(points, values, path, *, field="mean_curvature", unit="1/length unit"
         vals = vals[:, 0]
     if vals.ndim != 1 or vals.shape[0] != n:
         raise ValueError(f"values must have one entry per point ({n}), got shape {vals.shape}")
+    upv = up_axis(up, pts if pts.ndim == 2 and pts.shape[-1] == 3 else None, source)
+    if views is None:
+        views = default_views(pts, upv)
     if isinstance(views, str):
         views = (views,)
     views = tuple(views)
@@ -294,7 +392,8 @@ def render(points, values, path, *, field="mean_curvature", unit="1/length unit"
     sp = pts[idx]
     sv = vals[idx]
     center = 0.5 * (sp.min(axis=0) + sp.max(axis=0)) if sp.size else np.zeros(3)
-    sp = sp - center
+    frame = _frame(upv)
+    sp = (sp - center) @ frame.T          # up is +y of the view table
 
     # --- layout (inches): panels side by side, colorbar at the right ------------------------
     nv = len(views)
@@ -307,6 +406,13 @@ def render(points, values, path, *, field="mean_curvature", unit="1/length unit"
 
     fig = Figure(figsize=(fig_w, fig_h), dpi=dpi, facecolor="white")
     FigureCanvasAgg(fig)
+    placed = []                           # (axes, rect in inches): re-placed if widened
+
+    def add_axes(rect_in):
+        ax = fig.add_axes((rect_in[0] / fig_w, rect_in[1] / fig_h, rect_in[2] / fig_w,
+                           rect_in[3] / fig_h))
+        placed.append((ax, rect_in))
+        return ax
 
     projections = []
     for name in views:
@@ -323,8 +429,7 @@ def render(points, values, path, *, field="mean_curvature", unit="1/length unit"
     scale_px = dpi / units_per_inch  # pixels per data unit
 
     for k, (name, (u, v, depth)) in enumerate(zip(views, projections)):
-        x0 = (k * panel_w + left_pad) / fig_w
-        ax = fig.add_axes((x0, bottom_pad / fig_h, inner_w / fig_w, inner_h / fig_h))
+        ax = add_axes((k * panel_w + left_pad, bottom_pad, inner_w, inner_h))
         ax.set_facecolor("white")
         ax.set_xticks([])
         ax.set_yticks([])
@@ -337,30 +442,37 @@ def render(points, values, path, *, field="mean_curvature", unit="1/length unit"
         ax.set_xlim(cu - half_w, cu + half_w)
         ax.set_ylim(cv - half_h, cv + half_h)
         ax.set_aspect("equal", adjustable="box")
-        r, up, _ = VIEWS[name]
-        lr, lu = _axis_label(r), _axis_label(up)
+        r, vu, _ = VIEWS[name]              # screen directions, back in the cloud's axes
+        lr, lu = _axis_label(frame.T @ np.asarray(r)), _axis_label(frame.T @ np.asarray(vu))
         label = f"{name}  ({lr} \u2192, {lu} \u2191)" if lr and lu else name
         ax.set_title(label, fontsize=9, color="#555555", pad=4)
         if u.size == 0:
             continue
-        order = np.argsort(depth, kind="stable")  # far first, near last
         d_px = _point_diameter_px(u, v, scale_px, u.size)
         size_pt2 = (d_px * 72.0 / dpi) ** 2
-        ax.scatter(u[order], v[order], c=sv[order], s=size_pt2, cmap=cmap, norm=norm,
-                   marker="o", linewidths=0, edgecolors="none", plotnonfinite=True,
-                   rasterized=True)
+        valued = np.isfinite(sv)
+        # NaN points first (beneath), then the valued ones; each far first, near last
+        for part in (~valued, valued):
+            sel = np.flatnonzero(part)
+            if sel.size == 0:
+                continue
+            sel = sel[np.argsort(depth[sel], kind="stable")]
+            ax.scatter(u[sel], v[sel], c=sv[sel], s=size_pt2, cmap=cmap, norm=norm,
+                       marker="o", linewidths=0, edgecolors="none", plotnonfinite=True,
+                       rasterized=True)
 
     # --- colorbar (and a grey "NaN" key when some values are NaN) --------------------------
-    cb_x = (fig_w - cbar_w + 0.12) / fig_w
-    cb_wf = 0.16 / fig_w
+    cb_x = fig_w - cbar_w + 0.12
+    cb_w = 0.16
     cb_y0, cb_h = bottom_pad + 0.6, panel_h - 1.1
     label = f"{field} [{unit}]" if unit else f"{field}"
-    cax = fig.add_axes((cb_x, cb_y0 / fig_h, cb_wf, cb_h / fig_h))
+    cax = add_axes((cb_x, cb_y0, cb_w, cb_h))
     if finite.size:
         sm = ScalarMappable(norm=norm, cmap=cmap)
         sm.set_array(np.array([]))
         cb = fig.colorbar(sm, cax=cax, extend=extend)
         cb.set_label(label, fontsize=9)
+        label_artist = cb.ax.yaxis.label
         cb.ax.tick_params(labelsize=8)
         cb.formatter.set_powerlimits((-3, 4))
         cb.update_ticks()
@@ -370,8 +482,9 @@ def render(points, values, path, *, field="mean_curvature", unit="1/length unit"
         cax.set_yticks([])
         cax.yaxis.set_label_position("right")
         cax.set_ylabel(f"{label}: all NaN", fontsize=9)
+        label_artist = cax.yaxis.label
     if 0 < n_nan < n:
-        kax = fig.add_axes((cb_x, (bottom_pad + 0.1) / fig_h, cb_wf, 0.16 / fig_h))
+        kax = add_axes((cb_x, bottom_pad + 0.1, cb_w, 0.16))
         kax.set_facecolor(_NAN_GREY)
         kax.set_xticks([])
         kax.set_yticks([])
@@ -402,6 +515,44 @@ def render(points, values, path, *, field="mean_curvature", unit="1/length unit"
     fig.text(0.5, 1 - 0.45 / fig_h, "  \u00b7  ".join(parts), ha="center", va="top",
              fontsize=9, color="#333333")
 
-    with atomic_output(path) as tmp:
-        fig.savefig(tmp, dpi=dpi, format=IMAGE_FORMATS[path.suffix.lower()], facecolor="white")
-    return path
+    bbox = _fit_label(fig, placed, cax, label_artist, fig_h)
+    w_px, h_px = (int(round(x * dpi)) for x in fig.get_size_inches())
+    return fig, {"views": views, "up": upv, "terrain": is_terrain(pts, upv) if n else False,
+                 "label_bbox": bbox, "size": (w_px, h_px)}
+
+
+def _right_edge(cax, label, renderer):
+    """The right edge (pixels) of the colour bar with its ticks and label."""
+    return max(cax.get_tightbbox(renderer).x1, label.get_window_extent(renderer).x1)
+
+
+def _fit_label(fig, placed, cax, label, fig_h, margin=0.04, max_shift=0.3):
+    """Keep the colour bar's label (and its ticks) inside the figure: a label taller than
+    the figure gets a smaller font, one past the right edge widens the figure (every axes
+    keeps its place in inches; up to ``max_shift`` inches the colour bar moves left into the
+    last panel's margin instead). Returns the label's bbox (x0, y0, x1, y1) in pixels."""
+    renderer = fig.canvas.get_renderer()
+    cax_x = next(r[0] for ax, r in placed if ax is cax)
+    dpi = fig.dpi
+    for _ in range(8):                               # height: shrink the font
+        bb = label.get_window_extent(renderer)
+        if bb.height <= (fig_h - 2 * margin) * dpi or label.get_fontsize() < 4:
+            break
+        label.set_fontsize(label.get_fontsize() * 0.85)
+    right = _right_edge(cax, label, renderer) / dpi
+    fig_w = fig.get_size_inches()[0]
+    over = right + margin - fig_w
+    if over > 0:
+        # a little: move the colour bar (and its NaN key) left into the last panel's margin;
+        # more: widen the figure, every axes keeping its place in inches
+        shift = over if over <= max_shift else 0.0
+        if shift == 0.0:
+            fig_w = right + margin
+            fig.set_size_inches(fig_w, fig_h)
+        for ax, (x, y, w, h) in placed:
+            x = x - shift if x >= cax_x - 1e-9 else x
+            ax.set_position((x / fig_w, y / fig_h, w / fig_w, h / fig_h))
+    renderer = fig.canvas.get_renderer()
+    _right_edge(cax, label, renderer)                # places the label beside the ticks
+    bb = label.get_window_extent(renderer)
+    return (float(bb.x0), float(bb.y0), float(bb.x1), float(bb.y1))

@@ -241,3 +241,30 @@ def test_bad_input_and_status(device):
     assert (sparse.status == TOO_FEW).all() and np.isnan(sparse["planarity"]).all()
     up = clcurv.features(pts, 0.2, ["normals"], orient="up", device=device)
     assert (up["nz"][up.status == OK] >= 0).all()
+
+
+def test_cli_features(tmp_path):
+    """`clcurv features`: several radii give fields <feature>_r<radius>, equal to the API's
+    values; --k adds the per-point radius."""
+    from clcurv.cli import main
+    pts = clcurv.shapes.sphere(4000, 1.0, noise=0.005, seed=8)["points"]
+    src = tmp_path / "in.ply"
+    clcurv.io.write(src, pts)
+    out = tmp_path / "out.ply"
+    assert main(["features", str(src), "-o", str(out), "--radius", "0.2,0.3",
+                 "--features", "planarity,Scattering,nx"]) == 0
+    attrs = clcurv.io.read(out).attributes
+    for r in ("0.2", "0.3"):
+        for name in ("planarity", "sphericity", "nx", "ny", "nz", "number_of_neighbors",
+                     "feature_status"):
+            assert f"{name}_r{r}" in attrs
+    api = clcurv.features(pts, [0.2, 0.3], ["planarity", "Scattering"])
+    np.testing.assert_allclose(attrs["planarity_r0.3"], api[1]["planarity"], rtol=1e-6)
+    np.testing.assert_array_equal(attrs["number_of_neighbors_r0.2"], api[0].count)
+    knn = tmp_path / "knn.ply"
+    assert main(["features", str(src), "-o", str(knn), "--k", "20"]) == 0
+    got = clcurv.io.read(knn).attributes
+    assert "knn_radius" in got and (got["number_of_neighbors"] >= 20).all()
+    assert main(["features", str(src), "-o", str(knn)]) == 2           # neither --radius nor --k
+    assert main(["features", str(src), "-o", str(knn), "--radius", "0.2",
+                 "--features", "curviness"]) == 2

@@ -192,3 +192,94 @@ def test_bunny_sample(tmp_path):
     out = render(p, p[:, 2], tmp_path / "bunny_z.png", field="z", unit="m", dpi=DPI)
     rgb, non_white, colours = check_picture(out)
     assert reddish(rgb) > 500 and bluish(rgb) > 500
+
+
+# --- up axis, terrain views, colour-bar label, NaN beneath (issue 14) -------------------------
+
+from clcurv import render as R  # noqa: E402
+from clcurv.render import figure  # noqa: E402
+
+AUTZEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "laspy_autzen_trim.laz"
+
+
+def tile():
+    """A LAS tile's points: the Autzen LAZ when present, else a synthetic aerial scene."""
+    if AUTZEN.exists():
+        import clcurv
+        return clcurv.io.read(AUTZEN).points
+    import clcurv
+    return clcurv.shapes.aerial_scene(20_000)["points"]
+
+
+def test_las_tile_leads_with_top_and_oblique_views():
+    """A LAS/LAZ tile is z-up: the picture is the top view (x right, y up, as a map) and an
+    oblique view, not two edge-on sections."""
+    p = tile()
+    fig, info = figure(p, p[:, 2], field="z", unit="ft", source="tile.laz", dpi=DPI)
+    assert np.array_equal(info["up"], [0, 0, 1]) and info["terrain"]
+    assert info["views"] == ("top", "oblique")
+    titles = [ax.get_title() for ax in fig.axes[:2]]
+    assert titles[0] == "top  (+x \u2192, +y \u2191)" and titles[1] == "oblique"
+    # auto also finds z for terrain in another format (the thin axis), and --up overrides
+    assert np.array_equal(R.up_axis("auto", p), [0, 0, 1])
+    assert np.array_equal(R.up_axis("-y"), [0, -1, 0])
+    with pytest.raises(ValueError, match="up must be"):
+        R.up_axis("w")
+
+
+def test_scanned_objects_keep_y_up_and_three_views():
+    p = sphere(3_000, seed=2)
+    _, info = figure(p, p[:, 0], dpi=DPI)
+    assert np.array_equal(info["up"], [0, 1, 0]) and info["views"] == ("front", "side", "top")
+    # a z-up object (not flat) given --up z: the front view then shows x right, z up
+    fig, info = figure(p * (1, 1, 2), p[:, 0], up="z", dpi=DPI)
+    assert fig.axes[0].get_title() == "front  (+x \u2192, +z \u2191)"
+
+
+@pytest.mark.parametrize("field, unit", [("z", "m"),
+                                         ("a_rather_long_field_name_r0.125", "1/length unit"),
+                                         ("x" * 60, "y" * 30)])
+def test_colourbar_label_inside_the_picture(tmp_path, field, unit):
+    """The colour-bar label's box lies inside the written picture (moved, widened or a
+    smaller font when needed), for short, long and absurd labels."""
+    p = tile()[::10]
+    fig, info = figure(p, p[:, 2], field=field, unit=unit, source="t.laz", dpi=DPI)
+    x0, y0, x1, y1 = info["label_bbox"]
+    w, h = info["size"]
+    assert 0 <= x0 < x1 <= w and 0 <= y0 < y1 <= h, (info["label_bbox"], info["size"])
+    out = R.render(p, p[:, 2], tmp_path / "t.png", field=field, unit=unit, source="t.laz",
+                   dpi=DPI)
+    assert load_rgb(out).shape[:2] == (h, w)
+
+
+def test_nan_points_are_drawn_beneath(tmp_path):
+    """A valued ground grid with NaN points just above it (nearer to a top view): the valued
+    points hide the NaN ones, so no NaN grey shows inside the ground."""
+    g = np.linspace(0, 1, 120)
+    X, Y = np.meshgrid(g, g)
+    ground = np.c_[X.ravel(), Y.ravel(), np.zeros(X.size)]
+    above = ground + (0, 0, 0.01)
+    pts = np.vstack([ground, above])
+    vals = np.r_[np.linspace(0, 1, len(ground)), np.full(len(above), np.nan)]
+    out = R.render(pts, vals, tmp_path / "n.png", up="z", views=("top",), dpi=DPI,
+                   field="v", unit=None)
+    rgb = load_rgb(out)
+    h, w = rgb.shape[:2]
+    inner = rgb[int(0.4 * h):int(0.7 * h), int(0.1 * w):int(0.5 * w)]
+    grey = np.all(np.abs(inner.astype(int) - 200) <= 3, axis=2).mean()
+    assert grey < 0.01, grey
+
+
+def test_cli_render_las_and_up(tmp_path):
+    """`clcurv render` on a LAS/LAZ file draws two views (top, oblique); --up y on the same
+    file draws the three object views."""
+    if not AUTZEN.exists():
+        pytest.skip("the Autzen LAZ of ../shared/data is not present")
+    from clcurv.cli import main
+    attrs = __import__("clcurv").io.read(AUTZEN).attributes
+    field = "intensity" if "intensity" in attrs else next(iter(attrs))
+    out = tmp_path / "a.png"
+    assert main(["render", str(AUTZEN), "--field", field, "-o", str(out)]) == 0
+    assert load_rgb(out).shape[1] == round((3.7 * 2 + 0.9) * 110)
+    assert main(["render", str(AUTZEN), "--field", field, "--up", "y", "-o", str(out)]) == 0
+    assert load_rgb(out).shape[1] == round((3.7 * 3 + 0.9) * 110)
