@@ -1,23 +1,55 @@
-"""Shared fixtures: the OpenCL devices (real kernels on PoCL, never mocked) and shapes."""
+"""Shared fixtures: the OpenCL devices (real kernels, never mocked) and shapes.
+
+The ``device`` fixture runs a test once per OpenCL device found (pyopencl's
+``pytest_generate_tests_for_pyopencl`` idea), simulators excepted: Oclgrind is ~1000x
+slower and only ``tests/test_oclgrind.py`` uses it, on tiny clouds. Test ids name the
+implementation (``device=1-pocl``, ``device=2-intel``).
+
+The ICDs that ``make intel-opencl`` and ``make oclgrind`` register in
+``.venv/etc/OpenCL/vendors`` are read by the loader only when ``OCL_ICD_VENDORS`` names
+that folder: ``make test`` sets it, and so does this file, before any platform is
+listed, when it is unset, so that a bare ``python -m pytest`` tests the same devices.
+"""
+import os
+import re
+
 import numpy as np
 import pytest
 
-import clcurv
+from clcurv.device import venv_vendors
+
+if not os.environ.get("OCL_ICD_VENDORS") and venv_vendors().is_dir():
+    os.environ["OCL_ICD_VENDORS"] = str(venv_vendors())
+
+import clcurv  # noqa: E402  (after OCL_ICD_VENDORS: the loader reads it once)
 
 
-def _device_ids():
+def _found():
     try:
-        return [d.index for d in clcurv.devices()]
+        return clcurv.devices()
     except Exception:  # no platform: every device test fails loudly below
         return []
 
 
-DEVICES = _device_ids()
+def _slug(info):
+    """'pocl', 'intel', 'oclgrind', ...: the implementation, for test ids."""
+    words = f"{info.platform} {info.driver} {info.version}".lower()
+    if "pocl" in words:
+        return "pocl"
+    word = re.match(r"[a-z0-9]*", info.platform.lower()).group()
+    return word or "dev"
 
 
-@pytest.fixture(params=DEVICES or [None], ids=lambda i: f"dev{i}")
+#: indices of the real OpenCL devices (every test with a ``device`` argument runs on each)
+DEVICES = [d.index for d in _found() if not d.simulator]
+#: indices of the simulators (Oclgrind): tests/test_oclgrind.py only
+SIMULATORS = [d.index for d in _found() if d.simulator]
+NAMES = {d.index: f"{d.index}-{_slug(d)}" for d in _found()}
+
+
+@pytest.fixture(params=DEVICES or [None], ids=lambda i: NAMES.get(i, "none"))
 def device(request):
-    """Every OpenCL device present; fails (not skips) when there is none."""
+    """Every real OpenCL device present; fails (not skips) when there is none."""
     if request.param is None:
         pytest.fail("no OpenCL device found: " + clcurv.device.APT_HINT)
     return clcurv.get_device(request.param)
@@ -36,3 +68,13 @@ def worst(values, k=5):
     values = np.asarray(values)
     idx = np.argsort(values)[::-1][:k]
     return ", ".join(f"[{i}]={values[i]:.3g}" for i in idx)
+
+
+def pytest_configure(config):
+    # Tests that build their own kernel sources with pyopencl (test_eig3*.py,
+    # test_kernel_contract.py) bypass clcurv.program.build, which reads the build log and
+    # re-raises its warning lines as clcurv.program.BuildWarning. Intel's CPU runtime logs
+    # every build ("Compilation started", vectoriser remarks), and pyopencl turns any
+    # non-empty log into this CompilerWarning: it carries no warning of the compiler.
+    config.addinivalue_line(
+        "filterwarnings", "ignore:Non-empty compiler output encountered:UserWarning")

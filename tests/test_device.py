@@ -1,12 +1,18 @@
 """Device choice, program cache and build errors on the real OpenCL runtime."""
+import dataclasses
 import subprocess
 import sys
+import warnings
 
 import pytest
 
 import clcurv
+from clcurv import cli
+from clcurv.device import _default
 from clcurv.operators import program_variants
-from clcurv.program import BuildError, build, kernels_dir
+from clcurv.program import BuildError, BuildWarning, _warn_from_log, build, kernels_dir
+
+from conftest import DEVICES, SIMULATORS
 
 GRID = {"REAL_IS_DOUBLE": 0, "VW": 8}
 
@@ -15,22 +21,117 @@ def test_devices_listed_with_capabilities():
     devs = clcurv.devices()
     assert devs, "no OpenCL device"
     for d in devs:
-        assert d.kind in ("cpu", "gpu", "other") and d.max_alloc > 0 and d.max_work_group >= 1
-        assert d.name and d.platform
+        assert d.kind in ("cpu", "gpu", "accelerator", "other") and d.max_alloc > 0
+        assert d.max_work_group >= 1 and d.name and d.platform
+        assert isinstance(d.simulator, bool)
+    assert DEVICES, "no real (non-simulator) OpenCL device"
 
 
 def test_device_selection_by_index_name_and_env(monkeypatch):
-    first = clcurv.devices()[0]
-    assert clcurv.get_device(0).info.index == 0
-    assert clcurv.get_device(first.name[:6]).info.name == first.name
-    assert clcurv.get_device(first.kind).info.kind == first.kind
-    monkeypatch.setenv("CLCURV_DEVICE", "0")
-    assert clcurv.get_device().info.index == 0
+    real = clcurv.devices()[DEVICES[0]]
+    assert clcurv.get_device(real.index).info.index == real.index
+    assert clcurv.get_device(real.name[:6]).info.name == real.name
+    assert clcurv.get_device(real.kind).info.kind == real.kind
+    monkeypatch.setenv("CLCURV_DEVICE", str(real.index))
+    assert clcurv.get_device().info.index == real.index
     monkeypatch.setenv("CLCURV_DEVICE", "definitely-not-a-device")
     with pytest.raises(clcurv.NoDeviceError, match="no OpenCL device matches"):
         clcurv.get_device()
     with pytest.raises(clcurv.NoDeviceError, match="out of range"):
         clcurv.get_device(99)
+
+
+def test_spec_matches_the_platform_name_and_vendor():
+    """'pocl' is PoCL, whose device is 'pthread-<cpu>' and platform 'Portable Computing
+    Language' by 'The pocl project'; a platform match wins over a device-name match."""
+    devs = clcurv.devices()
+    pocl = [d for d in devs if d.platform == "Portable Computing Language"]
+    if not pocl:
+        pytest.skip("PoCL is not installed here")
+    assert clcurv.get_device("pocl").info.index == pocl[0].index
+    assert clcurv.get_device("Portable").info.index == pocl[0].index
+    for d in devs:           # every platform is reachable by its name
+        assert clcurv.get_device(d.platform).info.platform == d.platform
+
+
+def test_no_match_lists_devices_and_platforms():
+    with pytest.raises(clcurv.NoDeviceError) as err:
+        clcurv.get_device("no-such-thing")
+    for d in clcurv.devices():
+        assert d.name in str(err.value) and d.platform in str(err.value)
+
+
+def _record(index, kind, simulator, name="dev"):
+    """A DeviceInfo record (data only: the choice logic reads no OpenCL object)."""
+    return clcurv.device.DeviceInfo(index, name, "platform", "vendor", kind, "1", "1.2", True,
+                                    1, 1, 1, 1, 1, simulator=simulator)
+
+
+def test_default_is_never_a_simulator():
+    """A simulator that reports itself as a GPU (Oclgrind sets every type bit) is not the
+    default; a real GPU beats a CPU; only simulators: no default, and why."""
+    sim, cpu, gpu = _record(0, "gpu", True), _record(1, "cpu", False), _record(2, "gpu", False)
+    assert _default([sim, cpu]) == (1, "the first CPU device (no GPU)")
+    assert _default([sim, cpu, gpu]) == (2, "the first GPU")
+    index, why = _default([sim])
+    assert index is None and "only simulators" in why and "apt-get install" in why
+    devs = clcurv.devices()
+    assert devs.default is not None and not devs[devs.default].simulator
+    assert not clcurv.get_device().info.simulator
+
+
+def test_simulators_only_when_named():
+    """Oclgrind (installed by make test): a kind ('gpu', 'cpu') never picks it, its name does."""
+    if not SIMULATORS:
+        pytest.skip("no simulator installed (make oclgrind)")
+    for kind in ("gpu", "cpu", "accelerator"):
+        try:
+            assert not clcurv.get_device(kind).info.simulator
+        except clcurv.NoDeviceError as exc:
+            assert f"no OpenCL {kind} device" in str(exc)
+    named = clcurv.get_device(clcurv.devices()[SIMULATORS[0]].platform)
+    assert named.info.simulator
+
+
+def test_every_icd_file_loads_a_device():
+    """Each .icd file the loader read gave at least one device (the Intel wheel's own
+    file names a placeholder path: that is what this catches), and every device's library
+    is one an ICD file names."""
+    devs = clcurv.devices()
+    assert devs.icds, f"no .icd file found in {devs.vendors}"
+    dead = [str(i) for i in devs.icds if i.devices == 0]
+    assert not dead, "ICD files that load no device: " + "; ".join(dead)
+    if sys.platform.startswith("linux"):
+        assert all(d.library for d in devs), [(d.name, d.library) for d in devs]
+        assert sum(i.devices for i in devs.icds) == len(devs)
+
+
+def test_devices_command_marks_the_default_and_why():
+    lines = []
+    cli.devices_cmd(None, out=lines.append)
+    devs = clcurv.devices()
+    marked = [ln for ln in lines if ln[:2] == "* " and ln[2].isdigit()]
+    assert marked == [ln for ln in lines if ln.startswith(f"* {devs.default}: ")]
+    assert len(marked) == 1 and f"* = default: {devs.reason}" in lines
+    assert sum("simulator: used only when named" in ln for ln in lines) == len(SIMULATORS)
+    assert sum(ln.startswith("  /") and ".icd -> " in ln for ln in lines) == len(devs.icds)
+
+
+def test_build_log_warnings_are_raised_and_remarks_dropped(device):
+    """A compiler warning in a build log becomes a BuildWarning naming the file; a
+    clean build (whatever the runtime logs: Intel's progress and vectoriser remarks) warns
+    nothing."""
+    import pyopencl as cl
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", cl.CompilerWarning)
+        prg = cl.Program(device.context, "#warning clcurv-test\n__kernel void k("
+                         "__global float *a) { a[0] = 1.0f; }").build()
+    with pytest.warns(BuildWarning, match="x.cl on .*clcurv-test"):
+        _warn_from_log(device, "x.cl", prg)
+    clcurv.program._cache.clear()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        build(device, "grid.cl", {"REAL_IS_DOUBLE": 0, "VW": 8})
 
 
 def test_program_built_once_per_options(device):
@@ -61,7 +162,7 @@ def test_every_kernel_builds_in_both_precisions(device):
 def test_no_platform_gives_the_apt_command(tmp_path):
     """With the ICD loader pointed at an empty vendor directory there is no platform:
     the error names the one apt command that fixes it, and devices() is empty."""
-    code = ("import clcurv\nprint(len(clcurv.devices()))\n"
+    code = ("import clcurv\nprint(sum(not d.simulator for d in clcurv.devices()))\n"
             "try:\n    clcurv.curvature([[0, 0, 0.0]] * 5, 1.0)\n"
             "except clcurv.NoDeviceError as e:\n    print('ERR', e)\n")
     env = {"OCL_ICD_VENDORS": str(tmp_path), "PATH": "/usr/bin:/bin"}

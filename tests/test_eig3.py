@@ -25,7 +25,9 @@ import numpy as np
 import pyopencl as cl
 import pytest
 
+import clcurv
 from clcurv.constants import kernel_defines
+from conftest import DEVICES, NAMES
 
 KERNELS = Path(__file__).resolve().parent.parent / "kernels"
 
@@ -57,14 +59,13 @@ SEPARATED = 1e-2     # relative gap of a "well separated" eigenvalue
 
 
 # --------------------------------------------------------------------------- build helpers
-@pytest.fixture(scope="module")
-def cl_env():
-    """First device of the first platform, with a context and a queue (fails, like
+@pytest.fixture(scope="module", params=DEVICES or [None], ids=lambda i: NAMES.get(i, "none"))
+def cl_env(request):
+    """Every real OpenCL device (conftest.DEVICES), with a context and a queue (fails, like
     conftest.device, when there is none)."""
-    try:
-        device = cl.get_platforms()[0].get_devices()[0]
-    except (cl.Error, IndexError) as exc:
-        pytest.fail(f"no OpenCL device: {exc}")
+    if request.param is None:
+        pytest.fail("no OpenCL device found")
+    device = clcurv.get_device(request.param).cl_device
     ctx = cl.Context([device])
     return device, ctx, cl.CommandQueue(ctx)
 
