@@ -106,13 +106,13 @@ def test_default_call_is_outward_and_deterministic(device):
     assert np.mean(np.sign(res.mean[v]) == np.sign(s["H"][v])) >= 0.999   # inner wall < 0
 
 
-def test_rotations_give_the_same_outward_choice():
+def test_rotations_give_the_same_outward_choice(device):
     s = shapes.torus(40_000)
     r = _radius(s["points"])
     rng = np.random.default_rng(7)
     for _ in range(3):
         q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
-        n = clcurv.normals(s["points"] @ q.T, r)
+        n = clcurv.normals(s["points"] @ q.T, r, device=device)
         ok = np.isfinite(n).all(axis=1)
         assert np.mean(np.einsum("ij,ij->i", n[ok], (s["normals"] @ q.T)[ok]) > 0) >= 0.999
 
@@ -197,13 +197,13 @@ def test_cli_orients_las_up_by_default(tmp_path):
     assert np.all(m.normals[ok, 2] <= 0)
 
 
-def test_mls2_orients_its_own_normals():
+def test_mls2_orients_its_own_normals(device):
     """By default MLS2 runs once without reference normals and orients its fitted normals
     afterwards (Operator.flip: n -> -n, (k1, k2) -> (-k2, -k1), dir1 <-> dir2): the same
     values as a run oriented by the exact normals, with no PCA pass first."""
     s = shapes.torus(50_000)
-    a = clcurv.curvature(s["points"], 0.1, method="mls2")
-    b = clcurv.curvature(s["points"], 0.1, method="mls2", normals=s["normals"])
+    a = clcurv.curvature(s["points"], 0.1, method="mls2", device=device)
+    b = clcurv.curvature(s["points"], 0.1, method="mls2", normals=s["normals"], device=device)
     v = a.valid & b.valid
     assert v.mean() > 0.99
     assert np.all(np.einsum("ij,ij->i", a.normals[v], b.normals[v]) > 0.999)
