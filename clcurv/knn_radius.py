@@ -5,12 +5,17 @@ nearest point (the point itself the first), found on the device with the grid
 How: the cloud is binned at a cell c (a first guess from the bounding box, assuming a
 surface); the kernel keeps the k smallest squared distances among the candidates within c
 of each point; a point with fewer than k candidates within c is unresolved, and the cloud
-is binned again at 2c (up to :data:`ISOLATION` times the median k-NN radius: points still
-unresolved are isolated). The operators then run on one cloud whose cell is the largest
-radius (binned again at it when the last level's cell is much larger), with each point's
-squared radius recomputed on that cloud, so that their ball test holds exactly the k
-points: r^2 = d_k^2 (1 + :data:`MARGIN_ULPS` ulps) in the device precision (ties, and
-distances within a few ulps of d_k, are included too).
+is binned again at 1.5c (:data:`GROWTH`) for the unresolved points only (up to
+:data:`ISOLATION` times the 90th percentile of the k-NN radii: points still unresolved are
+isolated). The
+operators then run on one cloud whose cell is the largest radius (the last level's, or
+binned again at the largest radius when that cell is much larger), every point's ball of
+squared radius r^2 = d_k^2 (1 + :data:`MARGIN`), so that their strict ball test holds the k
+points on any grid (ties, and distances within ~1e-5 of d_k, enter too).
+
+Cost: the operators walk cells as large as the largest radius, so with a radius that varies
+3x across the cloud the densest parts walk ~10x the candidates of a fixed-radius call at
+their own radius (one grid for the whole cloud).
 
 Documented behaviour:
 
@@ -18,7 +23,8 @@ Documented behaviour:
   ValueError.
 - k or more coincident points: radius 0, a ball of the coincident points only (status 2,
   degenerate: NaN).
-- isolated points (the k-th neighbour farther than ISOLATION x the median k-NN radius):
+- isolated points (the k-th neighbour farther than ISOLATION = 4 x the 90th percentile of
+  the k-NN radii):
   radius NaN, status 1 (too few neighbours), NaN outputs; they change no other result.
 - weights='density' is refused with a k-NN radius: every ball holds k points, so the
   density weights 1 / #N_r(q) would be 1 / k everywhere.
@@ -40,14 +46,20 @@ from .validate import as_points
 
 #: largest k (the kernel keeps k distances per work-item in private memory)
 MAX_K = 256
-#: a point whose k-th neighbour is farther than this many times the median k-NN radius is
-#: isolated (status 1): the grid would otherwise need cells as large as its distance
-ISOLATION = 16.0
-#: the ball's r^2 is d_k^2 widened by this many ulps of the device precision, so that the
-#: k-th point passes the operators' strict test d^2 < r^2 whatever the rounding order
-MARGIN_ULPS = 8
+#: a point whose k-th neighbour is farther than this many times the 90th percentile of the
+#: k-NN radii is isolated (status 1): the grid would otherwise need cells as large as its distance, and
+#: every point's walk would cover them
+ISOLATION = 4.0
+#: the ball's r^2 is d_k^2 (1 + MARGIN): the k-th point then passes the operators' strict
+#: test d^2 < r^2 on any grid (float32 offsets from another cell corner round d^2 apart by
+#: ~1e-6 relative at most, cell <= ISOLATION r); points within that margin of d_k (ties)
+#: enter too
+MARGIN = 2.0 ** -16
+#: the cell grows by this factor from one binning to the next (the last cell is then within
+#: this factor of the largest radius: the operators walk it)
+GROWTH = 1.5
 #: bin again at the largest radius when the last level's cell exceeds it by this factor
-REBIN_FACTOR = 1.5
+REBIN_FACTOR = 1.6
 _MAX_LEVELS = 64
 
 
@@ -80,30 +92,41 @@ def check_k(k, n):
     return kk
 
 
-def _first_cell(pts, k):
-    """A first cell size: the radius holding ~1.5 k points if the cloud were a surface
-    spread evenly over the two largest extents of its bounding box."""
-    ext = np.sort(np.ptp(pts, axis=0))[::-1]
+def _first_cell(pts, k, sample=20000):
+    """A first cell size: the radius holding ~1.6 k points at the cloud's mean density as a
+    surface, its area estimated from the cells of size s that a subsample of ``sample``
+    points occupies (s large enough for ~20 subsample points per cell of a plane; a surface
+    crosses ~1.5 cells per s^2 of its area on average)."""
     n = len(pts)
-    if ext[1] > 0:
-        c = 1.5 * np.sqrt(k * ext[0] * ext[1] / (np.pi * n))
-    elif ext[0] > 0:
-        c = 1.5 * ext[0] * k / n
-    else:
-        c = 1.0                                   # all coincident: any cell holds them
-    return float(c)
+    ext = np.sort(np.ptp(pts, axis=0))[::-1]
+    if not ext[0] > 0:
+        return 1.0                                 # all coincident: any cell holds them
+    if not ext[1] > 0:
+        return 1.5 * ext[0] * k / n                # collinear
+    sub = pts[::max(n // sample, 1)]
+    s = np.sqrt(20.0 * ext[0] * ext[1] / len(sub))
+    occupied = len(np.unique(np.floor((sub - pts.min(axis=0)) / s).astype(np.int64), axis=0))
+    area = max(occupied * s * s / 1.5, 1e-300)
+    return float(1.25 * np.sqrt(k * area / (np.pi * n)))
 
 
-def kth_squared(cloud, k):
+def kth_squared(cloud, k, known=None):
     """The squared distance to the k-th nearest point within the cloud's cell (device
-    values as float64, input order; +inf where fewer than k points lie within it)."""
+    values as float64, input order; +inf where fewer than k points lie within it). Points
+    with a finite ``known`` value (input order) keep it and are not walked."""
     import pyopencl as cl
     from .program import build, launch
     prg = build(cloud.device, "knn_radius.cl", dict(cloud.defines, KNN_K=int(k)))
-    out = cl.Buffer(cloud.device.context, cl.mem_flags.WRITE_ONLY,
+    prev = np.full(cloud.n, np.inf, cloud.dtype)
+    if known is not None:
+        prev[:] = known[cloud.grid.order]
+    mf = cl.mem_flags
+    prev_buf = cl.Buffer(cloud.device.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=prev)
+    out = cl.Buffer(cloud.device.context, mf.WRITE_ONLY,
                     size=cloud.n * np.dtype(cloud.dtype).itemsize)
     launch(cloud.device, prg.kth_distance, cloud.n, cloud.x, cloud.y, cloud.z,
-           cloud.cell_of, cloud.ranges, np.uint32(cloud.n), cloud.ball(cloud.cell), out)
+           cloud.cell_of, cloud.ranges, np.uint32(cloud.n), cloud.ball(cloud.cell), prev_buf,
+           out)
     host = np.empty(cloud.n, cloud.dtype)
     cl.enqueue_copy(cloud.device.queue, host, out)
     res = np.empty(cloud.n)
@@ -121,31 +144,29 @@ def knn_radii(points, k, *, device=None, precision="float"):
     c = _first_cell(pts, k)
     cap = None
     levels = []
+    d2 = None
     while True:
         cloud = DeviceCloud(pts, c, device=device, precision=precision)
-        d2 = kth_squared(cloud, k)
+        d2 = kth_squared(cloud, k, d2)
         levels.append(c)
         ok = np.isfinite(d2)
-        if cap is None and ok.mean() >= 0.5:
-            cap = ISOLATION * float(np.sqrt(np.median(d2[ok])))
+        if cap is None and ok.mean() >= 0.9:
+            cap = ISOLATION * float(np.sqrt(np.quantile(d2[ok], 0.9)))
         if ok.all() or c > diag or (cap is not None and c >= cap) \
                 or len(levels) >= _MAX_LEVELS:
             break
-        c = 2.0 * c if cap is None else min(2.0 * c, max(cap, c))
+        c = GROWTH * c if cap is None else min(GROWTH * c, max(cap, c))
     isolated = ~ok
     if cap is not None:                          # beyond the cap within the last cell
         isolated |= np.sqrt(np.where(ok, d2, 0.0)) > cap
     live = ~isolated
-    top = float(np.sqrt(d2[live].max())) if live.any() else c
-    if live.any() and c > REBIN_FACTOR * top and top > 0:
-        # the operators' walk at the largest radius, not at the last level's cell
-        tight = DeviceCloud(pts, top * (1 + 1e-3), device=device, precision=precision)
-        d2t = kth_squared(tight, k)
-        if np.isfinite(d2t[live]).all():
-            cloud, d2 = tight, d2t
-            levels.append(tight.cell)
-    radius = np.where(isolated, np.nan, np.sqrt(np.where(isolated, 0.0, d2)))
     r2 = _margin(np.where(isolated, 0.0, d2), cloud.dtype)
+    top = float(np.sqrt(r2[live].max())) if live.any() else 0.0
+    if live.any() and c > REBIN_FACTOR * top and top > 1e-3 * c:
+        # the operators' walk at the largest radius, not at the last level's cell
+        cloud = DeviceCloud(pts, top, device=device, precision=precision)
+        levels.append(cloud.cell)
+    radius = np.where(isolated, np.nan, np.sqrt(np.where(isolated, 0.0, d2)))
     r2[isolated] = 0
     buf = _upload_sorted_r2(cloud, r2)
     return KnnRadii(k, radius, isolated, cloud, buf, levels,
@@ -153,11 +174,10 @@ def knn_radii(points, k, *, device=None, precision="float"):
 
 
 def _margin(d2, dtype):
-    """d2 widened by MARGIN_ULPS ulps in ``dtype`` (at least the smallest normal, so that
+    """d2 widened by the relative MARGIN (at least the smallest normal of ``dtype``, so that
     coincident points, d2 = 0, pass d^2 < r^2)."""
-    x = d2.astype(dtype)
-    eps = np.finfo(dtype).eps
-    return np.maximum(x * dtype(1 + MARGIN_ULPS * eps), np.finfo(dtype).tiny).astype(dtype)
+    x = d2 * (1 + MARGIN)
+    return np.maximum(x, np.finfo(dtype).tiny).astype(dtype)
 
 
 def _upload_sorted_r2(cloud, r2_input):

@@ -104,8 +104,9 @@ def test_k_larger_than_n_and_bad_k(device):
 
 def test_duplicates_and_isolated_points(device):
     """k coincident points: radius 0, a ball of the coincident points, status 2 (NaN). An
-    isolated point (its k-th neighbour farther than 16x the median k-NN radius): radius
-    NaN, status 1, and no other result changes."""
+    isolated point (its k-th neighbour farther than 4x the 90th percentile of the k-NN
+    radii): radius NaN, status 1, and the other results do not change (but for a point whose
+    ball gains or loses a tie within the 1.5e-5 margin of d_k on the other grid)."""
     base = clcurv.shapes.sphere(5000, 1.0, seed=3)["points"]
     dup = np.vstack([base, np.repeat(base[:1], 12, axis=0)])     # 13 copies of point 0
     f = clcurv.features(dup, k=10, device=device)
@@ -118,5 +119,7 @@ def test_duplicates_and_isolated_points(device):
     assert with_far.status[-1] == TOO_FEW and np.isnan(with_far.radius[-1])
     assert np.isnan(with_far.variation[-1])
     np.testing.assert_allclose(with_far.radius[:-1], alone.radius, rtol=1e-6)
-    np.testing.assert_allclose(with_far.variation[:-1], alone.variation, rtol=1e-4,
-                               atol=1e-7)
+    same = with_far.count[:-1] == alone.count
+    assert same.mean() > 0.998
+    np.testing.assert_allclose(with_far.variation[:-1][same], alone.variation[same],
+                               rtol=1e-4, atol=1e-7)

@@ -1,0 +1,172 @@
+"""Benchmark of clcurv.features, several radii in one walk and the k-NN radius (issue 14).
+
+    python -m bench.features            # 1M points, ~30 neighbours
+    python -m bench.features --quick    # 100k points, fewer repeats
+
+On a random-order unit-sphere sample (bench.harness.make_clouds) at the radius for ~30
+neighbours, end to end from the numpy array in to the arrays out, every ratio from
+interleaved runs (bench.harness.paired: a, b, a, b, ... best of each), so that a drift of
+the shared machine's speed hits both sides:
+
+- the feature set (DEFAULT_FEATURES, jakteristics' list) vs clcurv.normals(orient=None):
+  target <= 1.2x;
+- three radii (r / sqrt 2, r, r sqrt 2) in one walk vs three separate calls: target <= 0.6x;
+- the k-NN radius pass (K = 30, clcurv.knn_radius.knn_radii, binning included) vs one
+  moments pass (curvature(method='variation', orient=None), binning included): target <=
+  1.5x;
+- jakteristics.compute_features (same features, 2 threads, k-d tree included) and PDAL's
+  filters.covariancefeatures when they are installed, on the same cloud in the same run.
+
+Writes bench/results/features.md and features.json; the free-cores check of bench.contention
+runs before and after.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+
+import numpy as np
+
+import clcurv
+from clcurv.features import DEFAULT_FEATURES
+from clcurv.knn_radius import knn_radii
+
+from .contention import describe_threads, thread_check
+from .harness import REPO, environment, log, make_clouds, mpts, paired, radius_for, timed
+
+TARGETS = {"features_vs_normals": 1.2, "three_radii_vs_separate": 0.6,
+           "knn_vs_moments": 1.5}
+JAK_NAMES = ["eigenvalue_sum", "omnivariance", "eigenentropy", "anisotropy", "planarity",
+             "linearity", "PCA1", "PCA2", "surface_variation", "sphericity", "verticality",
+             "nx", "ny", "nz", "number_of_neighbors"]
+
+
+def _pdal_or_reason():
+    try:
+        import pdal  # noqa: F401
+        return pdal, None
+    except Exception as exc:  # noqa: BLE001 - optional peer
+        return None, f"{type(exc).__name__}: {exc}"
+
+
+def _bench_pdal(pdal, pts, r):
+    arr = np.zeros(len(pts), dtype=[("X", "f8"), ("Y", "f8"), ("Z", "f8")])
+    arr["X"], arr["Y"], arr["Z"] = pts.T
+    spec = json.dumps([{"type": "filters.covariancefeatures", "radius": r, "threads": 2,
+                        "feature_set": "all"}])
+    pipe = pdal.Pipeline(spec, arrays=[arr])
+    s, _ = timed(pipe.execute)
+    return s
+
+
+def run(n, repeats):
+    env = environment()
+    before = thread_check()
+    log(describe_threads(before, "before"))
+    pts, _ = make_clouds(n)
+    r = radius_for(30, n)
+    radii = [r / math.sqrt(2), r, r * math.sqrt(2)]
+    dev = clcurv.get_device()
+    log(f"{n} points, r = {r:.5g} (~30 neighbours), device {dev.info.name}")
+    # warm-up: builds every program once
+    clcurv.features(pts[:20000], r * math.sqrt(n / 20000))
+    clcurv.features(pts[:20000], [x * math.sqrt(n / 20000) for x in radii])
+    knn_radii(pts[:20000], 30)
+    clcurv.normals(pts[:20000], r * math.sqrt(n / 20000), orient=None)
+    clcurv.curvature(pts[:20000], r * math.sqrt(n / 20000), method="variation", orient=None)
+
+    rows = {}
+    feat, norm = paired(lambda: clcurv.features(pts, r),
+                        lambda: clcurv.normals(pts, r, orient=None), repeats)
+    rows["features_vs_normals"] = (feat, norm)
+    multi, sep = paired(lambda: clcurv.features(pts, radii),
+                        lambda: [clcurv.features(pts, x) for x in radii], repeats)
+    rows["three_radii_vs_separate"] = (multi, sep)
+    knn, mom = paired(lambda: knn_radii(pts, 30),
+                      lambda: clcurv.curvature(pts, r, method="variation", orient=None),
+                      repeats)
+    rows["knn_vs_moments"] = (knn, mom)
+    stages = knn_radii(pts, 30)
+    f = clcurv.features(pts, r)
+    mean_count = float(np.mean(f.count))
+
+    peers = {}
+    try:
+        import jakteristics as jak
+        s, J = timed(lambda: jak.compute_features(pts, r, feature_names=JAK_NAMES,
+                                                  num_threads=2))
+        peers["jakteristics"] = {"seconds": s, "mean_count": float(np.mean(J[:, -1]))}
+    except Exception as exc:  # noqa: BLE001 - optional peer
+        peers["jakteristics"] = {"skipped": f"{type(exc).__name__}: {exc}"}
+    pdal, why = _pdal_or_reason()
+    if pdal is None:
+        peers["pdal"] = {"skipped": f"PDAL's Python bindings are not installed ({why})"}
+    else:
+        try:
+            peers["pdal"] = {"seconds": _bench_pdal(pdal, pts, r)}
+        except Exception as exc:  # noqa: BLE001
+            peers["pdal"] = {"skipped": f"{type(exc).__name__}: {exc}"}
+    after = thread_check()
+    log(describe_threads(after, "after"))
+    out = {"points": n, "radius": r, "radii": radii, "mean_count": mean_count,
+           "repeats": repeats, "device": dev.info.name, "environment": env,
+           "threads_before": before, "threads_after": after, "peers": peers,
+           "knn_levels": stages.levels,
+           "rows": {k: {"a_seconds": a, "b_seconds": b, "ratio": a / b,
+                        "target": TARGETS[k], "met": a / b <= TARGETS[k]}
+                    for k, (a, b) in rows.items()}}
+    return out
+
+
+def report(res):
+    n = res["points"]
+    names = {"features_vs_normals": ("features(P, r) (12 features)", "normals(P, r, orient=None)"),
+             "three_radii_vs_separate": ("features(P, [r1, r2, r3])", "3 x features(P, ri)"),
+             "knn_vs_moments": ("knn_radii(P, 30)", "curvature(P, r, 'variation', orient=None)")}
+    lines = [f"# clcurv.features bench ({time.strftime('%Y-%m-%d')})", "",
+             f"{n:,} points on a unit sphere in random order, r = {res['radius']:.5g} "
+             f"(mean {res['mean_count']:.1f} neighbours), device {res['device']}; best of "
+             f"{res['repeats']} interleaved runs of each pair (a, b, a, b, ...), end to end "
+             "(numpy in, numpy out, binning included).", "",
+             "| measured (a) | against (b) | a | b | a / b | target | met |",
+             "|---|---|---:|---:|---:|---:|---|"]
+    for k, row in res["rows"].items():
+        a, b = names[k]
+        lines.append(f"| `{a}` | `{b}` | {row['a_seconds'] * 1e3:.0f} ms | "
+                     f"{row['b_seconds'] * 1e3:.0f} ms | {row['ratio']:.2f} | "
+                     f"<= {row['target']} | {'yes' if row['met'] else 'NO'} |")
+    lines += ["", f"k-NN radius cells binned: {', '.join(f'{c:.4g}' for c in res['knn_levels'])}",
+              "", "| peer, same cloud, same run | time | M pts/s |", "|---|---:|---:|"]
+    feat = res["rows"]["features_vs_normals"]["a_seconds"]
+    lines.append(f"| clcurv.features (12 features) | {feat:.2f} s | {mpts(n, feat):.2f} |")
+    for name, p in res["peers"].items():
+        if "seconds" in p:
+            lines.append(f"| {name} (2 threads, tree included) | {p['seconds']:.2f} s | "
+                         f"{mpts(n, p['seconds']):.2f} |")
+        else:
+            lines.append(f"| {name} | skipped: {p['skipped']} | |")
+    lines += ["", describe_threads(res["threads_before"], "cores before"),
+              describe_threads(res["threads_after"], "cores after"), ""]
+    return "\n".join(lines)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="100k points, 3 repeats")
+    ap.add_argument("--points", type=int, default=None)
+    ap.add_argument("--repeats", type=int, default=None)
+    args = ap.parse_args(argv)
+    n = args.points or (100_000 if args.quick else 1_000_000)
+    res = run(n, args.repeats or (3 if args.quick else 5))
+    md = report(res)
+    print(md)
+    if not args.quick:
+        out = REPO / "bench" / "results"
+        (out / "features.md").write_text(md)
+        (out / "features.json").write_text(json.dumps(res, indent=1, default=str))
+
+
+if __name__ == "__main__":
+    main()
