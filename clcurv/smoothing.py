@@ -45,10 +45,11 @@ class _DeviceState:
     """One binning of the current positions, with ping-pong and displacement buffers (whole
     cloud, on the device) and the drift of one chunk of sorted points at a time."""
 
-    def __init__(self, base, disp, radius, device, precision, density):
+    def __init__(self, base, disp, radius, device, precision, density, frame=None,
+                 iterate=None):
         import pyopencl as cl
         self.cloud = c = DeviceCloud(base + disp, radius * (1 + 2 * MARGIN), device=device,
-                                     precision=precision)
+                                     precision=precision, frame=frame)
         g = c.grid
         ctx = c.device.context
         item = np.dtype(c.dtype).itemsize
@@ -63,11 +64,55 @@ class _DeviceState:
         d = [np.zeros(g.n + PAD, c.dtype) for _ in range(3)]
         for k in range(3):
             d[k][:g.n] = disp[g.order, k]
+        if iterate is not None:             # a tile's state (clcurv.tiled_scale)
+            self._load(iterate, d)
         self.disp = _buffers(c, d)
         chunk = self.plan.chunk
         self.drift = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, size=item * chunk)
         self.block_max = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, size=item * -(-chunk // BLOCK))
         self.weights = _buffers(c, [np.zeros(g.n + PAD, c.dtype)])[0] if density else c.x
+
+    def _load(self, iterate, d):
+        """Set the iterate from ``iterate`` = (ping (N, 5): x in its 3 alignments, y, z as
+        the device holds them, or None for the binned positions; displacement (N, 3)),
+        rows in the input order of the cloud; ``d`` gets the displacement."""
+        import pyopencl as cl
+        c, g = self.cloud, self.cloud.grid
+        ping, disp = iterate
+        for k in range(3):
+            d[k][:g.n] = disp[g.order, k]
+        if ping is None:
+            return
+        m = g.n + PAD
+        x = np.zeros(3 * m, c.dtype)
+        for a in range(3):
+            x[a * m:a * m + g.n] = ping[g.order, a]
+        cols = [x] + [np.zeros(m, c.dtype) for _ in range(2)]
+        cols[1][:g.n], cols[2][:g.n] = ping[g.order, 3], ping[g.order, 4]
+        for buf, host in zip(self.ping, cols):
+            cl.enqueue_copy(c.device.queue, buf, host)
+
+    def iterate(self):
+        """(ping (N, 5), displacement (N, 3)) of the current iterate in the device's
+        precision, input order: what :meth:`_load` takes back (clcurv.tiled_scale)."""
+        import pyopencl as cl
+        c, g = self.cloud, self.cloud.grid
+        q, m = c.device.queue, g.n + PAD
+        x = np.empty(3 * m, c.dtype)
+        cl.enqueue_copy(q, x, self.ping[0])
+        ping = np.empty((g.n, 5), c.dtype)
+        for a in range(3):
+            ping[g.order, a] = x[a * m:a * m + g.n]
+        for k, buf in ((3, self.ping[1]), (4, self.ping[2])):
+            col = np.empty(m, c.dtype)
+            cl.enqueue_copy(q, col, buf)
+            ping[g.order, k] = col[:g.n]
+        disp = np.empty((g.n, 3), c.dtype)
+        for k in range(3):
+            col = np.empty(m, c.dtype)
+            cl.enqueue_copy(q, col, self.disp[k])
+            disp[g.order, k] = col[:g.n]
+        return ping, disp
 
     def displacement(self):
         """Accumulated displacement from the input, (N, 3) float64 in input order."""
@@ -80,8 +125,9 @@ class _DeviceState:
             out[c.grid.order, k] = col[:c.n]
         return out
 
-    def step(self, radius, density):
-        """One MLS1 iteration; returns the largest drift from the binned positions."""
+    def step(self, radius, density, drifts=None):
+        """One MLS1 iteration; returns the largest drift from the binned positions
+        (``drifts``, an (N,) array, also gets every point's, input order)."""
         import pyopencl as cl
         c = self.cloud
         n, r2 = np.uint32(c.n), c.ball(radius)
@@ -102,6 +148,10 @@ class _DeviceState:
             bm = np.empty(nblocks, c.dtype)
             cl.enqueue_copy(c.device.queue, bm, self.block_max)
             drift = max(drift, float(bm.max()))
+            if drifts is not None:
+                each = np.empty(k, c.dtype)
+                cl.enqueue_copy(c.device.queue, each, self.drift)
+                drifts[c.grid.order[first:stop]] = each
         self.ping, self.pong = self.pong, self.ping
         return drift
 

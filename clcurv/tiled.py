@@ -243,24 +243,40 @@ class Buckets:
                 if self.counts[i, j]:
                     yield i, j
 
-    def gather(self, tiling, t, block=1 << 20):
-        """The records of the points in tile t's cells and halo, in global-id order."""
+    def gather(self, tiling, t, block=1 << 18, state=None):
+        """The records of the points in tile t's cells and halo, in global-id order.
+
+        ``state`` (a :class:`clcurv.tiled_scale.State`) joins each record with its row of
+        the scale space's state and places the points by ``state.key`` (their binned or
+        smoothed positions, within ``state.margin`` of the original ones) instead of by
+        their original positions."""
         lo, hi = tiling.box(t)
+        if state is not None:
+            lo, hi = np.subtract(lo, state.margin), np.add(hi, state.margin)
         rng = tiling.cells(t)
         parts = []
         for i, j in self.overlapping(lo, hi):
+            rows = state.rows(self, i, j, block) if state is not None else None
+            start = 0
             with open(self.path(i, j), "rb") as f:
                 while True:
                     rec = np.fromfile(f, self.dtype, count=block)
                     if not len(rec):
                         break
-                    keep = _within(tiling.frame.cells_of(rec["p"]), rng)
+                    if rows is not None:
+                        rec = state.join(rec, next(rows), i * self.shape[1] + j, start)
+                    start += len(rec)
+                    pos = state.key(rec) if state is not None else rec["p"]
+                    keep = _within(tiling.frame.cells_of(pos), rng)
                     if keep.any():
                         parts.append(rec[keep])
         if not parts:
-            return np.empty(0, self.dtype)
+            return np.empty(0, self._dtype(state))
         rec = np.concatenate(parts)
         return rec[np.argsort(rec["id"], kind="stable")]
+
+    def _dtype(self, state):
+        return self.dtype if state is None else state.joined_dtype(self.dtype)
 
     def state(self):
         return {"origin": self.origin.tolist(), "side": self.side, "shape": list(self.shape),
@@ -299,10 +315,11 @@ def _bucket_grid(src, target_points):
 
 # --------------------------------------------------------------------------- planning
 
-def plan_tiles(buckets, radius, halo, budget, tile=None):
-    """The :class:`Tiling` of the whole cloud: its frame from the exact bounds, and tiles of
-    ``tile`` (length) or, from the budget, as large as the densest tile allows."""
-    frame = Frame.covering(buckets.lo, buckets.hi, radius)
+def plan_tiles(buckets, radius, halo, budget, tile=None, frame=None):
+    """The :class:`Tiling` of the whole cloud: its frame from the exact bounds (or
+    ``frame``), and tiles of ``tile`` (length) or, from the budget, as large as the
+    densest tile allows."""
+    frame = frame if frame is not None else Frame.covering(buckets.lo, buckets.hi, radius)
     limit = max(int(budget // TILE_BYTES_PER_POINT), 1)
     if tile is not None:
         size = int(math.floor(float(tile) / frame.cell))
@@ -367,6 +384,7 @@ class _Params:
     device: object
     precision: str
     ignore_normals: bool
+    scale_space: int = 0
 
     def key(self):
         d = dict(self.__dict__)
@@ -479,9 +497,11 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
     dst = io.check_output(dst)
     source = stream.open_source(src)
     budget = budget_of(memory)
-    if int(scale_space) or int(projections):
-        raise TilingError("a tiled run does not take scale_space or projections yet (they "
-                          "move the points across tiles): run them in memory")
+    if int(projections):
+        raise TilingError("a tiled run does not take projections yet (iterated MLS2 moves "
+                          "the points across tiles): run them in memory")
+    if int(scale_space) < 0:
+        raise ValueError(f"scale_space must be >= 0, got {scale_space}")
     ext = dst.suffix.lower()
     if ext not in stream.STREAM_WRITES:
         raise TilingError(f"{dst}: a tiled run writes {', '.join(stream.STREAM_WRITES)}")
@@ -489,7 +509,7 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
         raise TilingError(f"{dst}: a tiled run writes LAS/LAZ from LAS/LAZ input only (it "
                           "keeps the input's header); write .npz")
     params = _Params(method, r, weights, orient, viewpoint, kernel, h, device, precision,
-                     bool(ignore_normals))
+                     bool(ignore_normals), int(scale_space))
     if tile is None and fits_memory(source.n, budget) and client is None and not workers:
         return _in_memory(src, dst, params, fields, say)
     return _run(source, dst, params, budget, tile, _workspace(dst, workdir), fields,
@@ -545,13 +565,24 @@ def _run(source, dst, params, budget, tile, ws, wanted, progress, say, client=No
                         and not params.ignore_normals)
         how = _orientation(params, source, file_normals)
         halo = halo_cells(params.method, params.weights, file_normals)
-        tiling = plan_tiles(buckets, params.radius, halo, budget, tile)
         specs = _wanted_specs(params, wanted)
+        if not params.scale_space:
+            tiling = plan_tiles(buckets, params.radius, halo, budget, tile)
     except (io.ReadError, ValueError):
         # bad input or options: the same command cannot succeed, so nothing is kept to
         # resume from (an interruption or a failure while computing keeps the workspace)
         shutil.rmtree(ws, ignore_errors=True)
         raise
+    smoothed = None
+    if params.scale_space:
+        from .tiled_scale import run_steps
+        t_s = time.perf_counter()
+        smoothed = run_steps(ws, buckets, params, params.scale_space, budget,
+                             lambda tasks: _execute(tasks, client, workers, step=True),
+                             tile=tile)
+        times["scale space"] = time.perf_counter() - t_s
+        frame = Frame.covering(*smoothed.box, params.radius)
+        tiling = plan_tiles(buckets, params.radius, halo, budget, tile, frame=frame)
     (ws / "tiles").mkdir(exist_ok=True)
     say(f"{source.n} points in {tiling.count} tile(s) of {tiling.size} x {tiling.size} "
         f"cells of {tiling.frame.cell:.6g} (halo {halo} cell(s)), budget "
@@ -559,7 +590,7 @@ def _run(source, dst, params, budget, tile, ws, wanted, progress, say, client=No
     todo = [t for t in range(tiling.count) if not _tile_file(ws, t).exists()]
     skipped = tiling.count - len(todo)
     tasks = [TileTask(str(ws), t, tiling, state["buckets"], params, how, file_normals,
-                      specs) for t in todo]
+                      specs, smoothed) for t in todo]
     t1 = time.perf_counter()
     computed, finished = 0, skipped
     for _, owned in _execute(tasks, client, workers):
@@ -699,7 +730,8 @@ def _in_memory(src, dst, params, fields, say):
               kernel=params.kernel, h=params.h, device=params.device,
               precision=params.precision, fields=fields, viewpoint=params.viewpoint,
               orient="none" if orient is None else orient,
-              ignore_normals=params.ignore_normals, quiet=True)
+              ignore_normals=params.ignore_normals, scale_space=params.scale_space,
+              quiet=True)
     t0 = time.perf_counter()
     done = run(job, out=lambda line: None)
     return {"tiled": False, "tiles": 1, "halo": 0, "points": len(done.points),
@@ -719,6 +751,7 @@ class TileTask:
     how: object
     file_normals: bool
     specs: list
+    smoothed: object = None      # clcurv.tiled_scale.State after a scale space
 
 
 def compute_tile(task, device=None):
@@ -729,14 +762,15 @@ def compute_tile(task, device=None):
     from .job import result_fields
     params, tiling = task.params, task.tiling
     buckets = Buckets.from_state(Path(task.ws) / "buckets", task.buckets)
-    rec = buckets.gather(tiling, task.t)
-    cells = tiling.frame.cells_of(rec["p"]) if len(rec) else np.empty((0, 3), np.int64)
+    rec = buckets.gather(tiling, task.t, state=task.smoothed)
+    pos = rec["p"] if task.smoothed is None or not len(rec) else task.smoothed.key(rec)
+    cells = tiling.frame.cells_of(pos) if len(rec) else np.empty((0, 3), np.int64)
     own = _within(cells, tiling.cells(task.t, halo=False))
     out = np.empty(int(own.sum()), _tile_dtype(task.specs))
     if len(out):
         if device is None:
             device = _worker_device(params.device)
-        cloud = DeviceCloud(rec["p"], params.radius, device=device,
+        cloud = DeviceCloud(pos, params.radius, device=device,
                             precision=params.precision, frame=tiling.frame)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)   # per tile; summed at the end
@@ -780,15 +814,20 @@ def _worker_device(spec):
     return _DEVICES[key]
 
 
-def _execute(tasks, client, workers):
-    """(t, owned) of every task as it finishes: in this process, on a Dask ``client``, or
-    on a LocalCluster of ``workers`` processes started (and closed) here."""
+def _execute(tasks, client, workers, step=False):
+    """fn(task) of every task as it finishes (fn: compute_tile, or the scale space's
+    step_tile when ``step``): in this process, on a Dask ``client``, or on a LocalCluster
+    of ``workers`` processes started (and closed) here."""
+    if step:
+        from .tiled_scale import step_tile as fn
+    else:
+        fn = compute_tile
     if client is None and not workers:
         for task in tasks:
-            yield compute_tile(task)
+            yield fn(task)
         return
     from . import cluster
-    yield from cluster.map_tiles(compute_tile, tasks, client=client, workers=workers)
+    yield from cluster.map_tiles(fn, tasks, client=client, workers=workers)
 
 
 def _write_output(dst, source, windows, specs):

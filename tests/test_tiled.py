@@ -85,6 +85,27 @@ def test_tiles_equal_the_in_memory_run_bit_for_bit(scene, method):
     assert (dims["status"] == 0).mean() > 0.9
 
 
+@pytest.mark.parametrize("method", clcurv.METHODS)
+def test_scale_space_tiles_equal_the_in_memory_run_bit_for_bit(scene, method):
+    """Three MLS1 steps in lock step over tiles (clcurv.tiled_scale), then the operator on
+    the smoothed cloud: the same bits as the in-memory pipeline, re-binnings included."""
+    d, paths, pts = scene
+    a, b = d / f"ss_mem_{method}.laz", d / f"ss_til_{method}.laz"
+    tiled.curvature_file(paths["laz"], a, R, method=method, scale_space=3, memory="64GiB")
+    til = tiled.curvature_file(paths["laz"], b, R, method=method, scale_space=3, tile=12.0,
+                               memory="64GiB")
+    assert til["tiled"] and til["tiles"] >= 9
+    _assert_same(a, b)
+
+
+def test_the_scale_space_case_re_bins(scene):
+    """The scene's three steps cross the drift bound at least once, so the tiled lock step
+    is checked through a re-binning too."""
+    _, _, pts = scene
+    _, stats = clcurv.scale_space(pts, R, 3, return_stats=True)
+    assert stats["rebins"] >= 1
+
+
 def test_density_weights_and_las_output_tile_exactly(scene):
     d, paths, _ = scene
     for name, tile in (("mem", None), ("til", 6.0)):
