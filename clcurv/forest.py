@@ -37,7 +37,8 @@ class Forest:
 
     label : (N,) int64
         The input index of the point's component root; -1 for an invalid normal. An
-        isolated point is its own root.
+        isolated point is its own root. (When every point is valid and in one component
+        the device writes no labels: the host fills in the root.)
     parity : (N,) bool
         True where the point's normal must be negated to agree with its root's normal
         along the tree (XOR of ``n_u . n_v < 0`` over the tree path to the root).
@@ -203,12 +204,19 @@ def spanning_forest(cloud, graph, edges=True):
     # outputs in buffers free by now (when large enough: eu and ev hold BLOCK k uints a block)
     fits = lambda b, nbytes: b if b.size >= nbytes else buf(nbytes)
     label, parity, elo, ehi = fits(eu, 8 * n), links[0], blo, bhi
-    _launch(dev, prg.forest_out, n, u32(n), cloud.order, nx, comp, par, flo, fhi, u32(edges),
-            label, parity, elo, ehi)
-    h_label = np.empty(n, np.int64)
+    # one root and no invalid normal (each would be a root): every label is that root
+    one = int(nroots[0]) == 1 and graph.nvalid == n
+    _launch(dev, prg.forest_out, n, u32(n), cloud.order, nx, comp, par, flo, fhi, u32(not one),
+            u32(edges), label, parity, elo, ehi)
     h_par = np.empty(n, np.uint8)
-    cl.enqueue_copy(q, h_label, label, is_blocking=False)
     cl.enqueue_copy(q, h_par, parity, is_blocking=False)
+    if one:
+        root = np.empty(1, np.uint32)
+        cl.enqueue_copy(q, root, rl)
+        h_label = np.full(n, cloud.grid.order[root[0]], np.int64)
+    else:
+        h_label = np.empty(n, np.int64)
+        cl.enqueue_copy(q, h_label, label, is_blocking=False)
     h_edges = None
     if edges:
         _launch(dev, prg.count_edges, nb, u32(n), u32(BLOCK), elo, counts)

@@ -464,20 +464,20 @@ __kernel void forest_init(const uint n, __global const uint *order, __global uin
     bw[g] = NONE; blo[g] = NONE; bhi[g] = NONE; flo[g] = NONE;
 }
 
-/* Results in input order: the root's input index (-1 for an invalid normal), the parity,
- * and (when edges) the forest edge by which a point's component hooked, at the point's input
- * index (NONE where none). */
+/* Results in input order: the parity, (when labels) the root's input index (-1 for an
+ * invalid normal) and (when edges) the forest edge by which a point's component hooked, at
+ * the point's input index (NONE where none). */
 __kernel void forest_out(const uint n, __global const uint *order, __global const REAL *NX,
                          __global const uint *comp, __global const uchar *par,
-                         __global const uint *flo, __global const uint *fhi, const uint edges,
-                         __global long *label, __global uchar *parity, __global uint *elo,
-                         __global uint *ehi)
+                         __global const uint *flo, __global const uint *fhi,
+                         const uint labels, const uint edges, __global long *label,
+                         __global uchar *parity, __global uint *elo, __global uint *ehi)
 {
     const uint g = get_global_id(0);
     if (g >= n) return;
     const uint i = order[g];
     const int ok = !isnan(NX[g]);
-    label[i] = ok ? (long)order[comp[g]] : -1;
+    if (labels) label[i] = ok ? (long)order[comp[g]] : -1;
     parity[i] = ok ? par[g] : 0;
     if (edges) {
         elo[i] = flo[g];
