@@ -149,12 +149,32 @@ def test_a_halo_too_small_changes_the_results(scene, monkeypatch):
     assert changed > 0.05, changed
 
 
-def test_mst_orientation_is_refused_in_tiles(scene, tmp_path):
-    _, paths, _ = scene
-    with pytest.raises(tiled.TilingError, match="mst"):
-        tiled.curvature_file(paths["laz"], tmp_path / "o.laz", R, method="mls2",
-                             orient="mst", tile=8.0)
-    assert not (tmp_path / "o.laz").exists()
+@pytest.mark.parametrize("shape", ["torus", "two_spheres"])
+def test_mst_orientation_across_tiles(tmp_path, shape):
+    """Hoppe's MST in tiles (clcurv.tiled_orient): a closed torus (or two disjoint spheres)
+    cut into many tiles comes out outward, and agrees with the in-memory MST."""
+    s = (clcurv.shapes.torus(60_000, 2.0, 0.7, seed=5) if shape == "torus"
+         else clcurv.shapes.two_spheres(60_000, 1.0, 1.0, seed=5))
+    src = tmp_path / "c.npy"
+    np.save(src, s["points"])                  # no normals: orient='auto' is MST
+    r = 0.12 if shape == "torus" else 0.08
+    out = {}
+    for name, tile in (("mem", None), ("til", 0.9)):
+        summary = tiled.curvature_file(src, tmp_path / f"{name}.npz", r, method="mls2",
+                                       tile=tile, memory="64GiB")
+        out[name] = np.load(tmp_path / f"{name}.npz")
+    assert summary["tiles"] >= 8
+    na, nb = out["mem"]["normals"], out["til"]["normals"]
+    ok = np.isfinite(na).all(axis=1) & np.isfinite(nb).all(axis=1)
+    assert ok.mean() > 0.99
+    outward = np.einsum("ij,ij->i", nb[ok], s["normals"][ok]) > 0
+    agree = np.einsum("ij,ij->i", na[ok], nb[ok]) > 0
+    assert outward.mean() >= 0.999, outward.mean()
+    assert agree.mean() >= 0.999, agree.mean()
+    # where the orientations agree the signed curvatures are the in-memory ones
+    h = np.isfinite(out["mem"]["mean_curvature"])
+    assert np.allclose(out["til"]["mean_curvature"][h], out["mem"]["mean_curvature"][h],
+                       rtol=1e-5, atol=1e-6)
 
 
 def test_bad_input_fails_cleanly(scene, tmp_path):
