@@ -82,8 +82,11 @@ TILE_BYTES_PER_POINT = 900
 #: peak host bytes per point of an in-memory file job (clcurv.job.run), to decide whether a
 #: cloud fits memory="auto"
 IN_MEMORY_BYTES_PER_POINT = 1300
-#: fraction of the available RAM that memory="auto" uses
+#: fraction of the available RAM that memory="auto" uses, at most AUTO_CAP bytes: the
+#: default run of a large file streams through tiles of at most ~600k points, whose peak
+#: memory does not grow with the cloud (bench/tiled.py), and a larger tile is not faster
 AUTO_FRACTION = 0.5
+AUTO_CAP = 512 << 20
 #: points per read chunk of pass (1) and per written chunk of pass (3)
 READ_CHUNK = 1 << 18
 #: most buckets of pass (1) (a coarse grid; each is a file)
@@ -133,9 +136,10 @@ def available_memory():
 
 
 def budget_of(memory):
-    """The byte budget of ``memory`` ('auto': AUTO_FRACTION of the available RAM)."""
+    """The byte budget of ``memory`` ('auto': AUTO_FRACTION of the available RAM, at most
+    AUTO_CAP)."""
     if memory is None or memory == "auto":
-        return int(available_memory() * AUTO_FRACTION)
+        return int(min(available_memory() * AUTO_FRACTION, AUTO_CAP))
     return parse_memory(memory)
 
 
@@ -931,7 +935,67 @@ def wants_tiles(job):
         n = stream.open_source(job.input).n
     except Exception:                       # the in-memory reader reports it
         return False
+    if job.projections or job.positions != "original":
+        # options only the in-memory job has: tiles only when it cannot fit at all (the
+        # tiled run then says which option it lacks)
+        return not fits_memory(n, int(available_memory() * AUTO_FRACTION))
     return not fits_memory(n, budget_of(job.memory))
+
+
+def auto_radius_tiled(src, k=30, regions=16, sample=5000, seed=0, budget=None):
+    """``radius="auto"`` of a cloud too large for memory: the median, over about
+    ``sample`` points drawn from ``regions`` random buckets (seeded, weighted by their
+    counts), of the distance to the k-th nearest other point, each bucket read with the
+    ring of buckets around it and only points whose k-th neighbour lies inside that
+    region kept (so each distance is the whole cloud's). It estimates the in-memory
+    auto radius (clcurv.job.auto_radius, a sample of the whole cloud) to a few per cent,
+    not to the bit: pass the radius for reproducible runs."""
+    import tempfile
+    from scipy.spatial import cKDTree
+    with tempfile.TemporaryDirectory(prefix="clcurv-radius-") as tmp:
+        target = max((budget or (1 << 28)) // (TILE_BYTES_PER_POINT * 9), 10_000)
+        origin, side, shape = _bucket_grid(src, target * BUCKETS_PER_TILE ** 2)
+        b = Buckets(tmp, origin, side, shape, False)
+        for start, xyz, _ in src.chunks(READ_CHUNK):
+            b.add(start, xyz, None)
+        rng = np.random.default_rng(seed)
+        flat = b.counts.ravel().astype(float)
+        if flat.sum() <= k:
+            raise ValueError(f"radius auto needs more than {k} points")
+        picks = rng.choice(len(flat), size=min(regions, int((flat > 0).sum())),
+                           replace=False, p=flat / flat.sum())
+        dists = []
+        for f in picks:
+            i, j = divmod(int(f), shape[1])
+            pts, centre = [], None
+            for di in (-1, 0, 1):
+                for dj in (-1, 0, 1):
+                    a, c = i + di, j + dj
+                    if 0 <= a < shape[0] and 0 <= c < shape[1] and b.counts[a, c]:
+                        rec = np.fromfile(b.path(a, c), b.dtype)
+                        pts.append(rec["p"])
+                        if (di, dj) == (0, 0):
+                            centre = rec["p"]
+            cloud = np.concatenate(pts)
+            q = centre[rng.choice(len(centre), size=min(len(centre), -(-sample // regions)),
+                                  replace=False)]
+            kk = min(k + 1, len(cloud))
+            d, _ = cKDTree(cloud).query(q, k=kk)
+            d = d.reshape(len(q), -1)[:, -1]
+            # room to the region's sides that have buckets beyond them (the others are
+            # the grid's own sides, beyond which there is nothing)
+            lo = np.asarray(origin) + np.array([i - 1, j - 1]) * side
+            hi = lo + 3 * side
+            lo = np.where([i - 1 < 0, j - 1 < 0], -np.inf, lo)
+            hi = np.where([i + 1 >= shape[0], j + 1 >= shape[1]], np.inf, hi)
+            room = np.min(np.concatenate([q[:, :2] - lo, hi - q[:, :2]], axis=1), axis=1)
+            keep = d <= room
+            dists.append(d[keep] if keep.any() else d)
+        r = float(np.median(np.concatenate(dists)))
+        if not r > 0:
+            raise ValueError("radius auto: the sampled points have duplicates for "
+                             f"neighbours; give the radius")
+        return r
 
 
 def run_job(job, out=print):
@@ -939,8 +1003,10 @@ def run_job(job, out=print):
     and returns the summary dict."""
     from .job import ORIENT_CHOICES, UsageError
     if job.radius == "auto" or job.radius is None:
-        raise UsageError("a tiled run needs --radius (a number in the file's unit): 'auto' "
-                         "samples the whole cloud")
+        job.radius = auto_radius_tiled(stream.open_source(job.input),
+                                       budget=budget_of(job.memory))
+        out(f"radius auto: {job.radius:.6g} (median distance to the 30th neighbour, "
+            "sampled in 16 regions of the cloud)")
     if job.positions != "original":
         raise UsageError("a tiled run writes the original positions (--positions original)")
     if job.workers is not None and job.workers < 1:

@@ -275,3 +275,26 @@ def test_dask_workers_equal_one_process_and_survive_a_killed_worker(scene, tmp_p
         cluster.close()
     assert state["killed"]
     assert one.read_bytes() == killed.read_bytes()
+
+
+def test_which_file_jobs_tile(scene):
+    from clcurv.job import Job
+    _, paths, _ = scene
+    small = Job(paths["laz"], "o.laz", radius=1.0)
+    assert not tiled.wants_tiles(small)                 # 30k points fit the default budget
+    assert tiled.wants_tiles(Job(paths["laz"], "o.laz", radius=1.0, memory="4MiB"))
+    assert tiled.wants_tiles(Job(paths["laz"], "o.laz", radius=1.0, tile_size=8.0))
+    assert not tiled.wants_tiles(Job(paths["laz"], "o.ply", radius=1.0, memory="4MiB",
+                                     positions="projected"))   # only in memory, and fits
+    assert tiled.budget_of("auto") <= tiled.AUTO_CAP
+
+
+def test_auto_radius_in_tiles_estimates_the_in_memory_one(scene):
+    """radius 'auto' of a tiled run samples 16 regions (exact k-NN distances inside
+    them); it estimates the whole-cloud sample's median to a few per cent."""
+    from clcurv.io import stream
+    from clcurv.job import auto_radius
+    _, paths, pts = scene
+    r_tiled = tiled.auto_radius_tiled(stream.open_source(paths["laz"]))
+    r_mem = auto_radius(pts)
+    assert abs(r_tiled / r_mem - 1) < 0.05, (r_tiled, r_mem)
