@@ -977,7 +977,7 @@ def auto_radius_tiled(src, k=30, regions=16, sample=5000, seed=0, budget=None):
                         if (di, dj) == (0, 0):
                             centre = rec["p"]
             cloud = np.concatenate(pts)
-            q = centre[rng.choice(len(centre), size=min(len(centre), -(-sample // regions)),
+            q = centre[rng.choice(len(centre), size=min(len(centre), -(-sample // len(picks))),
                                   replace=False)]
             kk = min(k + 1, len(cloud))
             d, _ = cKDTree(cloud).query(q, k=kk)
