@@ -31,16 +31,18 @@ CPU_GROUP = 1
 
 
 def _row_norms2(a, block=32768):
-    """|row|^2 of a float64 (N, 3) array: squares and a matrix-vector product by blocks
-    (about 3x faster than einsum's 3-wide rows at 1M)."""
+    """|row|^2 of a float64 (N, 3) array by blocks that stay in cache (about 3x faster than
+    einsum's 3-wide rows at 1M; no BLAS call, whose spinning threads would compete with the
+    device's for the cores)."""
     out = np.empty(len(a))
-    one = np.ones(3)
     buf = np.empty((min(block, len(a)), 3))
     with np.errstate(over="ignore", invalid="ignore"):    # inf and NaN rows: invalid
         for s in range(0, len(a), block):
             b = buf[:min(block, len(a) - s)]
+            o = out[s:s + len(b)]
             np.multiply(a[s:s + len(b)], a[s:s + len(b)], out=b)
-            np.dot(b, one, out=out[s:s + len(b)])
+            np.add(b[:, 0], b[:, 1], out=o)
+            np.add(o, b[:, 2], out=o)
     return out
 
 
