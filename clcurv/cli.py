@@ -120,8 +120,11 @@ def demo_cmd(args, out=print):
 
 def _compute_parser(sub):
     c = sub.add_parser("compute", help="compute an operator on a point cloud file")
-    c.add_argument("input")
-    c.add_argument("-o", "--output", required=True, help=".ply, .las/.laz, .npz, .csv, .txt")
+    c.add_argument("input", nargs="+", help="a point cloud file; several LAS/LAZ (or NPY) "
+                   "files are one cloud (a catalog), run in tiles, one output per input in "
+                   "the folder -o")
+    c.add_argument("-o", "--output", required=True, help=".ply, .las/.laz, .npz, .csv, .txt "
+                   "(a folder for several inputs)")
     c.add_argument("--method", default="mls2", choices=METHODS)
     c.add_argument("--radius", default="auto", help="ball radius in the file's unit, or 'auto' "
                    "(about 30 neighbours)")

@@ -79,8 +79,10 @@ class Job:
     @classmethod
     def from_args(cls, args):
         """The job of an ``argparse.Namespace`` with the same attribute names."""
-        return cls(**{f.name: getattr(args, f.name) for f in fields(cls)
-                      if hasattr(args, f.name)})
+        kw = {f.name: getattr(args, f.name) for f in fields(cls) if hasattr(args, f.name)}
+        if isinstance(kw.get("input"), list) and len(kw["input"]) == 1:
+            kw["input"] = kw["input"][0]            # several: a catalog (clcurv.tiled)
+        return cls(**kw)
 
 
 @dataclass
@@ -273,8 +275,10 @@ def _summary(job, cloud, done, device, times, normals_written):
 def run(job, out=print):
     """Run ``job`` (a :class:`Job`), print its summary on ``out``; return a :class:`Done`."""
     check_options(job)
-    io.check_output(job.output)             # before any work: extension, folder, rights
     from . import tiled
+    if isinstance(job.input, (list, tuple)):        # a catalog: always in tiles
+        return tiled.run_job(job, out)
+    io.check_output(job.output)             # before any work: extension, folder, rights
     if tiled.wants_tiles(job):
         return tiled.run_job(job, out)
     st = Stages(job.quiet)

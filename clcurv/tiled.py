@@ -432,6 +432,8 @@ def _workspace(dst, workdir):
 
 
 def _source_key(src):
+    if isinstance(src, stream.Catalog):
+        return [_source_key(p) for p in src.parts]
     st = os.stat(src.path)
     return {"path": str(Path(src.path).resolve()), "size": st.st_size,
             "mtime_ns": st.st_mtime_ns, "n": int(src.n)}
@@ -497,26 +499,55 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
     say = out or (lambda s: None)
     choice(method, "method", METHODS)
     r = as_radius(radius)
-    dst = io.check_output(dst)
-    source = stream.open_source(src)
+    catalog = isinstance(src, (list, tuple))
+    if catalog:
+        source = stream.Catalog(src)
+        dst = _catalog_outputs(source, dst)
+    else:
+        dst = io.check_output(dst)
+        source = stream.open_source(src)
     budget = budget_of(memory)
     if int(projections):
         raise TilingError("a tiled run does not take projections yet (iterated MLS2 moves "
                           "the points across tiles): run them in memory")
     if int(scale_space) < 0:
         raise ValueError(f"scale_space must be >= 0, got {scale_space}")
-    ext = dst.suffix.lower()
-    if ext not in stream.STREAM_WRITES:
-        raise TilingError(f"{dst}: a tiled run writes {', '.join(stream.STREAM_WRITES)}")
-    if ext in (".las", ".laz") and source.format not in ("las", "laz"):
-        raise TilingError(f"{dst}: a tiled run writes LAS/LAZ from LAS/LAZ input only (it "
-                          "keeps the input's header); write .npz")
+    for d in (dst if catalog else [dst]):
+        ext = d.suffix.lower()
+        if ext not in stream.STREAM_WRITES:
+            raise TilingError(f"{d}: a tiled run writes {', '.join(stream.STREAM_WRITES)}")
+        if ext in (".las", ".laz") and source.format not in ("las", "laz"):
+            raise TilingError(f"{d}: a tiled run writes LAS/LAZ from LAS/LAZ input only (it "
+                              "keeps the input's header); write .npz")
     params = _Params(method, r, weights, orient, viewpoint, kernel, h, device, precision,
                      bool(ignore_normals), int(scale_space))
-    if tile is None and fits_memory(source.n, budget) and client is None and not workers:
+    if not catalog and tile is None and fits_memory(source.n, budget) and client is None \
+            and not workers:
         return _in_memory(src, dst, params, fields, say)
-    return _run(source, dst, params, budget, tile, _workspace(dst, workdir), fields,
-                progress, say, client, workers)
+    ws = _workspace(dst[0].parent / ".catalog" if catalog else dst, workdir)
+    return _run(source, dst, params, budget, tile, ws, fields, progress, say, client,
+                workers)
+
+
+def _catalog_outputs(source, dst):
+    """The output path of every file of a catalog: ``dst`` (an existing folder) / the
+    input's name (an NPY input's as .npz); never an input itself."""
+    folder = Path(dst)
+    if not folder.is_dir():
+        raise TilingError(f"{dst}: the output of a catalog (several input files) is an "
+                          "existing folder, one output file per input")
+    outs = []
+    inputs = {Path(p).resolve() for p in source.paths}
+    for p in source.paths:
+        p = Path(p)
+        out = folder / (p.name if p.suffix.lower() != ".npy" else p.stem + ".npz")
+        if out.resolve() in inputs:
+            raise TilingError(f"{out} would replace the input file of that name: choose "
+                              "another output folder")
+        outs.append(io.check_output(out))
+    if len({o.resolve() for o in outs}) != len(outs):
+        raise TilingError("two input files have the same name: their outputs would collide")
+    return outs
 
 
 def _manifest(ws, source, params, budget, tile):
@@ -911,13 +942,23 @@ def _execute(tasks, client, workers, step=False):
 
 
 def _write_output(dst, source, windows, specs):
-    """Pass (3b): the output in input order, a window at a time, atomically."""
+    """Pass (3b): the output in input order, a window at a time, atomically (a catalog:
+    one output per input file, each with its own points)."""
+    if isinstance(source, stream.Catalog):
+        for part, off, d in zip(source.parts, source.offsets, dst):
+            rows = (lambda o: lambda a, b: windows.rows(o + a, o + b))(int(off))
+            _write_one(d, part, rows, part.n, specs)
+        return
+    _write_one(dst, source, windows.rows, windows.n, specs)
+
+
+def _write_one(dst, source, rows, n, specs):
     names = [name for name, _, _ in specs]
     with io.atomic_output(dst) as tmp:
         if dst.suffix.lower() in (".las", ".laz"):
-            stream.write_las(tmp, source, names, windows.rows, chunk=READ_CHUNK)
+            stream.write_las(tmp, source, names, rows, chunk=READ_CHUNK)
         else:
-            stream.write_npz(tmp, source, names, windows.rows, windows.n,
+            stream.write_npz(tmp, source, names, rows, n,
                              {name: (width, dtype) for name, width, dtype in specs},
                              chunk=READ_CHUNK)
 
@@ -1003,7 +1044,9 @@ def run_job(job, out=print):
     and returns the summary dict."""
     from .job import ORIENT_CHOICES, UsageError
     if job.radius == "auto" or job.radius is None:
-        job.radius = auto_radius_tiled(stream.open_source(job.input),
+        src = (stream.Catalog(job.input) if isinstance(job.input, (list, tuple))
+               else stream.open_source(job.input))
+        job.radius = auto_radius_tiled(src,
                                        budget=budget_of(job.memory))
         out(f"radius auto: {job.radius:.6g} (median distance to the 30th neighbour, "
             "sampled in 16 regions of the cloud)")
@@ -1046,7 +1089,9 @@ def run_job(job, out=print):
     times = ", ".join(f"{k} {v:.2f} s" for k, v in summary["times"].items())
     st = summary["status"] or []
     ok = st[0] / max(sum(st), 1) if st else float("nan")
-    out(f"\n{summary['points']} points from {job.input} in {summary['tiles']} tile(s) "
+    what = (f"{len(job.input)} files" if isinstance(job.input, (list, tuple))
+            else job.input)
+    out(f"\n{summary['points']} points from {what} in {summary['tiles']} tile(s) "
         f"(halo {summary['halo']} cell(s)); status ok {ok:.1%}")
     out(f"time: {times}")
     out(f"wrote {job.output}")

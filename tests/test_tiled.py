@@ -298,3 +298,42 @@ def test_auto_radius_in_tiles_estimates_the_in_memory_one(scene):
     r_tiled = tiled.auto_radius_tiled(stream.open_source(paths["laz"]))
     r_mem = auto_radius(pts)
     assert abs(r_tiled / r_mem - 1) < 0.05, (r_tiled, r_mem)
+
+
+def test_a_catalog_of_files_equals_one_file(scene, tmp_path):
+    """Four LAS/LAZ files side by side (a catalog, lidR's term) run as one cloud: each
+    output holds its file's points, bit for bit those of the single file made of the four
+    in the same order (tiles cross the files' borders, halos reach into the neighbours)."""
+    _, paths, pts = scene
+    full = laspy.read(str(paths["las"]))
+    mid = np.median(pts[:, :2], axis=0)
+    quad = (pts[:, 0] >= mid[0]).astype(int) * 2 + (pts[:, 1] >= mid[1])
+    order = np.argsort(quad, kind="stable")
+    whole = tmp_path / "whole.las"
+    las = laspy.LasData(full.header)
+    las.points = full.points[order]
+    las.write(str(whole))
+    parts = []
+    for q in range(4):
+        p = tmp_path / f"part{q}.{'laz' if q % 2 else 'las'}"
+        sub = laspy.LasData(full.header)
+        sub.points = full.points[quad == q]
+        sub.write(str(p))
+        parts.append(p)
+    outdir = tmp_path / "out"
+    outdir.mkdir()
+    ref = tmp_path / "ref.las"
+    tiled.curvature_file(whole, ref, R, method="mls2", memory="64GiB")
+    summary = tiled.curvature_file(parts, outdir, R, method="mls2", tile=8.0)
+    assert summary["tiled"] and summary["points"] == len(pts)
+    _, r = _dims(ref)
+    start = 0
+    for p in parts:
+        _, o = _dims(outdir / p.name)
+        m = len(o["X"])
+        for name, a in o.items():
+            assert np.array_equal(a, r[name][start:start + m], equal_nan=True), (p, name)
+        start += m
+    assert start == len(pts)
+    with pytest.raises(tiled.TilingError, match="replace the input"):
+        tiled.curvature_file(parts, tmp_path, R, method="mls2", tile=8.0)

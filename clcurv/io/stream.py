@@ -48,6 +48,38 @@ def open_source(path):
                              f"(got {ext or 'no extension'}); convert it, or run in memory")
 
 
+class Catalog:
+    """Several LAS/LAZ (or several NPY) files read as one cloud, in the order given: the
+    points of file k have the global ids offsets[k] .. offsets[k + 1] - 1 (lidR's
+    catalog). The file normals are used only when every file has them."""
+
+    def __init__(self, paths):
+        if not paths:
+            raise ValueError("an empty list of input files")
+        self.parts = [open_source(p) for p in paths]
+        kinds = {"npy" if s.format == "npy" else "las" for s in self.parts}
+        if len(kinds) > 1:
+            raise UnknownFormatError("a catalog is all LAS/LAZ or all NPY files, got "
+                                     + ", ".join(str(s.path) for s in self.parts))
+        self.format = self.parts[0].format
+        self.path = self.parts[0].path
+        self.paths = [s.path for s in self.parts]
+        self.offsets = np.cumsum([0] + [s.n for s in self.parts])
+        self.n = int(self.offsets[-1])
+        self.has_normals = all(s.has_normals for s in self.parts)
+
+    def bounds_hint(self):
+        boxes = [s.bounds_hint() for s in self.parts]
+        if any(b is None for b in boxes):
+            return None
+        return (np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0))
+
+    def chunks(self, size):
+        for off, part in zip(self.offsets, self.parts):
+            for start, xyz, nrm in part.chunks(size):
+                yield int(off) + start, xyz, nrm if self.has_normals else None
+
+
 class LasSource:
     """A LAS/LAZ file read with ``laspy.open(...).chunk_iterator``."""
 
