@@ -65,13 +65,24 @@ class Forest:
 #: When a dict, every kernel launch of spanning_forest waits for its end and adds its time
 #: (seconds) under the kernel's name: a profile, for benchmarks only.
 PROFILE = None
+#: The kernels whose work-items take BLOCK points (or entries) each: a few thousand long
+#: work-items. On a CPU device they run in work-groups of CPU_GROUP, so that the device's
+#: threads take them one at a time (in groups of 128 a 1M-point cloud has about 16 groups
+#: for the cores, and the last ones run alone).
+BLOCK_KERNELS = frozenset({"first_weight", "first_other", "next_edges", "min_weight", "min_lo",
+                           "min_hi", "count_roots", "write_roots", "count_edges",
+                           "write_edges"})
+CPU_GROUP = 1
 
 
 def _launch(dev, kernel, n, *args):
+    limit = {}
+    if dev.info.kind == "cpu" and kernel.function_name in BLOCK_KERNELS:
+        limit = {"limit": CPU_GROUP}
     if PROFILE is None:
-        return launch(dev, kernel, n, *args)
+        return launch(dev, kernel, n, *args, **limit)
     t = time.perf_counter()
-    launch(dev, kernel, n, *args)
+    launch(dev, kernel, n, *args, **limit)
     dev.queue.finish()
     PROFILE[kernel.function_name] = PROFILE.get(kernel.function_name, 0.0) + \
         time.perf_counter() - t
