@@ -208,19 +208,36 @@ def write_las(path, src, names, rows, chunk=1_000_000):
     if new:
         header.add_extra_dims(new)
     dims = set(header.point_format.dimension_names)
+    added = {p.name for p in new}
     with laspy.open(str(src.path)) as reader, \
             laspy.open(str(path), mode="w", header=header) as writer:
         start = 0
         for rec in reader.chunk_iterator(chunk):
             m = len(rec)
             out = laspy.ScaleAwarePointRecord.zeros(m, header=header)
-            for dim in rec.array.dtype.names:         # the raw records: integers as read
-                out.array[dim] = rec.array[dim]
+            _copy_records(rec.array, out.array)       # the raw records: integers as read
             for name, a in columns(rows(start, start + m)).items():
-                if name in dims:
+                if name in added:                     # unscaled extra bytes: raw = value
+                    out.array[name] = a
+                elif name in dims:
                     out[name] = a
             writer.write_points(out)
             start += m
+
+
+def _copy_records(src, dst):
+    """Copy the records ``src`` into the leading fields of ``dst`` (the same fields at the
+    same offsets, extra bytes appended after them): one strided byte copy when the
+    layouts allow it, else field by field."""
+    a, b = src.dtype, dst.dtype
+    same = all(n in b.fields and b.fields[n][1] == a.fields[n][1]
+               and b.fields[n][0] == a.fields[n][0] for n in a.names)
+    if same and a.itemsize <= b.itemsize and src.flags.c_contiguous and dst.flags.c_contiguous:
+        dst.view(np.uint8).reshape(len(dst), b.itemsize)[:, :a.itemsize] = \
+            src.view(np.uint8).reshape(len(src), a.itemsize)
+        return
+    for name in a.names:
+        dst[name] = src[name]
 
 
 def write_npz(path, src, names, rows, n, specs, chunk=1_000_000):
