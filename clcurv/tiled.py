@@ -957,6 +957,10 @@ def _write_one(dst, source, rows, n, specs):
     with io.atomic_output(dst) as tmp:
         if dst.suffix.lower() in (".las", ".laz"):
             stream.write_las(tmp, source, names, rows, chunk=READ_CHUNK)
+        elif dst.suffix.lower() == ".ply":
+            stream.write_ply(tmp, source, names, rows, n,
+                             {name: (width, dtype) for name, width, dtype in specs},
+                             chunk=READ_CHUNK)
         else:
             stream.write_npz(tmp, source, names, rows, n,
                              {name: (width, dtype) for name, width, dtype in specs},

@@ -337,3 +337,18 @@ def test_a_catalog_of_files_equals_one_file(scene, tmp_path):
     assert start == len(pts)
     with pytest.raises(tiled.TilingError, match="replace the input"):
         tiled.curvature_file(parts, tmp_path, R, method="mls2", tile=8.0)
+
+
+def test_binary_ply_in_and_out_byte_for_byte(tmp_path):
+    s = clcurv.shapes.torus(30_000, 2.0, 0.7, seed=7)
+    src = tmp_path / "t.ply"
+    clcurv.io.write(src, s["points"], normals=s["normals"])        # binary PLY
+    for name, tile in (("mem", None), ("til", 1.0)):
+        tiled.curvature_file(src, tmp_path / f"{name}.ply", 0.15, method="2dcov2",
+                             tile=tile, memory="64GiB")
+    assert (tmp_path / "mem.ply").read_bytes() == (tmp_path / "til.ply").read_bytes()
+    ascii_ply = tmp_path / "a.ply"
+    ascii_ply.write_text("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\n"
+                         "property float y\nproperty float z\nend_header\n0 0 0\n")
+    with pytest.raises(clcurv.io.ReadError, match="binary PLY"):
+        tiled.curvature_file(ascii_ply, tmp_path / "o.ply", 0.1, tile=1.0)

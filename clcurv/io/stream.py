@@ -29,8 +29,8 @@ import numpy as np
 from ._common import CorruptFileError, UnknownFormatError, _looks_like_normals
 
 #: formats a tiled run reads and writes
-STREAM_READS = (".las", ".laz", ".npy")
-STREAM_WRITES = (".las", ".laz", ".npz")
+STREAM_READS = (".las", ".laz", ".npy", ".ply")
+STREAM_WRITES = (".las", ".laz", ".npz", ".ply")
 
 
 def open_source(path):
@@ -44,6 +44,8 @@ def open_source(path):
         return LasSource(path)
     if ext == ".npy":
         return NpySource(path)
+    if ext == ".ply":
+        return PlySource(path)
     raise UnknownFormatError(f"{path}: a tiled run reads {', '.join(STREAM_READS)} "
                              f"(got {ext or 'no extension'}); convert it, or run in memory")
 
@@ -182,6 +184,57 @@ class NpySource:
             yield s, xyz, nrm
 
 
+class PlySource:
+    """A binary PLY whose vertex element comes first with scalar properties only (what
+    scanners and clcurv write): its rows read with plain file reads at their offset."""
+
+    def __init__(self, path):
+        from . import ply
+        from ._common import _NORMAL_NAMES
+        self.path, self.format = path, "ply"
+        with open(path, "rb") as f:
+            head = f.read(1 << 20)
+        fmt, _, elements, start = ply._parse_header(head, path)
+        ok = elements and elements[0][0] == "vertex" and fmt != "ascii"
+        props = [ln.split() for ln in elements[0][2][1:]] if elements else []
+        if not ok or not all(len(p) == 3 and p[1] in ply._TYPES for p in props):
+            raise UnknownFormatError(
+                f"{path}: a tiled run reads binary PLY whose first element is the vertex "
+                "element with scalar properties only (this one is "
+                f"{fmt}{'' if ok else ', another layout'}); convert it, or run in memory")
+        order = "<" if fmt == "binary_little_endian" else ">"
+        self.dtype = np.dtype([(p[2], order + ply._TYPES[p[1]]) for p in props])
+        self.n, self.offset = elements[0][1], start
+        from ._common import _check_claim
+        _check_claim(path, f"{self.n} vertices of {self.dtype.itemsize} bytes",
+                     self.n * self.dtype.itemsize, path.stat().st_size - start)
+        lower = {name.lower(): name for name in self.dtype.names}
+        if not all(k in lower for k in "xyz"):
+            raise CorruptFileError(f"{path}: the vertex element has no x, y and z")
+        self.xyz = [lower[k] for k in "xyz"]
+        self.nrm = next(([lower[k] for k in t] for t in _NORMAL_NAMES
+                         if all(k in lower for k in t)), None)
+        self.has_normals = self.nrm is not None
+
+    def bounds_hint(self):
+        return None
+
+    def chunks(self, size):
+        with open(self.path, "rb") as f:
+            for s in range(0, self.n, size):
+                f.seek(self.offset + s * self.dtype.itemsize)
+                rec = np.fromfile(f, self.dtype, count=min(size, self.n - s))
+                xyz = np.column_stack([rec[k].astype(np.float64) for k in self.xyz])
+                bad = ~np.isfinite(xyz).all(axis=1)
+                if bad.any():
+                    raise CorruptFileError(
+                        f"{self.path}: vertex {s + int(np.argmax(bad))} has a non-finite "
+                        "coordinate; a tiled run needs finite coordinates: drop those rows")
+                nrm = (np.column_stack([rec[k].astype(np.float64) for k in self.nrm])
+                       if self.has_normals else None)
+                yield s, xyz, nrm
+
+
 # --------------------------------------------------------------------------- writing
 
 def write_las(path, src, names, rows, chunk=1_000_000):
@@ -280,3 +333,28 @@ def write_npz(path, src, names, rows, n, specs, chunk=1_000_000):
     finally:
         for p in raws.values():
             p.unlink(missing_ok=True)
+
+
+def write_ply(path, src, names, rows, n, specs, chunk=1_000_000):
+    """Write a binary PLY as clcurv.io.ply writes it (x y z double, nx ny nz float, then
+    the fields) from the points of ``src`` and the records ``rows(start, stop)``, chunk by
+    chunk: the header from plyfile for the same vertex layout, the rows after it."""
+    import plyfile
+    from . import ply
+    fields = {k: np.empty(0, np.dtype(specs[k][1])) for k in names if k != "normals"}
+    dtype = np.dtype(ply._vertex_dtype(path, fields, "normals" in names))
+    el = plyfile.PlyElement.describe(np.empty(0, dtype), "vertex")
+    header = plyfile.PlyData([el], text=False, byte_order="<",
+                             comments=["written by clcurv"]).header
+    header = header.replace("element vertex 0", f"element vertex {n}")
+    with open(path, "wb") as f:
+        f.write((header + "\n").encode("ascii"))
+        for start, xyz, _ in src.chunks(chunk):
+            rec = rows(start, start + len(xyz))
+            out = np.empty(len(xyz), dtype)
+            out["x"], out["y"], out["z"] = xyz.T
+            if "normals" in names:
+                out["nx"], out["ny"], out["nz"] = rec["normals"].T
+            for k in fields:
+                out[k] = rec[k]
+            out.tofile(f)
