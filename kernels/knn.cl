@@ -24,7 +24,7 @@
 /* Squared-distance bins of the first pass of knn_graph: a point at squared distance d2 is in
  * bin min(floor(d2 NBIN / r^2), NBIN - 1) (monotone in d2, so the bins up to any one hold a
  * nearest-first prefix of the ball) */
-#define NBIN 8
+#define NBIN 16
 /* Most candidates the second pass collects (those in the bins up to the one reached by k);
  * a point with more (many coincident points) takes the insertion path instead */
 #define MCAP 48                 /* a multiple of 16 */
@@ -37,7 +37,7 @@
 #define CONVERT_IREALV CAT(convert_, IREALV)
 #define FLOATV CAT(float, VW)
 #define VSTOREF CAT(vstore, VW)
-#define BYTES 0x00ff00ff00ff00ffUL
+#define NIBBLES 0x0f0f0f0f0f0f0f0fUL
 
 /* Offsets q - p of the chunk at i as seen from a row (pr, neighbors.h) and its live lanes
  * (the ball test is the caller's, on sqdist, so both passes see the same numbers). */
@@ -124,13 +124,16 @@ inline ulong hsum_ul(ULONGV v)
 #endif
 }
 
-/* Bin counts packed 8 bits per bin in each lane of acc (at most 255 chunks' worth), added to
- * the totals tot (one lane per bin) */
-inline uint8 unpack_bins(ULONGV acc)
+/* Bin counts packed 4 bits per bin in each lane of acc (at most 15 chunks' worth), as totals
+ * (one lane per bin) */
+inline uint16 unpack_bins(ULONGV acc)
 {
-    const ulong e = hsum_ul(acc & BYTES), o = hsum_ul((acc >> 8) & BYTES);   /* 16-bit fields */
-    return convert_uint8((ulong8)(e, o, e >> 16, o >> 16, e >> 32, o >> 32, e >> 48, o >> 48)
-                         & (ulong8)0xffff);
+    /* 8-bit fields (at most 15 VW <= 240): the even bins in e, the odd ones in o */
+    const ulong e = hsum_ul(acc & NIBBLES), o = hsum_ul((acc >> 4) & NIBBLES);
+    const ulong8 sh = (ulong8)(0, 8, 16, 24, 32, 40, 48, 56);
+    const ulong8 ev = ((ulong8)e >> sh) & (ulong8)0xff, ov = ((ulong8)o >> sh) & (ulong8)0xff;
+    return convert_uint16((ulong16)(ev.s0, ov.s0, ev.s1, ov.s1, ev.s2, ov.s2, ev.s3, ov.s3,
+                                    ev.s4, ov.s4, ev.s5, ov.s5, ev.s6, ov.s6, ev.s7, ov.s7));
 }
 
 /* The ordering key of a neighbour: its squared distance (as float: for double precision
@@ -191,8 +194,8 @@ inline FLOATV lane_weights(REALV dx, REALV dy, REALV dz, REAL3 ng, REALV njx, RE
 
 /* The k nearest neighbours of every sorted point and their edge weights (see the top).
  *
- * Pass 1 counts the valid points of the ball in NBIN squared-distance bins (8-bit counters
- * packed in a ulong per lane, emptied every 255 chunks); the first bin up to which at least k
+ * Pass 1 counts the valid points of the ball in NBIN squared-distance bins (4-bit counters
+ * packed in a ulong per lane, emptied every 15 chunks); the first bin up to which at least k
  * others lie bounds the k-th distance. Pass 2 collects the (about k) others up to that bin
  * with their weights, and each one's rank among them (by (distance, input index)) is its
  * place in the list: no sorting. More than MCAP of them (coincident points): a bounded
@@ -221,17 +224,17 @@ __kernel void knn_graph(__global const REAL *X, __global const REAL *Y, __global
         UINTV rowor[9];                    /* per row, the bins its lanes met */
         for (int r = 0; r < 9; ++r)
             rowor[r] = 0;
-        uint8 tot = 0;
+        uint16 tot = 0;
         uint nch = 0;
         NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, ball, i, end, pr)
             IREALV m = lane_offsets(XA, Y, Z, i, end, pr, &dx, &dy, &dz);
             const REALV d2 = sqdist(dx, dy, dz);
             m &= ~isnan(VLOADV(0, NX + i)) & isless(d2, (REALV)ball.x);
             const ULONGV bn = bin_of(d2, s);
-            acc += select((ULONGV)0, (ULONGV)1 << (bn << 3), CONVERT_LONGV(m));
+            acc += select((ULONGV)0, (ULONGV)1 << (bn << 2), CONVERT_LONGV(m));
             rowor[nb_z * 3 + nb_y] |= select((UINTV)0, (UINTV)1 << CONVERT_UINTV(bn),
                                              CONVERT_INTV(m));
-            if (++nch == 255) {
+            if (++nch == 15) {
                 tot += unpack_bins(acc);
                 acc = 0;
                 nch = 0;
@@ -240,8 +243,10 @@ __kernel void knn_graph(__global const REAL *X, __global const REAL *Y, __global
         tot += unpack_bins(acc);
         /* the point itself is in bin 0 (d = 0) */
         uint c[NBIN];
-        c[0] = tot.s0 - 1; c[1] = c[0] + tot.s1; c[2] = c[1] + tot.s2; c[3] = c[2] + tot.s3;
-        c[4] = c[3] + tot.s4; c[5] = c[4] + tot.s5; c[6] = c[5] + tot.s6; c[7] = c[6] + tot.s7;
+        vstore16(tot, 0, c);
+        c[0] -= 1;
+        for (int b = 1; b < NBIN; ++b)
+            c[b] += c[b - 1];
         ulong bsel = NBIN - 1;
         uint below = c[NBIN - 1];
         for (int b = NBIN - 2; b >= 0; --b)
