@@ -275,12 +275,12 @@ def _summary(job, cloud, done, device, times, normals_written):
 def run(job, out=print):
     """Run ``job`` (a :class:`Job`), print its summary on ``out``; return a :class:`Done`."""
     check_options(job)
-    from . import tiled
+    from . import tiled_job
     if isinstance(job.input, (list, tuple)):        # a catalog: always in tiles
-        return tiled.run_job(job, out)
+        return tiled_job.run_job(job, out)
     io.check_output(job.output)             # before any work: extension, folder, rights
-    if tiled.wants_tiles(job):
-        return tiled.run_job(job, out)
+    if tiled_job.wants_tiles(job):
+        return tiled_job.run_job(job, out)
     st = Stages(job.quiet)
     with st.stage("reading"):
         cloud = io.read(job.input)

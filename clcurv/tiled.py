@@ -57,11 +57,8 @@ tile size comes from the budget (``memory=``) and the density measured in pass (
 from __future__ import annotations
 
 import json
-import math
 import os
-import re
 import shutil
-import sys
 import time
 import warnings
 from dataclasses import dataclass
@@ -70,312 +67,26 @@ from pathlib import Path
 import numpy as np
 
 from . import io, tiled_orient
+from .buckets import READ_CHUNK, Buckets, bucket_grid
 from .grid import Frame
 from .io import stream
+from .tile_results import partition, tile_dtype, tile_file
+from .tiling import (AUTO_CAP, TILE_BYTES_PER_POINT, Tiling, TilingError,  # noqa: F401 (re-exported)
+                     budget_of, fits_memory, halo_cells, parse_memory, plan_tiles, within)
 from .operators import METHODS, OPERATORS
 from .validate import as_radius, choice
-
-#: peak host bytes per point of a tile's run (its points with their halo): the records of
-#: the buckets, the float64 points, the DeviceCloud's host arrays, the result and its fields
-#: (measured on an MLS2 run; see bench/tiled.py)
-TILE_BYTES_PER_POINT = 900
-#: peak host bytes per point of an in-memory file job (clcurv.job.run), to decide whether a
-#: cloud fits memory="auto"
-IN_MEMORY_BYTES_PER_POINT = 1300
-#: fraction of the available RAM that memory="auto" uses, at most AUTO_CAP bytes: the
-#: default run of a large file streams through tiles of at most ~600k points, whose peak
-#: memory does not grow with the cloud (bench/tiled.py), and a larger tile is not faster
-AUTO_FRACTION = 0.5
-AUTO_CAP = 512 << 20
-#: points per read chunk of pass (1) and per written chunk of pass (3)
-READ_CHUNK = 1 << 18
-#: most buckets of pass (1) (a coarse grid; each is a file)
-MAX_BUCKETS = 4096
-#: tiles per side of a bucket: buckets are this many times smaller than a tile, so a tile
-#: reads little more than its own cells and halo
-BUCKETS_PER_TILE = 2
-
-
-class TilingError(ValueError):
-    """A tiled run cannot be planned: a budget too small for one tile, a tile smaller than
-    its halo, or options a tiled run does not take."""
 
 
 # --------------------------------------------------------------------------- memory
 
-def parse_memory(memory):
-    """Bytes of a budget: an int, or a string like ``"2GiB"``, ``"500MB"``, ``"1.5G"``."""
-    if isinstance(memory, (int, np.integer)) and not isinstance(memory, bool):
-        value = int(memory)
-    else:
-        m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+)\s*([kKmMgGtT]?)(i?[bB]?)\s*", str(memory))
-        if not m:
-            raise ValueError(f"memory must be 'auto', a number of bytes or a size like "
-                             f"'2GiB', got {memory!r}")
-        unit = m.group(2).upper()
-        base = 1024 if m.group(3).lower().startswith("i") or not m.group(3) else 1000
-        value = int(float(m.group(1)) * base ** " KMGT".index(unit or " "))
-    if value <= 0:
-        raise ValueError(f"memory must be positive, got {memory!r}")
-    return value
-
-
-def available_memory():
-    """Bytes of RAM available now (Linux MemAvailable; else total / 2)."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    try:
-        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") // 2
-    except (ValueError, OSError):
-        return 4 << 30
-
-
-def budget_of(memory):
-    """The byte budget of ``memory`` ('auto': AUTO_FRACTION of the available RAM, at most
-    AUTO_CAP)."""
-    if memory is None or memory == "auto":
-        return int(min(available_memory() * AUTO_FRACTION, AUTO_CAP))
-    return parse_memory(memory)
-
 
 # --------------------------------------------------------------------------- geometry
-
-def halo_cells(method, weights="uniform", file_normals=False):
-    """Cells of halo a tile needs for ``method`` so that its own points' results are exact:
-    one per neighbourhood pass that feeds the next (see the module docstring)."""
-    op = OPERATORS[method]
-    passes = 2 if (op.kernel.reads_normals and op.normals == "values"
-                   and not file_normals) else 1
-    return passes * (2 if weights == "density" else 1)
-
-
-@dataclass(frozen=True)
-class Tiling:
-    """Tiles of ``size`` x ``size`` cells (x, y) of ``frame``, each reading ``halo`` more
-    cells around; tile t = tx + ntx * ty."""
-    frame: Frame
-    size: int
-    halo: int
-
-    @property
-    def shape(self):
-        nx, ny, _ = self.frame.dims
-        return -(-nx // self.size), -(-ny // self.size)
-
-    @property
-    def count(self):
-        a, b = self.shape
-        return a * b
-
-    def cells(self, t, halo=True):
-        """(cx0, cx1, cy0, cy1): the half-open cell ranges of tile t (with its halo)."""
-        ntx, _ = self.shape
-        tx, ty = t % ntx, t // ntx
-        h = self.halo if halo else 0
-        return (tx * self.size - h, (tx + 1) * self.size + h,
-                ty * self.size - h, (ty + 1) * self.size + h)
-
-    def box(self, t):
-        """(lo, hi) x-y coordinates of tile t with its halo (for the bucket search)."""
-        cx0, cx1, cy0, cy1 = self.cells(t)
-        o, c = self.frame.origin, self.frame.cell
-        return (o[0] + cx0 * c, o[1] + cy0 * c), (o[0] + cx1 * c, o[1] + cy1 * c)
-
-
-def _within(cells, rng):
-    cx0, cx1, cy0, cy1 = rng
-    return ((cells[:, 0] >= cx0) & (cells[:, 0] < cx1)
-            & (cells[:, 1] >= cy0) & (cells[:, 1] < cy1))
 
 
 # --------------------------------------------------------------------------- buckets
 
-class Buckets:
-    """Pass (1): the points, with their global ids (and the file's normals), appended to the
-    files of a coarse x-y grid of ``side`` from ``origin`` (indices clamped to the grid, so
-    a point outside the expected box still lands in an edge bucket); exact bounds and
-    counts taken on the way."""
-
-    def __init__(self, folder, origin, side, shape, normals):
-        self.folder = Path(folder)
-        self.origin, self.side, self.shape = np.asarray(origin, float), float(side), shape
-        fields = [("id", "<i8"), ("p", "<f8", (3,))]
-        if normals:
-            fields.append(("n", "<f8", (3,)))
-        self.dtype = np.dtype(fields)
-        self.counts = np.zeros(shape, np.int64)
-        self.lo = np.full(3, np.inf)
-        self.hi = np.full(3, -np.inf)
-        self.normals_finite = True
-
-    def _index(self, xy):
-        ij = np.floor((xy - self.origin) / self.side).astype(np.int64)
-        np.clip(ij[:, 0], 0, self.shape[0] - 1, out=ij[:, 0])
-        np.clip(ij[:, 1], 0, self.shape[1] - 1, out=ij[:, 1])
-        return ij
-
-    def path(self, i, j):
-        return self.folder / f"b{i}_{j}.bin"
-
-    def add(self, start, xyz, nrm):
-        m = len(xyz)
-        self.lo = np.minimum(self.lo, xyz.min(axis=0))
-        self.hi = np.maximum(self.hi, xyz.max(axis=0))
-        rec = np.empty(m, self.dtype)
-        rec["id"] = np.arange(start, start + m)
-        rec["p"] = xyz
-        if "n" in self.dtype.names:
-            rec["n"] = nrm
-            self.normals_finite &= bool(np.isfinite(nrm).all())
-        ij = self._index(xyz[:, :2])
-        flat = ij[:, 0] * self.shape[1] + ij[:, 1]
-        order = np.argsort(flat, kind="stable")
-        flat, rec = flat[order], rec[order]
-        cuts = np.flatnonzero(np.diff(flat)) + 1
-        for a, b in zip(np.r_[0, cuts], np.r_[cuts, m]):
-            i, j = divmod(int(flat[a]), self.shape[1])
-            with open(self.path(i, j), "ab") as f:
-                rec[a:b].tofile(f)
-            self.counts[i, j] += b - a
-
-    def overlapping(self, lo, hi):
-        """(i, j) of the non-empty buckets that may hold points of the box [lo, hi) (x-y)."""
-        ij = self._index(np.array([lo, hi], float))
-        for i in range(ij[0, 0], ij[1, 0] + 1):
-            for j in range(ij[0, 1], ij[1, 1] + 1):
-                if self.counts[i, j]:
-                    yield i, j
-
-    def gather(self, tiling, t, block=1 << 18, state=None):
-        """The records of the points in tile t's cells and halo, in global-id order.
-
-        ``state`` (a :class:`clcurv.tiled_scale.State`) joins each record with its row of
-        the scale space's state and places the points by ``state.key`` (their binned or
-        smoothed positions, within ``state.margin`` of the original ones) instead of by
-        their original positions."""
-        lo, hi = tiling.box(t)
-        if state is not None:
-            lo, hi = np.subtract(lo, state.margin), np.add(hi, state.margin)
-        rng = tiling.cells(t)
-        parts = []
-        for i, j in self.overlapping(lo, hi):
-            rows = state.rows(self, i, j, block) if state is not None else None
-            start = 0
-            with open(self.path(i, j), "rb") as f:
-                while True:
-                    rec = np.fromfile(f, self.dtype, count=block)
-                    if not len(rec):
-                        break
-                    if rows is not None:
-                        rec = state.join(rec, next(rows), i * self.shape[1] + j, start)
-                    start += len(rec)
-                    pos = state.key(rec) if state is not None else rec["p"]
-                    keep = _within(tiling.frame.cells_of(pos), rng)
-                    if keep.any():
-                        parts.append(rec[keep])
-        if not parts:
-            return np.empty(0, self._dtype(state))
-        rec = np.concatenate(parts)
-        return rec[np.argsort(rec["id"], kind="stable")]
-
-    def _dtype(self, state):
-        return self.dtype if state is None else state.joined_dtype(self.dtype)
-
-    def state(self):
-        return {"origin": self.origin.tolist(), "side": self.side, "shape": list(self.shape),
-                "counts": self.counts.tolist(), "lo": self.lo.tolist(),
-                "hi": self.hi.tolist(), "normals_finite": self.normals_finite,
-                "normals": "n" in self.dtype.names}
-
-    @classmethod
-    def from_state(cls, folder, s):
-        b = cls(folder, s["origin"], s["side"], tuple(s["shape"]), s["normals"])
-        b.counts = np.asarray(s["counts"], np.int64).reshape(b.shape)
-        b.lo, b.hi = np.asarray(s["lo"]), np.asarray(s["hi"])
-        b.normals_finite = s["normals_finite"]
-        return b
-
-
-def _bucket_grid(src, target_points):
-    """(origin, side, shape) of the coarse bucket grid: buckets of about target_points /
-    BUCKETS_PER_TILE^2 points over the header's box (LAS) or the exact box (NPY, a cheap
-    memory-mapped scan), at most MAX_BUCKETS."""
-    box = src.bounds_hint()
-    if box is None:
-        lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
-        for _, xyz, _ in src.chunks(READ_CHUNK * 4):
-            lo, hi = np.minimum(lo, xyz.min(axis=0)), np.maximum(hi, xyz.max(axis=0))
-        box = (lo, hi) if src.n else (np.zeros(3), np.zeros(3))
-    lo, hi = box
-    ext = np.maximum(hi[:2] - lo[:2], 1e-300)
-    area = float(ext[0] * ext[1])
-    per_bucket = max(target_points / BUCKETS_PER_TILE ** 2, 1.0)
-    side = math.sqrt(area * per_bucket / max(src.n, 1))
-    side = max(side, float(max(ext)) / math.sqrt(MAX_BUCKETS))
-    shape = tuple(max(1, min(int(math.ceil(e / side)), MAX_BUCKETS)) for e in ext)
-    return lo[:2], side, shape
-
 
 # --------------------------------------------------------------------------- planning
-
-def plan_tiles(buckets, radius, halo, budget, tile=None, frame=None):
-    """The :class:`Tiling` of the whole cloud: its frame from the exact bounds (or
-    ``frame``), and tiles of ``tile`` (length) or, from the budget, as large as the
-    densest tile allows."""
-    frame = frame if frame is not None else Frame.covering(buckets.lo, buckets.hi, radius)
-    limit = max(int(budget // TILE_BYTES_PER_POINT), 1)
-    if tile is not None:
-        size = int(math.floor(float(tile) / frame.cell))
-        if size < max(halo, 1):
-            raise TilingError(f"tile size {tile} is smaller than the halo: a tile needs at "
-                              f"least {halo} cell(s) of the radius {radius:.6g}, i.e. "
-                              f"--tile-size >= {max(halo, 1) * frame.cell:.6g}")
-        return Tiling(frame, size, halo)
-    nx, ny, _ = frame.dims
-    size = max(nx, ny)
-    while True:
-        tiling = Tiling(frame, size, halo)
-        worst = _densest(buckets, tiling)
-        if worst <= limit:
-            return tiling
-        if size <= max(halo, 1):
-            raise TilingError(
-                f"the memory budget ({budget / 2**20:.0f} MiB) is too small for one tile: "
-                f"the densest tile of {size} x {size} cells of the radius holds about "
-                f"{worst} points with its halo, {TILE_BYTES_PER_POINT} bytes each; give "
-                "more memory (--memory) or a smaller radius")
-        size = max(max(halo, 1), int(size * min(0.7, math.sqrt(limit / worst))))
-
-
-def _densest(buckets, tiling):
-    """An estimate of the most points a tile of ``tiling`` reads: the buckets' counts
-    spread uniformly over their area."""
-    b = buckets
-    ntx, nty = tiling.shape
-    cell = tiling.frame.cell
-    reach = (tiling.size + 2 * tiling.halo) * cell
-    density = b.counts / (b.side * b.side)
-    worst = 0.0
-    step = max(1, int(max(ntx, nty) // 256))
-    for t in range(0, tiling.count, step if tiling.count > 65536 else 1):
-        lo, hi = tiling.box(t)
-        est = 0.0
-        for i, j in b.overlapping(lo, hi):
-            bx0 = b.origin[0] + i * b.side
-            by0 = b.origin[1] + j * b.side
-            ox = max(0.0, min(hi[0], bx0 + b.side) - max(lo[0], bx0))
-            oy = max(0.0, min(hi[1], by0 + b.side) - max(lo[1], by0))
-            edge = i in (0, b.shape[0] - 1) or j in (0, b.shape[1] - 1)
-            est += b.counts[i, j] if edge and ox * oy > 0 else density[i, j] * ox * oy
-        worst = max(worst, est)
-        if reach >= 1e300:
-            break
-    return int(worst)
 
 
 # --------------------------------------------------------------------------- the run
@@ -571,7 +282,7 @@ def _prepare(ws, source, params, budget, tile, say):
         shutil.rmtree(ws)
     (ws / "buckets").mkdir(parents=True)
     target = max(budget // TILE_BYTES_PER_POINT, 1)
-    origin, side, shape = _bucket_grid(source, target)
+    origin, side, shape = bucket_grid(source, target)
     b = Buckets(ws / "buckets", origin, side, shape, source.has_normals)
     for start, xyz, nrm in source.chunks(READ_CHUNK):
         b.add(start, xyz, nrm)
@@ -621,7 +332,7 @@ def _run(source, dst, params, budget, tile, ws, wanted, progress, say, client=No
     say(f"{source.n} points in {tiling.count} tile(s) of {tiling.size} x {tiling.size} "
         f"cells of {tiling.frame.cell:.6g} (halo {halo} cell(s)), budget "
         f"{budget / 2**20:.0f} MiB")
-    todo = [t for t in range(tiling.count) if not _tile_file(ws, t).exists()]
+    todo = [t for t in range(tiling.count) if not tile_file(ws, t).exists()]
     skipped = tiling.count - len(todo)
     tasks = [TileTask(str(ws), t, tiling, state["buckets"], params, how, file_normals,
                       specs, smoothed) for t in todo]
@@ -636,9 +347,9 @@ def _run(source, dst, params, budget, tile, ws, wanted, progress, say, client=No
     times["tiles"] = time.perf_counter() - t1
     t2 = time.perf_counter()
     mst = isinstance(how, str) and how == "mst"
-    windows = _partition(ws, source.n, tiling.count, specs, mst)
+    windows = partition(ws, source.n, tiling.count, specs, mst)
     if mst:
-        _reconcile_mst(ws, windows, tiling.count, params.method)
+        tiled_orient.reconcile_windows(ws, windows, tiling.count, params.method)
     _trim()
     times["merging"] = time.perf_counter() - t2
     t3 = time.perf_counter()
@@ -672,129 +383,6 @@ def _wanted_specs(params, wanted):
                              f"{params.method}; available: {', '.join(sorted(names))}")
         specs = [s for s in specs if s[0] in wanted]
     return specs
-
-
-def _tile_file(ws, t):
-    return Path(ws) / "tiles" / f"{t}.npy"
-
-
-#: points per id window of the merge (its records are what the writing pass holds; a
-#: multiple of READ_CHUNK, so a written chunk never spans two windows)
-WINDOW = 1 << 18
-
-
-class Windows:
-    """The tiles' records regrouped by windows of WINDOW consecutive global ids (one file
-    each), read back one window at a time in input order: the writing pass holds one
-    window, never the whole cloud's fields (no memory maps either: their pages would stay
-    in the resident set)."""
-
-    def __init__(self, folder, n, dtype):
-        self.folder, self.n, self.dtype = Path(folder), n, dtype
-        self.count = -(-n // WINDOW)
-        self.status = np.zeros(4, np.int64)
-        self._w, self._rec = -1, None
-        self.transform = None           # applied to a copy of the rows given out
-
-    def path(self, w):
-        return self.folder / f"w{w}.bin"
-
-    def halo_path(self, w):
-        return self.folder / f"h{w}.bin"
-
-    def window(self, w):
-        """The records of window w, indexed by id - w * WINDOW; RuntimeError unless every
-        id of the window is there exactly once (a bug, never a silently partial output)."""
-        if w != self._w:
-            lo, hi = w * WINDOW, min(self.n, (w + 1) * WINDOW)
-            p = self.path(w)
-            rec = np.fromfile(p, self.dtype) if p.exists() else np.empty(0, self.dtype)
-            seen = np.bincount(rec["id"] - lo, minlength=hi - lo)
-            if len(seen) != hi - lo or not np.all(seen == 1):
-                raise RuntimeError(
-                    f"the tiles wrote ids {lo}..{hi - 1} wrongly: "
-                    f"{int(np.count_nonzero(seen[:hi - lo] == 0))} missing, "
-                    f"{int(np.count_nonzero(seen > 1))} more than once")
-            out = np.empty(hi - lo, self.dtype)
-            out[rec["id"] - lo] = rec
-            self._w, self._rec = w, out
-        return self._rec
-
-    def rows(self, start, stop):
-        """The records of ids start..stop-1 (may span windows)."""
-        parts = []
-        while start < stop:
-            w = start // WINDOW
-            rec = self.window(w)
-            end = min(stop, (w + 1) * WINDOW)
-            parts.append(rec[start - w * WINDOW:end - w * WINDOW])
-            start = end
-        out = parts[0] if len(parts) == 1 else np.concatenate(parts)
-        return self.transform(out.copy()) if self.transform is not None else out
-
-
-def _to_windows(rec, path_of):
-    """Append the records ``rec`` (with an 'id') to the files of their id windows."""
-    w = rec["id"] // WINDOW
-    order = np.argsort(w, kind="stable")
-    w, rec = w[order], rec[order]
-    cuts = np.flatnonzero(np.diff(w)) + 1
-    for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(rec)]):
-        with open(path_of(int(w[a])), "ab") as f:
-            rec[a:b].tofile(f)
-
-
-def _partition(ws, n, count, specs, mst=False):
-    """Pass (3a): the tile files' records appended to the id windows' files (and, for MST
-    orientation, the halo records to the windows' halo files)."""
-    dtype = _tile_dtype(specs, mst)
-    win = Windows(Path(ws) / "windows", n, dtype)
-    if win.folder.exists():
-        shutil.rmtree(win.folder)
-    win.folder.mkdir()
-    for t in range(count):
-        rec = np.load(_tile_file(ws, t))
-        if "status" in rec.dtype.names and len(rec):
-            win.status += np.bincount(rec["status"], minlength=4)[:4]
-        if len(rec):
-            _to_windows(rec, win.path)
-        if mst:
-            halo = np.load(_tile_file(ws, t).with_suffix(".halo.npy"))
-            if len(halo):
-                _to_windows(halo, win.halo_path)
-    return win
-
-
-def _reconcile_mst(ws, windows, count, method):
-    """Votes between tile components from the halo points and their owners, window by
-    window; sets ``windows.transform`` to the final flips (clcurv.tiled_orient)."""
-    from .tiled_orient import HALO_DTYPE, flip_fields, flip_mask, reconcile
-    votes = {}
-    for w in range(windows.count):
-        hp = windows.halo_path(w)
-        if not hp.exists():
-            continue
-        halo = np.fromfile(hp, HALO_DTYPE)
-        own = windows.window(w)[halo["id"] - w * WINDOW]
-        ok = own["node"] >= 0
-        halo, own = halo[ok], own[ok]
-        agree = np.einsum("ij,ij->i", halo["nl"].astype(np.float64),
-                          own["nl"].astype(np.float64)) >= 0
-        a, b = np.minimum(halo["node"], own["node"]), np.maximum(halo["node"], own["node"])
-        keys = np.stack([a, b, agree.astype(np.int64)], axis=1)
-        uniq, cnt = np.unique(keys, axis=0, return_counts=True)
-        for (x, y, g), c in zip(uniq.tolist(), cnt.tolist()):
-            if x != y:
-                votes[(x, y)] = votes.get((x, y), 0) + (c if g else -c)
-    sums = [np.load(_tile_file(ws, t).with_suffix(".nodes.npy")) for t in range(count)]
-    flips, centroid, small = reconcile(sums, votes)
-    windows.transform = lambda rec: flip_fields(rec, flip_mask(rec, flips, centroid, small),
-                                                method)
-
-
-def fits_memory(n, budget):
-    """Does an in-memory run of ``n`` points fit ``budget`` bytes?"""
-    return n * IN_MEMORY_BYTES_PER_POINT <= budget
 
 
 def _in_memory(src, dst, params, fields, say):
@@ -843,9 +431,9 @@ def compute_tile(task, device=None):
     rec = buckets.gather(tiling, task.t, state=task.smoothed)
     pos = rec["p"] if task.smoothed is None or not len(rec) else task.smoothed.key(rec)
     cells = tiling.frame.cells_of(pos) if len(rec) else np.empty((0, 3), np.int64)
-    own = _within(cells, tiling.cells(task.t, halo=False))
+    own = within(cells, tiling.cells(task.t, halo=False))
     mst = isinstance(task.how, str) and task.how == "mst"
-    out = np.empty(int(own.sum()), _tile_dtype(task.specs, mst))
+    out = np.empty(int(own.sum()), tile_dtype(task.specs, mst))
     if len(out):
         if device is None:
             device = _worker_device(params.device)
@@ -872,7 +460,7 @@ def compute_tile(task, device=None):
     elif mst:
         _mst_records(task, out, np.zeros(0, bool), np.empty((0, 3)), np.empty((0, 3)),
                      np.empty(0, np.int64), np.empty(0, np.int64))
-    path = _tile_file(task.ws, task.t)
+    path = tile_file(task.ws, task.t)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     with open(tmp, "wb") as fh:
         np.save(fh, out)
@@ -889,7 +477,7 @@ def _mst_records(task, out, own, pos, nl, node, ids):
     halo = ~own & (node >= 0)
     h = np.empty(int(halo.sum()), tiled_orient.HALO_DTYPE)
     h["id"], h["node"], h["nl"] = ids[halo], node[halo], nl[halo]
-    base = _tile_file(task.ws, task.t)
+    base = tile_file(task.ws, task.t)
     for suffix, arr in ((".halo.npy", h), (".nodes.npy", tiled_orient.node_sums(
             pos[own], nl[own], node[own], o) if len(out) else
             np.empty(0, tiled_orient.SUMS_DTYPE))):
@@ -898,13 +486,6 @@ def _mst_records(task, out, own, pos, nl, node, ids):
         with open(tmp, "wb") as fh:
             np.save(fh, arr)
         os.replace(tmp, path)
-
-
-def _tile_dtype(specs, mst=False):
-    from .tiled_orient import NODE_FIELDS
-    return np.dtype([("id", "<i8")] + [(name, dtype) if width is None else
-                                       (name, dtype, (width,)) for name, width, dtype in specs]
-                    + (NODE_FIELDS if mst else []))
 
 
 _DEVICES = {}
@@ -969,134 +550,4 @@ def _write_one(dst, source, rows, n, specs):
 
 # --------------------------------------------------------------------------- the file job
 
-def wants_tiles(job):
-    """Does the file job ``job`` (clcurv.job.Job) run tiled: a tile size was given, or its
-    LAS/LAZ/NPY input does not fit the memory budget (its point count from the header)."""
-    if job.tile_size is not None or job.workers or job.scheduler:
-        return True
-    if Path(job.input).suffix.lower() not in stream.STREAM_READS:
-        return False
-    try:
-        n = stream.open_source(job.input).n
-    except Exception:                       # the in-memory reader reports it
-        return False
-    if job.projections or job.positions != "original":
-        # options only the in-memory job has: tiles only when it cannot fit at all (the
-        # tiled run then says which option it lacks)
-        return not fits_memory(n, int(available_memory() * AUTO_FRACTION))
-    return not fits_memory(n, budget_of(job.memory))
 
-
-def auto_radius_tiled(src, k=30, regions=16, sample=5000, seed=0, budget=None):
-    """``radius="auto"`` of a cloud too large for memory: the median, over about
-    ``sample`` points drawn from ``regions`` random buckets (seeded, weighted by their
-    counts), of the distance to the k-th nearest other point, each bucket read with the
-    ring of buckets around it and only points whose k-th neighbour lies inside that
-    region kept (so each distance is the whole cloud's). It estimates the in-memory
-    auto radius (clcurv.job.auto_radius, a sample of the whole cloud) to a few per cent,
-    not to the bit: pass the radius for reproducible runs."""
-    import tempfile
-    from scipy.spatial import cKDTree
-    with tempfile.TemporaryDirectory(prefix="clcurv-radius-") as tmp:
-        target = max((budget or (1 << 28)) // (TILE_BYTES_PER_POINT * 9), 10_000)
-        origin, side, shape = _bucket_grid(src, target * BUCKETS_PER_TILE ** 2)
-        b = Buckets(tmp, origin, side, shape, False)
-        for start, xyz, _ in src.chunks(READ_CHUNK):
-            b.add(start, xyz, None)
-        rng = np.random.default_rng(seed)
-        flat = b.counts.ravel().astype(float)
-        if flat.sum() <= k:
-            raise ValueError(f"radius auto needs more than {k} points")
-        picks = rng.choice(len(flat), size=min(regions, int((flat > 0).sum())),
-                           replace=False, p=flat / flat.sum())
-        dists = []
-        for f in picks:
-            i, j = divmod(int(f), shape[1])
-            pts, centre = [], None
-            for di in (-1, 0, 1):
-                for dj in (-1, 0, 1):
-                    a, c = i + di, j + dj
-                    if 0 <= a < shape[0] and 0 <= c < shape[1] and b.counts[a, c]:
-                        rec = np.fromfile(b.path(a, c), b.dtype)
-                        pts.append(rec["p"])
-                        if (di, dj) == (0, 0):
-                            centre = rec["p"]
-            cloud = np.concatenate(pts)
-            q = centre[rng.choice(len(centre), size=min(len(centre), -(-sample // len(picks))),
-                                  replace=False)]
-            kk = min(k + 1, len(cloud))
-            d, _ = cKDTree(cloud).query(q, k=kk)
-            d = d.reshape(len(q), -1)[:, -1]
-            # room to the region's sides that have buckets beyond them (the others are
-            # the grid's own sides, beyond which there is nothing)
-            lo = np.asarray(origin) + np.array([i - 1, j - 1]) * side
-            hi = lo + 3 * side
-            lo = np.where([i - 1 < 0, j - 1 < 0], -np.inf, lo)
-            hi = np.where([i + 1 >= shape[0], j + 1 >= shape[1]], np.inf, hi)
-            room = np.min(np.concatenate([q[:, :2] - lo, hi - q[:, :2]], axis=1), axis=1)
-            keep = d <= room
-            dists.append(d[keep] if keep.any() else d)
-        r = float(np.median(np.concatenate(dists)))
-        if not r > 0:
-            raise ValueError("radius auto: the sampled points have duplicates for "
-                             f"neighbours; give the radius")
-        return r
-
-
-def run_job(job, out=print):
-    """The file job ``job`` in tiles (:func:`curvature_file`); prints a summary on ``out``
-    and returns the summary dict."""
-    from .job import ORIENT_CHOICES, UsageError
-    if job.radius == "auto" or job.radius is None:
-        src = (stream.Catalog(job.input) if isinstance(job.input, (list, tuple))
-               else stream.open_source(job.input))
-        job.radius = auto_radius_tiled(src,
-                                       budget=budget_of(job.memory))
-        out(f"radius auto: {job.radius:.6g} (median distance to the 30th neighbour, "
-            "sampled in 16 regions of the cloud)")
-    if job.positions != "original":
-        raise UsageError("a tiled run writes the original positions (--positions original)")
-    if job.workers is not None and job.workers < 1:
-        raise UsageError(f"--workers must be >= 1, got {job.workers}")
-    client = None
-    if job.scheduler:
-        from .cluster import _import
-        client = _import().Client(job.scheduler)
-    bar = None
-    if not job.quiet:
-        from tqdm import tqdm
-        bar = tqdm(desc="tiles", unit="tile", file=sys.stderr, leave=True)
-
-    def progress(done, total, points):
-        if bar is not None:
-            if bar.total != total:
-                bar.reset(total=total)
-            bar.set_postfix_str(f"{points} points", refresh=False)
-            bar.update(done - bar.n)
-    try:
-        summary = curvature_file(
-            job.input, job.output, float(job.radius), method=job.method,
-            weights=job.weights, orient=ORIENT_CHOICES.get(job.orient, job.orient),
-            viewpoint=job.viewpoint, kernel=job.kernel, h=job.h,
-            scale_space=job.scale_space, projections=job.projections, memory=job.memory,
-            tile=job.tile_size, fields=job.fields, ignore_normals=job.ignore_normals,
-            device=job.device, precision=job.precision, progress=progress,
-            out=None if job.quiet else (lambda s: print(s, file=sys.stderr)),
-            client=client, workers=job.workers)
-    except TilingError as exc:
-        raise UsageError(str(exc)) from exc
-    finally:
-        if bar is not None:
-            bar.close()
-        if client is not None:
-            client.close()
-    times = ", ".join(f"{k} {v:.2f} s" for k, v in summary["times"].items())
-    st = summary["status"] or []
-    ok = st[0] / max(sum(st), 1) if st else float("nan")
-    what = (f"{len(job.input)} files" if isinstance(job.input, (list, tuple))
-            else job.input)
-    out(f"\n{summary['points']} points from {what} in {summary['tiles']} tile(s) "
-        f"(halo {summary['halo']} cell(s)); status ok {ok:.1%}")
-    out(f"time: {times}")
-    out(f"wrote {job.output}")
-    return summary

@@ -160,3 +160,30 @@ def flip_fields(rec, mask, method):
                 x, y = rec[a][mask].copy(), rec[b][mask].copy()
                 rec[a][mask], rec[b][mask] = y, x
     return rec
+
+
+def reconcile_windows(ws, windows, count, method):
+    """Votes between tile components from the halo points and their owners, window by
+    window; sets ``windows.transform`` to the final flips (clcurv.tiled_orient)."""
+    from .tile_results import WINDOW, tile_file
+    votes = {}
+    for w in range(windows.count):
+        hp = windows.halo_path(w)
+        if not hp.exists():
+            continue
+        halo = np.fromfile(hp, HALO_DTYPE)
+        own = windows.window(w)[halo["id"] - w * WINDOW]
+        ok = own["node"] >= 0
+        halo, own = halo[ok], own[ok]
+        agree = np.einsum("ij,ij->i", halo["nl"].astype(np.float64),
+                          own["nl"].astype(np.float64)) >= 0
+        a, b = np.minimum(halo["node"], own["node"]), np.maximum(halo["node"], own["node"])
+        keys = np.stack([a, b, agree.astype(np.int64)], axis=1)
+        uniq, cnt = np.unique(keys, axis=0, return_counts=True)
+        for (x, y, g), c in zip(uniq.tolist(), cnt.tolist()):
+            if x != y:
+                votes[(x, y)] = votes.get((x, y), 0) + (c if g else -c)
+    sums = [np.load(tile_file(ws, t).with_suffix(".nodes.npy")) for t in range(count)]
+    flips, centroid, small = reconcile(sums, votes)
+    windows.transform = lambda rec: flip_fields(rec, flip_mask(rec, flips, centroid, small),
+                                                method)

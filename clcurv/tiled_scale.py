@@ -138,7 +138,9 @@ def step_tile(task):
     """One scale-space step of tile ``task.t``: its own points' new state rows go to part
     files (one per bucket they belong to); returns (t, largest drift of its points)."""
     from .smoothing import _DeviceState
-    from .tiled import Buckets, _within, _worker_device
+    from .buckets import Buckets
+    from .tiled import _worker_device
+    from .tiling import within
     buckets = Buckets.from_state(Path(task.ws) / "buckets", task.buckets)
     state = State(task.state.folder, task.state.real, "pb", task.state.margin)
     rec = buckets.gather(task.tiling, task.t, state=state)
@@ -146,7 +148,7 @@ def step_tile(task):
     out_dir = _parts(task.ws, task.step)
     if not len(rec):
         return task.t, 0.0
-    own = _within(tiling.frame.cells_of(rec["pb"]), tiling.cells(task.t, halo=False))
+    own = within(tiling.frame.cells_of(rec["pb"]), tiling.cells(task.t, halo=False))
     drift = 0.0
     if own.any():
         device = _worker_device(task.device)
@@ -178,7 +180,7 @@ def step_tile(task):
 def run_steps(ws, buckets, params, steps, budget, execute, progress=None, tile=None):
     """The ``steps`` scale-space steps over tiles (see the module docstring); leaves the
     final state in ``ws/state`` and returns the State to read smoothed positions from."""
-    from .tiled import plan_tiles
+    from .tiling import plan_tiles
     real = "<f4" if params.precision == "float" else "<f8"
     folder = Path(ws) / "state"
     init_state(buckets, folder, real)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import clcurv
-from clcurv import tiled
+from clcurv import tiled, tiled_job
 from clcurv.io._common import CorruptFileError
 
 laspy = pytest.importorskip("laspy")
@@ -281,10 +281,10 @@ def test_which_file_jobs_tile(scene):
     from clcurv.job import Job
     _, paths, _ = scene
     small = Job(paths["laz"], "o.laz", radius=1.0)
-    assert not tiled.wants_tiles(small)                 # 30k points fit the default budget
-    assert tiled.wants_tiles(Job(paths["laz"], "o.laz", radius=1.0, memory="4MiB"))
-    assert tiled.wants_tiles(Job(paths["laz"], "o.laz", radius=1.0, tile_size=8.0))
-    assert not tiled.wants_tiles(Job(paths["laz"], "o.ply", radius=1.0, memory="4MiB",
+    assert not tiled_job.wants_tiles(small)                 # 30k points fit the default budget
+    assert tiled_job.wants_tiles(Job(paths["laz"], "o.laz", radius=1.0, memory="4MiB"))
+    assert tiled_job.wants_tiles(Job(paths["laz"], "o.laz", radius=1.0, tile_size=8.0))
+    assert not tiled_job.wants_tiles(Job(paths["laz"], "o.ply", radius=1.0, memory="4MiB",
                                      positions="projected"))   # only in memory, and fits
     assert tiled.budget_of("auto") <= tiled.AUTO_CAP
 
@@ -295,7 +295,7 @@ def test_auto_radius_in_tiles_estimates_the_in_memory_one(scene):
     from clcurv.io import stream
     from clcurv.job import auto_radius
     _, paths, pts = scene
-    r_tiled = tiled.auto_radius_tiled(stream.open_source(paths["laz"]))
+    r_tiled = tiled_job.auto_radius_tiled(stream.open_source(paths["laz"]))
     r_mem = auto_radius(pts)
     assert abs(r_tiled / r_mem - 1) < 0.05, (r_tiled, r_mem)
 

@@ -1,0 +1,148 @@
+"""Pass (1) of a tiled run (:mod:`clcurv.tiled`): the points, with their global ids, filed
+in on-disk buckets of a coarse x-y grid, and read back per tile."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from .tiling import within
+
+#: points per read chunk of pass (1) and per written chunk of pass (3)
+READ_CHUNK = 1 << 18
+
+
+#: most buckets of pass (1) (a coarse grid; each is a file)
+MAX_BUCKETS = 4096
+
+
+#: tiles per side of a bucket: buckets are this many times smaller than a tile, so a tile
+#: reads little more than its own cells and halo
+BUCKETS_PER_TILE = 2
+
+
+class Buckets:
+    """Pass (1): the points, with their global ids (and the file's normals), appended to the
+    files of a coarse x-y grid of ``side`` from ``origin`` (indices clamped to the grid, so
+    a point outside the expected box still lands in an edge bucket); exact bounds and
+    counts taken on the way."""
+
+    def __init__(self, folder, origin, side, shape, normals):
+        self.folder = Path(folder)
+        self.origin, self.side, self.shape = np.asarray(origin, float), float(side), shape
+        fields = [("id", "<i8"), ("p", "<f8", (3,))]
+        if normals:
+            fields.append(("n", "<f8", (3,)))
+        self.dtype = np.dtype(fields)
+        self.counts = np.zeros(shape, np.int64)
+        self.lo = np.full(3, np.inf)
+        self.hi = np.full(3, -np.inf)
+        self.normals_finite = True
+
+    def _index(self, xy):
+        ij = np.floor((xy - self.origin) / self.side).astype(np.int64)
+        np.clip(ij[:, 0], 0, self.shape[0] - 1, out=ij[:, 0])
+        np.clip(ij[:, 1], 0, self.shape[1] - 1, out=ij[:, 1])
+        return ij
+
+    def path(self, i, j):
+        return self.folder / f"b{i}_{j}.bin"
+
+    def add(self, start, xyz, nrm):
+        m = len(xyz)
+        self.lo = np.minimum(self.lo, xyz.min(axis=0))
+        self.hi = np.maximum(self.hi, xyz.max(axis=0))
+        rec = np.empty(m, self.dtype)
+        rec["id"] = np.arange(start, start + m)
+        rec["p"] = xyz
+        if "n" in self.dtype.names:
+            rec["n"] = nrm
+            self.normals_finite &= bool(np.isfinite(nrm).all())
+        ij = self._index(xyz[:, :2])
+        flat = ij[:, 0] * self.shape[1] + ij[:, 1]
+        order = np.argsort(flat, kind="stable")
+        flat, rec = flat[order], rec[order]
+        cuts = np.flatnonzero(np.diff(flat)) + 1
+        for a, b in zip(np.r_[0, cuts], np.r_[cuts, m]):
+            i, j = divmod(int(flat[a]), self.shape[1])
+            with open(self.path(i, j), "ab") as f:
+                rec[a:b].tofile(f)
+            self.counts[i, j] += b - a
+
+    def overlapping(self, lo, hi):
+        """(i, j) of the non-empty buckets that may hold points of the box [lo, hi) (x-y)."""
+        ij = self._index(np.array([lo, hi], float))
+        for i in range(ij[0, 0], ij[1, 0] + 1):
+            for j in range(ij[0, 1], ij[1, 1] + 1):
+                if self.counts[i, j]:
+                    yield i, j
+
+    def gather(self, tiling, t, block=1 << 18, state=None):
+        """The records of the points in tile t's cells and halo, in global-id order.
+
+        ``state`` (a :class:`clcurv.tiled_scale.State`) joins each record with its row of
+        the scale space's state and places the points by ``state.key`` (their binned or
+        smoothed positions, within ``state.margin`` of the original ones) instead of by
+        their original positions."""
+        lo, hi = tiling.box(t)
+        if state is not None:
+            lo, hi = np.subtract(lo, state.margin), np.add(hi, state.margin)
+        rng = tiling.cells(t)
+        parts = []
+        for i, j in self.overlapping(lo, hi):
+            rows = state.rows(self, i, j, block) if state is not None else None
+            start = 0
+            with open(self.path(i, j), "rb") as f:
+                while True:
+                    rec = np.fromfile(f, self.dtype, count=block)
+                    if not len(rec):
+                        break
+                    if rows is not None:
+                        rec = state.join(rec, next(rows), i * self.shape[1] + j, start)
+                    start += len(rec)
+                    pos = state.key(rec) if state is not None else rec["p"]
+                    keep = within(tiling.frame.cells_of(pos), rng)
+                    if keep.any():
+                        parts.append(rec[keep])
+        if not parts:
+            return np.empty(0, self._dtype(state))
+        rec = np.concatenate(parts)
+        return rec[np.argsort(rec["id"], kind="stable")]
+
+    def _dtype(self, state):
+        return self.dtype if state is None else state.joined_dtype(self.dtype)
+
+    def state(self):
+        return {"origin": self.origin.tolist(), "side": self.side, "shape": list(self.shape),
+                "counts": self.counts.tolist(), "lo": self.lo.tolist(),
+                "hi": self.hi.tolist(), "normals_finite": self.normals_finite,
+                "normals": "n" in self.dtype.names}
+
+    @classmethod
+    def from_state(cls, folder, s):
+        b = cls(folder, s["origin"], s["side"], tuple(s["shape"]), s["normals"])
+        b.counts = np.asarray(s["counts"], np.int64).reshape(b.shape)
+        b.lo, b.hi = np.asarray(s["lo"]), np.asarray(s["hi"])
+        b.normals_finite = s["normals_finite"]
+        return b
+
+
+def bucket_grid(src, target_points):
+    """(origin, side, shape) of the coarse bucket grid: buckets of about target_points /
+    BUCKETS_PER_TILE^2 points over the header's box (LAS) or the exact box (NPY, a cheap
+    memory-mapped scan), at most MAX_BUCKETS."""
+    box = src.bounds_hint()
+    if box is None:
+        lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+        for _, xyz, _ in src.chunks(READ_CHUNK * 4):
+            lo, hi = np.minimum(lo, xyz.min(axis=0)), np.maximum(hi, xyz.max(axis=0))
+        box = (lo, hi) if src.n else (np.zeros(3), np.zeros(3))
+    lo, hi = box
+    ext = np.maximum(hi[:2] - lo[:2], 1e-300)
+    area = float(ext[0] * ext[1])
+    per_bucket = max(target_points / BUCKETS_PER_TILE ** 2, 1.0)
+    side = math.sqrt(area * per_bucket / max(src.n, 1))
+    side = max(side, float(max(ext)) / math.sqrt(MAX_BUCKETS))
+    shape = tuple(max(1, min(int(math.ceil(e / side)), MAX_BUCKETS)) for e in ext)
+    return lo[:2], side, shape

@@ -1,0 +1,106 @@
+"""The results of a tiled run (:mod:`clcurv.tiled`): one file per tile (its own points'
+fields with their global ids), regrouped by windows of consecutive ids so that the output
+is written in input order one window at a time."""
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+#: points per id window of the merge (its records are what the writing pass holds; a
+#: multiple of READ_CHUNK, so a written chunk never spans two windows)
+WINDOW = 1 << 18
+
+
+class Windows:
+    """The tiles' records regrouped by windows of WINDOW consecutive global ids (one file
+    each), read back one window at a time in input order: the writing pass holds one
+    window, never the whole cloud's fields (no memory maps either: their pages would stay
+    in the resident set)."""
+
+    def __init__(self, folder, n, dtype):
+        self.folder, self.n, self.dtype = Path(folder), n, dtype
+        self.count = -(-n // WINDOW)
+        self.status = np.zeros(4, np.int64)
+        self._w, self._rec = -1, None
+        self.transform = None           # applied to a copy of the rows given out
+
+    def path(self, w):
+        return self.folder / f"w{w}.bin"
+
+    def halo_path(self, w):
+        return self.folder / f"h{w}.bin"
+
+    def window(self, w):
+        """The records of window w, indexed by id - w * WINDOW; RuntimeError unless every
+        id of the window is there exactly once (a bug, never a silently partial output)."""
+        if w != self._w:
+            lo, hi = w * WINDOW, min(self.n, (w + 1) * WINDOW)
+            p = self.path(w)
+            rec = np.fromfile(p, self.dtype) if p.exists() else np.empty(0, self.dtype)
+            seen = np.bincount(rec["id"] - lo, minlength=hi - lo)
+            if len(seen) != hi - lo or not np.all(seen == 1):
+                raise RuntimeError(
+                    f"the tiles wrote ids {lo}..{hi - 1} wrongly: "
+                    f"{int(np.count_nonzero(seen[:hi - lo] == 0))} missing, "
+                    f"{int(np.count_nonzero(seen > 1))} more than once")
+            out = np.empty(hi - lo, self.dtype)
+            out[rec["id"] - lo] = rec
+            self._w, self._rec = w, out
+        return self._rec
+
+    def rows(self, start, stop):
+        """The records of ids start..stop-1 (may span windows)."""
+        parts = []
+        while start < stop:
+            w = start // WINDOW
+            rec = self.window(w)
+            end = min(stop, (w + 1) * WINDOW)
+            parts.append(rec[start - w * WINDOW:end - w * WINDOW])
+            start = end
+        out = parts[0] if len(parts) == 1 else np.concatenate(parts)
+        return self.transform(out.copy()) if self.transform is not None else out
+
+
+def to_windows(rec, path_of):
+    """Append the records ``rec`` (with an 'id') to the files of their id windows."""
+    w = rec["id"] // WINDOW
+    order = np.argsort(w, kind="stable")
+    w, rec = w[order], rec[order]
+    cuts = np.flatnonzero(np.diff(w)) + 1
+    for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(rec)]):
+        with open(path_of(int(w[a])), "ab") as f:
+            rec[a:b].tofile(f)
+
+
+def partition(ws, n, count, specs, mst=False):
+    """Pass (3a): the tile files' records appended to the id windows' files (and, for MST
+    orientation, the halo records to the windows' halo files)."""
+    dtype = tile_dtype(specs, mst)
+    win = Windows(Path(ws) / "windows", n, dtype)
+    if win.folder.exists():
+        shutil.rmtree(win.folder)
+    win.folder.mkdir()
+    for t in range(count):
+        rec = np.load(tile_file(ws, t))
+        if "status" in rec.dtype.names and len(rec):
+            win.status += np.bincount(rec["status"], minlength=4)[:4]
+        if len(rec):
+            to_windows(rec, win.path)
+        if mst:
+            halo = np.load(tile_file(ws, t).with_suffix(".halo.npy"))
+            if len(halo):
+                to_windows(halo, win.halo_path)
+    return win
+
+
+def tile_file(ws, t):
+    return Path(ws) / "tiles" / f"{t}.npy"
+
+
+def tile_dtype(specs, mst=False):
+    from .tiled_orient import NODE_FIELDS
+    return np.dtype([("id", "<i8")] + [(name, dtype) if width is None else
+                                       (name, dtype, (width,)) for name, width, dtype in specs]
+                    + (NODE_FIELDS if mst else []))
