@@ -188,8 +188,10 @@ def clcurv_label(index, cid):
 
 
 def device_record(info):
+    from clcurv.program import tuning
     return {"index": info.index, "name": info.name, "platform": info.platform, "kind": info.kind,
-            "driver": info.driver, "version": info.version, "compute_units": info.compute_units}
+            "driver": info.driver, "version": info.version, "compute_units": info.compute_units,
+            "tuning": tuning(clcurv.get_device(info.index))}
 
 
 def bench_device(info, cols, data, refs, repeats, guard, rss_min_points=1_000_000):

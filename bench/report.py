@@ -337,6 +337,36 @@ LEAD_NOTE = (
     "interpreter, the OpenCL context and programs, the input cloud).")
 
 
+def tuning_text(d):
+    """'VW 8, work-groups 128' (clcurv.program.tuning: chosen per device from queries)."""
+    t = d.get("tuning")
+    if not t:
+        return "tuning not recorded"
+    sizes = sorted(set(t["work_group"].values()))
+    wg = f"{sizes[0]}" if len(sizes) == 1 else f"{sizes[0]}-{sizes[-1]}"
+    return f"VW {t['VW']}, work-groups {wg} (queried)"
+
+
+CROSS_NOTE = ("Every public call with its default arguments (the 'defaults' column of each "
+              "device's lead table): M pts/s on each device, and in brackets its ratio to the "
+              "fastest device for that call (1.00: the fastest).")
+
+
+def cross_device_rows(devs, cols):
+    """(header, rows) of the cross-device summary: per column and call, the default call's
+    M pts/s on every device and its ratio to the fastest device."""
+    head = ("call, n ~neighbours", [f"[{d['device']['index']}] {d['device']['platform']}"
+                                    for d in devs])
+    rows = []
+    for c in cols:
+        for row in CALL_ROWS:
+            rate = [mpts(c["n"], d["k"][c["id"]]["calls_s"][row]["default"]) for d in devs]
+            top = max(rate)
+            rows.append((f"{call_text(row)}, {c['id']}",
+                         [f"{v:.2f} ({v / top:.2f})" for v in rate]))
+    return head, rows
+
+
 def orientation_rows(o):
     """The orientation-alone section: a column per size."""
     sizes = sorted(o["sizes"])
@@ -456,7 +486,7 @@ def report(args, env, guard, cols, refs, o3d_res, jak_res, jak_note, orientation
         d = dev["device"]
         title = (f"[{d['index']}] {d['name']} — {d['platform']} "
                  f"({env['platforms'].get(d['platform'], '?')}), driver {d['driver']}, "
-                 f"{d['version']}, {d['compute_units']} compute units")
+                 f"{d['version']}, {d['compute_units']} compute units, {tuning_text(d)}")
         text += ["", title, "", "WHAT THE DEFAULT CALL COSTS", LEAD_NOTE]
         md += ["", f"## {title}", "", "### What the default call costs", "", LEAD_NOTE]
         for cid in ids:
@@ -490,6 +520,9 @@ def report(args, env, guard, cols, refs, o3d_res, jak_res, jak_note, orientation
             "open3d": o3d_res, "jakteristics": jak_res or {"skipped": jak_note},
             "orientation": orientation, "ratios": rat,
             "targets": [dict(zip(("name", "value", "threshold", "result"), t)) for t in tgt]})
+    head, rows = cross_device_rows(devs, cols)
+    text += ["", "ACROSS DEVICES", CROSS_NOTE, render_text(head, rows)]
+    md += ["", "## Across devices", "", CROSS_NOTE, "", render_markdown(head, rows)]
     print("\n".join(text))
     (RESULTS / "bench.md").write_text("\n".join(md) + "\n")
     log(f"wrote {RESULTS}/bench-*.json and bench.md")

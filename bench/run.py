@@ -46,6 +46,7 @@ Modules: ``harness`` (timers, clouds, environment), ``contention`` (the free-cor
 from __future__ import annotations
 
 import argparse
+import os
 
 import clcurv
 
@@ -105,6 +106,20 @@ def parse_args(argv=None):
     return args
 
 
+def bench_devices():
+    """Every OpenCL device but simulators (Oclgrind, FPGA emulators: ~1000x slower), or
+    only the one ``CLCURV_DEVICE`` names (``CLCURV_DEVICE=gpu make bench``)."""
+    infos = clcurv.devices()
+    if not infos:
+        raise SystemExit("no OpenCL device: " + clcurv.device.APT_HINT)
+    if os.environ.get("CLCURV_DEVICE"):
+        return [infos[clcurv.get_device().info.index]]
+    real = [d for d in infos if not d.simulator]
+    if not real:
+        raise SystemExit(infos.reason)
+    return real
+
+
 def main(argv=None):
     args = parse_args(argv)
     env = environment()
@@ -115,9 +130,7 @@ def main(argv=None):
         env["jakteristics"] = jakteristics_version(jak)
     elif not args.no_jakteristics:
         log(f"jakteristics not available ({jak_note}): skipped (pip install jakteristics)")
-    infos = clcurv.devices()
-    if not infos:
-        raise SystemExit("no OpenCL device: " + clcurv.device.APT_HINT)
+    infos = bench_devices()
 
     data, cols = {}, []
     for n in args.sizes:

@@ -9,7 +9,9 @@ A successful build's log is read: pyopencl's ``CompilerWarning`` ("non-empty com
 output") is silenced during the build because Intel's CPU runtime always logs its progress
 and vectoriser remarks ("Compilation started", "remark: loop not vectorized", "Kernel ...
 was successfully vectorized"); the lines that say ``warning`` or ``error`` are re-raised
-as a :class:`BuildWarning` naming the file, so a real compiler warning is never hidden.
+as a :class:`BuildWarning` naming the file, so a real compiler warning is never hidden
+(when the program is compiled from source: a program pyopencl loads from its binary cache,
+which it uses on Intel's runtime but not on PoCL, comes with no compiler messages).
 """
 from __future__ import annotations
 
@@ -125,6 +127,22 @@ def local_size(device, kernel, limit=128):
         cl.kernel_work_group_info.PREFERRED_WORK_GROUP_SIZE_MULTIPLE, dev)
     top = max(1, min(limit, kmax))
     return max(1, (top // mult) * mult) if mult <= top else top
+
+
+def tuning(device, precision="float"):
+    """The device-dependent choices clcurv makes on ``device``, for reports: ``VW`` (points
+    per work-item: 8 on CPU devices, whose compilers vectorise a work-item's explicit
+    vectors, else 4; from the device type query) and ``work_group``, the work-group size
+    :func:`local_size` gives every kernel of the registry's programs (queried: the kernel's
+    maximum and preferred multiple on this device, capped at launch's default 128). Some
+    calls pass a smaller cap (clcurv.graph.CPU_GROUP: knn_graph on CPU devices)."""
+    from .operators import program_variants
+    base = precision_defines(device, precision)
+    sizes = {}
+    for file, defines in program_variants(base):
+        for k in build(device, file, defines).program.all_kernels():
+            sizes[k.function_name] = local_size(device, k)
+    return {"VW": base["VW"], "work_group": sizes}
 
 
 def batches(n, defines):
