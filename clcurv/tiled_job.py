@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -111,11 +112,16 @@ def run_job(job, out=print):
         from tqdm import tqdm
         bar = tqdm(desc="tiles", unit="tile", file=sys.stderr, leave=True)
 
+    started = [None]
+
     def progress(done, total, points):
         if bar is not None:
             if bar.total != total:
                 bar.reset(total=total)
-            bar.set_postfix_str(f"{points} points", refresh=False)
+            now = time.perf_counter()
+            started[0] = started[0] or now
+            rate = points / max(now - started[0], 1e-9) / 1e6 if points else 0.0
+            bar.set_postfix_str(f"{points} points, {rate:.2f} M points/s", refresh=False)
             bar.update(done - bar.n)
     try:
         summary = curvature_file(
