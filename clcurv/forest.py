@@ -53,6 +53,8 @@ class Forest:
     edge_counts : list of int
         Edges joining two components at the start of every round from the second (round 1
         reads the neighbour lists).
+    components : int
+        Connected components of the valid points.
     """
     label: np.ndarray
     parity: np.ndarray
@@ -60,6 +62,7 @@ class Forest:
     rounds: int
     timings: dict
     edge_counts: list
+    components: int = 0
 
 
 #: When a dict, every kernel launch of spanning_forest waits for its end and adds its time
@@ -239,6 +242,8 @@ def spanning_forest(cloud, graph, edges=True):
             _launch(dev, prg.write_edges, nb, u32(n), u32(BLOCK), elo, ehi, fmask, out)
             cl.enqueue_copy(q, h_edges, out)
     q.finish()
-    res = Forest(h_label, h_par.view(bool), h_edges, rounds, timings, edge_counts)
+    # every invalid point is a root of its own
+    res = Forest(h_label, h_par.view(bool), h_edges, rounds, timings, edge_counts,
+                 int(nroots[0]) - (n - graph.nvalid))
     timings["output"] = time.perf_counter() - t2
     return res

@@ -443,11 +443,14 @@ def flip_on_device(cloud, normals, radius, k=10):
     fo = forest.spanning_forest(cloud, graph, edges=False)
     t2 = time.perf_counter()
     flip = np.zeros(len(n), dtype=bool)
-    valid = fo.label >= 0
-    if valid.all():                         # the usual case: no copies
+    if fo.components == 1 and graph.nvalid == len(n) >= MIN_COMPONENT:
+        # the usual case: orient_components' sign of one component, without its passes
+        # over the labels
+        flip = fo.parity ^ (_one_vote(cloud.points, n, fo.parity) < 0)
+    elif graph.nvalid == len(n):            # no copies
         flip = orient_components(cloud.points, n, fo.label, fo.parity)
-    elif valid.any():                       # labels are root indices: any ids < N do
-        idx = np.flatnonzero(valid)
+    elif graph.nvalid:                      # labels are root indices: any ids < N do
+        idx = np.flatnonzero(fo.label >= 0)
         flip[idx] = orient_components(cloud.points[idx], n[idx], fo.label[idx],
                                       fo.parity[idx])
     cloud.timings.update(orient_graph=t1 - t0, orient_forest=t2 - t1,

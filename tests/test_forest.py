@@ -124,6 +124,7 @@ def check_forest(normals, graph, fo):
     assert (fo.label[~ok] == -1).all() and not fo.parity[~ok].any()
     lab = fo.label[ok]
     assert (fo.label[lab] == lab).all() and not fo.parity[lab].any(), "a root is not its own"
+    assert fo.components == len(np.unique(lab))
     pairs = np.unique(np.stack([comp[ok], lab], axis=1), axis=0)
     assert len(np.unique(pairs[:, 0])) == len(pairs) == len(np.unique(pairs[:, 1]))
     # parity along the tree
