@@ -294,7 +294,8 @@ def features(points, radius=None, features=DEFAULT_FEATURES, *, k=None, ddof=0, 
 
 def _parse_knn(spec, k):
     if not spec.startswith("knn:"):
-        raise ValueError(f"radius must be a number, a list of numbers or 'knn:K', got {spec!r}")
+        raise TypeError(f"radius must be a number (or a list of numbers, or 'knn:K'), got "
+                        f"{spec!r}")
     if k is not None:
         raise ValueError("give either radius='knn:K' or k=, not both")
     try:
@@ -350,9 +351,11 @@ def _empty(names, radius, ddof):
 
 def layouts(names):
     """The record layouts of ``names``: groups of at most 14 real columns (one launch each),
-    as (feature -> first column) dicts."""
+    as (feature -> first column) dicts. Wide features (normals) come first in a group, so
+    that they lie in one 4-column block of the split (:func:`_split_layout`) and reach the
+    host as a view, not a copy."""
     groups, cur, used = [], {}, 0
-    for n in names:
+    for n in sorted(names, key=lambda n: -FEATURES[n].width):
         w = FEATURES[n].width
         if used + w > _COLUMNS:
             groups.append(cur)
@@ -433,12 +436,13 @@ def run_features(cloud, radii, names, ddof=0, point_r2=None):
             for j in range(nr):
                 vals = res[j][0]
                 blocks = fields[j]
-                for n, c in group.items():
-                    w = FEATURES[n].width
-                    cols = [blocks[f"b{(c + i) // 4}"][:, (c + i) % 4] if
-                            blocks[f"b{(c + i) // 4}"].ndim == 2 else blocks[f"b{(c + i) // 4}"]
-                            for i in range(w)]
-                    vals[n] = cols[0].copy() if w == 1 else np.stack(cols, axis=1)
+                for n, c in group.items():       # views of the (N, <= 4) float64 blocks
+                    w, b, o = FEATURES[n].width, c // 4, c % 4
+                    if o + w <= 4:
+                        vals[n] = blocks[f"b{b}"][:, o] if w == 1 else blocks[f"b{b}"][:, o:o + w]
+                    else:
+                        vals[n] = np.stack([blocks[f"b{(c + i) // 4}"][:, (c + i) % 4]
+                                            for i in range(w)], axis=1)
                 res[j] = (vals, blocks["count"], blocks["status"])
             del recs
         out.extend(({n: r[0][n] for n in names}, r[1], r[2]) for r in res)

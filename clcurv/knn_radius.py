@@ -105,7 +105,11 @@ def _first_cell(pts, k, sample=20000):
         return 1.5 * ext[0] * k / n                # collinear
     sub = pts[::max(n // sample, 1)]
     s = np.sqrt(20.0 * ext[0] * ext[1] / len(sub))
-    occupied = len(np.unique(np.floor((sub - pts.min(axis=0)) / s).astype(np.int64), axis=0))
+    if not ext[0] / s < 2.0 ** 40:                 # a needle: the bounding-box guess
+        return float(1.5 * np.sqrt(k * ext[0] * ext[1] / (np.pi * n)))
+    cells = np.floor((sub - pts.min(axis=0)) / s).astype(np.int64)
+    dims = cells.max(axis=0) + 1                   # < 2^21 per axis: sample ~ 2e4 points
+    occupied = len(np.unique((cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]))
     area = max(occupied * s * s / 1.5, 1e-300)
     return float(1.25 * np.sqrt(k * area / (np.pi * n)))
 
