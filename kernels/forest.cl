@@ -201,6 +201,9 @@ __kernel void first_weight(__global const uint *nbr, __global const float *wgt,
     const uint g0 = b * B;
     if (g0 >= n) return;
     const uint g1 = min(g0 + B, n);
+    /* the block's own minima first: then a slot g -> j of an edge that j's list holds too
+     * finds bw[j] <= its weight already (when j is in this block or done), and most of the
+     * second loop's lower() calls are a read, not an atomic */
     for (uint g = g0; g < g1; ++g) {
         const uint og = order[g];
         uint mw = NONE, mo = NONE, mj = NONE, fm = 0;
@@ -214,12 +217,18 @@ __kernel void first_weight(__global const uint *nbr, __global const float *wgt,
             mo = better ? oj : mo;
             mj = better ? j : mj;
             mw = min(mw, w);
-            lower(bw + j, w);
         }
         fmask[g] = fm;
         own_w[g] = mw; own_o[g] = mo; own_j[g] = mj;
         if (mw != NONE) lower(bw + g, mw);
     }
+    for (uint g = g0; g < g1; ++g)
+        for (uint s = 0; s < k; ++s) {
+            const size_t slot = (size_t)g * k + s;
+            const uint j = nbr[slot];
+            if (j == NONE) break;
+            lower(bw + j, as_uint(wgt[slot]));
+        }
 }
 
 /* own_w, own_o: the lightest edge of g's own list (weight, other endpoint's input index). */
@@ -233,10 +242,13 @@ __kernel void first_other(__global const uint *nbr, __global const float *wgt,
     const uint g0 = b * B;
     if (g0 >= n) return;
     const uint g1 = min(g0 + B, n);
+    /* own lists first, as in first_weight: the other copy of an edge then mostly finds
+     * bhi already at its value */
     for (uint g = g0; g < g1; ++g) {
         const uint mw = own_w[g];
-        if (mw == NONE) continue;
-        if (mw == bw[g]) lower(bhi + g, own_o[g]);
+        if (mw != NONE && mw == bw[g]) lower(bhi + g, own_o[g]);
+    }
+    for (uint g = g0; g < g1; ++g) {
         const uint og = order[g];
         for (uint s = 0; s < k; ++s) {
             const size_t slot = (size_t)g * k + s;
