@@ -123,80 +123,18 @@ inline void features_refine(__global const REAL *X, __global const REAL *Y,
 }
 
 /* x ln x, 0 at 0 (its limit) */
-inline REAL xlogx(REAL x)
+inline REALV xlogx(REALV x)
 {
-    return x > 0 ? x * log(x) : (REAL)0;
+    return select((REALV)0, x * log(x), isgreater(x, (REALV)0));
 }
 
-/* The record of one ball: the features of the descending eigenvalues L (scaled by
- * n / (n - ddof)) and the eigenvectors e1 (largest), e3 (smallest). */
-inline REAL16 features_record(uint count, uchar st, REAL3 L, REAL3 e1, REAL3 e3, REAL r2)
-{
-    REAL16 rec = (REAL16)(NAN);
-    if (st == ST_OK) {
-        /* summed as moments.cl does (l0 + l1 + l2): surface_variation is its variation */
-        const REAL sum = L.z + L.y + L.x, i1 = (REAL)1 / L.x;
-#ifdef COL_EIGENVALUE_SUM
-        rec.COL_EIGENVALUE_SUM = sum;
-#endif
-#ifdef COL_OMNIVARIANCE
-        rec.COL_OMNIVARIANCE = cbrt(L.x) * cbrt(L.y) * cbrt(L.z);
-#endif
-#ifdef COL_EIGENENTROPY
-        rec.COL_EIGENENTROPY = -(xlogx(L.x) + xlogx(L.y) + xlogx(L.z));
-#endif
-#ifdef COL_ANISOTROPY
-        rec.COL_ANISOTROPY = (L.x - L.z) * i1;
-#endif
-#ifdef COL_PLANARITY
-        rec.COL_PLANARITY = (L.y - L.z) * i1;
-#endif
-#ifdef COL_LINEARITY
-        rec.COL_LINEARITY = (L.x - L.y) * i1;
-#endif
-#ifdef COL_PCA1
-        rec.COL_PCA1 = L.x / sum;
-#endif
-#ifdef COL_PCA2
-        rec.COL_PCA2 = L.y / sum;
-#endif
-#ifdef COL_SURFACE_VARIATION
-        rec.COL_SURFACE_VARIATION = L.z / sum;
-#endif
-#ifdef COL_SPHERICITY
-        rec.COL_SPHERICITY = L.z * i1;
-#endif
-#ifdef COL_VERTICALITY
-        rec.COL_VERTICALITY = 1 - fabs(e3.z);
-#endif
-#ifdef COL_GUINARD_VERTICALITY
-        {
-            const REAL3 e2 = normalize(cross(e3, e1));
-            const REAL3 u = L.x * fabs(e1) + L.y * fabs(e2) + L.z * fabs(e3);
-            rec.COL_GUINARD_VERTICALITY = u.z / length(u);
-        }
-#endif
-#ifdef COL_EIGENVALUE1
-        rec.COL_EIGENVALUE1 = L.x;
-#endif
-#ifdef COL_EIGENVALUE2
-        rec.COL_EIGENVALUE2 = L.y;
-#endif
-#ifdef COL_EIGENVALUE3
-        rec.COL_EIGENVALUE3 = L.z;
-#endif
-#ifdef COL_DENSITY
-        rec.COL_DENSITY = (REAL)count / (FOUR_THIRDS_PI * r2 * sqrt(r2));
-#endif
-#ifdef COL_NORMALS
-        rec.COL_NORMALS = e3;
-#endif
-    }
-    REC_COUNT_STATUS(rec, count, st);
-    return rec;
-}
+#define VSTORE_FEATURE(name, expr) REAL name[VW]; VSTOREV((expr), 0, name);
 
-/* One work-item per VW consecutive sorted points (global size >= ceil(n / VW)). */
+/* One work-item per VW consecutive sorted points (global size >= ceil(n / VW)): the sums of
+ * the NR balls of each point in one walk, the VW x NR eigen decompositions in the vector
+ * lanes, the lambda0 refinement per point, then for each radius the features of the VW
+ * points at once in the vector lanes (log, cbrt, divisions: a scalar evaluation per point
+ * cost more than the walks) and the records point by point. */
 __kernel void features(OPERATOR_ARGS, const REAL4 r2s, __global REAL *out1,
                        __global REAL *out2, __global REAL *out3)
 {
@@ -209,26 +147,149 @@ __kernel void features(OPERATOR_ARGS, const REAL4 r2s, __global REAL *out1,
     for (int j = 0; j < NR; ++j) r2[j] = all_r2[j];
     pca_batch_t pb[NR];
     features_pca(X, Y, Z, W, cell_of, ranges, n, g0, kn, ball, r2, pb);
-    for (uint k = 0; k < kn; ++k) {
-        const uint g = g0 + k;
-        uchar st[NR];
-        REAL l0[NR];
+    uchar st[NR][VW];
+    REAL l0[NR][VW];
+    for (uint k = 0; k < VW; ++k) {
+        REAL l0k[NR];
+        uchar stk[NR];
         for (int j = 0; j < NR; ++j) {
-            st[j] = pca_status(&pb[j], k, MIN_COUNT);
-            l0[j] = pb[j].l0[k];
+            stk[j] = k < kn ? pca_status(&pb[j], k, MIN_COUNT) : ST_TOO_FEW;
+            l0k[j] = pb[j].l0[k];
         }
 #if REFINE_L0
-        features_refine(X, Y, Z, W, cell_of, ranges, n, g, k, ball, r2, pb, st, l0);
+        if (k < kn)
+            features_refine(X, Y, Z, W, cell_of, ranges, n, g0 + k, k, ball, r2, pb, stk, l0k);
 #endif
         for (int j = 0; j < NR; ++j) {
+            st[j][k] = stk[j];
+            l0[j][k] = l0k[j];
+        }
+    }
+    for (int j = 0; j < NR; ++j) {
+        /* the VW lanes' eigenvalues (descending, scaled by n / (n - ddof)), e1, e3 */
+        REAL s[VW], rr[VW], cnt[VW];
+        for (uint k = 0; k < VW; ++k) {
             const uint c = pb[j].count[k];
-            const REAL s = c > ddof ? (REAL)c / (REAL)(c - ddof) : (REAL)1;
-            const REAL3 L = (REAL3)(pb[j].l2[k], pb[j].l1[k], l0[j]) * s;
-            const REAL3 e1 = (REAL3)(pb[j].v2x[k], pb[j].v2y[k], pb[j].v2z[k]);
-            const REAL3 e3 = (REAL3)(pb[j].v0x[k], pb[j].v0y[k], pb[j].v0z[k]);
-            const REAL16 rec = features_record(c, st[j], L, e1, e3, BALL_R2(W, g, r2[j]));
-            __global REAL *o = j == 0 ? out : j == 1 ? out1 : j == 2 ? out2 : out3;
-            REC_STORE(rec, REC_INDEX(g), o);
+            s[k] = c > ddof ? (REAL)c / (REAL)(c - ddof) : (REAL)1;
+            rr[k] = k < kn ? BALL_R2(W, g0 + k, r2[j]) : (REAL)1;
+            cnt[k] = (REAL)c;
+        }
+        const REALV sv = VLOADV(0, s);
+        const REALV L1 = VLOADV(0, pb[j].l2) * sv, L2 = VLOADV(0, pb[j].l1) * sv;
+        const REALV L3 = VLOADV(0, l0[j]) * sv;
+        const REALV e1x = VLOADV(0, pb[j].v2x), e1y = VLOADV(0, pb[j].v2y);
+        const REALV e1z = VLOADV(0, pb[j].v2z);
+        const REALV e3x = VLOADV(0, pb[j].v0x), e3y = VLOADV(0, pb[j].v0y);
+        const REALV e3z = VLOADV(0, pb[j].v0z);
+        /* summed as moments.cl does (l0 + l1 + l2): surface_variation is its variation */
+        const REALV sum = L3 + L2 + L1, i1 = (REAL)1 / L1;
+        (void)sum; (void)i1; (void)e1x; (void)e1y; (void)e1z; (void)e3x; (void)e3y;
+#ifdef COL_EIGENVALUE_SUM
+        VSTORE_FEATURE(f_sum, sum)
+#endif
+#ifdef COL_OMNIVARIANCE
+        VSTORE_FEATURE(f_omni, cbrt(L1) * cbrt(L2) * cbrt(L3))
+#endif
+#ifdef COL_EIGENENTROPY
+        VSTORE_FEATURE(f_ent, -(xlogx(L1) + xlogx(L2) + xlogx(L3)))
+#endif
+#ifdef COL_ANISOTROPY
+        VSTORE_FEATURE(f_aniso, (L1 - L3) * i1)
+#endif
+#ifdef COL_PLANARITY
+        VSTORE_FEATURE(f_plan, (L2 - L3) * i1)
+#endif
+#ifdef COL_LINEARITY
+        VSTORE_FEATURE(f_lin, (L1 - L2) * i1)
+#endif
+#ifdef COL_PCA1
+        VSTORE_FEATURE(f_pca1, L1 / sum)
+#endif
+#ifdef COL_PCA2
+        VSTORE_FEATURE(f_pca2, L2 / sum)
+#endif
+#ifdef COL_SURFACE_VARIATION
+        VSTORE_FEATURE(f_sv, L3 / sum)
+#endif
+#ifdef COL_SPHERICITY
+        VSTORE_FEATURE(f_sph, L3 * i1)
+#endif
+#ifdef COL_VERTICALITY
+        VSTORE_FEATURE(f_vert, 1 - fabs(e3z))
+#endif
+#ifdef COL_GUINARD_VERTICALITY
+        /* e2 = e3 x e1 / |.|; u = L1 |e1| + L2 |e2| + L3 |e3|; |u_z| / |u| */
+        REALV e2x = e3y * e1z - e3z * e1y, e2y = e3z * e1x - e3x * e1z;
+        REALV e2z = e3x * e1y - e3y * e1x;
+        const REALV ie2 = rsqrt(e2x * e2x + e2y * e2y + e2z * e2z);
+        e2x *= ie2; e2y *= ie2; e2z *= ie2;
+        const REALV ux = L1 * fabs(e1x) + L2 * fabs(e2x) + L3 * fabs(e3x);
+        const REALV uy = L1 * fabs(e1y) + L2 * fabs(e2y) + L3 * fabs(e3y);
+        const REALV uz = L1 * fabs(e1z) + L2 * fabs(e2z) + L3 * fabs(e3z);
+        VSTORE_FEATURE(f_gv, uz * rsqrt(ux * ux + uy * uy + uz * uz))
+#endif
+#ifdef COL_DENSITY
+        const REALV r2v = VLOADV(0, rr);
+        VSTORE_FEATURE(f_dens, VLOADV(0, cnt) / (FOUR_THIRDS_PI * r2v * sqrt(r2v)))
+#endif
+        __global REAL *o = j == 0 ? out : j == 1 ? out1 : j == 2 ? out2 : out3;
+        for (uint k = 0; k < kn; ++k) {
+            REAL16 rec = (REAL16)(NAN);
+            if (st[j][k] == ST_OK) {
+#ifdef COL_EIGENVALUE_SUM
+                rec.COL_EIGENVALUE_SUM = f_sum[k];
+#endif
+#ifdef COL_OMNIVARIANCE
+                rec.COL_OMNIVARIANCE = f_omni[k];
+#endif
+#ifdef COL_EIGENENTROPY
+                rec.COL_EIGENENTROPY = f_ent[k];
+#endif
+#ifdef COL_ANISOTROPY
+                rec.COL_ANISOTROPY = f_aniso[k];
+#endif
+#ifdef COL_PLANARITY
+                rec.COL_PLANARITY = f_plan[k];
+#endif
+#ifdef COL_LINEARITY
+                rec.COL_LINEARITY = f_lin[k];
+#endif
+#ifdef COL_PCA1
+                rec.COL_PCA1 = f_pca1[k];
+#endif
+#ifdef COL_PCA2
+                rec.COL_PCA2 = f_pca2[k];
+#endif
+#ifdef COL_SURFACE_VARIATION
+                rec.COL_SURFACE_VARIATION = f_sv[k];
+#endif
+#ifdef COL_SPHERICITY
+                rec.COL_SPHERICITY = f_sph[k];
+#endif
+#ifdef COL_VERTICALITY
+                rec.COL_VERTICALITY = f_vert[k];
+#endif
+#ifdef COL_GUINARD_VERTICALITY
+                rec.COL_GUINARD_VERTICALITY = f_gv[k];
+#endif
+#ifdef COL_EIGENVALUE1
+                rec.COL_EIGENVALUE1 = pb[j].l2[k] * s[k];
+#endif
+#ifdef COL_EIGENVALUE2
+                rec.COL_EIGENVALUE2 = pb[j].l1[k] * s[k];
+#endif
+#ifdef COL_EIGENVALUE3
+                rec.COL_EIGENVALUE3 = l0[j][k] * s[k];
+#endif
+#ifdef COL_DENSITY
+                rec.COL_DENSITY = f_dens[k];
+#endif
+#ifdef COL_NORMALS
+                rec.COL_NORMALS = (REAL3)(pb[j].v0x[k], pb[j].v0y[k], pb[j].v0z[k]);
+#endif
+            }
+            REC_COUNT_STATUS(rec, pb[j].count[k], st[j][k]);
+            REC_STORE(rec, REC_INDEX(g0 + k), o);
         }
     }
 }
