@@ -46,6 +46,15 @@
 #define FOUR_THIRDS_PI 4.18879020f
 #endif
 
+/* The lanes of a chunk in ball j (d^2 < r2): chunk_offsets' mask m at the largest ball, and
+ * d^2 < r2 with d^2 computed by the same expression as chunk_offsets (so the mask is the one
+ * chunk_offsets gives at r2, bit for bit: tests/test_multi_radius.py). */
+inline IREALV ball_mask(IREALV m, REALV dx, REALV dy, REALV dz, REAL r2)
+{
+    const REALV d2 = dx * dx + dy * dy + dz * dz;
+    return m & isless(d2, (REALV)r2);
+}
+
 /* The PCA of the NR balls of the VW consecutive sorted points g0 .. g0 + kn - 1: one walk
  * per point at the cloud's cells, ball j's lanes masked at r2[j]. */
 inline void features_pca(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
@@ -53,6 +62,8 @@ inline void features_pca(__global const REAL *X, __global const REAL *Y, __globa
                          __global const uint2 *ranges, uint n, uint g0, uint kn, REAL2 ball,
                          const REAL r2[NR], pca_batch_t pb[NR])
 {
+    REAL r2max = r2[0];
+    for (int j = 1; j < NR; ++j) r2max = fmax(r2max, r2[j]);
     for (uint k = 0; k < VW; ++k) {
         if (k >= kn) {                                  /* unused lane: the identity */
             for (int j = 0; j < NR; ++j) {
@@ -72,10 +83,12 @@ inline void features_pca(__global const REAL *X, __global const REAL *Y, __globa
             sxx[j] = sxy[j] = sxz[j] = syy[j] = syz[j] = szz[j] = 0;
         }
         REALV dx, dy, dz;
+        const REAL2 bmax = (REAL2)(BALL_R2(W, g, r2max), ball.y);
         NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, ball, i, end, pr)
+            const IREALV mmax = chunk_offsets(XA, Y, Z, i, end, pr, bmax, &dx, &dy, &dz);
             for (int j = 0; j < NR; ++j) {
-                const REAL2 bj = (REAL2)(BALL_R2(W, g, r2[j]), ball.y);
-                const IREALV m = chunk_offsets(XA, Y, Z, i, end, pr, bj, &dx, &dy, &dz);
+                const IREALV m = NR == 1 ? mmax
+                                 : ball_mask(mmax, dx, dy, dz, BALL_R2(W, g, r2[j]));
                 const REALV w = chunk_weights(W, i, dx, dy, dz, m, (REAL)0);
                 PCA_ACCUMULATE(w, m, dx, dy, dz, sc[j], sw[j], sx[j], sy[j], sz[j], sxx[j],
                                sxy[j], sxz[j], syy[j], syz[j], szz[j])
@@ -110,11 +123,15 @@ inline void features_refine(__global const REAL *X, __global const REAL *Y,
         any |= st[j] == ST_OK;
     }
     if (!any) return;
+    REAL r2max = r2[0];
+    for (int j = 1; j < NR; ++j) r2max = fmax(r2max, r2[j]);
+    const REAL2 bmax = (REAL2)(BALL_R2(W, g, r2max), ball.y);
     REALV dx, dy, dz;
     NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, ball, i, end, pr)
+        const IREALV mmax = chunk_offsets(XA, Y, Z, i, end, pr, bmax, &dx, &dy, &dz);
         for (int j = 0; j < NR; ++j) {
-            const REAL2 bj = (REAL2)(BALL_R2(W, g, r2[j]), ball.y);
-            const IREALV m = chunk_offsets(XA, Y, Z, i, end, pr, bj, &dx, &dy, &dz);
+            const IREALV m = NR == 1 ? mmax
+                             : ball_mask(mmax, dx, dy, dz, BALL_R2(W, g, r2[j]));
             PCA_REFINE_ACCUMULATE(s0[j], W, i, dx, dy, dz, m, v0[j], h0[j])
         }
     NEIGHBOR_CHUNKS_END
