@@ -316,6 +316,8 @@ def curvature(points, radius=None, *, method="mls1", weights="uniform", normals=
     """
     op = OPERATORS[choice(method, "method", METHODS)]
     if np.ndim(radius) > 0:
+        if k is not None:
+            raise ValueError("give either radius or k (or radius='knn:K'), not both")
         return _radius_list(op, points, radius, dict(
             weights=weights, normals=normals, orient=orient, viewpoint=viewpoint,
             orient_k=orient_k, kernel=kernel, h=h, projections=projections,

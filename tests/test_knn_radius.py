@@ -95,6 +95,8 @@ def test_k_larger_than_n_and_bad_k(device):
         clcurv.features(pts, "knn:many", device=device)
     with pytest.raises(ValueError, match="not both"):
         clcurv.curvature(pts, 0.1, method="variation", k=5, device=device)
+    with pytest.raises(ValueError, match="not both"):
+        clcurv.curvature(pts, [0.1, 0.2], method="variation", k=5, device=device)
     with pytest.raises(ValueError, match="density"):
         clcurv.curvature(pts, method="variation", k=5, weights="density", device=device)
     # k = N: every ball is the whole cloud
