@@ -5,10 +5,12 @@
  * pca_decompose, PCA_REFINE_ACCUMULATE), so that its eigenvalues and normals are those of
  * the moments kernel bit for bit. The walk runs once over the candidates of the cloud's
  * cells (cell >= the largest radius) and accumulates the sums of every ball: ball j's lanes
- * are chunk_offsets' mask at r_j^2, the same mask and the same additions in the same order
- * as a single-radius walk, so every radius's record is bit-identical to a call at that
- * radius alone on the same cloud. The lambda0 refinement (moments.cl) is one second walk
- * for all the balls.
+ * are those of chunk_offsets' mask (at the largest ball) with d^2 < r_j^2, d^2 computed by
+ * chunk_offsets' own expression, so the same lanes and the same additions in the same order
+ * as a single-radius walk: every radius's record is bit-identical to a call at that radius
+ * alone on the same cloud. The lambda0 refinement (moments.cl) is one second walk for all
+ * the balls. The features of the VW points of a work-item are evaluated at once in the
+ * vector lanes.
  *
  * Eigenvalues: l1 >= l2 >= l3 of the count-normalised covariance sum (q - o)(q - o)^T / n,
  * times n / (n - ddof) (ddof = par.z: 1 gives the sample covariance of jakteristics).
@@ -23,11 +25,10 @@
  *   NORMALS e3 (unoriented, 3 columns)
  * with e1, e2, e3 the unit eigenvectors of l1, l2, l3.
  *
- * Build options: NR (1..4) radii, their r^2 in r2s (x, y, z, w), or with POINT_RADIUS (NR = 1)
- * each point's own r^2 in W (radius.h); the records of radius j
- * go to out (j = 0), out1, out2, out3 (one record per point, REC_INDEX); REFINE_L0, DENSITY,
- * MIN_COUNT, COL_COUNT, COL_STATUS and one COL_<FEATURE> per feature wanted
- * (clcurv/features.py).
+ * Build options: NR (1..4) radii, their r^2 in r2s (x, y, z, w), or with POINT_RADIUS
+ * (NR = 1) each point's own r^2 in W (radius.h); the records of radius j go to out (j = 0),
+ * out1, out2, out3 (one record per point, REC_INDEX); REFINE_L0, DENSITY, MIN_COUNT,
+ * COL_COUNT, COL_STATUS and one COL_<FEATURE> per feature wanted (clcurv/features.py).
  */
 #include "common.h"
 #include "neighbors.h"
