@@ -195,30 +195,33 @@ def _icd_files():
     return out
 
 
-def _mapped_libraries():
-    """(start, end, path) of the libraries mapped into this process (Linux only)."""
+def _mappings():
+    """(start, end, readable, path or '') of this process's memory mappings (Linux only;
+    empty elsewhere)."""
     maps = []
     try:
         with open("/proc/self/maps") as fh:
             for line in fh:
                 parts = line.split()
-                if len(parts) >= 6 and parts[5].startswith("/"):
-                    lo, hi = (int(x, 16) for x in parts[0].split("-"))
-                    maps.append((lo, hi, parts[5]))
-    except OSError:
-        pass
+                lo, hi = (int(x, 16) for x in parts[0].split("-"))
+                maps.append((lo, hi, parts[1].startswith("r"),
+                             parts[5] if len(parts) >= 6 else ""))
+    except (OSError, ValueError, IndexError):
+        return []
     return maps
 
 
 def _platform_library(platform):
     """The library a platform came from: an ICD platform object starts with a pointer to
-    its dispatch table, which lies in the ICD's library; None where that cannot be read."""
-    try:
-        table = ctypes.c_void_p.from_address(platform.int_ptr).value
-    except (ValueError, TypeError, OSError):
+    its dispatch table, which lies in the ICD's library. Read only where /proc/self/maps
+    shows the object in readable memory; None where that cannot be told."""
+    maps = _mappings()
+    ptr = platform.int_ptr
+    if not any(lo <= ptr and ptr + 8 <= hi and readable for lo, hi, readable, _ in maps):
         return None
-    for lo, hi, path in _mapped_libraries():
-        if table is not None and lo <= table < hi:
+    table = ctypes.c_void_p.from_address(ptr).value
+    for lo, hi, _, path in maps:
+        if table is not None and lo <= table < hi and path.startswith("/"):
             return path
     return None
 
