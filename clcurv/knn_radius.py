@@ -92,13 +92,13 @@ def check_k(k, n):
     return kk
 
 
-def _first_cell(pts, k, sample=20000):
+def _first_cell(pts, k, lo, hi, sample=20000):
     """A first cell size: the radius holding ~1.6 k points at the cloud's mean density as a
     surface, its area estimated from the cells of size s that a subsample of ``sample``
     points occupies (s large enough for ~20 subsample points per cell of a plane; a surface
     crosses ~1.5 cells per s^2 of its area on average)."""
     n = len(pts)
-    ext = np.sort(np.ptp(pts, axis=0))[::-1]
+    ext = np.sort(hi - lo)[::-1]
     if not ext[0] > 0:
         return 1.0                                 # all coincident: any cell holds them
     if not ext[1] > 0:
@@ -107,7 +107,7 @@ def _first_cell(pts, k, sample=20000):
     s = np.sqrt(20.0 * ext[0] * ext[1] / len(sub))
     if not ext[0] / s < 2.0 ** 40:                 # a needle: the bounding-box guess
         return float(1.5 * np.sqrt(k * ext[0] * ext[1] / (np.pi * n)))
-    cells = np.floor((sub - pts.min(axis=0)) / s).astype(np.int64)
+    cells = np.floor((sub - lo) / s).astype(np.int64)
     dims = cells.max(axis=0) + 1                   # < 2^21 per axis: sample ~ 2e4 points
     occupied = len(np.unique((cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]))
     area = max(occupied * s * s / 1.5, 1e-300)
@@ -144,8 +144,9 @@ def knn_radii(points, k, *, device=None, precision="float"):
     pts = as_points(points)
     t0 = time.perf_counter()
     k = check_k(k, len(pts))
-    diag = float(np.linalg.norm(np.ptp(pts, axis=0)))
-    c = _first_cell(pts, k)
+    lo, hi = pts.min(axis=0), pts.max(axis=0)       # one pass each over the cloud
+    diag = float(np.linalg.norm(hi - lo))
+    c = _first_cell(pts, k, lo, hi)
     cap = None
     levels = []
     d2 = None
