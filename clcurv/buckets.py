@@ -110,6 +110,74 @@ class Buckets:
         rec = np.concatenate(parts)
         return rec[np.argsort(rec["id"], kind="stable")]
 
+    def split(self, tiling, folder, state=None, block=1 << 18):
+        """Pass (1b): every point appended to the input file of each tile whose cells or
+        halo hold it (``folder``/<t>.bin, records of :meth:`tile_dtype` with ``own`` = 1 in
+        the tile that owns it), so a tile then reads exactly its points. ``state`` as in
+        :meth:`gather`."""
+        folder = Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        size, h = tiling.size, tiling.halo
+        ntx, nty = tiling.shape
+        dtype = self.tile_dtype(state)
+        for i in range(self.shape[0]):
+            for j in range(self.shape[1]):
+                if not self.counts[i, j]:
+                    continue
+                rows = state.rows(self, i, j, block) if state is not None else None
+                start = 0
+                with open(self.path(i, j), "rb") as f:
+                    while True:
+                        rec = np.fromfile(f, self.dtype, count=block)
+                        if not len(rec):
+                            break
+                        if rows is not None:
+                            rec = state.join(rec, next(rows), i * self.shape[1] + j, start)
+                        start += len(rec)
+                        pos = state.key(rec) if state is not None else rec["p"]
+                        self._scatter(rec, tiling.frame.cells_xy(pos), size, h, ntx, nty,
+                                      dtype, folder)
+
+    @staticmethod
+    def _scatter(rec, c, size, h, ntx, nty, dtype, folder):
+        """Append the records ``rec`` (x-y cells ``c``) to the files of the tiles whose
+        reach [t size - h, (t + 1) size + h) holds them: the owner and, within h cells of
+        its edges, its neighbours (h <= size)."""
+        own_t = c // size
+        ts, sels, owns = [], [], []
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                tx, ty = own_t[:, 0] + dx, own_t[:, 1] + dy
+                ok = ((tx >= 0) & (tx < ntx) & (ty >= 0) & (ty < nty)
+                      & (c[:, 0] >= tx * size - h) & (c[:, 0] < (tx + 1) * size + h)
+                      & (c[:, 1] >= ty * size - h) & (c[:, 1] < (ty + 1) * size + h))
+                sel = np.flatnonzero(ok)
+                ts.append(tx[sel] + ntx * ty[sel])
+                sels.append(sel)
+                owns.append(np.full(len(sel), dx == 0 and dy == 0, np.uint8))
+        t, sel, own = np.concatenate(ts), np.concatenate(sels), np.concatenate(owns)
+        order = np.argsort(t, kind="stable")
+        t, sel, own = t[order], sel[order], own[order]
+        out = np.empty(len(sel), dtype)
+        for name in rec.dtype.names:
+            out[name] = rec[name][sel]
+        out["own"] = own
+        cuts = np.flatnonzero(np.diff(t)) + 1
+        for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(t)]):
+            with open(folder / f"{int(t[a])}.bin", "ab") as f:
+                out[a:b].tofile(f)
+
+    def tile_dtype(self, state=None):
+        """The records of a tile's input file (:meth:`split`)."""
+        return np.dtype(self._dtype(state).descr + [("own", "u1")])
+
+    def read_tile(self, folder, t, state=None):
+        """The records of tile t's input file in global-id order (none: empty)."""
+        path = Path(folder) / f"{t}.bin"
+        dt = self.tile_dtype(state)
+        rec = np.fromfile(path, dt) if path.exists() else np.empty(0, dt)
+        return rec[np.argsort(rec["id"], kind="stable")]
+
     def _dtype(self, state):
         return self.dtype if state is None else state.joined_dtype(self.dtype)
 

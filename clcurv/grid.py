@@ -171,6 +171,12 @@ class Frame:
         u = (np.asarray(points, np.float64) - np.asarray(self.origin)) * (1.0 / self.cell)
         return u.astype(np.int64)
 
+    def cells_xy(self, points):
+        """(N, 2) int64 x-y cell coordinates of float64 ``points`` (as :meth:`cells_of`)."""
+        u = (np.asarray(points, np.float64)[:, :2] - np.asarray(self.origin[:2])) \
+            * (1.0 / self.cell)
+        return u.astype(np.int64)
+
 
 def bin_points(points, cell, dtype=np.float32, frame=None):
     """Bin ``points`` (N, 3) float64 into cells of size ``cell``; see the module docstring.

@@ -72,7 +72,7 @@ from .grid import Frame
 from .io import stream
 from .tile_results import partition, tile_dtype, tile_file
 from .tiling import (AUTO_CAP, TILE_BYTES_PER_POINT, Tiling, TilingError,  # noqa: F401 (re-exported)
-                     budget_of, fits_memory, halo_cells, parse_memory, plan_tiles, within)
+                     budget_of, fits_memory, halo_cells, parse_memory, plan_tiles)
 from .operators import METHODS, OPERATORS
 from .validate import as_radius, choice
 
@@ -329,6 +329,9 @@ def _run(source, dst, params, budget, tile, ws, wanted, progress, say, client=No
         frame = Frame.covering(*smoothed.box, params.radius)
         tiling = plan_tiles(buckets, params.radius, halo, budget, tile, frame=frame)
     (ws / "tiles").mkdir(exist_ok=True)
+    t_split = time.perf_counter()
+    _split(ws, buckets, tiling, smoothed)
+    times["splitting"] = time.perf_counter() - t_split
     say(f"{source.n} points in {tiling.count} tile(s) of {tiling.size} x {tiling.size} "
         f"cells of {tiling.frame.cell:.6g} (halo {halo} cell(s)), budget "
         f"{budget / 2**20:.0f} MiB")
@@ -360,6 +363,18 @@ def _run(source, dst, params, budget, tile, ws, wanted, progress, say, client=No
             "tile_cells": tiling.size, "halo": halo,
             "points": source.n, "times": times, "status": windows.status.tolist(),
             "dst": dst}
+
+
+def _split(ws, buckets, tiling, smoothed):
+    """Pass (1b), once per run (the tiles' input files; marked done for a resumed run)."""
+    done = ws / "tiles_in.done"
+    if done.exists():
+        return
+    folder = ws / "tiles_in"
+    if folder.exists():
+        shutil.rmtree(folder)
+    buckets.split(tiling, folder, state=smoothed)
+    done.touch()
 
 
 def _trim():
@@ -428,10 +443,9 @@ def compute_tile(task, device=None):
     from .job import result_fields
     params, tiling = task.params, task.tiling
     buckets = Buckets.from_state(Path(task.ws) / "buckets", task.buckets)
-    rec = buckets.gather(tiling, task.t, state=task.smoothed)
+    rec = buckets.read_tile(Path(task.ws) / "tiles_in", task.t, state=task.smoothed)
     pos = rec["p"] if task.smoothed is None or not len(rec) else task.smoothed.key(rec)
-    cells = tiling.frame.cells_of(pos) if len(rec) else np.empty((0, 3), np.int64)
-    own = within(cells, tiling.cells(task.t, halo=False))
+    own = rec["own"].astype(bool)
     mst = isinstance(task.how, str) and task.how == "mst"
     out = np.empty(int(own.sum()), tile_dtype(task.specs, mst))
     if len(out):
