@@ -144,17 +144,23 @@ class Buckets:
         reach [t size - h, (t + 1) size + h) holds them: the owner and, within h cells of
         its edges, its neighbours (h <= size)."""
         own_t = c // size
-        ts, sels, owns = [], [], []
+        local = c - own_t * size                  # cell within the owner tile, 0..size-1
+        side = {-1: local < h, 0: None, 1: local >= size - h}   # near which edges
+        ts = [own_t[:, 0] + ntx * own_t[:, 1]]
+        sels = [np.arange(len(c))]
+        owns = [np.ones(len(c), np.uint8)]
         for dx in (-1, 0, 1):
             for dy in (-1, 0, 1):
-                tx, ty = own_t[:, 0] + dx, own_t[:, 1] + dy
-                ok = ((tx >= 0) & (tx < ntx) & (ty >= 0) & (ty < nty)
-                      & (c[:, 0] >= tx * size - h) & (c[:, 0] < (tx + 1) * size + h)
-                      & (c[:, 1] >= ty * size - h) & (c[:, 1] < (ty + 1) * size + h))
-                sel = np.flatnonzero(ok)
-                ts.append(tx[sel] + ntx * ty[sel])
-                sels.append(sel)
-                owns.append(np.full(len(sel), dx == 0 and dy == 0, np.uint8))
+                if dx == dy == 0:
+                    continue
+                near = [m for m in ((side[dx][:, 0] if dx else None),
+                                    (side[dy][:, 1] if dy else None)) if m is not None]
+                sel = np.flatnonzero(near[0] & near[1] if len(near) == 2 else near[0])
+                tx, ty = own_t[sel, 0] + dx, own_t[sel, 1] + dy
+                ok = (tx >= 0) & (tx < ntx) & (ty >= 0) & (ty < nty)
+                ts.append((tx + ntx * ty)[ok])
+                sels.append(sel[ok])
+                owns.append(np.zeros(int(ok.sum()), np.uint8))
         t, sel, own = np.concatenate(ts), np.concatenate(sels), np.concatenate(owns)
         order = np.argsort(t, kind="stable")
         t, sel, own = t[order], sel[order], own[order]
