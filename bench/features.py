@@ -30,7 +30,6 @@ import time
 import numpy as np
 
 import clcurv
-from clcurv.features import DEFAULT_FEATURES
 from clcurv.knn_radius import knn_radii
 
 from .contention import describe_threads, thread_check
@@ -88,7 +87,6 @@ def run(n, repeats):
     multi_c, sep_c = paired(lambda: clcurv.features(cloud, radii),
                             lambda: [clcurv.features(cloud, x) for x in radii], repeats)
     rows["three_radii_same_cloud"] = (multi_c, sep_c)
-    del cloud
     knn, mom = paired(lambda: knn_radii(pts, 30),
                       lambda: clcurv.curvature(pts, r, method="variation", orient=None),
                       repeats)

@@ -34,7 +34,6 @@ feature. 0 ln 0 is taken as 0 in eigenentropy (a planar ball, l3 = 0, is defined
 """
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 
@@ -392,7 +391,6 @@ def run_features(cloud, radii, names, ddof=0, point_r2=None):
     order: values float64 by canonical name. Stage times go to ``cloud.timings``
     (build_features, kernel_features, download).
     """
-    import pyopencl as cl
     import pyopencl.cltypes as ct
     from .cloud import empty_fields, place_records, record_buffer, record_bytes
     from .program import batches, build, launch
