@@ -172,7 +172,7 @@ def main(argv=None):
     res = run(n, args.repeats or (3 if args.quick else 5))
     md = report(res)
     print(md)
-    if not args.quick:
+    if not args.quick and args.points is None:        # the reference run only
         out = REPO / "bench" / "results"
         (out / "features.md").write_text(md)
         (out / "features.json").write_text(json.dumps(res, indent=1, default=str))
