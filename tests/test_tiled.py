@@ -352,3 +352,18 @@ def test_binary_ply_in_and_out_byte_for_byte(tmp_path):
                          "property float y\nproperty float z\nend_header\n0 0 0\n")
     with pytest.raises(clcurv.io.ReadError, match="binary PLY"):
         tiled.curvature_file(ascii_ply, tmp_path / "o.ply", 0.1, tile=1.0)
+
+
+AUTZEN = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data",
+                      "laspy_autzen_trim.laz")
+
+
+@pytest.mark.skipif(not os.path.exists(AUTZEN), reason="../shared/data not present")
+def test_a_real_aerial_scan_tiles_exactly(tmp_path):
+    """The Autzen LAZ (110k points, feet, radius 6 for ~30 neighbours), two scale-space
+    steps then MLS2 in 100-ft tiles: the in-memory output, bit for bit."""
+    a, b = tmp_path / "mem.laz", tmp_path / "til.laz"
+    tiled.curvature_file(AUTZEN, a, 6.0, method="mls2", scale_space=2, memory="64GiB")
+    s = tiled.curvature_file(AUTZEN, b, 6.0, method="mls2", scale_space=2, tile=100.0)
+    assert s["tiles"] >= 50
+    _assert_same(a, b)
