@@ -91,24 +91,30 @@ class Buckets:
         rng = tiling.cells(t)
         parts = []
         for i, j in self.overlapping(lo, hi):
-            rows = state.rows(self, i, j, block) if state is not None else None
-            start = 0
-            with open(self.path(i, j), "rb") as f:
-                while True:
-                    rec = np.fromfile(f, self.dtype, count=block)
-                    if not len(rec):
-                        break
-                    if rows is not None:
-                        rec = state.join(rec, next(rows), i * self.shape[1] + j, start)
-                    start += len(rec)
-                    pos = state.key(rec) if state is not None else rec["p"]
-                    keep = within(tiling.frame.cells_of(pos), rng)
-                    if keep.any():
-                        parts.append(rec[keep])
+            for rec, pos in self.blocks(i, j, state, block):
+                keep = within(tiling.frame.cells_of(pos), rng)
+                if keep.any():
+                    parts.append(rec[keep])
         if not parts:
             return np.empty(0, self._dtype(state))
         rec = np.concatenate(parts)
         return rec[np.argsort(rec["id"], kind="stable")]
+
+    def blocks(self, i, j, state=None, block=1 << 18):
+        """The records of bucket (i, j) in blocks of ``block``, with their positions: the
+        original ones, or (``state``) joined with their state rows and placed by
+        ``state.key``."""
+        rows = state.rows(self, i, j, block) if state is not None else None
+        start = 0
+        with open(self.path(i, j), "rb") as f:
+            while True:
+                rec = np.fromfile(f, self.dtype, count=block)
+                if not len(rec):
+                    return
+                if rows is not None:
+                    rec = state.join(rec, next(rows), i * self.shape[1] + j, start)
+                start += len(rec)
+                yield rec, (state.key(rec) if state is not None else rec["p"])
 
     def split(self, tiling, folder, state=None, block=1 << 18):
         """Pass (1b): every point appended to the input file of each tile whose cells or
@@ -124,19 +130,9 @@ class Buckets:
             for j in range(self.shape[1]):
                 if not self.counts[i, j]:
                     continue
-                rows = state.rows(self, i, j, block) if state is not None else None
-                start = 0
-                with open(self.path(i, j), "rb") as f:
-                    while True:
-                        rec = np.fromfile(f, self.dtype, count=block)
-                        if not len(rec):
-                            break
-                        if rows is not None:
-                            rec = state.join(rec, next(rows), i * self.shape[1] + j, start)
-                        start += len(rec)
-                        pos = state.key(rec) if state is not None else rec["p"]
-                        self._scatter(rec, tiling.frame.cells_xy(pos), size, h, ntx, nty,
-                                      dtype, folder)
+                for rec, pos in self.blocks(i, j, state, block):
+                    self._scatter(rec, tiling.frame.cells_xy(pos), size, h, ntx, nty,
+                                  dtype, folder)
 
     @staticmethod
     def _scatter(rec, c, size, h, ntx, nty, dtype, folder):
