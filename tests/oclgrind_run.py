@@ -1,6 +1,6 @@
 """Run every registered operator and support kernel on one small cloud on a named device.
 
-    python tests/oclgrind_run.py CASE PRECISION [DEVICE]
+    python tests/oclgrind_run.py CASE VARIANT [DEVICE]     (VARIANT: float, double, float-cpu)
 
 tests/test_oclgrind.py runs this in a subprocess under Oclgrind (DEVICE "oclgrind", the
 default), with its checks switched on by environment variables; it reads Oclgrind's report
@@ -10,6 +10,7 @@ through the public API (so the host code that sizes the buffers is what is check
 operators come from the registry (clcurv.OPERATORS), so a new operator is run here too.
 Prints one line per call: its name and how many of its outputs are finite.
 """
+import dataclasses
 import sys
 
 import numpy as np
@@ -128,7 +129,20 @@ def _forest(points, r, common, block=None, chase=None):
     return fo.label[:, None].astype(float)
 
 
-def main(case, precision="float", device="oclgrind"):
+def as_cpu(device):
+    """Make clcurv treat ``device`` as a CPU device (Oclgrind reports itself as a GPU): the
+    CPU choices (VW 8, work-groups of 1 for knn_graph and the forest's block kernels, mapped
+    host buffers) are then checked too."""
+    dev = clcurv.get_device(device)           # the cached Device every call gets
+    dev.info = dataclasses.replace(dev.info, kind="cpu")
+
+
+def main(case, variant="float", device="oclgrind"):
+    """Run every call on ``CASES[case]``; ``variant`` is 'float' or 'double' (the
+    precision), or 'float-cpu' (float, with the device treated as a CPU device)."""
+    precision = variant.split("-")[0]
+    if variant.endswith("-cpu"):
+        as_cpu(device)
     points = CASES[case]()
     for name, thunk in calls(points, precision, device):
         print(f"call {name}: {_finite(thunk())}", flush=True)

@@ -9,7 +9,8 @@ than a CPU device, so only this test uses it (tests/conftest.py keeps simulators
 cells, points exactly on cell borders, N not a multiple of the vector width (VW = 4 on
 Oclgrind, which reports itself as a GPU), and a sphere whose orientation needs several
 Boruvka rounds (run once more with tiny forest blocks and CHASE = 1, for the multi-block
-and pointer-jumping paths), in float and double. Each case runs in a subprocess; Oclgrind's
+and pointer-jumping paths), in float and double, and in float with Oclgrind treated as a
+CPU device (VW 8 and the CPU work-group choices). Each case runs in a subprocess; Oclgrind's
 report goes to a file (``OCLGRIND_LOG``) and ``OCLGRIND_INST_COUNTS=1`` names every kernel
 that ran, so :func:`test_every_kernel_ran` checks that every ``__kernel`` of every program
 of the registry (clcurv.operators.program_variants) ran: a new kernel that no call reaches
@@ -61,7 +62,10 @@ BENIGN_RACE = "if (v < *p) atomic_min(p, v);"
 #: the checks; pyopencl's binary cache off: a program loaded from it has no source, and
 #: Oclgrind's reports then say "(source not available)" instead of the line
 ENV = {"OCLGRIND_DATA_RACES": "1", "OCLGRIND_INST_COUNTS": "1", "PYOPENCL_NO_CACHE": "1"}
-PRECISIONS = ("float", "double")
+#: precisions, and float with Oclgrind treated as a CPU device (the CPU choices: VW 8,
+#: work-groups of 1, mapped buffers); knn.cl's VW 16 (native width of AVX-512 CPUs) is not
+#: reached (Oclgrind's native width is 1)
+PRECISIONS = ("float", "double", "float-cpu")
 _runs = {}
 
 
