@@ -3,8 +3,10 @@ nearest point (the point itself the first), found on the device with the grid
 (``kernels/knn_radius.cl``), so that every ball holds k points however the density varies.
 
 How: the cloud is binned at a cell c (a first guess from the bounding box, assuming a
-surface); the kernel keeps the k smallest squared distances among the candidates within c
-of each point; a point with fewer than k candidates within c is unresolved, and the cloud
+surface, :data:`FIRST_CELL`); the kernel finds the k-th smallest squared distance among
+the candidates within c of each point in one walk (each vector lane keeps its smallest
+d^2, :func:`lane_levels`; dense spots take a counting path with more walks, same result);
+a point with fewer than k candidates within c is unresolved, and the cloud
 is binned again at 1.5c (:data:`GROWTH`) for the unresolved points only (up to
 :data:`ISOLATION` times the 90th percentile of the k-NN radii: points still unresolved are
 isolated). The
@@ -36,6 +38,7 @@ point with r(p), and nothing in the paper bounds the error of a radius that vari
 """
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -55,6 +58,12 @@ ISOLATION = 4.0
 #: ~1e-6 relative at most, cell <= ISOLATION r); points within that margin of d_k (ties)
 #: enter too
 MARGIN = 2.0 ** -16
+#: the first cell is this many times the k-NN radius estimated for a surface at the cloud's
+#: mean density (:func:`_first_cell`): ~1.16x the median k-NN radius of a uniform sphere,
+#: where ~5% of the points (k = 30) need the next level. (1.6, ~1.5x the median radius,
+#: still left 2 of 1M sphere points for the next level and its larger walk made the whole
+#: pass slower, 767 vs 693 ms: the walk grows with the cell's area.)
+FIRST_CELL = 1.25
 #: the cell grows by this factor from one binning to the next (the last cell is then within
 #: this factor of the largest radius: the operators walk it)
 GROWTH = 1.5
@@ -111,16 +120,28 @@ def _first_cell(pts, k, lo, hi, sample=20000):
     dims = cells.max(axis=0) + 1                   # < 2^21 per axis: sample ~ 2e4 points
     occupied = len(np.unique((cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]))
     area = max(occupied * s * s / 1.5, 1e-300)
-    return float(1.25 * np.sqrt(k * area / (np.pi * n)))
+    return float(FIRST_CELL * np.sqrt(k * area / (np.pi * n)))
 
 
-def kth_squared(cloud, k, known=None):
+def lane_levels(k, vw):
+    """How many of the smallest d^2 each vector lane of knn_radius.cl's walk keeps
+    (KNN_LEVELS): about 2.5 k / VW, twice a lane's share of the k nearest, 4 to 16. A point
+    whose lanes drop values that matter (more candidates in a lane than it keeps, below the
+    k-th distance's bin) takes the kernel's counting path: the same result, more walks."""
+    return int(min(16, max(4, math.ceil(2.5 * k / int(vw)))))
+
+
+def kth_squared(cloud, k, known=None, levels=None):
     """The squared distance to the k-th nearest point within the cloud's cell (device
     values as float64, input order; +inf where fewer than k points lie within it). Points
-    with a finite ``known`` value (input order) keep it and are not walked."""
+    with a finite ``known`` value (input order) keep it and are not walked. ``levels``
+    overrides :func:`lane_levels` (tests: 1 sends nearly every point down the kernel's
+    counting path, which must give the same values)."""
     import pyopencl as cl
     from .program import build, launch
-    prg = build(cloud.device, "knn_radius.cl", dict(cloud.defines, KNN_K=int(k)))
+    prg = build(cloud.device, "knn_radius.cl",
+                dict(cloud.defines, KNN_K=int(k), KNN_CAP=64,   # the counting path's gather
+                     KNN_LEVELS=levels or lane_levels(k, cloud.defines["VW"])))
     prev = np.full(cloud.n, np.inf, cloud.dtype)
     if known is not None:
         prev[:] = known[cloud.grid.order]
@@ -144,7 +165,9 @@ def knn_radii(points, k, *, device=None, precision="float"):
     pts = as_points(points)
     t0 = time.perf_counter()
     k = check_k(k, len(pts))
-    lo, hi = pts.min(axis=0), pts.max(axis=0)       # one pass each over the cloud
+    cols = [pts[:, a] for a in range(3)]            # (column reductions: 3x axis=0's speed)
+    lo = np.array([c.min() for c in cols])
+    hi = np.array([c.max() for c in cols])
     diag = float(np.linalg.norm(hi - lo))
     c = _first_cell(pts, k, lo, hi)
     cap = None

@@ -3,26 +3,53 @@
  *
  * One work-item per sorted point; the same fixed-order walk over the 27 cells as the
  * operators (neighbors.h), the candidates within the cloud's cell c (open ball d^2 < c^2).
- * The K-th smallest d^2 is selected by narrowing an interval [lo, hi) of d^2 that holds it
- * (first [0, c^2)): a counting pass splits it into NBIN bins (vector compares, no branch)
- * and keeps the bin where the count reaches the rank sought; once that bin holds at most
- * KNN_CAP candidates, a last pass gathers them and an insertion sort picks the rank. A bin
- * that cannot be narrowed further (many equal distances: duplicates) gives its upper end.
+ * One walk, vector operations only, does two things per chunk:
+ *   - counts the candidates in NBIN bins of d^2 over [0, c^2), which locate the bin
+ *     [lo, hi) that holds the K-th smallest d^2 and its rank `need` there;
+ *   - keeps, lane by lane, the KNN_LEVELS smallest d^2 of the lane (a min/max insertion
+ *     network over KNN_LEVELS vectors), and the lane's count.
+ * The K-th smallest is then the need-th smallest kept value in [lo, hi), taken by rounds of
+ * vector minima. It is exact unless a lane held more than KNN_LEVELS candidates and dropped
+ * some below hi (its largest kept value < hi): such a point (dense spots, many duplicates)
+ * takes the counting path instead, which narrows [lo, hi) by further counting walks until
+ * the bin holds at most KNN_CAP candidates, gathers them and picks the rank (a bin that
+ * cannot be narrowed, many equal distances, gives its upper end). (A walk gathering every
+ * candidate lane by lane into a buffer cost ~5x this one on PoCL: scalar lane loops.)
  * Points whose prev[g] is finite (found at a smaller cell, sorted order of this cloud) are
  * copied, not walked again.
  * Output d2k[g] (sorted order): the K-th smallest d^2, or +INFINITY when fewer than K
  * points lie within c (the host then bins at a larger cell).
- * Build option: KNN_K (1 .. clcurv.knn_radius.MAX_K).
+ * Build options: KNN_K (1 .. clcurv.knn_radius.MAX_K), KNN_LEVELS (1 .. 16), KNN_CAP
+ * (>= 1, the counting path's gather buffer).
  */
 #include "common.h"
 #include "neighbors.h"
 
-#if !defined(KNN_K) || KNN_K < 1
-#error "knn_radius.cl needs KNN_K (clcurv/knn_radius.py)"
+#if !defined(KNN_K) || KNN_K < 1 || !defined(KNN_CAP) || KNN_CAP < 1 \
+    || !defined(KNN_LEVELS) || KNN_LEVELS < 1 || KNN_LEVELS > 16
+#error "knn_radius.cl needs KNN_K, KNN_LEVELS and KNN_CAP (clcurv/knn_radius.py)"
 #endif
 
+/* Is any lane of a mask set? (An OR tree, as knn.cl's any_lane: PoCL 3.1's any() is slow.) */
+inline int lanes_any(IREALV m)
+{
+#if VW == 16
+    CAT(IREAL, 8) a = m.lo | m.hi;
+    CAT(IREAL, 4) b = a.lo | a.hi;
+#elif VW == 8
+    CAT(IREAL, 4) b = m.lo | m.hi;
+#elif VW == 4
+    CAT(IREAL, 4) b = m;
+#endif
+#if VW >= 4
+    CAT(IREAL, 2) h = b.lo | b.hi;
+    return (h.x | h.y) != 0;
+#else
+    return (m.x | m.y) != 0;
+#endif
+}
+
 #define NBIN 8              /* bins per counting pass */
-#define KNN_CAP 64          /* candidates gathered by the last pass */
 #define KNN_ROUNDS 12       /* counting passes at most (each narrows the interval 8x) */
 
 /* d^2 of the chunk's lanes (as chunk_offsets) and the mask of those in the open ball. */
@@ -35,18 +62,53 @@ inline IREALV chunk_d2(__global const REAL *X, __global const REAL *Y, __global 
     return m;
 }
 
-__kernel void kth_distance(__global const REAL *X, __global const REAL *Y,
-                           __global const REAL *Z, __global const uint *cell_of,
-                           __global const uint2 *ranges, const uint n, const REAL2 ball,
-                           __global const REAL *prev, __global REAL *d2k)
+/* Append the lanes of d2 set in m to buf (got values so far; past KNN_CAP the count goes on
+ * and the last slot is overwritten: the caller checks got <= KNN_CAP). */
+inline uint append_lanes(REALV d2, IREALV m, REAL *buf, uint got)
 {
-    const uint g = get_global_id(0);
-    if (g >= n) return;
-    if (isfinite(prev[g])) { d2k[g] = prev[g]; return; }
-    const uint co = cell_of[g];
-    const uint cell = co & CELL_MASK;
-    __global const REAL *XA = x_rows(X, co, n);
-    const REAL3 p = (REAL3)(XA[g], Y[g], Z[g]);
+    REAL dl[VW];
+    IREAL ml[VW];
+    CAT(vstore, VW)(d2, 0, dl);
+    CAT(vstore, VW)(m, 0, ml);
+    for (int l = 0; l < VW; ++l) {
+        buf[min(got, (uint)(KNN_CAP - 1))] = dl[l];
+        got += ml[l] ? 1 : 0;
+    }
+    return got;
+}
+
+/* The rank-th smallest (from 0) of buf[0 .. cnt) (Hoare's selection; reorders buf). */
+inline REAL select_rank(REAL *buf, uint cnt, uint rank)
+{
+    int lo = 0, hi = (int)cnt - 1;
+    const int k = (int)rank;
+    while (lo < hi) {
+        const REAL pivot = buf[(lo + hi) / 2];
+        int i = lo, j = hi;
+        while (i <= j) {
+            while (buf[i] < pivot) ++i;
+            while (buf[j] > pivot) --j;
+            if (i <= j) {
+                const REAL t = buf[i];
+                buf[i] = buf[j];
+                buf[j] = t;
+                ++i;
+                --j;
+            }
+        }
+        if (k <= j) hi = j;
+        else if (k >= i) lo = i;
+        else break;
+    }
+    return buf[k];
+}
+
+/* The counting path (see the top) for a point whose ball holds more than KNN_CAP
+ * candidates: the K-th smallest d^2, buf as scratch. */
+inline REAL kth_by_counting(__global const REAL *XA, __global const REAL *Y,
+                            __global const REAL *Z, __global const uint2 *ranges, uint cell,
+                            REAL3 p, REAL2 ball, REAL *buf)
+{
     REAL lo = 0, hi = ball.x;               /* the K-th d^2 lies in [lo, hi) */
     uint need = KNN_K;                      /* its rank within [lo, hi), from 1 */
     uint inside = 0;                        /* candidates in [lo, hi) */
@@ -68,33 +130,134 @@ __kernel void kth_distance(__global const REAL *X, __global const REAL *Y,
             if (c >= need) { inside = c - below; break; }
             below = c;
         }
-        if (b == NBIN) { d2k[g] = (REAL)INFINITY; return; }   /* fewer than K within c */
+        if (b == NBIN) return (REAL)INFINITY;               /* fewer than K within c */
         const REAL nlo = b ? edge[b - 1] : lo, nhi = edge[b];
         need -= below;
         if (inside <= KNN_CAP || !(nlo < nhi)) { lo = nlo; hi = nhi; break; }
         if (nlo == lo && nhi == hi) break;                   /* cannot narrow: ties */
         lo = nlo; hi = nhi;
     }
-    if (inside > KNN_CAP) { d2k[g] = hi; return; }          /* equal distances: its end */
+    if (inside > KNN_CAP) return hi;                         /* equal distances: its end */
     /* gather the candidates of [lo, hi) and pick the need-th smallest */
-    REAL buf[KNN_CAP];
     uint got = 0;
     NEIGHBOR_CHUNKS_BEGIN(ranges, cell, p, ball, i, end, pr)
         REALV d2;
         const IREALV m = chunk_d2(XA, Y, Z, i, end, pr, ball, &d2)
                          & isgreaterequal(d2, (REALV)lo) & isless(d2, (REALV)hi);
-        if (hsum(select((REALV)0, (REALV)1, m)) > 0) {
-            REAL dl[VW];
-            IREAL ml[VW];
-            CAT(vstore, VW)(d2, 0, dl);
-            CAT(vstore, VW)(m, 0, ml);
-            for (int l = 0; l < VW; ++l) {
-                if (!ml[l] || got >= KNN_CAP) continue;
-                int j = (int)got++;
-                while (j > 0 && buf[j - 1] > dl[l]) { buf[j] = buf[j - 1]; --j; }
-                buf[j] = dl[l];
-            }
+        if (lanes_any(m)) got = append_lanes(d2, m, buf, got);
+    NEIGHBOR_CHUNKS_END
+    return select_rank(buf, got, need - 1);
+}
+
+/* d^2 >= 0 as integer bits: ordered as the values (+INFINITY last), and integer min/max are
+ * single vector instructions (float fmin/fmax and compare-select cost ~2x) */
+#define AS_IREALV CAT(as_, IREALV)
+#define AS_IREAL CAT(as_, IREAL)
+#define AS_REAL CAT(as_, REAL)
+#define INF_BITS AS_IREAL((REAL)INFINITY)
+
+/* The smallest lane of v */
+inline IREAL min_lane(IREALV v)
+{
+#if VW == 16
+    CAT(IREAL, 8) a = min(v.lo, v.hi);
+    CAT(IREAL, 4) b = min(a.lo, a.hi);
+#elif VW == 8
+    CAT(IREAL, 4) b = min(v.lo, v.hi);
+#elif VW == 4
+    CAT(IREAL, 4) b = v;
+#endif
+#if VW >= 4
+    CAT(IREAL, 2) h = min(b.lo, b.hi);
+    return min(h.x, h.y);
+#else
+    return min(v.x, v.y);
+#endif
+}
+
+/* How many lanes of a mask are set */
+inline uint count_lanes(IREALV m)
+{
+    return (uint)(-hsum(CAT(convert_, REALV)(m)));
+}
+
+/* The need-th smallest (from 1) of the values (bits) of a[0 .. KNN_LEVELS) in [lo, hi):
+ * rounds of vector minima, each removing the current minimum (all its copies). */
+inline REAL kth_of_levels(IREALV a[KNN_LEVELS], IREAL lo, IREAL hi, uint need)
+{
+    for (int t = 0; t < KNN_LEVELS; ++t)
+        a[t] = select((IREALV)INF_BITS, a[t], (a[t] >= (IREALV)lo) & (a[t] < (IREALV)hi));
+    for (;;) {
+        IREALV mn = a[0];
+        for (int t = 1; t < KNN_LEVELS; ++t) mn = min(mn, a[t]);
+        const IREAL x = min_lane(mn);
+        if (x >= hi) return AS_REAL(hi);                   /* not reached (need <= inside) */
+        IREALV eq = 0;
+        for (int t = 0; t < KNN_LEVELS; ++t) {
+            const IREALV e = a[t] == (IREALV)x;
+            eq += e;
+            a[t] = select(a[t], (IREALV)INF_BITS, e);
+        }
+        const uint c = count_lanes(eq);
+        if (need <= c) return AS_REAL(x);
+        need -= c;
+    }
+}
+
+__kernel void kth_distance(__global const REAL *X, __global const REAL *Y,
+                           __global const REAL *Z, __global const uint *cell_of,
+                           __global const uint2 *ranges, const uint n, const REAL2 ball,
+                           __global const REAL *prev, __global REAL *d2k)
+{
+    const uint g = get_global_id(0);
+    if (g >= n) return;
+    if (isfinite(prev[g])) { d2k[g] = prev[g]; return; }
+    const uint co = cell_of[g];
+    const uint cell = co & CELL_MASK;
+    __global const REAL *XA = x_rows(X, co, n);
+    const REAL3 p = (REAL3)(XA[g], Y[g], Z[g]);
+    IREALV a[KNN_LEVELS];                              /* per lane, ascending */
+    for (int t = 0; t < KNN_LEVELS; ++t) a[t] = (IREALV)INF_BITS;
+    IREALV lanes = 0;                                  /* minus the candidates per lane */
+    NEIGHBOR_CHUNKS_BEGIN(ranges, cell, p, ball, i, end, pr)
+        REALV d2;
+        const IREALV m = chunk_d2(XA, Y, Z, i, end, pr, ball, &d2);
+        lanes += m;
+        IREALV x = select((IREALV)INF_BITS, AS_IREALV(d2), m);
+        for (int t = 0; t < KNN_LEVELS; ++t) {
+            const IREALV lo_ = min(a[t], x);
+            x = max(a[t], x);
+            a[t] = lo_;
         }
     NEIGHBOR_CHUNKS_END
-    d2k[g] = buf[need - 1];
+    /* the bins' counts from the kept values: exact below the K-th unless lost (below) */
+    const uint total = count_lanes(lanes);
+    IREAL edge[NBIN];
+    for (int b = 0; b < NBIN - 1; ++b) edge[b] = AS_IREAL(ball.x * (REAL)(b + 1) / NBIN);
+    edge[NBIN - 1] = AS_IREAL(ball.x);
+    uint below = 0, b = 0;
+    if (total >= KNN_K) {
+        for (; b < NBIN - 1; ++b) {
+            IREALV cb = 0;
+            for (int t = 0; t < KNN_LEVELS; ++t) cb += a[t] < (IREALV)edge[b];
+            const uint c = count_lanes(cb);
+            if (c >= KNN_K) break;
+            below = c;
+        }
+    }
+    REAL d;
+    if (total < KNN_K) {
+        d = (REAL)INFINITY;                            /* fewer than K within c */
+    } else {
+        const IREAL lo = b ? edge[b - 1] : 0, hi = edge[b];
+        /* a lane that dropped values below hi: the kept ones may miss some of [lo, hi) */
+        const IREALV lost = (lanes < (IREALV)(-KNN_LEVELS)) & (a[KNN_LEVELS - 1] < (IREALV)hi);
+        if (lanes_any(lost)) {
+            REAL buf[KNN_CAP];
+            d = kth_by_counting(XA, Y, Z, ranges, cell, p, ball, buf);
+        } else {
+            d = kth_of_levels(a, lo, hi, KNN_K - below);
+        }
+    }
+    d2k[g] = d;
 }

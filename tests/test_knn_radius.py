@@ -38,6 +38,26 @@ def test_radii_against_kdtree(sphere, device, k):
     assert got.cloud.cell >= np.nanmax(got.radius)
 
 
+@pytest.mark.parametrize("k", [4, 30])
+def test_both_kernel_paths_select_the_same_distance(sphere, device, k):
+    """knn_radius.cl's one-walk selection (the smallest d^2 kept per lane) and its counting
+    path (forced by keeping one value per lane) give the same k-th distances, bit for bit,
+    and those of the k-d tree (within float32 rounding of the offsets)."""
+    from scipy.spatial import cKDTree
+    from clcurv.cloud import DeviceCloud
+    from clcurv.knn_radius import kth_squared
+    pts = sphere[::2]
+    ref = cKDTree(pts).query(pts, k)[0][:, -1]
+    cloud = DeviceCloud(pts, 1.6 * np.median(ref), device=device)
+    fast = kth_squared(cloud, k)
+    slow = kth_squared(cloud, k, levels=1)
+    ok = np.isfinite(fast)
+    assert ok.mean() > 0.9
+    np.testing.assert_array_equal(fast, slow)
+    np.testing.assert_allclose(np.sqrt(fast[ok]), ref[ok], rtol=4e-6)
+    assert (ref[~ok] >= 0.999 * cloud.cell).all()     # unresolved: k-th beyond the cell
+
+
 def test_balls_hold_k_points(sphere, device):
     """The ball of each point at its own radius holds exactly k points (the margin of a few
     ulps adds only exact ties, absent here); the reference's closed balls of radius d_k agree,
