@@ -3,12 +3,14 @@
  *
  * A sibling of moments.cl: the same weighted PCA (pca.h: PCA_ACCUMULATE, pca_store_sums,
  * pca_decompose, PCA_REFINE_ACCUMULATE), so that its eigenvalues and normals are those of
- * the moments kernel bit for bit. Each ball's sums come from pca_ball's walk over the
- * candidates of the cloud's cells (cell >= the largest radius), so every radius's record
- * is bit-identical to a call at that radius alone on the same cloud. The lambda0 refinement (moments.cl) is one second walk for all the balls:
- * ball j's lanes are those of chunk_offsets' mask at the largest ball with d^2 < r_j^2, d^2
- * computed by chunk_offsets' own expression (the same lanes). The features of the VW points
- * of a work-item are evaluated at once in the vector lanes.
+ * the moments kernel bit for bit. The walk runs once over the candidates of the cloud's
+ * cells (cell >= the largest radius) and accumulates the sums of every ball: ball j's lanes
+ * are those of chunk_offsets' mask (at the largest ball) with d^2 < r_j^2, d^2 computed by
+ * chunk_offsets' own expression, so the same lanes and the same additions in the same order
+ * as a single-radius walk: every radius's record is bit-identical to a call at that radius
+ * alone on the same cloud. The lambda0 refinement (moments.cl) is one second walk for all
+ * the balls. The features of the VW points of a work-item are evaluated at once in the
+ * vector lanes.
  *
  * Eigenvalues: l1 >= l2 >= l3 of the count-normalised covariance sum (q - o)(q - o)^T / n,
  * times n / (n - ddof) (ddof = par.z: 1 gives the sample covariance of jakteristics).
@@ -54,17 +56,15 @@ inline IREALV ball_mask(IREALV m, REALV dx, REALV dy, REALV dz, REAL r2)
     return m & isless(d2, (REALV)r2);
 }
 
-/* The PCA of the NR balls of the VW consecutive sorted points g0 .. g0 + kn - 1: per point
- * and ball the moments kernel's walk (pca_ball). One walk that accumulated every ball at
- * once (10 NR vector sums per chunk) cost ~5-7% more kernel time at NR = 3 on PoCL/AVX-512
- * (1M points, radii r/sqrt2, r, r sqrt2); skipping the rows that a smaller ball does not
- * reach (its cell box farther than r_j) saved nothing measurable: the test per chunk cost
- * what the skipped rows did. */
+/* The PCA of the NR balls of the VW consecutive sorted points g0 .. g0 + kn - 1: one walk
+ * per point at the cloud's cells, ball j's lanes masked at r2[j]. */
 inline void features_pca(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
                          __global const REAL *W, __global const uint *cell_of,
                          __global const uint2 *ranges, uint n, uint g0, uint kn, REAL2 ball,
                          const REAL r2[NR], pca_batch_t pb[NR])
 {
+    REAL r2max = r2[0];
+    for (int j = 1; j < NR; ++j) r2max = fmax(r2max, r2[j]);
     for (uint k = 0; k < VW; ++k) {
         if (k >= kn) {                                  /* unused lane: the identity */
             for (int j = 0; j < NR; ++j) {
@@ -77,9 +77,27 @@ inline void features_pca(__global const REAL *X, __global const REAL *Y, __globa
         const uint co = cell_of[g];
         __global const REAL *XA = x_rows(X, co, n);
         const REAL3 p = (REAL3)(XA[g], Y[g], Z[g]);
+        REALV sc[NR], sw[NR], sx[NR], sy[NR], sz[NR];
+        REALV sxx[NR], sxy[NR], sxz[NR], syy[NR], syz[NR], szz[NR];
+        for (int j = 0; j < NR; ++j) {
+            sc[j] = sw[j] = sx[j] = sy[j] = sz[j] = 0;
+            sxx[j] = sxy[j] = sxz[j] = syy[j] = syz[j] = szz[j] = 0;
+        }
+        REALV dx, dy, dz;
+        const REAL2 bmax = (REAL2)(BALL_R2(W, g, r2max), ball.y);
+        NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, ball, i, end, pr)
+            const IREALV mmax = chunk_offsets(XA, Y, Z, i, end, pr, bmax, &dx, &dy, &dz);
+            for (int j = 0; j < NR; ++j) {
+                const IREALV m = NR == 1 ? mmax
+                                 : ball_mask(mmax, dx, dy, dz, BALL_R2(W, g, r2[j]));
+                const REALV w = chunk_weights(W, i, dx, dy, dz, m, (REAL)0);
+                PCA_ACCUMULATE(w, m, dx, dy, dz, sc[j], sw[j], sx[j], sy[j], sz[j], sxx[j],
+                               sxy[j], sxz[j], syy[j], syz[j], szz[j])
+            }
+        NEIGHBOR_CHUNKS_END
         for (int j = 0; j < NR; ++j)
-            pca_ball(XA, Y, Z, W, ranges, co & CELL_MASK, p,
-                     (REAL2)(BALL_R2(W, g, r2[j]), ball.y), (REAL)0, &pb[j], k);
+            pca_store_sums(sc[j], sw[j], sx[j], sy[j], sz[j], sxx[j], sxy[j], sxz[j], syy[j],
+                           syz[j], szz[j], &pb[j], k);
     }
     for (int j = 0; j < NR; ++j) pca_decompose(&pb[j]);
 }
