@@ -5,7 +5,7 @@ nearest point (the point itself the first), found on the device with the grid
 How: the cloud is binned at a cell c (a first guess from the bounding box, assuming a
 surface, :data:`FIRST_CELL`); the kernel finds the k-th smallest squared distance among
 the candidates within c of each point in one walk (each vector lane keeps its smallest
-d^2, :func:`lane_levels`; dense spots take a counting path with more walks, same result);
+d^2; dense spots take a counting path with more walks, same result);
 a point with fewer than k candidates within c is unresolved, and the cloud
 is binned again at 1.5c (:data:`GROWTH`) for the unresolved points only (up to
 :data:`ISOLATION` times the 90th percentile of the k-NN radii: points still unresolved are
@@ -38,7 +38,6 @@ point with r(p), and nothing in the paper bounds the error of a radius that vari
 """
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 
@@ -123,25 +122,18 @@ def _first_cell(pts, k, lo, hi, sample=20000):
     return float(FIRST_CELL * np.sqrt(k * area / (np.pi * n)))
 
 
-def lane_levels(k, vw):
-    """How many of the smallest d^2 each vector lane of knn_radius.cl's walk keeps
-    (KNN_LEVELS): about 2.5 k / VW, twice a lane's share of the k nearest, 4 to 16. A point
-    whose lanes drop values that matter (more candidates in a lane than it keeps, below the
-    k-th distance's bin) takes the kernel's counting path: the same result, more walks."""
-    return int(min(16, max(4, math.ceil(2.5 * k / int(vw)))))
-
-
 def kth_squared(cloud, k, known=None, levels=None):
     """The squared distance to the k-th nearest point within the cloud's cell (device
     values as float64, input order; +inf where fewer than k points lie within it). Points
     with a finite ``known`` value (input order) keep it and are not walked. ``levels``
-    overrides :func:`lane_levels` (tests: 1 sends nearly every point down the kernel's
-    counting path, which must give the same values)."""
+    overrides the d^2 values the kernel keeps per vector lane (KNN_LEVELS; tests: 1 sends
+    nearly every point down the kernel's counting path, which must give the same values)."""
     import pyopencl as cl
     from .program import build, launch
-    prg = build(cloud.device, "knn_radius.cl",
-                dict(cloud.defines, KNN_K=int(k), KNN_CAP=64,   # the counting path's gather
-                     KNN_LEVELS=levels or lane_levels(k, cloud.defines["VW"])))
+    opts = dict(cloud.defines, KNN_K=int(k))
+    if levels is not None:
+        opts["KNN_LEVELS"] = int(levels)
+    prg = build(cloud.device, "knn_radius.cl", opts)
     prev = np.full(cloud.n, np.inf, cloud.dtype)
     if known is not None:
         prev[:] = known[cloud.grid.order]

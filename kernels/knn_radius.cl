@@ -19,16 +19,30 @@
  * copied, not walked again.
  * Output d2k[g] (sorted order): the K-th smallest d^2, or +INFINITY when fewer than K
  * points lie within c (the host then bins at a larger cell).
- * Build options: KNN_K (1 .. clcurv.knn_radius.MAX_K), KNN_LEVELS (1 .. 16), KNN_CAP
- * (>= 1, the counting path's gather buffer).
+ * Build option: KNN_K (1 .. clcurv.knn_radius.MAX_K); KNN_LEVELS (1 .. 16) overrides the
+ * levels kept per lane (tests: 1 sends nearly every point down the counting path).
  */
 #include "common.h"
 #include "neighbors.h"
 
-#if !defined(KNN_K) || KNN_K < 1 || !defined(KNN_CAP) || KNN_CAP < 1 \
-    || !defined(KNN_LEVELS) || KNN_LEVELS < 1 || KNN_LEVELS > 16
-#error "knn_radius.cl needs KNN_K, KNN_LEVELS and KNN_CAP (clcurv/knn_radius.py)"
+#if !defined(KNN_K) || KNN_K < 1
+#error "knn_radius.cl needs KNN_K (clcurv/knn_radius.py)"
 #endif
+
+/* The smallest d^2 kept per lane: ceil(2.5 K / VW), twice a lane's share of the K nearest
+ * (the first cell's ball holds ~1.4 K candidates, clcurv/knn_radius.py FIRST_CELL), 4 to
+ * 16 vectors; a point whose lanes drop values that matter takes the counting path. At K =
+ * 30, VW = 8 (10 levels) and a cell 1.3x the median k-NN radius, 0.09% of a uniform
+ * sphere's points did so (8 levels: 5%, 12: 0.0006%). */
+#ifndef KNN_LEVELS
+#define KNN_LEVELS_WANTED ((5 * KNN_K + 2 * VW - 1) / (2 * VW))
+#define KNN_LEVELS (KNN_LEVELS_WANTED < 4 ? 4 : KNN_LEVELS_WANTED > 16 ? 16 : KNN_LEVELS_WANTED)
+#endif
+#if KNN_LEVELS < 1 || KNN_LEVELS > 16
+#error "KNN_LEVELS must be 1 .. 16"
+#endif
+
+#define KNN_CAP 64          /* the counting path gathers at most this many candidates */
 
 /* Is any lane of a mask set? (An OR tree, as knn.cl's any_lane: PoCL 3.1's any() is slow.) */
 inline int lanes_any(IREALV m)
