@@ -7,7 +7,8 @@ surface, :data:`FIRST_CELL`); the kernel finds the k-th smallest squared distanc
 the candidates within c of each point in one walk (each vector lane keeps its smallest
 d^2; dense spots take a counting path with more walks, same result);
 a point with fewer than k candidates within c is unresolved, and the cloud
-is binned again at 1.5c (:data:`GROWTH`) for the unresolved points only (up to
+is binned again at 1.5c (:data:`GROWTH`; binned on a host thread while the device walks
+the first level, :func:`_bin_ahead`) for the unresolved points only (up to
 :data:`ISOLATION` times the 90th percentile of the k-NN radii: points still unresolved are
 isolated). The
 operators then run on one cloud whose cell is the largest radius (the last level's, or
@@ -165,10 +166,17 @@ def knn_radii(points, k, *, device=None, precision="float"):
     cap = None
     levels = []
     d2 = None
+    spec = None
     stages = {"first_cell": time.perf_counter() - t0, "binning": 0.0, "kth": 0.0}
     while True:
         t1 = time.perf_counter()
-        cloud = DeviceCloud(pts, c, device=device, precision=precision)
+        if spec is not None and spec[0] == c:
+            cloud = spec[1].result()
+        else:
+            cloud = DeviceCloud(pts, c, device=device, precision=precision)
+        spec = None
+        if not levels and GROWTH * c <= diag:
+            spec = _bin_ahead(pts, GROWTH * c, device, precision)
         t2 = time.perf_counter()
         d2 = kth_squared(cloud, k, d2)
         stages["binning"] += t2 - t1
@@ -181,6 +189,8 @@ def knn_radii(points, k, *, device=None, precision="float"):
                 or len(levels) >= _MAX_LEVELS:
             break
         c = GROWTH * c if cap is None else min(GROWTH * c, max(cap, c))
+    if spec is not None:                         # binned ahead, not needed: let it finish
+        spec[1].exception()
     isolated = ~ok
     if cap is not None:                          # beyond the cap within the last cell
         isolated |= np.sqrt(np.where(ok, d2, 0.0)) > cap
@@ -196,6 +206,23 @@ def knn_radii(points, k, *, device=None, precision="float"):
     buf = _upload_sorted_r2(cloud, r2)
     stages["knn_radius"] = time.perf_counter() - t0
     return KnnRadii(k, radius, isolated, cloud, buf, levels, stages)
+
+
+_AHEAD = None
+
+
+def _bin_ahead(pts, c, device, precision):
+    """(c, future of DeviceCloud(pts, c)) binned on a host thread while the device walks the
+    first level: the next level's cell is GROWTH times the first in nearly every run (a
+    uniform surface leaves ~5% of the points for it), and the host's binning (numpy, one
+    core) then overlaps the kernel instead of following it. An error surfaces only if that
+    level is used (as it would have there)."""
+    global _AHEAD
+    from concurrent.futures import ThreadPoolExecutor
+    from .cloud import DeviceCloud
+    if _AHEAD is None:
+        _AHEAD = ThreadPoolExecutor(1, thread_name_prefix="clcurv-knn-bin")
+    return c, _AHEAD.submit(DeviceCloud, pts, c, device=device, precision=precision)
 
 
 def _margin(d2, dtype):
