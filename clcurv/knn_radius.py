@@ -129,27 +129,36 @@ def kth_squared(cloud, k, known=None, levels=None):
     with a finite ``known`` value (input order) keep it and are not walked. ``levels``
     overrides the d^2 values the kernel keeps per vector lane (KNN_LEVELS; tests: 1 sends
     nearly every point down the kernel's counting path, which must give the same values)."""
+    order = cloud.grid.order
+    prev = None if known is None else known[order].astype(cloud.dtype)
+    res = np.empty(cloud.n)
+    res[order] = _kth_sorted(cloud, k, prev, levels)
+    return res
+
+
+def _kth_sorted(cloud, k, prev=None, levels=None):
+    """:func:`kth_squared` in the cloud's sorted order and device precision; ``prev``
+    (sorted order) as ``known`` there, None for none."""
     import pyopencl as cl
     from .program import build, launch
     opts = dict(cloud.defines, KNN_K=int(k))
     if levels is not None:
         opts["KNN_LEVELS"] = int(levels)
     prg = build(cloud.device, "knn_radius.cl", opts)
-    prev = np.full(cloud.n, np.inf, cloud.dtype)
-    if known is not None:
-        prev[:] = known[cloud.grid.order]
-    mf = cl.mem_flags
-    prev_buf = cl.Buffer(cloud.device.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=prev)
-    out = cl.Buffer(cloud.device.context, mf.WRITE_ONLY,
-                    size=cloud.n * np.dtype(cloud.dtype).itemsize)
+    mf, ctx, q = cl.mem_flags, cloud.device.context, cloud.device.queue
+    nbytes = cloud.n * np.dtype(cloud.dtype).itemsize
+    if prev is None:
+        prev_buf = cl.Buffer(ctx, mf.READ_ONLY, size=nbytes)
+        cl.enqueue_fill_buffer(q, prev_buf, cloud.dtype(np.inf), 0, nbytes)
+    else:
+        prev_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=prev)
+    out = cl.Buffer(ctx, mf.WRITE_ONLY, size=nbytes)
     launch(cloud.device, prg.kth_distance, cloud.n, cloud.x, cloud.y, cloud.z,
            cloud.cell_of, cloud.ranges, np.uint32(cloud.n), cloud.ball(cloud.cell), prev_buf,
            out)
     host = np.empty(cloud.n, cloud.dtype)
-    cl.enqueue_copy(cloud.device.queue, host, out)
-    res = np.empty(cloud.n)
-    res[cloud.grid.order] = host
-    return res
+    cl.enqueue_copy(q, host, out)
+    return host
 
 
 def knn_radii(points, k, *, device=None, precision="float"):
@@ -165,7 +174,7 @@ def knn_radii(points, k, *, device=None, precision="float"):
     c = _first_cell(pts, k, lo, hi)
     cap = None
     levels = []
-    d2 = None
+    d2_in = None            # the k-th d^2 found so far, input order (inf: not yet)
     spec = None
     stages = {"first_cell": time.perf_counter() - t0, "binning": 0.0, "kth": 0.0}
     while True:
@@ -178,34 +187,44 @@ def knn_radii(points, k, *, device=None, precision="float"):
         if not levels and GROWTH * c <= diag:
             spec = _bin_ahead(pts, GROWTH * c, device, precision)
         t2 = time.perf_counter()
-        d2 = kth_squared(cloud, k, d2)
+        order = cloud.grid.order
+        d2 = _kth_sorted(cloud, k, None if d2_in is None else d2_in[order])  # sorted order
         stages["binning"] += t2 - t1
         stages["kth"] += time.perf_counter() - t2
         levels.append(c)
         ok = np.isfinite(d2)
         if cap is None and ok.mean() >= 0.9:
-            cap = ISOLATION * float(np.sqrt(np.quantile(d2[ok], 0.9)))
+            cap = ISOLATION * float(np.sqrt(np.quantile(d2[ok].astype(np.float64), 0.9)))
         if ok.all() or c > diag or (cap is not None and c >= cap) \
                 or len(levels) >= _MAX_LEVELS:
             break
         c = GROWTH * c if cap is None else min(GROWTH * c, max(cap, c))
+        d2_in = np.empty(cloud.n, cloud.dtype)
+        d2_in[order] = d2
     if spec is not None:                         # binned ahead, not needed: let it finish
         spec[1].exception()
+    # the last level's results, in its cloud's sorted order
+    d2 = d2.astype(np.float64)
     isolated = ~ok
     if cap is not None:                          # beyond the cap within the last cell
         isolated |= np.sqrt(np.where(ok, d2, 0.0)) > cap
     live = ~isolated
     r2 = _margin(np.where(isolated, 0.0, d2), cloud.dtype)
+    r2[isolated] = 0
     top = float(np.sqrt(r2[live].max())) if live.any() else 0.0
+    radius, iso_in = np.empty(cloud.n), np.empty(cloud.n, bool)
+    radius[order] = np.where(isolated, np.nan, np.sqrt(np.where(isolated, 0.0, d2)))
+    iso_in[order] = isolated
     if live.any() and c > REBIN_FACTOR * top and top > 1e-3 * c:
         # the operators' walk at the largest radius, not at the last level's cell
+        r2_in = np.empty(cloud.n, cloud.dtype)
+        r2_in[order] = r2
         cloud = DeviceCloud(pts, top, device=device, precision=precision)
         levels.append(cloud.cell)
-    radius = np.where(isolated, np.nan, np.sqrt(np.where(isolated, 0.0, d2)))
-    r2[isolated] = 0
+        r2 = r2_in[cloud.grid.order]
     buf = _upload_sorted_r2(cloud, r2)
     stages["knn_radius"] = time.perf_counter() - t0
-    return KnnRadii(k, radius, isolated, cloud, buf, levels, stages)
+    return KnnRadii(k, radius, iso_in, cloud, buf, levels, stages)
 
 
 _AHEAD = None
@@ -232,10 +251,10 @@ def _margin(d2, dtype):
     return np.maximum(x, np.finfo(dtype).tiny).astype(dtype)
 
 
-def _upload_sorted_r2(cloud, r2_input):
-    """The per-point r^2 (input order) as a padded device buffer in the sorted order."""
+def _upload_sorted_r2(cloud, r2_sorted):
+    """The per-point r^2 (the cloud's sorted order) as a padded device buffer."""
     import pyopencl as cl
     host = np.zeros(cloud.n + PAD, cloud.dtype)
-    host[:cloud.n] = r2_input[cloud.grid.order]
+    host[:cloud.n] = r2_sorted
     return cl.Buffer(cloud.device.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
                      hostbuf=host)
