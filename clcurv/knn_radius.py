@@ -194,7 +194,7 @@ def knn_radii(points, k, *, device=None, precision="float"):
         levels.append(c)
         ok = np.isfinite(d2)
         if cap is None and ok.mean() >= 0.9:
-            cap = ISOLATION * float(np.sqrt(np.quantile(d2[ok].astype(np.float64), 0.9)))
+            cap = ISOLATION * float(np.sqrt(np.quantile(d2[ok], 0.9)))   # (device dtype)
         if ok.all() or c > diag or (cap is not None and c >= cap) \
                 or len(levels) >= _MAX_LEVELS:
             break
