@@ -60,6 +60,24 @@ def _bench_pdal(pdal, pts, r):
     return s
 
 
+def _stages(pts, r, repeats=3):
+    """Stage times (s, best of ``repeats``) of features and normals calls on one DeviceCloud
+    at r: what the two share (binning, upload, cell ranges) and what each adds (kernel,
+    download)."""
+    cloud = clcurv.DeviceCloud(pts, r)
+    out = {"binning": sum(cloud.timings[k] for k in ("binning", "upload", "cell_ranges"))}
+    for _ in range(repeats):
+        got = {}
+        clcurv.features(cloud, r)
+        got.update(features_kernel=cloud.timings["kernel_features"],
+                   features_download=cloud.timings["download"])
+        clcurv.normals(cloud, r, orient=None)
+        got.update(normals_kernel=cloud.timings["kernel_moments"],
+                   normals_download=cloud.timings["download"])
+        out.update({k: min(v, out.get(k, v)) for k, v in got.items()})
+    return out
+
+
 def run(n, repeats):
     env = environment()
     before = thread_check()
@@ -92,6 +110,7 @@ def run(n, repeats):
                       repeats)
     rows["knn_vs_moments"] = (knn, mom)
     stages = knn_radii(pts, 30)
+    split = _stages(pts, r)
     f = clcurv.features(pts, r)
     mean_count = float(np.mean(f.count))
 
@@ -116,7 +135,7 @@ def run(n, repeats):
     out = {"points": n, "radius": r, "radii": radii, "mean_count": mean_count,
            "repeats": repeats, "device": dev.info.name, "environment": env,
            "threads_before": before, "threads_after": after, "peers": peers,
-           "knn_levels": stages.levels, "knn_stages": stages.timings,
+           "knn_levels": stages.levels, "knn_stages": stages.timings, "stages": split,
            "rows": {k: {"a_seconds": a, "b_seconds": b, "ratio": a / b,
                         "target": TARGETS[k],
                         "met": None if TARGETS[k] is None else a / b <= TARGETS[k]}
@@ -144,8 +163,13 @@ def report(res):
         met = "" if row["met"] is None else ("yes" if row["met"] else "NO")
         lines.append(f"| `{a}` | `{b}` | {row['a_seconds'] * 1e3:.0f} ms | "
                      f"{row['b_seconds'] * 1e3:.0f} ms | {row['ratio']:.2f} | {target} | {met} |")
+    sp = {k: v * 1e3 for k, v in res["stages"].items()}
+    lines += ["", f"stages (best of 3) on a DeviceCloud at r: binning, upload and cell ranges "
+              f"{sp['binning']:.0f} ms (both); features kernel {sp['features_kernel']:.0f} ms, "
+              f"download {sp['features_download']:.0f} ms; normals kernel "
+              f"{sp['normals_kernel']:.0f} ms, download {sp['normals_download']:.0f} ms"]
     st = res["knn_stages"]
-    lines += ["", f"k-NN radius cells binned: {', '.join(f'{c:.4g}' for c in res['knn_levels'])}"
+    lines += [f"k-NN radius cells binned: {', '.join(f'{c:.4g}' for c in res['knn_levels'])}"
               f"; stages of one run: first cell {st['first_cell'] * 1e3:.0f} ms, binning "
               f"{st['binning'] * 1e3:.0f} ms, k-th distance {st['kth'] * 1e3:.0f} ms",
               "", "| peer, same cloud, same run | time | M pts/s |", "|---|---:|---:|"]
@@ -169,7 +193,7 @@ def main(argv=None):
     ap.add_argument("--repeats", type=int, default=None)
     args = ap.parse_args(argv)
     n = args.points or (100_000 if args.quick else 1_000_000)
-    res = run(n, args.repeats or (3 if args.quick else 5))
+    res = run(n, args.repeats or (3 if args.quick else 7))
     md = report(res)
     print(md)
     if not args.quick and args.points is None:        # the reference run only
