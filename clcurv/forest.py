@@ -17,7 +17,7 @@ precision (``float``: the normals rounded to float32, ``fma(z, z', fma(y, y', x 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -91,8 +91,20 @@ def _launch(dev, kernel, n, *args):
         time.perf_counter() - t
 
 
-def _blocks(m):
-    return -(-m // BLOCK)
+def _blocks(m, blk):
+    return -(-m // blk)
+
+
+#: Points per work-item of the block kernels on devices other than CPUs: a GPU needs tens
+#: of thousands of work-items (1M points make 15,600 blocks of 64; BLOCK = 512, tuned on
+#: PoCL, would leave 2,000). Not yet measured on a GPU.
+GPU_BLOCK = 64
+
+
+def block_size(dev):
+    """Points per work-item of the block kernels on ``dev``: BLOCK on a CPU device (a few
+    thousand long work-items for its few cores), at most GPU_BLOCK on the others."""
+    return BLOCK if dev.info.kind == "cpu" else min(BLOCK, GPU_BLOCK)
 
 
 def spanning_forest(cloud, graph, edges=True):
@@ -114,6 +126,7 @@ def spanning_forest(cloud, graph, edges=True):
     if graph.cloud is not cloud:
         raise ValueError("the graph was built on another DeviceCloud")
     n, k, dev = cloud.n, graph.k, cloud.device
+    blk = block_size(dev)
     q, ctx, mf = dev.queue, dev.context, cl.mem_flags
     prg = build(dev, "forest.cl", cloud.defines)
     u32 = np.uint32
@@ -127,7 +140,7 @@ def spanning_forest(cloud, graph, edges=True):
     one = np.ones(1, np.uint32)
     nx, ny, nz = graph.normals
     _launch(dev, prg.forest_init, n, u32(n), cloud.order, comp, par, rank, bw, blo, bhi, flo)
-    nb = _blocks(n)
+    nb = _blocks(n, blk)
     counts = buf(4 * nb)
     tot = buf(4)
     q.finish()
@@ -167,33 +180,33 @@ def spanning_forest(cloud, graph, edges=True):
             cl.enqueue_copy(q, total, flag)
         _launch(dev, prg.relabel, n, u32(n), comp, par, links[a])
         out = rlists[1] if rl is rlists[0] else rlists[0]
-        nrb = _blocks(nr)
-        _launch(dev, prg.count_roots, nrb, u32(nr), rl, every, u32(BLOCK), comp, rcounts)
+        nrb = _blocks(nr, blk)
+        _launch(dev, prg.count_roots, nrb, u32(nr), rl, every, u32(blk), comp, rcounts)
         _launch(dev, prg.scan_blocks, 1, rcounts, u32(nrb), roffsets, rtot)
-        _launch(dev, prg.write_roots, nrb, u32(nr), rl, every, u32(BLOCK), comp, roffsets, out)
+        _launch(dev, prg.write_roots, nrb, u32(nr), rl, every, u32(blk), comp, roffsets, out)
         return out
 
     # round 1 on the neighbour lists (every point its own component)
     ta = time.perf_counter()
     # own_w, own_o, own_j in links[0], links[1] (free until hook), blo (free in round 1)
     _launch(dev, prg.first_weight, nb, graph.nbr, graph.wgt, cloud.order, u32(n), u32(k),
-            u32(BLOCK), bw, fmask, links[0], links[1], blo)
+            u32(blk), bw, fmask, links[0], links[1], blo)
     _launch(dev, prg.first_other, nb, graph.nbr, graph.wgt, cloud.order, links[0],
-            links[1], u32(n), u32(k), u32(BLOCK), bw, bhi)
+            links[1], u32(n), u32(k), u32(blk), bw, bhi)
     rl = merge(n, None)
     rounds += 1
     timings["rounds"].append(time.perf_counter() - ta)
     # round 2 on the neighbour lists, writing the edges that join two components (at most
     # one per pair of components and block) into blocks of stride edges; later rounds
     # compact each block in place
-    stride = BLOCK * k
+    stride = blk * k
     eu, ev, ew = (buf(4 * nb * stride) for _ in range(3))
     m = 1
     while m > 0:
         ta = time.perf_counter()
         if rounds == 1:
             _launch(dev, prg.next_edges, nb, graph.nbr, graph.wgt, cloud.order, fmask,
-                    comp, u32(n), u32(k), u32(BLOCK), u32(stride), counts, bw, eu, ev, ew)
+                    comp, u32(n), u32(k), u32(blk), u32(stride), counts, bw, eu, ev, ew)
         else:
             _launch(dev, prg.min_weight, nb, eu, ev, ew, u32(nb), u32(stride), counts, comp,
                     cloud.order, bw)
@@ -215,7 +228,7 @@ def spanning_forest(cloud, graph, edges=True):
         rounds += 1
         timings["rounds"].append(time.perf_counter() - ta)
     t2 = time.perf_counter()
-    # outputs in buffers free by now (when large enough: eu and ev hold BLOCK k uints a block)
+    # outputs in buffers free by now (when large enough: eu and ev hold blk k uints a block)
     fits = lambda b, nbytes: b if b.size >= nbytes else buf(nbytes)
     label, parity, elo, ehi = fits(eu, 8 * n), links[0], blo, bhi
     # one root and no invalid normal (each would be a root): every label is that root
@@ -233,13 +246,13 @@ def spanning_forest(cloud, graph, edges=True):
         cl.enqueue_copy(q, h_label, label, is_blocking=False)
     h_edges = None
     if edges:
-        _launch(dev, prg.count_edges, nb, u32(n), u32(BLOCK), elo, counts)
+        _launch(dev, prg.count_edges, nb, u32(n), u32(blk), elo, counts)
         _launch(dev, prg.scan_blocks, 1, counts, u32(nb), fmask, tot)
         cl.enqueue_copy(q, total, tot)
         h_edges = np.empty((int(total[0]), 2), np.int64)
         if len(h_edges):
             out = fits(ev, h_edges.nbytes)
-            _launch(dev, prg.write_edges, nb, u32(n), u32(BLOCK), elo, ehi, fmask, out)
+            _launch(dev, prg.write_edges, nb, u32(n), u32(blk), elo, ehi, fmask, out)
             cl.enqueue_copy(q, h_edges, out)
     q.finish()
     # every invalid point is a root of its own

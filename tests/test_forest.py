@@ -253,6 +253,20 @@ def test_deterministic_and_independent_of_blocking_and_chasing(device, monkeypat
     assert np.array_equal(sorted_edges(f1.edges), sorted_edges(f3.edges))
 
 
+def test_the_gpu_block_size_gives_the_same_forest(device, monkeypatch):
+    """Devices other than CPUs use blocks of forest.GPU_BLOCK points (enough work-items for
+    a GPU): the same labels, parities and edges as the CPU's blocks, here on every device."""
+    p, nrm = noisy_bumpy(20000)
+    nrm = random_signs(nrm, 17)
+    cloud, g, f_cpu = run(p, nrm, 0.04, device)
+    monkeypatch.setattr(forest, "block_size", lambda dev: forest.GPU_BLOCK)
+    f_gpu = forest.spanning_forest(cloud, g)
+    assert forest.GPU_BLOCK < forest.BLOCK
+    assert np.array_equal(f_cpu.label, f_gpu.label)
+    assert np.array_equal(f_cpu.parity, f_gpu.parity)
+    assert np.array_equal(sorted_edges(f_cpu.edges), sorted_edges(f_gpu.edges))
+
+
 def test_k_and_shapes_checked(device):
     s = shapes.sphere(2000, 1.0, seed=14)
     cloud = DeviceCloud(s["points"], 0.1, device=device)
