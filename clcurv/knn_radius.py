@@ -7,8 +7,8 @@ surface, :data:`FIRST_CELL`); the kernel finds the k-th smallest squared distanc
 the candidates within c of each point in one walk (each vector lane keeps its smallest
 d^2; dense spots take a counting path with more walks, same result);
 a point with fewer than k candidates within c is unresolved, and the cloud
-is binned again at 1.5c (:data:`GROWTH`; binned on a host thread while the device walks
-the first level, :func:`_bin_ahead`) for the unresolved points only (up to
+is binned again at 1.5c (:data:`GROWTH`; binned while the device walks the first level,
+:func:`_bin_ahead`) for the unresolved points only (up to
 :data:`ISOLATION` times the 90th percentile of the k-NN radii: points still unresolved are
 isolated). The
 operators then run on one cloud whose cell is the largest radius (the last level's, or
@@ -139,6 +139,12 @@ def kth_squared(cloud, k, known=None, levels=None):
 def _kth_sorted(cloud, k, prev=None, levels=None):
     """:func:`kth_squared` in the cloud's sorted order and device precision; ``prev``
     (sorted order) as ``known`` there, None for none."""
+    return _kth_fetch(cloud, _kth_launch(cloud, k, prev, levels))
+
+
+def _kth_launch(cloud, k, prev=None, levels=None):
+    """Enqueue and flush knn_radius.cl on ``cloud`` (see :func:`_kth_sorted`); returns the
+    output buffer for :func:`_kth_fetch`. The device works while the host goes on."""
     import pyopencl as cl
     from .program import build, launch
     opts = dict(cloud.defines, KNN_K=int(k))
@@ -156,8 +162,15 @@ def _kth_sorted(cloud, k, prev=None, levels=None):
     launch(cloud.device, prg.kth_distance, cloud.n, cloud.x, cloud.y, cloud.z,
            cloud.cell_of, cloud.ranges, np.uint32(cloud.n), cloud.ball(cloud.cell), prev_buf,
            out)
+    q.flush()
+    return out
+
+
+def _kth_fetch(cloud, out):
+    """The result of :func:`_kth_launch` on the host (waits for the kernel)."""
+    import pyopencl as cl
     host = np.empty(cloud.n, cloud.dtype)
-    cl.enqueue_copy(q, host, out)
+    cl.enqueue_copy(cloud.device.queue, host, out)
     return host
 
 
@@ -180,15 +193,18 @@ def knn_radii(points, k, *, device=None, precision="float"):
     while True:
         t1 = time.perf_counter()
         if spec is not None and spec[0] == c:
-            cloud = spec[1].result()
+            cloud = spec[1]
+            if isinstance(cloud, Exception):
+                raise cloud
         else:
             cloud = DeviceCloud(pts, c, device=device, precision=precision)
         spec = None
-        if not levels and GROWTH * c <= diag:
-            spec = _bin_ahead(pts, GROWTH * c, device, precision)
-        t2 = time.perf_counter()
         order = cloud.grid.order
-        d2 = _kth_sorted(cloud, k, None if d2_in is None else d2_in[order])  # sorted order
+        t2 = time.perf_counter()
+        out = _kth_launch(cloud, k, None if d2_in is None else d2_in[order])
+        if not levels and GROWTH * c <= diag:     # (its time counts in "kth": it overlaps)
+            spec = _bin_ahead(pts, GROWTH * c, device, precision)
+        d2 = _kth_fetch(cloud, out)                                 # sorted order
         stages["binning"] += t2 - t1
         stages["kth"] += time.perf_counter() - t2
         levels.append(c)
@@ -201,21 +217,26 @@ def knn_radii(points, k, *, device=None, precision="float"):
         c = GROWTH * c if cap is None else min(GROWTH * c, max(cap, c))
         d2_in = np.empty(cloud.n, cloud.dtype)
         d2_in[order] = d2
-    if spec is not None:                         # binned ahead, not needed: let it finish
-        spec[1].exception()
     # the last level's results, in its cloud's sorted order
     d2 = d2.astype(np.float64)
-    isolated = ~ok
-    if cap is not None:                          # beyond the cap within the last cell
-        isolated |= np.sqrt(np.where(ok, d2, 0.0)) > cap
-    live = ~isolated
-    r2 = _margin(np.where(isolated, 0.0, d2), cloud.dtype)
-    r2[isolated] = 0
-    top = float(np.sqrt(r2[live].max())) if live.any() else 0.0
-    radius, iso_in = np.empty(cloud.n), np.empty(cloud.n, bool)
-    radius[order] = np.where(isolated, np.nan, np.sqrt(np.where(isolated, 0.0, d2)))
-    iso_in[order] = isolated
-    if live.any() and c > REBIN_FACTOR * top and top > 1e-3 * c:
+    radius, iso_in = np.empty(cloud.n), np.zeros(cloud.n, bool)
+    if ok.all() and (cap is None or not np.sqrt(d2.max()) > cap):
+        isolated = None                          # the usual case: no point isolated
+        r2 = _margin(d2, cloud.dtype)
+        top = float(np.sqrt(r2.max()))
+        radius[order] = np.sqrt(d2)
+    else:
+        isolated = ~ok
+        if cap is not None:                      # beyond the cap within the last cell
+            isolated |= np.sqrt(np.where(ok, d2, 0.0)) > cap
+        live = ~isolated
+        r2 = _margin(np.where(isolated, 0.0, d2), cloud.dtype)
+        r2[isolated] = 0
+        top = float(np.sqrt(r2[live].max())) if live.any() else 0.0
+        radius[order] = np.where(isolated, np.nan, np.sqrt(np.where(isolated, 0.0, d2)))
+        iso_in[order] = isolated
+    live_any = isolated is None or not isolated.all()
+    if live_any and c > REBIN_FACTOR * top and top > 1e-3 * c:
         # the operators' walk at the largest radius, not at the last level's cell
         r2_in = np.empty(cloud.n, cloud.dtype)
         r2_in[order] = r2
@@ -227,21 +248,19 @@ def knn_radii(points, k, *, device=None, precision="float"):
     return KnnRadii(k, radius, iso_in, cloud, buf, levels, stages)
 
 
-_AHEAD = None
-
-
 def _bin_ahead(pts, c, device, precision):
-    """(c, future of DeviceCloud(pts, c)) binned on a host thread while the device walks the
-    first level: the next level's cell is GROWTH times the first in nearly every run (a
-    uniform surface leaves ~5% of the points for it), and the host's binning (numpy, one
-    core) then overlaps the kernel instead of following it. An error surfaces only if that
-    level is used (as it would have there)."""
-    global _AHEAD
-    from concurrent.futures import ThreadPoolExecutor
+    """(c, DeviceCloud(pts, c), or the error that building it raised), built while the
+    device walks the first level (knn_radius.cl, enqueued and flushed before): the next
+    level's cell is GROWTH times the first in nearly every run (a uniform surface leaves
+    ~5% of the points for it), and the host's binning (numpy, one core) then overlaps the
+    kernel instead of following it. All on the calling thread: OpenCL calls from a second
+    thread crashed Oclgrind. An error surfaces only if that level is used (as it would
+    have there)."""
     from .cloud import DeviceCloud
-    if _AHEAD is None:
-        _AHEAD = ThreadPoolExecutor(1, thread_name_prefix="clcurv-knn-bin")
-    return c, _AHEAD.submit(DeviceCloud, pts, c, device=device, precision=precision)
+    try:
+        return c, DeviceCloud(pts, c, device=device, precision=precision)
+    except Exception as exc:  # noqa: BLE001 - re-raised where the level is used
+        return c, exc
 
 
 def _margin(d2, dtype):
