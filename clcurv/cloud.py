@@ -121,8 +121,11 @@ class DeviceCloud:
     :class:`Plan` of every stage run on it.
     """
 
-    def __init__(self, points, cell, *, device=None, precision="float", frame=None):
+    def __init__(self, points, cell, *, device=None, precision="float", frame=None,
+                 binned=None):
         import pyopencl as cl
+        if binned is not None:                  # host_binning's result: no binning here
+            points, cell, precision = binned.points, binned.cell, binned.precision
         self.points = points = as_points(points)
         self.cell = device_radius(as_radius(cell), precision)
         self.device = get_device(device)
@@ -135,10 +138,14 @@ class DeviceCloud:
         if self.n == 0:
             raise ValueError("DeviceCloud needs at least one point")
         t0 = time.perf_counter()
-        self.grid = g = bin_points(points, self.cell, self.dtype, frame)
-        check_pairs(g, points, self.cell)       # the walk visits the cells: cell = radius
+        if binned is not None:
+            self.grid = g = binned.grid
+            self.timings["binning"] = binned.seconds
+        else:
+            self.grid = g = bin_points(points, self.cell, self.dtype, frame)
+            check_pairs(g, points, self.cell)   # the walk visits the cells: cell = radius
+            self.timings["binning"] = time.perf_counter() - t0
         t1 = time.perf_counter()
-        self.timings["binning"] = t1 - t0
         self._check_memory()
         ctx, q = self.device.context, self.device.queue
         mf = cl.mem_flags
@@ -241,6 +248,32 @@ class DeviceCloud:
         import pyopencl.cltypes as ct
         make = ct.make_double2 if self.dtype == np.float64 else ct.make_float2
         return make(radius * radius, self.cell)
+
+
+@dataclass(frozen=True)
+class Binned:
+    """The host half of a :class:`DeviceCloud`: points binned and checked, no OpenCL call
+    (:func:`host_binning`). ``DeviceCloud(None, None, binned=b, device=...)`` uploads it."""
+    points: np.ndarray
+    cell: float
+    precision: str
+    grid: object
+    seconds: float
+
+
+def host_binning(points, cell, *, precision="float", frame=None):
+    """Bin ``points`` as :class:`DeviceCloud` does, on the host only: safe on a worker
+    thread while the main thread drives the device (OpenCL calls stay on one thread; the
+    Oclgrind simulator crashes when two threads use one queue)."""
+    t0 = time.perf_counter()
+    points = as_points(points)
+    cell = device_radius(as_radius(cell), precision)
+    if len(points) == 0:
+        raise ValueError("DeviceCloud needs at least one point")
+    dtype = np.float64 if precision == "double" else np.float32
+    grid = bin_points(points, cell, dtype, frame)
+    check_pairs(grid, points, cell)
+    return Binned(points, cell, precision, grid, time.perf_counter() - t0)
 
 
 def upload_sorted(cloud, values):
