@@ -62,26 +62,6 @@ inline ULONGV bin_of(REALV d2, REAL s)
     return CONVERT_ULONGV(fmin(d2 * s, (REALV)(NBIN - 1)));
 }
 
-/* Is any lane of a mask set? (An OR tree: PoCL 3.1's any() made the second pass of
- * knn_graph about twice as slow.) */
-inline int any_lane(IREALV m)
-{
-#if VW == 16
-    CAT(IREAL, 8) a = m.lo | m.hi;
-    CAT(IREAL, 4) b = a.lo | a.hi;
-#elif VW == 8
-    CAT(IREAL, 4) b = m.lo | m.hi;
-#elif VW == 4
-    CAT(IREAL, 4) b = m;
-#endif
-#if VW >= 4
-    CAT(IREAL, 2) c = b.lo | b.hi;
-    return (c.x | c.y) != 0;
-#else
-    return (m.x | m.y) != 0;
-#endif
-}
-
 #define UINTV CAT(uint, VW)
 #define CONVERT_UINTV CAT(convert_uint, VW)
 #define CONVERT_INTV CAT(convert_int, VW)

@@ -44,25 +44,6 @@
 
 #define KNN_CAP 64          /* the counting path gathers at most this many candidates */
 
-/* Is any lane of a mask set? (An OR tree, as knn.cl's any_lane: PoCL 3.1's any() is slow.) */
-inline int lanes_any(IREALV m)
-{
-#if VW == 16
-    CAT(IREAL, 8) a = m.lo | m.hi;
-    CAT(IREAL, 4) b = a.lo | a.hi;
-#elif VW == 8
-    CAT(IREAL, 4) b = m.lo | m.hi;
-#elif VW == 4
-    CAT(IREAL, 4) b = m;
-#endif
-#if VW >= 4
-    CAT(IREAL, 2) h = b.lo | b.hi;
-    return (h.x | h.y) != 0;
-#else
-    return (m.x | m.y) != 0;
-#endif
-}
-
 #define NBIN 8              /* bins per counting pass */
 #define KNN_ROUNDS 12       /* counting passes at most (each narrows the interval 8x) */
 
@@ -158,7 +139,7 @@ inline REAL kth_by_counting(__global const REAL *XA, __global const REAL *Y,
         REALV d2;
         const IREALV m = chunk_d2(XA, Y, Z, i, end, pr, ball, &d2)
                          & isgreaterequal(d2, (REALV)lo) & isless(d2, (REALV)hi);
-        if (lanes_any(m)) got = append_lanes(d2, m, buf, got);
+        if (any_lane(m)) got = append_lanes(d2, m, buf, got);
     NEIGHBOR_CHUNKS_END
     return select_rank(buf, got, need - 1);
 }
@@ -266,7 +247,7 @@ __kernel void kth_distance(__global const REAL *X, __global const REAL *Y,
         const IREAL lo = b ? edge[b - 1] : 0, hi = edge[b];
         /* a lane that dropped values below hi: the kept ones may miss some of [lo, hi) */
         const IREALV lost = (lanes < (IREALV)(-KNN_LEVELS)) & (a[KNN_LEVELS - 1] < (IREALV)hi);
-        if (lanes_any(lost)) {
+        if (any_lane(lost)) {
             REAL buf[KNN_CAP];
             d = kth_by_counting(XA, Y, Z, ranges, cell, p, ball, buf);
         } else {

@@ -72,6 +72,26 @@ inline IREALV chunk_offsets(__global const REAL *X, __global const REAL *Y,
     return live & isless(d2, (REALV)ball.x);
 }
 
+/* Is any lane of a mask set? An OR tree: PoCL 3.1's any() made the second pass of
+ * knn_graph about twice as slow. */
+inline int any_lane(IREALV m)
+{
+#if VW == 16
+    CAT(IREAL, 8) a = m.lo | m.hi;
+    CAT(IREAL, 4) b = a.lo | a.hi;
+#elif VW == 8
+    CAT(IREAL, 4) b = m.lo | m.hi;
+#elif VW == 4
+    CAT(IREAL, 4) b = m;
+#endif
+#if VW >= 4
+    CAT(IREAL, 2) c = b.lo | b.hi;
+    return (c.x | c.y) != 0;
+#else
+    return (m.x | m.y) != 0;
+#endif
+}
+
 /* Sum of the lanes in a fixed order (pairwise), so the result is reproducible. */
 inline REAL hsum(REALV v)
 {
