@@ -7,8 +7,8 @@ surface, :data:`FIRST_CELL`); the kernel finds the k-th smallest squared distanc
 the candidates within c of each point in one walk (each vector lane keeps its smallest
 d^2; dense spots take a counting path with more walks, same result);
 a point with fewer than k candidates within c is unresolved, and the cloud
-is binned again at 1.5c (:data:`GROWTH`; binned while the device walks the first level,
-:func:`_bin_ahead`) for the unresolved points only (up to
+is binned again at 1.5c (:data:`GROWTH`; binned on a worker thread beside the first
+level, :func:`_bin_ahead`) for the unresolved points only (up to
 :data:`ISOLATION` times the 90th percentile of the k-NN radii: points still unresolved are
 isolated). The
 operators then run on one cloud whose cell is the largest radius (the last level's, or
@@ -190,20 +190,19 @@ def knn_radii(points, k, *, device=None, precision="float"):
     d2_in = None            # the k-th d^2 found so far, input order (inf: not yet)
     spec = None
     stages = {"first_cell": time.perf_counter() - t0, "binning": 0.0, "kth": 0.0}
+    if GROWTH * c <= diag:
+        spec = _bin_ahead(pts, GROWTH * c, precision)
     while True:
         t1 = time.perf_counter()
         if spec is not None and spec[0] == c:
-            cloud = spec[1]
-            if isinstance(cloud, Exception):
-                raise cloud
+            cloud = DeviceCloud(None, None, binned=spec[1].result(), device=device)
         else:
             cloud = DeviceCloud(pts, c, device=device, precision=precision)
-        spec = None
+        if spec is not None and spec[0] <= c:
+            spec = None
         order = cloud.grid.order
         t2 = time.perf_counter()
         out = _kth_launch(cloud, k, None if d2_in is None else d2_in[order])
-        if not levels and GROWTH * c <= diag:     # (its time counts in "kth": it overlaps)
-            spec = _bin_ahead(pts, GROWTH * c, device, precision)
         d2 = _kth_fetch(cloud, out)                                 # sorted order
         stages["binning"] += t2 - t1
         stages["kth"] += time.perf_counter() - t2
@@ -215,8 +214,11 @@ def knn_radii(points, k, *, device=None, precision="float"):
                 or len(levels) >= _MAX_LEVELS:
             break
         c = GROWTH * c if cap is None else min(GROWTH * c, max(cap, c))
+        if spec is not None and spec[0] != c:
+            spec = _drop(spec)
         d2_in = np.empty(cloud.n, cloud.dtype)
         d2_in[order] = d2
+    spec = _drop(spec)
     # the last level's results, in its cloud's sorted order
     d2 = d2.astype(np.float64)
     radius, iso_in = np.empty(cloud.n), np.zeros(cloud.n, bool)
@@ -248,19 +250,29 @@ def knn_radii(points, k, *, device=None, precision="float"):
     return KnnRadii(k, radius, iso_in, cloud, buf, levels, stages)
 
 
-def _bin_ahead(pts, c, device, precision):
-    """(c, DeviceCloud(pts, c), or the error that building it raised), built while the
-    device walks the first level (knn_radius.cl, enqueued and flushed before): the next
-    level's cell is GROWTH times the first in nearly every run (a uniform surface leaves
-    ~5% of the points for it), and the host's binning (numpy, one core) then overlaps the
-    kernel instead of following it. All on the calling thread: OpenCL calls from a second
-    thread crashed Oclgrind. An error surfaces only if that level is used (as it would
-    have there)."""
-    from .cloud import DeviceCloud
-    try:
-        return c, DeviceCloud(pts, c, device=device, precision=precision)
-    except Exception as exc:  # noqa: BLE001 - re-raised where the level is used
-        return c, exc
+_HOST = None
+
+
+def _bin_ahead(pts, c, precision):
+    """(c, future of :func:`clcurv.cloud.host_binning` at c) on a worker thread: the second
+    level's cell is GROWTH times the first in nearly every run (a uniform surface leaves ~5%
+    of the points for it), and its binning (numpy, one core) then runs beside the first
+    level's instead of after the first walk. Host work only: the OpenCL calls (the upload,
+    DeviceCloud(binned=)) stay on the calling thread (a second thread's OpenCL calls crashed
+    Oclgrind). An error surfaces where the level is used, as it would have there."""
+    global _HOST
+    from concurrent.futures import ThreadPoolExecutor
+    from .cloud import host_binning
+    if _HOST is None:
+        _HOST = ThreadPoolExecutor(1, thread_name_prefix="clcurv-knn-bin")
+    return c, _HOST.submit(host_binning, pts, c, precision=precision)
+
+
+def _drop(spec):
+    """Wait for an unused binning ahead (so that no work outlives the call); None."""
+    if spec is not None:
+        spec[1].exception()
+    return None
 
 
 def _margin(d2, dtype):
