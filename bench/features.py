@@ -171,8 +171,8 @@ def report(res):
     st = res["knn_stages"]
     lines += [f"k-NN radius cells binned: {', '.join(f'{c:.4g}' for c in res['knn_levels'])}"
               f"; stages of one run: first cell {st['first_cell'] * 1e3:.0f} ms, binning "
-              f"{st['binning'] * 1e3:.0f} ms, k-th distance {st['kth'] * 1e3:.0f} ms (the second "
-              "level's binning overlaps the first level's walk and counts there)",
+              f"{st['binning'] * 1e3:.0f} ms (the second level's on a worker thread beside the "
+              f"first level), k-th distance {st['kth'] * 1e3:.0f} ms",
               "", "| peer, same cloud, same run | time | M pts/s |", "|---|---:|---:|"]
     feat = res["rows"]["features_vs_normals"]["a_seconds"]
     lines.append(f"| clcurv.features (12 features) | {feat:.2f} s | {mpts(n, feat):.2f} |")
