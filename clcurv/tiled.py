@@ -34,21 +34,26 @@ cloud) computes, bit for bit on the same device. How:
   for bit: a component's propagation tree differs near tile borders.
 * **Scale space.** ``scale_space=N`` runs the N MLS1 steps in lock step over tiles
   (:mod:`clcurv.tiled_scale`): bit for bit the in-memory steps, re-binnings included.
-* **Not tiled:** ``projections`` (refused with a message), input other than LAS/LAZ/NPY,
-  output other than LAS/LAZ/NPZ, radius "auto" (give the radius).
+* **Not tiled:** ``projections`` and the projected positions (refused with a message),
+  ascii PLY and the text formats. Input: LAS/LAZ, NPY, binary PLY, or a list of such files
+  read as one cloud (a catalog: one output per input file); output: LAS/LAZ (from LAS/LAZ
+  input), NPZ, binary PLY. ``radius="auto"`` of the CLI job is estimated from 16 regions
+  (:mod:`clcurv.tiled_job`).
 
 Passes and files. (1) The input is read once in chunks (:mod:`clcurv.io.stream`) and each
-point is appended, with its global id, to an on-disk bucket of a coarse 2-D grid (files
-opened per write, so their number is not bounded by the open-file limit); the exact
-bounds are taken on the way. (2) Each tile gathers its cells and halo from the buckets
-that overlap them, runs the operator on a :class:`clcurv.DeviceCloud` in the global frame,
-and writes its own points' fields into memory-mapped arrays indexed by global id. (3) The
-output is written in input order from those arrays (LAS/LAZ: the input's header, scales,
-offsets, VLRs and records kept, the fields as extra bytes), atomically
-(:func:`clcurv.io.atomic_output`). The workspace (buckets, arrays, the list of finished
-tiles) is a folder beside the output, ``.<output name>.clcurv-tiles``; a run interrupted
-or killed is resumed by the same command (finished tiles are skipped), and the folder is
-removed at the end.
+point is appended, with its global id, to an on-disk bucket of a coarse 2-D grid
+(:mod:`clcurv.buckets`; files opened per write, so their number is not bounded by the
+open-file limit); the exact bounds are taken on the way. (1b) The buckets are split into
+one input file per tile: its points and halo, each flagged as owned or not. (2) Each tile
+reads its file, runs the operator on a :class:`clcurv.DeviceCloud` in the global frame, and
+writes its own points' fields with their global ids to a tile file. (3) The tile files are
+regrouped by windows of consecutive ids (:mod:`clcurv.tile_results`; every point checked
+present once) and the output is written in input order, a window at a time (LAS/LAZ: the
+input's header, scales, offsets, VLRs and records kept, the fields as extra bytes),
+atomically (:func:`clcurv.io.atomic_output`). The workspace (buckets, tile files, windows,
+the manifest) is a folder beside the output, ``.<output name>.clcurv-tiles``; a run
+interrupted or killed is resumed by the same command (finished tiles are skipped), and the
+folder is removed at the end (and on bad input).
 
 Memory: peak RSS is about the baseline (interpreter, OpenCL) plus the largest tile (its
 core and halo) times :data:`TILE_BYTES_PER_POINT`, whatever the size of the cloud; the
