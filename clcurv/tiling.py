@@ -165,8 +165,6 @@ def densest(buckets, tiling):
     spread uniformly over their area."""
     b = buckets
     ntx, nty = tiling.shape
-    cell = tiling.frame.cell
-    reach = (tiling.size + 2 * tiling.halo) * cell
     density = b.counts / (b.side * b.side)
     worst = 0.0
     step = max(1, int(max(ntx, nty) // 256))
@@ -181,6 +179,4 @@ def densest(buckets, tiling):
             edge = i in (0, b.shape[0] - 1) or j in (0, b.shape[1] - 1)
             est += b.counts[i, j] if edge and ox * oy > 0 else density[i, j] * ox * oy
         worst = max(worst, est)
-        if reach >= 1e300:
-            break
     return int(worst)
