@@ -21,7 +21,7 @@ import numpy as np
 
 from .constants import PAD, RECORD_WIDTH as RECORD, record_selector
 from .device import get_device
-from .grid import bin_points, check_pairs
+from .grid import CELLS_PER_ITEM, bin_points, check_pairs
 from .program import build, launch, precision_defines
 from .validate import as_points, as_radius, device_radius
 
@@ -170,10 +170,12 @@ class DeviceCloud:
         t3 = time.perf_counter()
         self.timings["build"] = t3 - t2
         nx, ny, nz = g.dims
-        launch(self.device, prg.cell_ranges, g.ncells, keys, np.uint32(g.ncells), cell_start,
-               np.int64(nx), np.int64(ny), np.int64(nz), self.ranges)
-        launch(self.device, prg.expand_x, self.n, keys, np.int64(nx), np.uint32(self.n),
-               self.real(self.cell), self.x, self.cell_of)
+        per, items = np.uint32(CELLS_PER_ITEM), -(-g.ncells // CELLS_PER_ITEM)
+        launch(self.device, prg.cell_ranges, items, keys, np.uint32(g.ncells), cell_start,
+               np.int64(nx), np.int64(ny), np.int64(nz), per, self.ranges)
+        launch(self.device, prg.expand_x, items, keys, np.uint32(g.ncells), cell_start,
+               np.int64(nx), per, np.uint32(self.n), self.real(self.cell), self.x,
+               self.cell_of)
         q.finish()
         self.timings["cell_ranges"] = time.perf_counter() - t3
 

@@ -30,6 +30,9 @@ import numpy as np
 from .constants import CELL_BITS, CELL_MASK, PAD   # noqa: F401 (CELL_BITS: grid users)
 
 MAX_KEY = 2 ** 62
+#: Occupied cells per work-item of grid.cl (cell_ranges, expand_x): the rows of a cell are
+#: searched from where the previous cell of the block found them.
+CELLS_PER_ITEM = 32
 
 
 @dataclass

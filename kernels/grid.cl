@@ -1,15 +1,20 @@
-/* grid.cl -- per occupied cell, the 9 index ranges of the sorted points in its 27-cell block.
+/* grid.cl -- per occupied cell, the 9 index ranges of the sorted points in its 27-cell block,
+ * and the three copies of x (neighbors.h).
  *
  * Layout: ranges[9 c + j], j = 0..8: row j = (dz, dy) = (j / 3 - 1, j % 3 - 1) of the block,
  * i.e. the cells (cx - 1 .. cx + 1, cy + dy, cz + dz), in increasing key order; (0, 0) for
  * an empty row. The neighbour walk (neighbors.h) uses j to place the row's coordinates.
  *
- * Searches in the sorted cell keys: rows of the block have increasing keys, and the rows of
- * the cell's own z-slab are close to the cell itself, so most rows are found by galloping
- * from a nearby index (a few probes) instead of a full binary search over all cells (17
- * probes for 10^5 cells, most of them mispredicted branches). Even the rows of the z-1 and
- * z+1 slabs, about one slab of cells away, are found faster by galloping from the cell than
- * by a full binary search (measured). */
+ * Both kernels run over blocks of `per_item` consecutive occupied cells, one work-item per
+ * block (clcurv.grid.CELLS_PER_ITEM). cell_ranges searches each row in the sorted cell keys
+ * from where it found the same row for the previous cell of the block: the first key
+ * (z' ny + y') nx + max(x - 1, 0) of a row is key + const - (x > 0), which does not
+ * decrease from one cell to the next (keys grow by >= 1), so the row starts at or after
+ * that index, most often within 3 cells: four branch-free probes find it, a gallop when
+ * they do not (measured: the old per-cell gallops from the cell itself, 9 per cell and
+ * about one slab of cells away for the z - 1 and z + 1 rows, cost twice as much). The first
+ * cell of a block gallops from its own index. expand_x walks the points of the block's
+ * cells, so the cell's x index costs one division per cell instead of one per point. */
 #include "common.h"
 #include "neighbors.h"
 
@@ -51,34 +56,65 @@ inline uint gallop(__global const long *keys, uint n, long k, uint h)
     }
 }
 
+/* Cell coordinates of key k = (iz ny + iy) nx + ix: two 64-bit divisions. */
+inline void key_cell(long k, long nx, long ny, long *ix, long *iy, long *iz)
+{
+    const long q = k / nx;
+    *ix = k - q * nx;
+    *iz = q / ny;
+    *iy = q - *iz * ny;
+}
+
+/* How many of keys[i], .., keys[i + 3] (those below n) are < k; branch-free. Keys are sorted,
+ * so when that is below 4 the first index with keys >= k is i plus it. */
+inline uint below4(__global const long *keys, uint n, uint i, long k)
+{
+    uint m = 0;
+    for (uint t = 0; t < 4; ++t)
+        m += (i + t < n) & (keys[min(i + t, n - 1)] < k);
+    return m;
+}
+
 __kernel void cell_ranges(__global const long *keys, const uint ncells,
                           __global const uint *cell_start,
-                          const long nx, const long ny, const long nz,
+                          const long nx, const long ny, const long nz, const uint per_item,
                           __global uint2 *ranges)
 {
-    const uint c = get_global_id(0);
-    if (c >= ncells) return;
-    const long k = keys[c];
-    const long ixy = k % (nx * ny), iz = k / (nx * ny);
-    const long ix = ixy % nx, iy = ixy / nx;
-    const long x0 = max(ix - 1, 0L), x1 = min(ix + 1, nx - 1);
-    __global uint2 *out = ranges + (size_t)c * 9;
-    for (long dz = -1; dz <= 1; ++dz) {
-        const long z = iz + dz;
-        uint h = c;                           /* search guess: c, then the previous row's end */
-        for (long dy = -1; dy <= 1; ++dy) {
-            const long y = iy + dy;
+    const uint c0 = get_global_id(0) * per_item;
+    if (c0 >= ncells) return;
+    const uint c1 = min(c0 + per_item, ncells);
+    uint h[9];                 /* where each row was last found in the block (none: ncells) */
+    for (int j = 0; j < 9; ++j) h[j] = ncells;
+    long first = -nx, ix, iy = 0, iz = 0;     /* key of the x = 0 cell of the current row */
+    for (uint c = c0; c < c1; ++c) {
+        const long k = keys[c];
+        if (k - first < nx)                   /* the same row as the previous cell */
+            ix = k - first;
+        else {
+            key_cell(k, nx, ny, &ix, &iy, &iz);
+            first = k - ix;
+        }
+        const long x0 = max(ix - 1, 0L), x1 = min(ix + 1, nx - 1);
+        __global uint2 *out = ranges + (size_t)c * 9;
+        for (int j = 0; j < 9; ++j) {
+            const long y = iy + j % 3 - 1, z = iz + j / 3 - 1;
             uint2 range = (uint2)(0, 0);
             if (y >= 0 && y < ny && z >= 0 && z < nz) {
                 const long row = (z * ny + y) * nx;
-                const uint a = gallop(keys, ncells, row + x0, h);
-                uint b = a;                   /* the row has at most 3 cells from a */
-                while (b < ncells && keys[b] <= row + x1) ++b;
-                if (b > a)
-                    range = (uint2)(cell_start[a], cell_start[b]);
-                h = b;
+                uint a;
+                if (h[j] == ncells)           /* not found yet: search from the cell */
+                    a = gallop(keys, ncells, row + x0, c);
+                else {                        /* at or after h[j], most often within 3 */
+                    a = h[j] + below4(keys, ncells, h[j], row + x0);
+                    if (a == h[j] + 4)
+                        a = gallop(keys, ncells, row + x0, a);
+                }
+                /* the row has at most 3 cells from a */
+                const uint b = a + below4(keys, ncells, a, row + x1 + 1);
+                range = b > a ? (uint2)(cell_start[a], cell_start[b]) : range;
+                h[j] = a;
             }
-            out[(dz + 1) * 3 + dy + 1] = range;
+            out[j] = range;
         }
     }
 }
@@ -87,17 +123,25 @@ __kernel void cell_ranges(__global const long *keys, const uint ncells,
  * the host with x relative to the corner of the point's cell (then zeros). Copy a becomes x
  * relative to the corner of the point's 3-cell block starting at an index = a mod 3, i.e.
  * plus (ix - a) mod 3 cells. cell_of gets the alignment (ix - 1) mod 3 of the point's own
- * rows in its top bits. */
-__kernel void expand_x(__global const long *keys, const long nx, const uint n, const REAL cell,
-                       __global REAL *X, __global uint *cell_of)
+ * rows in its top bits. Over the points of blocks of cells, so ix costs one division per
+ * cell instead of one per point. */
+__kernel void expand_x(__global const long *keys, const uint ncells,
+                       __global const uint *cell_start, const long nx, const uint per_item,
+                       const uint n, const REAL cell, __global REAL *X, __global uint *cell_of)
 {
-    const uint s = get_global_id(0);
-    if (s >= n) return;
-    const uint co = cell_of[s];
-    const int m = (int)((keys[co] % nx) % 3);
+    const uint c0 = get_global_id(0) * per_item;
+    if (c0 >= ncells) return;
+    const uint c1 = min(c0 + per_item, ncells);
     const size_t stride = (size_t)n + PAD;
-    const REAL x = X[s];
-    for (int a = 2; a >= 0; --a)                 /* copy 0 last: it holds x */
-        X[a * stride + s] = x + (REAL)((m - a + 3) % 3) * cell;
-    cell_of[s] = co | ((uint)((m + 2) % 3) << CELL_BITS);
+    for (uint c = c0; c < c1; ++c) {
+        const int m = (int)((keys[c] % nx) % 3);
+        const uint top = (uint)((m + 2) % 3) << CELL_BITS;
+        const uint end = cell_start[c + 1];
+        for (uint s = cell_start[c]; s < end; ++s) {
+            const REAL x = X[s];
+            for (int a = 2; a >= 0; --a)         /* copy 0 last: it holds x */
+                X[a * stride + s] = x + (REAL)((m - a + 3) % 3) * cell;
+            cell_of[s] |= top;
+        }
+    }
 }
