@@ -54,7 +54,8 @@ class _Run:
         if kernel == "gaussian" and h is None:
             h = self.radius / 2
         return run_kernel(op.kernel, self.cloud, self.radius, normals=normals, weights=weights,
-                          h=h if kernel == "gaussian" else None, point_r2=self.point_r2)
+                          h=h if kernel == "gaussian" else None, fields=op.fields,
+                          point_r2=self.point_r2)
 
     def mst_flips(self, normals, k):
         """Flip mask of Hoppe's propagation over the ``k``-nearest-neighbour graph within the

@@ -20,6 +20,7 @@ import time
 
 import numpy as np
 
+from .anchor import cell_normals
 from .cloud import empty_fields, place_records, record_buffer, record_bytes, upload_sorted
 from .constants import PAD, RECORD_WIDTH
 from .program import batches, build, launch
@@ -99,6 +100,7 @@ def run_kernel(kernel, cloud, radius, *, normals=None, weights="uniform", h=None
     t.append(time.perf_counter())
     wbuf = device_counts(cloud, r) if weights == "density" else cloud.x
     wbuf = point_r2 if point_r2 is not None else wbuf
+    anchors = cell_normals(cloud) if opts.get("REFINE_L0") else cloud.x
     chunked = plan.count > 1
     rec = record_buffer(cloud, plan.chunk)
     out = empty_fields(layout, cloud.n)
@@ -108,7 +110,8 @@ def run_kernel(kernel, cloud, radius, *, normals=None, weights="uniform", h=None
     for first, stop in plan.ranges():
         t0 = time.perf_counter()
         launch(cloud.device, getattr(prg, kernel.entry), batches(stop - first, opts), cloud.x,
-               cloud.y, cloud.z, nx, ny, nz, wbuf, cloud.cell_of, cloud.ranges, cloud.order,
+               cloud.y, cloud.z, nx, ny, nz, wbuf, anchors, cloud.cell_of, cloud.ranges,
+               cloud.order,
                np.uint32(cloud.n), cloud.ball(r), _par(cloud, r, h), np.uint32(first),
                np.uint32(stop), np.uint32(chunked), rec)
         cloud.device.queue.finish()

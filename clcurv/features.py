@@ -392,6 +392,7 @@ def run_features(cloud, radii, names, ddof=0, point_r2=None):
     (build_features, kernel_features, download).
     """
     import pyopencl.cltypes as ct
+    from .anchor import cell_normals
     from .cloud import empty_fields, place_records, record_buffer, record_bytes
     from .program import batches, build, launch
     out = []
@@ -418,11 +419,12 @@ def run_features(cloud, radii, names, ddof=0, point_r2=None):
             recs += [recs[0]] * (4 - nr)
             fields = [empty_fields(layout, cloud.n) for _ in walk]
             wbuf = point_r2 if point_r2 is not None else cloud.x
+            anchors = cell_normals(cloud) if opts.get("REFINE_L0") else cloud.x
             par = make4(max(walk), 0.0, float(ddof), 0.0)    # (r, 1/h^2, ddof, 0)
             for first, stop in plan.ranges():
                 t0 = time.perf_counter()
                 launch(cloud.device, prg.features, batches(stop - first, opts), cloud.x,
-                       cloud.y, cloud.z, cloud.x, cloud.x, cloud.x, wbuf, cloud.cell_of,
+                       cloud.y, cloud.z, cloud.x, cloud.x, cloud.x, wbuf, anchors, cloud.cell_of,
                        cloud.ranges, cloud.order, np.uint32(cloud.n),
                        cloud.ball(max(walk)), par, np.uint32(first), np.uint32(stop),
                        np.uint32(chunked), recs[0], make4(*r2), recs[1], recs[2], recs[3])

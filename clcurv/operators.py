@@ -92,7 +92,9 @@ class Operator:
     normals_used, user_normals)`` turns raw fields into result attributes. ``flip(raw,
     mask)``, for a 'sign' method, turns the raw fields of a run without reference normals
     into those of the opposite normal where ``mask`` is True, so that the orientation can
-    use the method's own normals afterwards instead of a PCA pass first.
+    use the method's own normals afterwards instead of a PCA pass first. ``fields``: the
+    kernel's record fields that ``finish`` reads (None: all), the only ones brought back
+    from the device.
     """
     name: str
     title: str
@@ -104,6 +106,7 @@ class Operator:
     reference: Callable
     options: tuple = ()
     flip: Callable | None = None
+    fields: tuple | None = None
 
     @property
     def signed(self):
@@ -270,7 +273,8 @@ def _cov(name, code, title, formula, eig_unit, eig_doc):
 OPERATORS = {op.name: op for op in (
     Operator("variation", "surface variation l0/(l0+l1+l2) (Pauly)",
              "Theorem 4: r^2/16((k1^2+k2^2)/2 - k1k2/3)", PCA,
-             (_VARIATION, _NORMALS_PCA, _EIG_PCA), "none", _finish_variation, _ref_moments),
+             (_VARIATION, _NORMALS_PCA, _EIG_PCA), "none", _finish_variation, _ref_moments,
+             fields=("normals", "eigenvalues", "variation")),
     Operator("mls0", "barycenter shift", "H = 4<p - o, n>/r^2 (Lemma 2)", PCA,
              (_MEAN, Output("points", 3, "length", "the barycenter o of the ball"),
               _VARIATION, _NORMALS_PCA, _EIG_PCA), "values", _finish_mls0, _ref_moments),
@@ -335,7 +339,8 @@ def program_variants(precision_defines):
     ``precision_defines`` (clcurv.program.precision_defines): each operator kernel (with
     every optional branch switched on) and the support kernels. The tests build them all."""
     base = dict(precision_defines)
-    out = [(f, base) for f in ("grid.cl", "density.cl", "gather.cl", "knn.cl", "forest.cl")]
+    out = [(f, base) for f in ("grid.cl", "density.cl", "gather.cl", "knn.cl", "forest.cl",
+                               "anchor.cl")]
     out.append(("scale_space.cl", dict(base, DENSITY=1, GAUSSIAN=0)))
     layout = MLS2.build_defines()
     out.append(("records.cl", dict(base, NF=6, COL_COUNT=layout["COL_COUNT"],

@@ -64,7 +64,8 @@
 
 /* The arguments of every operator kernel, in the order clcurv/driver.py passes them: the
  * sorted coordinates (neighbors.h), the sorted reference normals NX, NY, NZ (unused by the
- * moments), the density weights W (read when DENSITY), the grid, order (sorted -> input
+ * moments), the density weights W (read when DENSITY), the cells' anchor normals CN
+ * (anchor.cl; read when REFINE_L0, pca.h), the grid, order (sorted -> input
  * index), the cloud's size n, the ball (r^2, cell), par = (r, 1 / h^2, 0, 0), the sorted
  * points [first, stop) of this launch, and the records: with chunk = 0 (the whole cloud)
  * the record of sorted point g goes to its input index order[g], with chunk = 1 to g - first
@@ -72,7 +73,8 @@
 #define OPERATOR_ARGS                                                                  \
     __global const REAL *X, __global const REAL *Y, __global const REAL *Z,            \
     __global const REAL *NX, __global const REAL *NY, __global const REAL *NZ,         \
-    __global const REAL *W, __global const uint *cell_of, __global const uint2 *ranges, \
+    __global const REAL *W, __global const REAL *CN, __global const uint *cell_of,     \
+    __global const uint2 *ranges,                                                      \
     __global const uint *order, const uint n, const REAL2 ball, const REAL4 par,       \
     const uint first, const uint stop, const uint chunk, __global REAL *out
 /* The record index of sorted point g in an operator kernel (see OPERATOR_ARGS). */

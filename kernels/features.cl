@@ -8,8 +8,9 @@
  * are those of chunk_offsets' mask (at the largest ball) with d^2 < r_j^2, d^2 computed by
  * chunk_offsets' own expression, so the same lanes and the same additions in the same order
  * as a single-radius walk: every radius's record is bit-identical to a call at that radius
- * alone on the same cloud. The lambda0 refinement (moments.cl) is one second walk for all
- * the balls. The features of the VW points of a work-item are evaluated at once in the
+ * alone on the same cloud. lambda0 is anchored as in moments.cl (pca.h: PCA_ANCHOR, the
+ * same sums per ball); the balls whose anchor is missing or too far share one second walk.
+ * The features of the VW points of a work-item are evaluated at once in the
  * vector lanes.
  *
  * Eigenvalues: l1 >= l2 >= l3 of the count-normalised covariance sum (q - o)(q - o)^T / n,
@@ -59,7 +60,8 @@ inline IREALV ball_mask(IREALV m, REALV dx, REALV dy, REALV dz, REAL r2)
 /* The PCA of the NR balls of the VW consecutive sorted points g0 .. g0 + kn - 1: one walk
  * per point at the cloud's cells, ball j's lanes masked at r2[j]. */
 inline void features_pca(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
-                         __global const REAL *W, __global const uint *cell_of,
+                         __global const REAL *W, __global const REAL *CN,
+                         __global const uint *cell_of,
                          __global const uint2 *ranges, uint n, uint g0, uint kn, REAL2 ball,
                          const REAL r2[NR], pca_batch_t pb[NR])
 {
@@ -70,6 +72,10 @@ inline void features_pca(__global const REAL *X, __global const REAL *Y, __globa
             for (int j = 0; j < NR; ++j) {
                 for (int e = 0; e < 6; ++e) pb[j].c[e][k] = (REAL)(e == 0 || e == 3 || e == 5);
                 pb[j].count[k] = 0;
+#if PCA_ANCHOR
+                pb[j].ax[k] = pb[j].ay[k] = pb[j].az[k] = 0;
+                pb[j].chh[k] = pb[j].chx[k] = pb[j].chy[k] = pb[j].chz[k] = 0;
+#endif
             }
             continue;
         }
@@ -83,6 +89,11 @@ inline void features_pca(__global const REAL *X, __global const REAL *Y, __globa
             sc[j] = sw[j] = sx[j] = sy[j] = sz[j] = 0;
             sxx[j] = sxy[j] = sxz[j] = syy[j] = syz[j] = szz[j] = 0;
         }
+#if PCA_ANCHOR
+        const REAL3 a = vload3(co & CELL_MASK, CN);
+        REALV sh[NR], shh[NR], shx[NR], shy[NR], shz[NR];
+        for (int j = 0; j < NR; ++j) sh[j] = shh[j] = shx[j] = shy[j] = shz[j] = 0;
+#endif
         REALV dx, dy, dz;
         const REAL2 bmax = (REAL2)(BALL_R2(W, g, r2max), ball.y);
         NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, ball, i, end, pr)
@@ -93,17 +104,29 @@ inline void features_pca(__global const REAL *X, __global const REAL *Y, __globa
                 const REALV w = chunk_weights(W, i, dx, dy, dz, m, (REAL)0);
                 PCA_ACCUMULATE(w, m, dx, dy, dz, sc[j], sw[j], sx[j], sy[j], sz[j], sxx[j],
                                sxy[j], sxz[j], syy[j], syz[j], szz[j])
+#if PCA_ANCHOR
+                PCA_ANCHOR_ACCUMULATE(w, dx, dy, dz, a, sh[j], shh[j], shx[j], shy[j], shz[j])
+#endif
             }
         NEIGHBOR_CHUNKS_END
-        for (int j = 0; j < NR; ++j)
+        for (int j = 0; j < NR; ++j) {
             pca_store_sums(sc[j], sw[j], sx[j], sy[j], sz[j], sxx[j], sxy[j], sxz[j], syy[j],
                            syz[j], szz[j], &pb[j], k);
+#if PCA_ANCHOR
+            pca_store_anchor(sh[j], shh[j], shx[j], shy[j], shz[j], a, &pb[j], k);
+#endif
+        }
     }
-    for (int j = 0; j < NR; ++j) pca_decompose(&pb[j]);
+    for (int j = 0; j < NR; ++j) {
+        pca_decompose(&pb[j]);
+#if PCA_ANCHOR
+        pca_anchor_l0(&pb[j]);
+#endif
+    }
 }
 
-/* lambda0 of the balls of sorted point g (lane k) whose status is OK, one second walk
- * (pca_refine_l0's sums, ball by ball). */
+/* lambda0 of the balls of sorted point g (lane k) whose status is OK and whose anchored
+ * lambda0 is missing (pca.h: NaN), one second walk (pca_refine_l0's sums, ball by ball). */
 inline void features_refine(__global const REAL *X, __global const REAL *Y,
                             __global const REAL *Z, __global const REAL *W,
                             __global const uint *cell_of, __global const uint2 *ranges, uint n,
@@ -121,7 +144,7 @@ inline void features_refine(__global const REAL *X, __global const REAL *Y,
         v0[j] = (REAL3)(pb[j].v0x[k], pb[j].v0y[k], pb[j].v0z[k]);
         h0[j] = dot((REAL3)(pb[j].mux[k], pb[j].muy[k], pb[j].muz[k]), v0[j]);
         s0[j] = 0;
-        any |= st[j] == ST_OK;
+        any |= st[j] == ST_OK && isnan(l0[j]);
     }
     if (!any) return;
     REAL r2max = r2[0];
@@ -137,7 +160,7 @@ inline void features_refine(__global const REAL *X, __global const REAL *Y,
         }
     NEIGHBOR_CHUNKS_END
     for (int j = 0; j < NR; ++j)
-        if (st[j] == ST_OK) l0[j] = hsum(s0[j]) * pb[j].iw[k];
+        if (st[j] == ST_OK && isnan(l0[j])) l0[j] = hsum(s0[j]) * pb[j].iw[k];
 }
 
 /* x ln x, 0 at 0 (its limit) */
@@ -164,7 +187,7 @@ __kernel void features(OPERATOR_ARGS, const REAL4 r2s, __global REAL *out1,
     REAL r2[NR];
     for (int j = 0; j < NR; ++j) r2[j] = all_r2[j];
     pca_batch_t pb[NR];
-    features_pca(X, Y, Z, W, cell_of, ranges, n, g0, kn, ball, r2, pb);
+    features_pca(X, Y, Z, W, CN, cell_of, ranges, n, g0, kn, ball, r2, pb);
     uchar st[NR][VW];
     REAL l0[NR][VW];
     for (uint k = 0; k < VW; ++k) {
@@ -172,7 +195,11 @@ __kernel void features(OPERATOR_ARGS, const REAL4 r2s, __global REAL *out1,
         uchar stk[NR];
         for (int j = 0; j < NR; ++j) {
             stk[j] = k < kn ? pca_status(&pb[j], k, MIN_COUNT) : ST_TOO_FEW;
+#if PCA_ANCHOR
+            l0k[j] = pb[j].l0a[k];          /* anchored (pca.h), NaN: the second walk */
+#else
             l0k[j] = pb[j].l0[k];
+#endif
         }
 #if REFINE_L0
         if (k < kn)

@@ -181,7 +181,7 @@ __kernel void mls2(OPERATOR_ARGS)
     if (g0 >= stop) return;
     const uint kn = min((uint)VW, stop - g0);
     pca_batch_t pb;
-    pca_batch(X, Y, Z, W, cell_of, ranges, n, g0, kn, ball, ih2, &pb);
+    pca_batch(X, Y, Z, W, CN, cell_of, ranges, n, g0, kn, ball, ih2, &pb);
     REAL Ml[21][VW], bl[6][VW], fr[12][VW];
     uchar st[VW];
     for (uint k = 0; k < VW; ++k) {

@@ -6,8 +6,10 @@
  * Outputs are one record per point at its input index (common.h).
  *
  * Build options: DENSITY (0|1) weights w(q) = 1/#N_r(q) read from W;
- *                REFINE_L0 (0|1) second pass giving lambda0 = sum w <q - o, v0>^2 / sum w
- *                directly (float32 otherwise loses ~2 digits of lambda0 on smooth surfaces);
+ *                REFINE_L0 (0|1) an accurate lambda0 = sum w <q - o, v0>^2 / sum w (float32
+ *                one-pass moments lose ~2 digits of it on smooth surfaces): from the
+ *                anchor's height sums of the same walk (pca.h, PCA_ANCHOR; CN from
+ *                anchor.cl), or a second pass where the anchor is missing or too far;
  *                MIN_COUNT and the record columns COL_NORMALS (3), COL_EIGENVALUES (3),
  *                COL_VARIATION, COL_SHIFT (3), COL_COUNT, COL_STATUS (clcurv/operators.py).
  */
@@ -38,7 +40,7 @@ __kernel void moments(OPERATOR_ARGS)
 
     /* 1-2. neighbour sums point by point, VW eigen decompositions at once */
     pca_batch_t pb;
-    pca_batch(X, Y, Z, W, cell_of, ranges, n, g0, kn, ball, (REAL)0, &pb);
+    pca_batch(X, Y, Z, W, CN, cell_of, ranges, n, g0, kn, ball, (REAL)0, &pb);
 
     /* 3. per point: status, lambda0 refinement, stores */
     for (uint k = 0; k < kn; ++k) {
@@ -49,7 +51,8 @@ __kernel void moments(OPERATOR_ARGS)
         const REAL3 mu = (REAL3)(pb.mux[k], pb.muy[k], pb.muz[k]);
         const uchar st = pca_status(&pb, k, MIN_COUNT);
 #if REFINE_L0
-        if (st == ST_OK) {
+        lam.x = pb.l0a[k];                  /* anchored (pca.h), else the second pass */
+        if (st == ST_OK && isnan(lam.x)) {
             const uint co = cell_of[g];
             __global const REAL *XA = x_rows(X, co, n);
             lam.x = pca_refine_l0(XA, Y, Z, W, ranges, co & CELL_MASK,

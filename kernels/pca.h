@@ -6,6 +6,12 @@
  *              work-item, then their VW covariances decomposed at once by eig3_sym_v (a
  *              scalar eig3 per point costs more than the neighbour loops together);
  *   pca_refine_l0  lambda0 from a second pass (float32 one-pass moments lose ~2 digits);
+ *   PCA_ANCHOR (on when the kernel is built with REFINE_L0=1)  lambda0 without the second
+ *              pass: the walk also sums the heights h = <q - p, a> above an anchor plane
+ *              of normal a (the PCA normal of the query's cell, anchor.cl), whose small
+ *              sums keep their digits, and pca_anchor_l0 evaluates <v0, C v0> from them;
+ *              lanes whose anchor is too far from v0 (or missing) are marked for the
+ *              second pass;
  *   PCA_ACCUMULATE, pca_store_sums, pca_decompose, PCA_REFINE_ACCUMULATE  their steps, which
  *              the multi-radius walk of features.cl uses too (bit-identical sums).
  */
@@ -23,6 +29,17 @@
 #define DEGENERATE_RATIO 1e-5f
 #endif
 
+#if defined(REFINE_L0) && REFINE_L0
+#define PCA_ANCHOR 1
+#else
+#define PCA_ANCHOR 0
+#endif
+/* sin^2 of the largest angle between the anchor and v0 for which the anchored lambda0 is
+ * used (its error grows as sin^2; the second pass runs beyond) */
+#ifndef ANCHOR_SIN2
+#define ANCHOR_SIN2 1e-2
+#endif
+
 /* PCA of VW consecutive points, lane k for point g0 + k (k < kn). */
 typedef struct {
     uint count[VW];
@@ -31,6 +48,11 @@ typedef struct {
     REAL v0x[VW], v0y[VW], v0z[VW];  /* eigenvector of l0: the unoriented PCA normal */
     REAL v2x[VW], v2y[VW], v2z[VW];  /* eigenvector of l2 (the largest) */
     REAL c[6][VW];                   /* centred covariance xx xy xz yy yz zz */
+#if PCA_ANCHOR
+    REAL ax[VW], ay[VW], az[VW];     /* the anchor normal a (0: none) */
+    REAL chh[VW], chx[VW], chy[VW], chz[VW];  /* <a, C a> and C a, from the height sums */
+    REAL l0a[VW];                    /* anchored lambda0, NaN: take the second pass */
+#endif
 } pca_batch_t;
 
 /* One chunk's contribution to the weighted sums of a ball (w: chunk_weights, m: the ball's
@@ -49,6 +71,15 @@ typedef struct {
         sw += (w); sx += wx_; sy += wy_; sz += wz_;                                        \
         sxx += wx_ * (dx); sxy += wx_ * (dy); sxz += wx_ * (dz);                           \
         syy += wy_ * (dy); syz += wy_ * (dz); szz += wz_ * (dz);                           \
+    }
+
+/* One chunk's contribution to the anchor's height sums (PCA_ANCHOR): sum w h, sum w h^2,
+ * sum w h d with h = <d, a>. */
+#define PCA_ANCHOR_ACCUMULATE(w, dx, dy, dz, a, sh, shh, shx, shy, shz)                  \
+    {                                                                                    \
+        const REALV h_ = (dx) * (a).x + (dy) * (a).y + (dz) * (a).z;                    \
+        const REALV wh_ = (w) * h_;                                                      \
+        sh += wh_; shh += wh_ * h_; shx += wh_ * (dx); shy += wh_ * (dy); shz += wh_ * (dz); \
     }
 
 /* Lane k of b from the sums of PCA_ACCUMULATE: count, 1/sum w, mu = o - p and the centred
@@ -75,22 +106,47 @@ inline void pca_store_sums(REALV sc, REALV sw, REALV sx, REALV sy, REALV sz, REA
     b->c[5][k] = hsum(szz) * iw - mu.z * mu.z;
 }
 
+#if PCA_ANCHOR
+/* Lane k of b from the height sums of PCA_ANCHOR_ACCUMULATE (after pca_store_sums):
+ * <a, C a> = E[h^2] - E[h]^2 and C a = E[h d] - E[d] E[h], with the ball's weights. */
+inline void pca_store_anchor(REALV sh, REALV shh, REALV shx, REALV shy, REALV shz, REAL3 a,
+                             pca_batch_t *b, uint k)
+{
+    const REAL iw = b->iw[k];
+    const REAL mh = hsum(sh) * iw;
+    b->ax[k] = a.x; b->ay[k] = a.y; b->az[k] = a.z;
+    b->chh[k] = hsum(shh) * iw - mh * mh;
+    b->chx[k] = hsum(shx) * iw - b->mux[k] * mh;
+    b->chy[k] = hsum(shy) * iw - b->muy[k] * mh;
+    b->chz[k] = hsum(shz) * iw - b->muz[k] * mh;
+}
+#endif
+
 /* The sums of the ball of p into lane k of b: count, 1/sum w, mu = o - p and the centred
  * covariance. (Results go through arrays, not a returned struct: PoCL spills struct
  * copies in the work-item loop at a large cost.) */
 inline void pca_ball(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
                      __global const REAL *W, __global const uint2 *ranges, uint cell,
-                     REAL3 p, REAL2 ball, REAL ih2, pca_batch_t *b, uint k)
+                     REAL3 p, REAL2 ball, REAL ih2, REAL3 a, pca_batch_t *b, uint k)
 {
     REALV sc = 0, sw = 0, sx = 0, sy = 0, sz = 0;
     REALV sxx = 0, sxy = 0, sxz = 0, syy = 0, syz = 0, szz = 0;
+#if PCA_ANCHOR
+    REALV sh = 0, shh = 0, shx = 0, shy = 0, shz = 0;
+#endif
     REALV dx, dy, dz;
     NEIGHBOR_CHUNKS_BEGIN(ranges, cell, p, ball, i, end, pr)
         const IREALV m = chunk_offsets(X, Y, Z, i, end, pr, ball, &dx, &dy, &dz);
         const REALV w = chunk_weights(W, i, dx, dy, dz, m, ih2);
         PCA_ACCUMULATE(w, m, dx, dy, dz, sc, sw, sx, sy, sz, sxx, sxy, sxz, syy, syz, szz)
+#if PCA_ANCHOR
+        PCA_ANCHOR_ACCUMULATE(w, dx, dy, dz, a, sh, shh, shx, shy, shz)
+#endif
     NEIGHBOR_CHUNKS_END
     pca_store_sums(sc, sw, sx, sy, sz, sxx, sxy, sxz, syy, syz, szz, b, k);
+#if PCA_ANCHOR
+    pca_store_anchor(sh, shh, shx, shy, shz, a, b, k);
+#endif
 }
 
 #define VSTOREV CAT(vstore, VW)
@@ -111,26 +167,64 @@ inline void pca_decompose(pca_batch_t *b)
     VSTOREV(e2.x, 0, b->v2x); VSTOREV(e2.y, 0, b->v2y); VSTOREV(e2.z, 0, b->v2z);
 }
 
+#if PCA_ANCHOR
+/* The anchored lambda0 of every lane (after pca_decompose): with v0 = alpha a + u (u
+ * orthogonal to a),
+ *     <v0, C v0> = alpha^2 <a, C a> + 2 alpha <u, C a> + <u, C u>,
+ * the first two terms from the height sums (small numbers, full relative precision), only
+ * the last from the one-pass covariance, whose rounding it scales by |u|^2 = sin^2 of the
+ * angle between a and v0. Lanes with |u|^2 > ANCHOR_SIN2 (a missing anchor: |u| = 1) get
+ * NaN, the mark for the second pass. */
+inline void pca_anchor_l0(pca_batch_t *b)
+{
+    const REALV vx = VLOADV(0, b->v0x), vy = VLOADV(0, b->v0y), vz = VLOADV(0, b->v0z);
+    const REALV ax = VLOADV(0, b->ax), ay = VLOADV(0, b->ay), az = VLOADV(0, b->az);
+    const REALV al = vx * ax + vy * ay + vz * az;
+    const REALV ux = vx - al * ax, uy = vy - al * ay, uz = vz - al * az;
+    const REALV c0 = VLOADV(0, b->c[0]), c1 = VLOADV(0, b->c[1]), c2 = VLOADV(0, b->c[2]);
+    const REALV c3 = VLOADV(0, b->c[3]), c4 = VLOADV(0, b->c[4]), c5 = VLOADV(0, b->c[5]);
+    const REALV ucu = ux * (c0 * ux + (REAL)2 * (c1 * uy + c2 * uz))
+                    + uy * (c3 * uy + (REAL)2 * c4 * uz) + c5 * uz * uz;
+    const REALV uca = ux * VLOADV(0, b->chx) + uy * VLOADV(0, b->chy)
+                    + uz * VLOADV(0, b->chz);
+    const REALV l0 = al * al * VLOADV(0, b->chh) + (REAL)2 * al * uca + ucu;
+    const REALV u2 = ux * ux + uy * uy + uz * uz;
+    VSTOREV(select((REALV)NAN, fmax(l0, (REALV)0), isless(u2, (REALV)ANCHOR_SIN2)), 0, b->l0a);
+}
+#endif
 
+
+/* CN: the anchor normals of the cells (anchor.cl), read only with PCA_ANCHOR (else 0). */
 inline void pca_batch(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
-                      __global const REAL *W, __global const uint *cell_of,
-                      __global const uint2 *ranges, uint n, uint g0, uint kn, REAL2 ball,
-                      REAL ih2,
-                      pca_batch_t *b)
+                      __global const REAL *W, __global const REAL *CN,
+                      __global const uint *cell_of, __global const uint2 *ranges, uint n,
+                      uint g0, uint kn, REAL2 ball, REAL ih2, pca_batch_t *b)
 {
     for (uint k = 0; k < VW; ++k) {
         if (k < kn) {
             const uint g = g0 + k;
             const uint co = cell_of[g];
             __global const REAL *XA = x_rows(X, co, n);
+#if PCA_ANCHOR
+            const REAL3 a = vload3(co & CELL_MASK, CN);
+#else
+            const REAL3 a = (REAL3)(0);
+#endif
             pca_ball(XA, Y, Z, W, ranges, co & CELL_MASK, (REAL3)(XA[g], Y[g], Z[g]),
-                     POINT_BALL(W, g, ball), ih2, b, k);
+                     POINT_BALL(W, g, ball), ih2, a, b, k);
         } else {                     /* unused lane: the identity */
             for (int e = 0; e < 6; ++e) b->c[e][k] = (REAL)(e == 0 || e == 3 || e == 5);
             b->count[k] = 0;
+#if PCA_ANCHOR
+            b->ax[k] = b->ay[k] = b->az[k] = 0;
+            b->chh[k] = b->chx[k] = b->chy[k] = b->chz[k] = 0;
+#endif
         }
     }
     pca_decompose(b);
+#if PCA_ANCHOR
+    pca_anchor_l0(b);
+#endif
 }
 
 /* One chunk's contribution to the lambda0 refinement sum w h^2, h = <q - o, v0> = <q - p,

@@ -28,7 +28,7 @@ __kernel void mls1_step(__global const REAL *X, __global const REAL *Y, __global
     if (g0 >= stop) return;
     const uint kn = min((uint)VW, stop - g0);
     pca_batch_t pb;
-    pca_batch(X, Y, Z, W, cell_of, ranges, n, g0, kn, ball, (REAL)0, &pb);
+    pca_batch(X, Y, Z, W, 0, cell_of, ranges, n, g0, kn, ball, (REAL)0, &pb);
     for (uint k = 0; k < kn; ++k) {
         const uint g = g0 + k;
         REAL3 move = (REAL3)(0);
