@@ -150,14 +150,15 @@ class DeviceCloud:
         ctx, q = self.device.context, self.device.queue
         mf = cl.mem_flags
         up = lambda a: cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a)
-        self.y, self.z = up(g.y), up(g.z)
-        # x: the host's copy, then two more made by grid.cl:expand_x (neighbors.h)
-        m, item = len(g.x), np.dtype(self.dtype).itemsize
+        # y, z and the first of x's three copies (neighbors.h) gathered on the device from
+        # the input-order rows (gather.cl), the other copies made by grid.cl:expand_x
+        m, item = self.n + PAD, np.dtype(self.dtype).itemsize
         self.x = cl.Buffer(ctx, mf.READ_WRITE, size=3 * m * item)
-        cl.enqueue_copy(q, self.x, g.x)
+        self.y, self.z = (cl.Buffer(ctx, mf.READ_WRITE, size=m * item) for _ in range(2))
         for a in (1, 2):                           # the pads of the other copies
             cl.enqueue_fill_buffer(q, self.x, self.dtype(0), (a * m + self.n) * item,
-                                   (m - self.n) * item)
+                                   PAD * item)
+        rel = up(g.rel)
         self.cell_of = cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=g.cell_of)
         self.order = up(g.order.astype(np.uint32))
         keys = up(g.keys)
@@ -167,9 +168,12 @@ class DeviceCloud:
         t2 = time.perf_counter()
         self.timings["upload"] = t2 - t1
         prg = build(self.device, "grid.cl", self.defines)
+        gather = build(self.device, "gather.cl", self.defines).gather_sorted
         t3 = time.perf_counter()
         self.timings["build"] = t3 - t2
         nx, ny, nz = g.dims
+        launch(self.device, gather, self.n + PAD, rel, self.order, np.uint32(self.n),
+               np.uint32(0), np.uint32(self.n), self.x, self.y, self.z)
         per, items = np.uint32(CELLS_PER_ITEM), -(-g.ncells // CELLS_PER_ITEM)
         launch(self.device, prg.cell_ranges, items, keys, np.uint32(g.ncells), cell_start,
                np.int64(nx), np.int64(ny), np.int64(nz), per, self.ranges)
@@ -186,7 +190,8 @@ class DeviceCloud:
         cells = max(g.ncells, 1)
         # x (3 copies), y, z | cell_of, order | 9 ranges per cell
         self.device_bytes = 5 * (self.n + PAD) * item + 8 * self.n + 72 * cells
-        temporary = 12 * cells + 4                   # keys and cell_start, during __init__
+        # keys and cell_start, and the input-order rows gathered to x, y, z (__init__)
+        temporary = 12 * cells + 4 + 3 * self.n * item
         # and the smallest chunk of the widest operator: a record and as many split fields
         # (record_bytes)
         self._require("the coordinates and the grid", temporary,

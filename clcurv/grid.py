@@ -8,22 +8,30 @@ consecutive keys). Only occupied cells are stored: memory is O(N) whatever the b
 Points of one cell keep their input order (a stable sort), so the layout, and every result
 computed on it, does not depend on numpy's sort algorithm.
 
-Device layout (sorted by cell key):
-  ``x, y, z``      coordinates relative to the corner of the point's cell, computed in
-                   float64 before the cast to the device precision, padded with ``PAD``
-                   zeros. Values lie in [0, cell) whatever the cloud's extent or offset
+Layout (sorted by cell key, but for ``rel``):
+  ``rel``          (N, 3) coordinates relative to the corner of the point's cell, in the
+                   *input* order, computed in float64 before the cast to the device
+                   precision. Values lie in [0, cell) whatever the cloud's extent or offset
                    (UTM, state plane, ...), so offsets between neighbours keep the device
-                   precision relative to the radius. On the device (grid.cl:expand_x) x
-                   becomes three copies relative to 3-cell blocks and ``cell_of`` gets the
-                   alignment of each point's rows in its top bits (kernels/neighbors.h).
+                   precision relative to the radius.
+  ``x, y, z``      the same in the sorted order, padded with ``PAD`` zeros: gathered from
+                   ``rel`` on first use on the host; a DeviceCloud gathers its own on the
+                   device (gather.cl), where x becomes three copies relative to 3-cell
+                   blocks and ``cell_of`` gets the alignment of each point's rows in its top
+                   bits (grid.cl:expand_x, kernels/neighbors.h).
   ``order``        sorted position -> input index
   ``keys``         sorted unique int64 keys of the occupied cells
   ``cell_start``   CSR start of each occupied cell in the sorted points (ncells + 1)
   ``cell_of``      occupied-cell id of each sorted point
+
+The passes run over blocks of :data:`BLOCK` points, so their float64 and int64 temporaries
+stay in the core's cache instead of costing full-size arrays (memory traffic and fresh
+pages).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -33,6 +41,8 @@ MAX_KEY = 2 ** 62
 #: Occupied cells per work-item of grid.cl (cell_ranges, expand_x): the rows of a cell are
 #: searched from where the previous cell of the block found them.
 CELLS_PER_ITEM = 32
+#: Points per block of bin_points' passes (their temporaries stay in the core's cache).
+BLOCK = 1 << 14
 
 
 @dataclass
@@ -42,9 +52,7 @@ class Grid:
     cell: float             # cell size, same unit as the points
     dims: tuple             # (nx, ny, nz)
     order: np.ndarray       # (N,) int64
-    x: np.ndarray
-    y: np.ndarray
-    z: np.ndarray
+    rel: np.ndarray         # (N, 3) device precision, input order
     keys: np.ndarray        # (ncells,) int64
     cell_start: np.ndarray  # (ncells + 1,) uint32
     cell_of: np.ndarray     # (N,) uint32
@@ -52,6 +60,24 @@ class Grid:
     @property
     def ncells(self):
         return len(self.keys)
+
+    def _sorted(self, d):
+        """Column ``d`` of ``rel`` in the sorted order, padded with PAD zeros."""
+        c = np.zeros(self.n + PAD, self.rel.dtype)
+        np.take(self.rel[:, d], self.order, out=c[:self.n])
+        return c
+
+    @cached_property
+    def x(self):
+        return self._sorted(0)
+
+    @cached_property
+    def y(self):
+        return self._sorted(1)
+
+    @cached_property
+    def z(self):
+        return self._sorted(2)
 
     def cell_index(self):
         """(N, 3) int64 cell coordinates (ix, iy, iz) of the sorted points."""
@@ -83,23 +109,82 @@ def _bounding_box(points):
     return np.min(los, axis=0), np.max(his, axis=0)
 
 
-def _sort_keys(key, ncells_box):
-    """(order, sorted keys): a stable sort of the cell keys (ties keep the input order, so
-    the layout does not depend on numpy's sort algorithm). When key and index fit in 63
-    bits together, one in-place sort of ``key << bits | index`` replaces the much slower
-    argsort (which moves 16 bytes per element and is not vectorised)."""
-    n = len(key)
+def _index_bits(n, ncells_box):
+    """Bits of a point index packed below the cell key (``key << bits | index``), or 0
+    when key and index do not fit 63 bits together."""
     bits = max(1, (n - 1).bit_length())
-    if ncells_box <= 2 ** (63 - bits):
-        comp = key                      # key is ours (a temporary): reuse its memory
-        comp <<= bits
-        comp |= np.arange(n, dtype=np.int64)
-        comp.sort()
-        order = comp & ((1 << bits) - 1)
-        comp >>= bits
-        return order, comp
-    order = np.argsort(key, kind="stable")
-    return order, key[order]
+    return bits if ncells_box <= 2 ** (63 - bits) else 0
+
+
+def _blocks(n):
+    return ((s, min(s + BLOCK, n)) for s in range(0, n, BLOCK))
+
+
+def _cell_keys(points, lo, cell, dims, dtype, bits):
+    """(key, rel): the cell key of every point (``key << bits | index`` when ``bits``) and
+    the (N, 3) coordinates relative to the corner of its cell in ``dtype``."""
+    n, (nx, ny, nz), inv = len(points), dims, 1.0 / cell
+    key, rel = np.empty(n, np.int64), np.empty((n, 3), dtype)
+    u, i = np.empty(min(BLOCK, n)), np.empty(min(BLOCK, n), np.int64)   # block scratch
+    for s, e in _blocks(n):
+        k, uu, ii = key[s:e], u[:e - s], i[:e - s]
+        for d, m in ((2, nz), (1, ny), (0, nx)):
+            np.subtract(points[s:e, d], lo[d], out=uu)
+            uu *= inv                                 # >= 0: position in cells
+            np.copyto(ii, uu, casting="unsafe")       # the cell (truncation = floor)
+            if d == 2:
+                k[:] = ii
+            else:
+                k *= m
+                k += ii
+            # (u - i) * cell: the rounding of u costs 1e-16 x the extent, far below the cast
+            np.subtract(uu, ii, out=uu)
+            np.multiply(uu, cell, out=rel[s:e, d], casting="same_kind")
+        if bits:
+            k <<= bits
+            k |= np.arange(s, e, dtype=np.int64)
+    return key, rel
+
+
+def _sort_cells(key, bits):
+    """(order, keys, cell_start, cell_of) of the keys of :func:`_cell_keys`, sorted stably
+    (ties keep the input order, so the layout does not depend on numpy's sort algorithm).
+    Packed keys (``bits``) are unique: one in-place sort of them replaces the much slower
+    stable argsort (16 bytes moved per element, not vectorised), and ``key`` then becomes
+    ``order``. Raises ValueError beyond CELL_MASK occupied cells."""
+    n = len(key)
+    if bits:
+        key.sort()
+        order, skey, sk = key, None, np.empty(min(BLOCK, n), np.int64)
+    else:
+        order = np.argsort(key, kind="stable")
+        skey = key[order]
+    cell_of, first = np.empty(n, dtype=np.uint32), np.empty(min(BLOCK, n), dtype=bool)
+    heads, starts, last, ncells = [], [], None, 0
+    for s, e in _blocks(n):
+        if bits:
+            k = sk[:e - s]
+            np.right_shift(order[s:e], bits, out=k)
+            order[s:e] &= (1 << bits) - 1
+        else:
+            k = skey[s:e]
+        new = first[:e - s]                      # the block's points that start a cell
+        np.not_equal(k[1:], k[:-1], out=new[1:])
+        new[0] = last is None or k[0] != last
+        last = k[-1]
+        # cell ids: the cells before the block, then a running count (uint32 wraps at -1)
+        np.cumsum(new, dtype=np.uint32, out=cell_of[s:e])
+        cell_of[s:e] += np.uint32((ncells - 1) % 2 ** 32)
+        heads.append(k[new])
+        starts.append(np.flatnonzero(new) + s)
+        ncells += len(heads[-1])
+    if ncells > CELL_MASK:
+        raise ValueError(f"{ncells} occupied cells: at most {CELL_MASK}; "
+                         "use a larger radius or split the cloud")
+    cell_start = np.empty(ncells + 1, dtype=np.uint32)
+    np.concatenate(starts, out=cell_start[:-1], casting="unsafe")
+    cell_start[-1] = n
+    return order, np.concatenate(heads), cell_start, cell_of
 
 
 def _check_inside(points, frame, cell):
@@ -194,45 +279,11 @@ def bin_points(points, cell, dtype=np.float32, frame=None):
     else:
         lo, (nx, ny, nz) = np.asarray(frame.origin, np.float64), frame.dims
         _check_inside(points, frame, cell)
-    inv = 1.0 / cell
-    box = float(nx) * float(ny) * float(nz)
-    key, i = np.empty(n, np.int64), np.empty(n, np.int64)
-    rel = np.empty((3, n), dtype)
-    u = np.empty(n)                               # float64 scratch, reused for every axis
-    for d, m in ((2, nz), (1, ny), (0, nx)):
-        np.subtract(points[:, d], lo[d], out=u)
-        u *= inv                                  # >= 0: position in cells
-        np.copyto(i, u, casting="unsafe")         # the cell (truncation = floor)
-        if d == 2:
-            key[:] = i
-        else:
-            key *= m
-            key += i
-        # (u - i) * cell: the rounding of u costs 1e-16 x the extent, far below the cast
-        np.subtract(u, i, out=u)
-        np.multiply(u, cell, out=rel[d], casting="same_kind")
-    order, skey = _sort_keys(key, box)
-    new_cell = np.empty(n, dtype=bool)
-    new_cell[0] = True
-    np.not_equal(skey[1:], skey[:-1], out=new_cell[1:])
-    starts = np.flatnonzero(new_cell)
-    if len(starts) > CELL_MASK:
-        raise ValueError(f"{len(starts)} occupied cells: at most {CELL_MASK}; "
-                         "use a larger radius or split the cloud")
-    cell_start = np.empty(len(starts) + 1, dtype=np.uint32)
-    cell_start[:-1] = starts
-    cell_start[-1] = n
-    cell_of = np.cumsum(new_cell, dtype=np.uint32)
-    cell_of -= 1
-    coords = []
-    for d in range(3):                            # gather the 4- or 8-byte values in order
-        c = np.empty(n + PAD, dtype=dtype)
-        c[n:] = 0
-        np.take(rel[d], order, out=c[:n])
-        coords.append(c)
-    return Grid(n=n, origin=lo, cell=float(cell), dims=(nx, ny, nz), order=order,
-                x=coords[0], y=coords[1], z=coords[2], keys=skey[starts],
-                cell_start=cell_start, cell_of=cell_of)
+    bits = _index_bits(n, float(nx) * float(ny) * float(nz))
+    key, rel = _cell_keys(points, lo, cell, (nx, ny, nz), dtype, bits)
+    order, keys, cell_start, cell_of = _sort_cells(key, bits)
+    return Grid(n=n, origin=lo, cell=float(cell), dims=(nx, ny, nz), order=order, rel=rel,
+                keys=keys, cell_start=cell_start, cell_of=cell_of)
 
 
 #: Neighbour pairs (sum over the points of #N_r(p)) above which a run is refused: about a

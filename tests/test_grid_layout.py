@@ -15,8 +15,9 @@ def clouds():
     blob = rng.uniform(-1, 1, (5_000, 3)) * [3.0, 1.0, 0.2] + 1e6     # offset, flat
     line = np.stack([np.linspace(0, 1, 2_000)] + [np.zeros(2_000)] * 2, 1)   # nx only
     dup = np.repeat(rng.uniform(size=(50, 3)), 20, axis=0)              # coincident points
+    far = np.vstack([rng.normal(0, 0.1, (300, 3)), rng.normal(1.5e5, 0.1, (300, 3))])
     return {"sphere": (sphere, 0.05), "blob": (blob, 0.1), "line": (line, 0.01),
-            "dup": (dup, 0.2)}
+            "dup": (dup, 0.2), "far": (far, 0.1)}     # far: 2^61 cells, key and index unpacked
 
 
 @pytest.mark.parametrize("name", list(clouds()))
@@ -43,15 +44,23 @@ def test_bin_points_layout(name):
     np.testing.assert_allclose(g.positions(), pts[g.order], rtol=0, atol=1e-6 * cell)
 
 
-def test_sort_keys_fallback_when_key_and_index_do_not_fit():
-    key = np.array([5, 3, 5, 2 ** 60, 3, 0], dtype=np.int64)
-    order, skey = G._sort_keys(key.copy(), float(2 ** 61))
-    assert np.array_equal(order, np.argsort(key, kind="stable"))
-    assert np.array_equal(skey, np.sort(key))
-    small = np.array([5, 3, 5, 7, 3, 0], dtype=np.int64)        # fits: packed sort
-    order2, skey2 = G._sort_keys(small.copy(), 100.0)
-    assert np.array_equal(order2, np.argsort(small, kind="stable"))
-    assert np.array_equal(skey2, np.sort(small))
+@pytest.mark.parametrize("fits", [True, False], ids=["packed", "fallback"])
+def test_sort_cells_packed_and_fallback(fits):
+    """_sort_cells: keys with the point index packed below them (one plain sort), or the
+    stable argsort when key and index do not fit 63 bits; cells spanning several blocks."""
+    rng = np.random.default_rng(5)
+    key = rng.integers(0, 40, 3 * G.BLOCK + 7)
+    key[::997] = 41 if fits else 2 ** 60
+    bits = G._index_bits(len(key), 42.0 if fits else float(2 ** 61))
+    assert (bits > 0) == fits
+    packed = key << bits | np.arange(len(key)) if bits else key.copy()
+    order, keys, start, cell_of = G._sort_cells(packed, bits)
+    want = np.argsort(key, kind="stable")
+    assert np.array_equal(order, want)
+    assert np.array_equal(keys, np.unique(key))
+    assert np.array_equal(start[:-1], np.searchsorted(key[want], keys))
+    assert start[-1] == len(key)
+    assert np.array_equal(keys[cell_of], key[want])
 
 
 def test_bounding_box_matches_min_max():
