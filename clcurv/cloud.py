@@ -159,7 +159,7 @@ class DeviceCloud:
             cl.enqueue_fill_buffer(q, self.x, self.dtype(0), (a * m + self.n) * item,
                                    PAD * item)
         rel = up(g.rel)
-        self.cell_of = cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=g.cell_of)
+        self.cell_of = cl.Buffer(ctx, mf.READ_WRITE, size=4 * self.n)   # by expand_x
         self.order = up(g.order.astype(np.uint32))
         keys = up(g.keys)
         cell_start = up(g.cell_start)

@@ -22,7 +22,8 @@ Layout (sorted by cell key, but for ``rel``):
   ``order``        sorted position -> input index
   ``keys``         sorted unique int64 keys of the occupied cells
   ``cell_start``   CSR start of each occupied cell in the sorted points (ncells + 1)
-  ``cell_of``      occupied-cell id of each sorted point
+  ``cell_of``      occupied-cell id of each sorted point (made on first use on the host;
+                   a DeviceCloud makes its own, grid.cl:expand_x)
 
 The passes run over blocks of :data:`BLOCK` points, so their float64 and int64 temporaries
 stay in the core's cache instead of costing full-size arrays (memory traffic and fresh
@@ -55,7 +56,6 @@ class Grid:
     rel: np.ndarray         # (N, 3) device precision, input order
     keys: np.ndarray        # (ncells,) int64
     cell_start: np.ndarray  # (ncells + 1,) uint32
-    cell_of: np.ndarray     # (N,) uint32
 
     @property
     def ncells(self):
@@ -66,6 +66,13 @@ class Grid:
         c = np.zeros(self.n + PAD, self.rel.dtype)
         np.take(self.rel[:, d], self.order, out=c[:self.n])
         return c
+
+    @cached_property
+    def cell_of(self):
+        """(N,) uint32 occupied-cell id of each sorted point (made on first use; a
+        DeviceCloud makes its own, grid.cl:expand_x)."""
+        ids = np.arange(self.ncells, dtype=np.uint32)
+        return np.repeat(ids, np.diff(self.cell_start))
 
     @cached_property
     def x(self):
@@ -147,10 +154,10 @@ def _cell_keys(points, lo, cell, dims, dtype, bits):
 
 
 def _sort_cells(key, bits):
-    """(order, keys, cell_start, cell_of) of the keys of :func:`_cell_keys`, sorted stably
-    (ties keep the input order, so the layout does not depend on numpy's sort algorithm).
-    Packed keys (``bits``) are unique: one in-place sort of them replaces the much slower
-    stable argsort (16 bytes moved per element, not vectorised), and ``key`` then becomes
+    """(order, keys, cell_start) of the keys of :func:`_cell_keys`, sorted stably (ties
+    keep the input order, so the layout does not depend on numpy's sort algorithm). Packed
+    keys (``bits``) are unique: one in-place sort of them replaces the much slower stable
+    argsort (16 bytes moved per element, not vectorised), and ``key`` then becomes
     ``order``. Raises ValueError beyond CELL_MASK occupied cells."""
     n = len(key)
     if bits:
@@ -159,8 +166,8 @@ def _sort_cells(key, bits):
     else:
         order = np.argsort(key, kind="stable")
         skey = key[order]
-    cell_of, first = np.empty(n, dtype=np.uint32), np.empty(min(BLOCK, n), dtype=bool)
-    heads, starts, last, ncells = [], [], None, 0
+    first = np.empty(min(BLOCK, n), dtype=bool)
+    heads, starts, last = [], [], None
     for s, e in _blocks(n):
         if bits:
             k = sk[:e - s]
@@ -172,19 +179,18 @@ def _sort_cells(key, bits):
         np.not_equal(k[1:], k[:-1], out=new[1:])
         new[0] = last is None or k[0] != last
         last = k[-1]
-        # cell ids: the cells before the block, then a running count (uint32 wraps at -1)
-        np.cumsum(new, dtype=np.uint32, out=cell_of[s:e])
-        cell_of[s:e] += np.uint32((ncells - 1) % 2 ** 32)
-        heads.append(k[new])
-        starts.append(np.flatnonzero(new) + s)
-        ncells += len(heads[-1])
+        at = np.flatnonzero(new)
+        heads.append(k[at])
+        at += s
+        starts.append(at)
+    ncells = sum(map(len, heads))
     if ncells > CELL_MASK:
         raise ValueError(f"{ncells} occupied cells: at most {CELL_MASK}; "
                          "use a larger radius or split the cloud")
     cell_start = np.empty(ncells + 1, dtype=np.uint32)
     np.concatenate(starts, out=cell_start[:-1], casting="unsafe")
     cell_start[-1] = n
-    return order, np.concatenate(heads), cell_start, cell_of
+    return order, np.concatenate(heads), cell_start
 
 
 def _check_inside(points, frame, cell):
@@ -281,9 +287,9 @@ def bin_points(points, cell, dtype=np.float32, frame=None):
         _check_inside(points, frame, cell)
     bits = _index_bits(n, float(nx) * float(ny) * float(nz))
     key, rel = _cell_keys(points, lo, cell, (nx, ny, nz), dtype, bits)
-    order, keys, cell_start, cell_of = _sort_cells(key, bits)
+    order, keys, cell_start = _sort_cells(key, bits)
     return Grid(n=n, origin=lo, cell=float(cell), dims=(nx, ny, nz), order=order, rel=rel,
-                keys=keys, cell_start=cell_start, cell_of=cell_of)
+                keys=keys, cell_start=cell_start)
 
 
 #: Neighbour pairs (sum over the points of #N_r(p)) above which a run is refused: about a
@@ -322,7 +328,7 @@ def _sample_candidates(grid, sample, seed):
 def _cell_index(grid, js):
     """(len(js), 3) cell coordinates of the sorted points ``js``."""
     nx, ny, _ = grid.dims
-    k = grid.keys[grid.cell_of[js]]
+    k = grid.keys[np.searchsorted(grid.cell_start, js, side="right") - 1]
     return np.stack([k % nx, (k // nx) % ny, k // (nx * ny)], axis=1)
 
 

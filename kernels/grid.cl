@@ -14,7 +14,7 @@
  * they do not (measured: the old per-cell gallops from the cell itself, 9 per cell and
  * about one slab of cells away for the z - 1 and z + 1 rows, cost twice as much). The first
  * cell of a block gallops from its own index. expand_x walks the points of the block's
- * cells, so the cell's x index costs one division per cell instead of one per point. */
+ * cells (x copies and cell_of), so the cell's x index costs one division per cell. */
 #include "common.h"
 #include "neighbors.h"
 
@@ -119,15 +119,16 @@ __kernel void cell_ranges(__global const long *keys, const uint ncells,
     }
 }
 
-/* The three copies of x of neighbors.h: X holds 3 arrays of n + PAD, the first filled by
- * the host with x relative to the corner of the point's cell (then zeros). Copy a becomes x
- * relative to the corner of the point's 3-cell block starting at an index = a mod 3, i.e.
- * plus (ix - a) mod 3 cells. cell_of gets the alignment (ix - 1) mod 3 of the point's own
- * rows in its top bits. Over the points of blocks of cells, so ix costs one division per
- * cell instead of one per point. */
+/* The three copies of x of neighbors.h: X holds 3 arrays of n + PAD, the first filled
+ * with x relative to the corner of the point's cell (then zeros). Copy a becomes x relative
+ * to the corner of the point's 3-cell block starting at an index = a mod 3, i.e. plus
+ * (ix - a) mod 3 cells. cell_of[s] = the alignment (ix - 1) mod 3 of the point's own rows
+ * in the top bits, its cell c below. Over the points of blocks of cells, so ix costs one
+ * division per cell instead of one per point. */
 __kernel void expand_x(__global const long *keys, const uint ncells,
                        __global const uint *cell_start, const long nx, const uint per_item,
-                       const uint n, const REAL cell, __global REAL *X, __global uint *cell_of)
+                       const uint n, const REAL cell, __global REAL *X,
+                       __global uint *cell_of)
 {
     const uint c0 = get_global_id(0) * per_item;
     if (c0 >= ncells) return;
@@ -135,13 +136,13 @@ __kernel void expand_x(__global const long *keys, const uint ncells,
     const size_t stride = (size_t)n + PAD;
     for (uint c = c0; c < c1; ++c) {
         const int m = (int)((keys[c] % nx) % 3);
-        const uint top = (uint)((m + 2) % 3) << CELL_BITS;
+        const uint co = (uint)((m + 2) % 3) << CELL_BITS | c;
         const uint end = cell_start[c + 1];
         for (uint s = cell_start[c]; s < end; ++s) {
             const REAL x = X[s];
             for (int a = 2; a >= 0; --a)         /* copy 0 last: it holds x */
                 X[a * stride + s] = x + (REAL)((m - a + 3) % 3) * cell;
-            cell_of[s] |= top;
+            cell_of[s] = co;
         }
     }
 }

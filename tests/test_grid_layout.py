@@ -54,13 +54,13 @@ def test_sort_cells_packed_and_fallback(fits):
     bits = G._index_bits(len(key), 42.0 if fits else float(2 ** 61))
     assert (bits > 0) == fits
     packed = key << bits | np.arange(len(key)) if bits else key.copy()
-    order, keys, start, cell_of = G._sort_cells(packed, bits)
+    order, keys, start = G._sort_cells(packed, bits)
     want = np.argsort(key, kind="stable")
     assert np.array_equal(order, want)
     assert np.array_equal(keys, np.unique(key))
     assert np.array_equal(start[:-1], np.searchsorted(key[want], keys))
     assert start[-1] == len(key)
-    assert np.array_equal(keys[cell_of], key[want])
+    assert np.array_equal(np.repeat(keys, np.diff(start)), key[want])
 
 
 def test_bounding_box_matches_min_max():
