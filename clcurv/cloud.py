@@ -149,7 +149,10 @@ class DeviceCloud:
         self._check_memory()
         ctx, q = self.device.context, self.device.queue
         mf = cl.mem_flags
-        up = lambda a: cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a)
+        # read-only inputs: a CPU device reads the host's arrays in place (no copy; the
+        # Buffer keeps its array alive), other devices get copies
+        use = mf.USE_HOST_PTR if self.device.info.kind == "cpu" else mf.COPY_HOST_PTR
+        up = lambda a: cl.Buffer(ctx, mf.READ_ONLY | use, hostbuf=a)
         # y, z and the first of x's three copies (neighbors.h) gathered on the device from
         # the input-order rows (gather.cl), the other copies made by grid.cl:expand_x
         m, item = self.n + PAD, np.dtype(self.dtype).itemsize
