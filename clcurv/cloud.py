@@ -21,7 +21,7 @@ import numpy as np
 
 from .constants import PAD, RECORD_WIDTH as RECORD, record_selector
 from .device import get_device
-from .grid import CELLS_PER_ITEM, bin_points, check_pairs
+from .grid import CELLS_PER_ITEM, bin_points, check_pairs, sentinel_keys
 from .program import build, launch, precision_defines
 from .validate import as_points, as_radius, device_radius
 
@@ -164,7 +164,7 @@ class DeviceCloud:
         rel = up(g.rel)
         self.cell_of = cl.Buffer(ctx, mf.READ_WRITE, size=4 * self.n)   # by expand_x
         self.order = up(g.order.astype(np.uint32))
-        keys = up(g.keys)
+        keys = up(sentinel_keys(g.keys))
         cell_start = up(g.cell_start)
         self.ranges = cl.Buffer(ctx, mf.READ_WRITE, size=max(g.ncells, 1) * 9 * 8)
         q.finish()

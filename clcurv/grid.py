@@ -42,6 +42,9 @@ MAX_KEY = 2 ** 62
 #: Occupied cells per work-item of grid.cl (cell_ranges, expand_x): the rows of a cell are
 #: searched from where the previous cell of the block found them.
 CELLS_PER_ITEM = 32
+#: Entries = int64 max after the cell keys that grid.cl reads (its probes of 4 keys need
+#: no bounds checks): :func:`sentinel_keys`.
+KEY_SENTINELS = 4
 #: Points per block of bin_points' passes (their temporaries stay in the core's cache).
 BLOCK = 1 << 13
 
@@ -198,6 +201,14 @@ def _sort_cells(key, bits):
     np.concatenate(starts, out=cell_start[:-1], casting="unsafe")
     cell_start[-1] = n
     return order, np.concatenate(heads), cell_start
+
+
+def sentinel_keys(keys):
+    """``keys`` followed by KEY_SENTINELS int64 maxima, as grid.cl reads them."""
+    out = np.empty(len(keys) + KEY_SENTINELS, np.int64)
+    out[:len(keys)] = keys
+    out[len(keys):] = np.iinfo(np.int64).max
+    return out
 
 
 def _check_inside(points, frame, cell):

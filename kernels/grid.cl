@@ -65,14 +65,12 @@ inline void key_cell(long k, long nx, long ny, long *ix, long *iy, long *iz)
     *iy = q - *iz * ny;
 }
 
-/* How many of keys[i], .., keys[i + 3] (those below n) are < k; branch-free. Keys are sorted,
- * so when that is below 4 the first index with keys >= k is i plus it. */
-inline uint below4(__global const long *keys, uint n, uint i, long k)
+/* How many of keys[i], .., keys[i + 3] are < k, branch-free: keys holds 4 entries = LONG_MAX
+ * after its ncells (clcurv.grid.sentinel_keys), so any i <= ncells may be probed. Keys are
+ * sorted, so when that is below 4 the first index with keys >= k is i plus it. */
+inline uint below4(__global const long *keys, uint i, long k)
 {
-    uint m = 0;
-    for (uint t = 0; t < 4; ++t)
-        m += (i + t < n) & (keys[min(i + t, n - 1)] < k);
-    return m;
+    return (keys[i] < k) + (keys[i + 1] < k) + (keys[i + 2] < k) + (keys[i + 3] < k);
 }
 
 __kernel void cell_ranges(__global const long *keys, const uint ncells,
@@ -105,12 +103,12 @@ __kernel void cell_ranges(__global const long *keys, const uint ncells,
                 if (h[j] == ncells)           /* not found yet: search from the cell */
                     a = gallop(keys, ncells, row + x0, c);
                 else {                        /* at or after h[j], most often within 3 */
-                    a = h[j] + below4(keys, ncells, h[j], row + x0);
+                    a = h[j] + below4(keys, h[j], row + x0);
                     if (a == h[j] + 4)
                         a = gallop(keys, ncells, row + x0, a);
                 }
                 /* the row has at most 3 cells from a */
-                const uint b = a + below4(keys, ncells, a, row + x1 + 1);
+                const uint b = a + below4(keys, a, row + x1 + 1);
                 range = b > a ? (uint2)(cell_start[a], cell_start[b]) : range;
                 h[j] = a;
             }
