@@ -3,7 +3,8 @@
  * The sorted points of the 27 cells around the query's cell form 9 contiguous index
  * ranges, one per row j of three cells (cx - 1 .. cx + 1, cy + dy, cz + dz) with
  * (dz, dy) = (j / 3 - 1, j % 3 - 1) (grid.cl:cell_ranges; an empty row is (0, 0)). The walk
- * visits the rows in order and each range VW points at a time; the arrays are padded so a
+ * visits the rows in order (skipping those whose slab lies beyond the radius in y and z:
+ * row_gap2) and each range VW points at a time; the arrays are padded so a
  * vector load may read past the end. Lanes past the range end or outside the open ball
  * |q - p| < r are masked out. The order is fixed, so results are bit-reproducible.
  *
@@ -48,11 +49,33 @@ inline __global const REAL *x_rows(__global const REAL *X, uint co, uint n)
 #error "VW must be 2, 4, 8 or 16"
 #endif
 
+/* ROW_PRUNE (default 1): rows of the block farther than the ball's radius in y and z are
+ * skipped; 0 walks all 9 (the same sums: tests/test_row_pruning.py). */
+#ifndef ROW_PRUNE
+#define ROW_PRUNE 1
+#endif
+#if REAL_IS_DOUBLE
+#define ROW_SLACK (4 * DBL_EPSILON)
+#else
+#define ROW_SLACK (4 * FLT_EPSILON)
+#endif
+/* The squared distance from p (cell-relative y, z) to the slab of row (nb_y, nb_z) in y
+ * and z, less a slack of a few ulps of the cell: no lane of a row farther than r can pass
+ * chunk_offsets' test, so skipping such a row changes no sum (bit for bit). */
+inline REAL row_gap2(REAL3 p, REAL2 ball, int nb_y, int nb_z)
+{
+    const REAL s = ROW_SLACK * ball.y;
+    const REAL ey = nb_y == 1 ? (REAL)0 : fmax((nb_y == 0 ? p.y : ball.y - p.y) - s, (REAL)0);
+    const REAL ez = nb_z == 1 ? (REAL)0 : fmax((nb_z == 0 ? p.z : ball.y - p.z) - s, (REAL)0);
+    return ey * ey + ez * ez;
+}
+
 #define NEIGHBOR_CHUNKS_BEGIN(ranges, cell, p, ball, i, end, pr)         \
     for (int nb_z = 0; nb_z < 3; ++nb_z)                                  \
     for (int nb_y = 0; nb_y < 3; ++nb_y) {                                \
         const uint2 nb_se = (ranges)[(size_t)(cell) * 9 + nb_z * 3 + nb_y]; \
-        const uint end = nb_se.y;                                         \
+        const uint end = !ROW_PRUNE || row_gap2(p, ball, nb_y, nb_z) < (ball).x \
+                         ? nb_se.y : nb_se.x;                             \
         const REAL3 pr = (REAL3)((p).x, (p).y + (REAL)(1 - nb_y) * (ball).y, \
                                  (p).z + (REAL)(1 - nb_z) * (ball).y);    \
         for (uint i = nb_se.x; i < end; i += VW) {
