@@ -191,8 +191,9 @@ class DeviceCloud:
         smallest chunk of an operator, do not fit the device."""
         g, item = self.grid, np.dtype(self.dtype).itemsize
         cells = max(g.ncells, 1)
-        # x (3 copies), y, z | cell_of, order | 9 ranges per cell
-        self.device_bytes = 5 * (self.n + PAD) * item + 8 * self.n + 72 * cells
+        # x (3 copies), y, z | cell_of, order | 9 ranges per cell, and once an operator
+        # needs them the cells' anchor normals (clcurv.anchor) and their starts
+        self.device_bytes = 5 * (self.n + PAD) * item + 8 * self.n + (76 + 3 * item) * cells
         # keys and cell_start, and the input-order rows gathered to x, y, z (__init__)
         temporary = 12 * cells + 4 + 3 * self.n * item
         # and the smallest chunk of the widest operator: a record and as many split fields
