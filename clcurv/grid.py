@@ -27,10 +27,12 @@ Layout (sorted by cell key, but for ``rel``):
 
 The passes run over blocks of :data:`BLOCK` points, so their float64 and int64 temporaries
 stay in the core's cache instead of costing full-size arrays (memory traffic and fresh
-pages).
+pages). The bounding box and the sort use up to 4 cores from :data:`MIN_PARALLEL` points on,
+as a few large numpy calls on threads (numpy releases the GIL in them).
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -47,6 +49,9 @@ CELLS_PER_ITEM = 32
 KEY_SENTINELS = 4
 #: Points per block of bin_points' passes (their temporaries stay in the core's cache).
 BLOCK = 1 << 13
+#: Fewest points for which the bounding box and the sort use several cores.
+MIN_PARALLEL = 1 << 16
+_POOL = None
 
 
 @dataclass
@@ -103,7 +108,40 @@ class Grid:
         return self.origin + ijk * self.cell + rel
 
 
+def _cores():
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:              # not on every platform
+        return os.cpu_count() or 1
+
+
+def _parallel(fn, pieces):
+    """[fn(*p) for p in pieces], the first on the calling thread, the others on worker
+    threads (at most 3). Only for a few large numpy calls each, which release the GIL:
+    fine-grained calls on several threads were slower (GIL handoffs), measured."""
+    global _POOL
+    if _POOL is None:
+        from concurrent.futures import ThreadPoolExecutor
+        _POOL = ThreadPoolExecutor(max_workers=3, thread_name_prefix="clcurv-binning")
+    futures = [_POOL.submit(fn, *p) for p in pieces[1:]]
+    return [fn(*pieces[0])] + [f.result() for f in futures]
+
+
+def _parts(n, align=1):
+    """The bounds of min(cores, 4) near-equal parts of range(n) (one below MIN_PARALLEL),
+    inner bounds multiples of ``align``."""
+    k = min(_cores(), 4) if n >= MIN_PARALLEL else 1
+    cuts = [n * j // k // align * align for j in range(1, k)]
+    return list(zip([0] + cuts, cuts + [n]))
+
+
 def _bounding_box(points):
+    """Per-column min and max of a C-contiguous (N, 3) array, parts of it on several cores."""
+    boxes = _parallel(_box_part, [(points[a:b],) for a, b in _parts(len(points), 1024)])
+    return (np.min([lo for lo, _ in boxes], axis=0), np.max([hi for _, hi in boxes], axis=0))
+
+
+def _box_part(points):
     """Per-column min and max of a C-contiguous (N, 3) array. ``points.min(axis=0)`` runs a
     3-wide inner loop (about 30x slower); blocks of 1024 rows reduce at full SIMD width."""
     n = len(points)
@@ -117,6 +155,16 @@ def _bounding_box(points):
         los.append(points[m:].min(axis=0))
         his.append(points[m:].max(axis=0))
     return np.min(los, axis=0), np.max(his, axis=0)
+
+
+def _sort_distinct(a):
+    """Sort the distinct values ``a`` in place: with several cores, one selection
+    (np.partition) puts every value in the part of its rank, then the parts are sorted
+    on threads; the values being distinct, the result is the one of ``a.sort()``."""
+    parts = _parts(len(a))
+    if len(parts) > 1:
+        a.partition([b for _, b in parts[:-1]])
+    _parallel(lambda lo, hi: a[lo:hi].sort(), parts)
 
 
 def _index_bits(n, ncells_box):
@@ -171,7 +219,7 @@ def _sort_cells(key, bits):
     ``order``. Raises ValueError beyond CELL_MASK occupied cells."""
     n = len(key)
     if bits:
-        key.sort()
+        _sort_distinct(key)
         order, skey, sk = key, None, np.empty(min(BLOCK, n), np.int64)
     else:
         order = np.argsort(key, kind="stable")

@@ -63,9 +63,19 @@ def test_sort_cells_packed_and_fallback(fits):
     assert np.array_equal(np.repeat(keys, np.diff(start)), key[want])
 
 
+def test_sort_distinct_in_parts_matches_sort():
+    """_sort_distinct: a selection, then parts sorted on threads, sorts as np.sort."""
+    rng = np.random.default_rng(4)
+    for n in (10, G.MIN_PARALLEL - 1, 3 * G.MIN_PARALLEL + 5):
+        a = rng.choice(2 ** 40, size=n, replace=False).astype(np.int64)
+        b = a.copy()
+        G._sort_distinct(b)
+        assert np.array_equal(b, np.sort(a))
+
+
 def test_bounding_box_matches_min_max():
     rng = np.random.default_rng(3)
-    for n in (1, 5, 1023, 1024, 1025, 5000):
+    for n in (1, 5, 1023, 1024, 1025, 5000, G.MIN_PARALLEL + 1001):    # last: in parts
         p = rng.normal(size=(n, 3))
         lo, hi = G._bounding_box(p)
         assert np.array_equal(lo, p.min(0)) and np.array_equal(hi, p.max(0))
