@@ -33,6 +33,7 @@ as a few large numpy calls on threads (numpy releases the GIL in them).
 from __future__ import annotations
 
 import os
+import threading
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -51,7 +52,7 @@ KEY_SENTINELS = 4
 BLOCK = 1 << 13
 #: Fewest points for which the bounding box and the sort use several cores.
 MIN_PARALLEL = 1 << 16
-_POOL = None
+_POOL, _POOL_LOCK = None, threading.Lock()
 
 
 @dataclass
@@ -120,9 +121,10 @@ def _parallel(fn, pieces):
     threads (at most 3). Only for a few large numpy calls each, which release the GIL:
     fine-grained calls on several threads were slower (GIL handoffs), measured."""
     global _POOL
-    if _POOL is None:
-        from concurrent.futures import ThreadPoolExecutor
-        _POOL = ThreadPoolExecutor(max_workers=3, thread_name_prefix="clcurv-binning")
+    with _POOL_LOCK:
+        if _POOL is None:
+            from concurrent.futures import ThreadPoolExecutor
+            _POOL = ThreadPoolExecutor(max_workers=3, thread_name_prefix="clcurv-binning")
     futures = [_POOL.submit(fn, *p) for p in pieces[1:]]
     return [fn(*pieces[0])] + [f.result() for f in futures]
 
