@@ -176,8 +176,8 @@ def _index_bits(n, ncells_box):
     return bits if ncells_box <= 2 ** (63 - bits) else 0
 
 
-def _blocks(n):
-    return ((s, min(s + BLOCK, n)) for s in range(0, n, BLOCK))
+def _blocks(n, size=BLOCK):
+    return ((s, min(s + size, n)) for s in range(0, n, size))
 
 
 def _cell_keys(points, lo, cell, dims, dtype, bits):
@@ -219,16 +219,16 @@ def _sort_cells(key, bits):
     keys (``bits``) are unique: one in-place sort of them replaces the much slower stable
     argsort (16 bytes moved per element, not vectorised), and ``key`` then becomes
     ``order``. Raises ValueError beyond CELL_MASK occupied cells."""
-    n = len(key)
+    n, size = len(key), 4 * BLOCK         # one int64 scratch here, not three: larger blocks
     if bits:
         _sort_distinct(key)
-        order, skey, sk = key, None, np.empty(min(BLOCK, n), np.int64)
+        order, skey, sk = key, None, np.empty(min(size, n), np.int64)
     else:
         order = np.argsort(key, kind="stable")
         skey = key[order]
-    first = np.empty(min(BLOCK, n), dtype=bool)
+    first = np.empty(min(size, n), dtype=bool)
     heads, starts, last = [], [], None
-    for s, e in _blocks(n):
+    for s, e in _blocks(n, size):
         if bits:
             k = sk[:e - s]
             np.right_shift(order[s:e], bits, out=k)

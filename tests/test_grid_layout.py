@@ -49,7 +49,7 @@ def test_sort_cells_packed_and_fallback(fits):
     """_sort_cells: keys with the point index packed below them (one plain sort), or the
     stable argsort when key and index do not fit 63 bits; cells spanning several blocks."""
     rng = np.random.default_rng(5)
-    key = rng.integers(0, 40, 3 * G.BLOCK + 7)
+    key = rng.integers(0, 40, 9 * G.BLOCK + 7)                  # several blocks
     key[::997] = 41 if fits else 2 ** 60
     bits = G._index_bits(len(key), 42.0 if fits else float(2 ** 61))
     assert (bits > 0) == fits
