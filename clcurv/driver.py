@@ -38,6 +38,19 @@ def device_counts(cloud, radius):
     return weights
 
 
+#: The neighbour walk skips the rows of the 27-cell block beyond the radius
+#: (kernels/neighbors.h, ROW_PRUNE) when the radius is below this fraction of the cell: at
+#: r = cell / 2 that saves ~13% of the moments kernel, at r = cell / sqrt 2 ~5%, while at
+#: r = cell the test costs ~10% (only corner rows, rarely, can be skipped). 1M-point
+#: sphere, PoCL, interleaved runs; the sums are the same either way.
+PRUNE_BELOW = 0.8
+
+
+def row_prune(cloud, r):
+    """The ROW_PRUNE build option for a walk at radius ``r`` on ``cloud``."""
+    return int(r < PRUNE_BELOW * cloud.cell)
+
+
 def _par(cloud, r, h):
     """The kernels' REAL4 ``par`` = (r, 1 / h^2 or 0, 0, 0)."""
     import pyopencl.cltypes as ct
@@ -79,7 +92,7 @@ def run_kernel(kernel, cloud, radius, *, normals=None, weights="uniform", h=None
     r = cloud.check_radius(radius)
     if normals is not None and not kernel.reads_normals:
         raise ValueError(f"the {kernel.name} kernel takes no normals")
-    opts = dict(cloud.defines, **kernel.build_defines())
+    opts = dict(cloud.defines, **kernel.build_defines(), ROW_PRUNE=row_prune(cloud, r))
     if point_r2 is not None and weights == "density":
         raise ValueError("per-point radii and density weights exclude each other")
     opts.update(defines or {}, DENSITY=int(weights == "density"), GAUSSIAN=int(h is not None),

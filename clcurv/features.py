@@ -372,14 +372,15 @@ def _split_layout(used):
     return dict(out, count=_COLUMNS, status=_COLUMNS + 1)
 
 
-def program_defines(group, nr, point_radius=False):
-    """Build options of features.cl for one record layout ``group`` and ``nr`` radii."""
+def program_defines(group, nr, point_radius=False, row_prune=0):
+    """Build options of features.cl for one record layout ``group`` and ``nr`` radii
+    (``row_prune``: clcurv.driver.row_prune of the walk's largest radius)."""
     from .constants import record_selector
     cols = {f"COL_{n.upper()}": record_selector(c if FEATURES[n].width == 1
                                                 else slice(c, c + FEATURES[n].width))
             for n, c in group.items()}
     return dict(cols, NR=nr, REFINE_L0=1, MIN_COUNT=MIN_COUNT_PCA, DENSITY=0, GAUSSIAN=0,
-                REF_NORMALS=0, POINT_RADIUS=int(point_radius),
+                REF_NORMALS=0, POINT_RADIUS=int(point_radius), ROW_PRUNE=int(row_prune),
                 COL_COUNT=record_selector(_COLUMNS), COL_STATUS=record_selector(_COLUMNS + 1))
 
 
@@ -393,6 +394,7 @@ def run_features(cloud, radii, names, ddof=0, point_r2=None):
     """
     import pyopencl.cltypes as ct
     from .anchor import cell_normals
+    from .driver import row_prune
     from .cloud import empty_fields, place_records, record_buffer, record_bytes
     from .program import batches, build, launch
     out = []
@@ -408,7 +410,8 @@ def run_features(cloud, radii, names, ddof=0, point_r2=None):
             used = sum(FEATURES[n].width for n in group)
             layout = _split_layout(used)
             t0 = time.perf_counter()
-            opts = dict(cloud.defines, **program_defines(group, nr, point_r2 is not None))
+            opts = dict(cloud.defines, **program_defines(group, nr, point_r2 is not None,
+                                                         row_prune(cloud, max(walk))))
             prg = build(cloud.device, "features.cl", opts)
             t_build += time.perf_counter() - t0
             plan = cloud.plan("kernel_features", nr * record_bytes(cloud, layout),

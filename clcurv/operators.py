@@ -349,7 +349,8 @@ def program_variants(precision_defines):
     for k in {op.kernel.name: op.kernel for op in OPERATORS.values()}.values():
         gaussian = any("kernel" in op.options for op in OPERATORS.values() if op.kernel is k)
         out.append((k.file, dict(base, **k.build_defines(), DENSITY=1, GAUSSIAN=int(gaussian),
-                                 REF_NORMALS=int(k.reads_normals), POINT_RADIUS=0)))
+                                 REF_NORMALS=int(k.reads_normals), POINT_RADIUS=0,
+                                 ROW_PRUNE=1)))
         # the k-NN radius (kernels/radius.h): per-point balls, which exclude DENSITY
         out.append((k.file, dict(base, **k.build_defines(), DENSITY=0, GAUSSIAN=0,
                                  REF_NORMALS=int(k.reads_normals), POINT_RADIUS=1)))

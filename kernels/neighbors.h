@@ -3,8 +3,8 @@
  * The sorted points of the 27 cells around the query's cell form 9 contiguous index
  * ranges, one per row j of three cells (cx - 1 .. cx + 1, cy + dy, cz + dz) with
  * (dz, dy) = (j / 3 - 1, j % 3 - 1) (grid.cl:cell_ranges; an empty row is (0, 0)). The walk
- * visits the rows in order (skipping those whose slab lies beyond the radius in y and z:
- * row_gap2) and each range VW points at a time; the arrays are padded so a
+ * visits the rows in order (with ROW_PRUNE, skipping those whose slab lies beyond the
+ * radius in y and z: row_gap2) and each range VW points at a time; the arrays are padded so a
  * vector load may read past the end. Lanes past the range end or outside the open ball
  * |q - p| < r are masked out. The order is fixed, so results are bit-reproducible.
  *
@@ -49,10 +49,12 @@ inline __global const REAL *x_rows(__global const REAL *X, uint co, uint n)
 #error "VW must be 2, 4, 8 or 16"
 #endif
 
-/* ROW_PRUNE (default 1): rows of the block farther than the ball's radius in y and z are
- * skipped; 0 walks all 9 (the same sums: tests/test_row_pruning.py). */
+/* ROW_PRUNE (0|1, the host's choice: clcurv/driver.py:row_prune): skip the rows of the
+ * block farther than the ball's radius in y and z (the same sums as walking all 9:
+ * tests/test_row_pruning.py). Worth it for a radius well below the cell; at r = cell only
+ * corner rows can be skipped, rarely, and the test costs more than it saves. */
 #ifndef ROW_PRUNE
-#define ROW_PRUNE 1
+#define ROW_PRUNE 0
 #endif
 #if REAL_IS_DOUBLE
 #define ROW_SLACK (4 * DBL_EPSILON)

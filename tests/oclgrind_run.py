@@ -73,6 +73,13 @@ def _finite(res):
             if isinstance(v, dict) or isinstance(v, np.ndarray) and v.dtype.kind == "f" and v.ndim}
 
 
+def _small_radius(points, common):
+    """Half the cell's radius on a DeviceCloud: the walks that skip rows (ROW_PRUNE)."""
+    cloud = clcurv.DeviceCloud(points, R, **common)
+    return [clcurv.curvature(cloud, R / 2, method="variation", orient=None),
+            clcurv.features(cloud, R / 2, features=FEATURES)]
+
+
 def calls(points, precision, device):
     """(name, thunk) of every call: each registered operator (unoriented, and with the
     normals given where it reads them), MST orientation (knn.cl, forest.cl), density
@@ -102,6 +109,7 @@ def calls(points, precision, device):
         ("mls2+knn_radius", lambda: clcurv.curvature(points, method="mls2", k=k, orient=None,
                                                      **common)),
         ("features", lambda: clcurv.features(points, R, features=FEATURES, **common)),
+        ("variation+features+pruned_rows", lambda: _small_radius(points, common)),
         ("features+knn_radius", lambda: clcurv.features(points, k=k, features=FEATURES,
                                                         **common)),
         ("forest+edges", lambda: _forest(points, R, common)),

@@ -1,10 +1,11 @@
-"""Row pruning of the neighbour walk (kernels/neighbors.h, ROW_PRUNE): the rows of the
-27-cell block whose slab lies beyond the ball's radius in y and z are skipped. No lane of
-such a row can pass the walk's strict ball test (row_gap2 keeps a slack of a few ulps of the
-cell), so every sum, and so every output, is the same bit for bit as the full walk of all 9
-rows: checked for every operator kernel, both weightings, a radius equal to the cell and
-one well below it (where most rows are pruned), float and double, and for the features
-kernel at three radii in one walk."""
+"""Row pruning of the neighbour walk (kernels/neighbors.h, ROW_PRUNE; the host turns it on
+for radii below clcurv.driver.PRUNE_BELOW cells): the rows of the 27-cell block whose slab
+lies beyond the ball's radius in y and z are skipped. No lane of such a row can pass the
+walk's strict ball test (row_gap2 keeps a slack of a few ulps of the cell), so every sum,
+and so every output, is the same bit for bit as the full walk of all 9 rows: checked with
+pruning forced on and off for every operator kernel, both weightings, a radius equal to the
+cell and one well below it (where most rows are pruned), float and double, and for the
+features kernel at three radii in one walk."""
 import importlib
 
 import numpy as np
@@ -39,7 +40,8 @@ def test_operators_identical_with_and_without_pruning(device, precision):
             kw = {"normals": nrm} if kernel.reads_normals else {}
             for w in ("uniform", "density"):
                 full = run_kernel(kernel, cloud, r, weights=w, defines={"ROW_PRUNE": 0}, **kw)
-                pruned = run_kernel(kernel, cloud, r, weights=w, **kw)
+                pruned = run_kernel(kernel, cloud, r, weights=w, defines={"ROW_PRUNE": 1},
+                                    **kw)
                 _same(full, pruned, (kernel.name, r, w))
                 assert (pruned["status"] == 0).mean() > 0.9
 
@@ -48,11 +50,13 @@ def test_features_identical_with_and_without_pruning(device, monkeypatch):
     pts, _ = _torus()
     cloud = DeviceCloud(pts, 0.12, device=device)
     radii = [0.05, 0.085, 0.12]
-    pruned = clcurv.features(cloud, radii, "all")
     orig = features_mod.program_defines
-    monkeypatch.setattr(features_mod, "program_defines",
-                        lambda *a, **k: dict(orig(*a, **k), ROW_PRUNE=0))
-    full = clcurv.features(cloud, radii, "all")
+    runs = []
+    for prune in (1, 0):
+        monkeypatch.setattr(features_mod, "program_defines",
+                            lambda *a, p=prune, **k: dict(orig(*a, **k), ROW_PRUNE=p))
+        runs.append(clcurv.features(cloud, radii, "all"))
+    pruned, full = runs
     for p, f in zip(pruned, full):
         assert np.array_equal(p.count, f.count)
         for name in p.names:
