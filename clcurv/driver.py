@@ -87,7 +87,8 @@ def run_kernel(kernel, cloud, radius, *, normals=None, weights="uniform", h=None
     -------
     dict of input-order host arrays: real fields as float64 (N,) or (N, w), ``count``
     int64, ``status`` uint8; rows whose status is not 0 hold NaN. Stage times go to
-    ``cloud.timings`` (build_<name>, upload_normals, density, kernel_<name>, download).
+    ``cloud.timings`` (build_<name>, upload_normals, density, anchors (clcurv.anchor, the
+    first time on a cloud), kernel_<name>, download).
     """
     r = cloud.check_radius(radius)
     if normals is not None and not kernel.reads_normals:
@@ -113,6 +114,8 @@ def run_kernel(kernel, cloud, radius, *, normals=None, weights="uniform", h=None
     t.append(time.perf_counter())
     wbuf = device_counts(cloud, r) if weights == "density" else cloud.x
     wbuf = point_r2 if point_r2 is not None else wbuf
+    cloud.device.queue.finish()
+    t.append(time.perf_counter())
     anchors = cell_normals(cloud) if opts.get("REFINE_L0") else cloud.x
     chunked = plan.count > 1
     rec = record_buffer(cloud, plan.chunk)
@@ -131,7 +134,7 @@ def run_kernel(kernel, cloud, radius, *, normals=None, weights="uniform", h=None
         t1 = time.perf_counter()
         place_records(cloud, rec, layout, out, first, stop, chunked)
         run, fetch = run + t1 - t0, fetch + time.perf_counter() - t1
-    names = (f"build_{kernel.name}", "upload_normals", "density")
+    names = (f"build_{kernel.name}", "upload_normals", "density", "anchors")
     cloud.timings.update({k: b - a for k, a, b in zip(names, t, t[1:])})
     cloud.timings.update({f"kernel_{kernel.name}": run, "download": fetch})
     return out
