@@ -154,10 +154,11 @@ def environment():
            "python": platform.python_version(), "numpy": np.__version__,
            "pyopencl": cl.VERSION_TEXT, "clcurv": clcurv.__version__, "open3d": None,
            "loadavg": loadavg()}
+    # the OpenCL platforms before Open3D: importing it first hides Intel's CPU runtime
+    env["platforms"] = {p.name.strip(): p.version.strip() for p in cl.get_platforms()}
     try:
         import open3d
         env["open3d"] = open3d.__version__
     except Exception:  # noqa: BLE001 - open3d is optional (and may fail to load its libs)
         pass
-    env["platforms"] = {p.name.strip(): p.version.strip() for p in cl.get_platforms()}
     return env

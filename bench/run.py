@@ -122,11 +122,11 @@ def bench_devices():
 
 def main(argv=None):
     args = parse_args(argv)
-    env = environment()
-    guard = Guard(args.wait_quiet, args.retries)
     # the OpenCL platforms first: importing Open3D first hides Intel's CPU runtime (its
     # libraries clash; loaded in this order both work)
     infos = bench_devices()
+    env = environment()
+    guard = Guard(args.wait_quiet, args.retries)
     o3d = None if args.no_open3d else open3d_or_none()
     jak, jak_note = (None, "--no-jakteristics") if args.no_jakteristics else jakteristics_or_reason()
     if jak is not None:
