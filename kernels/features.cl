@@ -68,15 +68,8 @@ inline void features_pca(__global const REAL *X, __global const REAL *Y, __globa
     REAL r2max = r2[0];
     for (int j = 1; j < NR; ++j) r2max = fmax(r2max, r2[j]);
     for (uint k = 0; k < VW; ++k) {
-        if (k >= kn) {                                  /* unused lane: the identity */
-            for (int j = 0; j < NR; ++j) {
-                for (int e = 0; e < 6; ++e) pb[j].c[e][k] = (REAL)(e == 0 || e == 3 || e == 5);
-                pb[j].count[k] = 0;
-#if PCA_ANCHOR
-                pb[j].ax[k] = pb[j].ay[k] = pb[j].az[k] = 0;
-                pb[j].chh[k] = pb[j].chx[k] = pb[j].chy[k] = pb[j].chz[k] = 0;
-#endif
-            }
+        if (k >= kn) {
+            for (int j = 0; j < NR; ++j) pca_empty_lane(&pb[j], k);
             continue;
         }
         const uint g = g0 + k;

@@ -194,6 +194,18 @@ inline void pca_anchor_l0(pca_batch_t *b)
 #endif
 
 
+/* Lane k of b unused (past the work-item's points): the identity covariance, no count, no
+ * anchor, so that the vector eigen solve and pca_anchor_l0 see a harmless matrix. */
+inline void pca_empty_lane(pca_batch_t *b, uint k)
+{
+    for (int e = 0; e < 6; ++e) b->c[e][k] = (REAL)(e == 0 || e == 3 || e == 5);
+    b->count[k] = 0;
+#if PCA_ANCHOR
+    b->ax[k] = b->ay[k] = b->az[k] = 0;
+    b->chh[k] = b->chx[k] = b->chy[k] = b->chz[k] = 0;
+#endif
+}
+
 /* CN: the anchor normals of the cells (anchor.cl), read only with PCA_ANCHOR (else 0). */
 inline void pca_batch(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
                       __global const REAL *W, __global const REAL *CN,
@@ -212,13 +224,8 @@ inline void pca_batch(__global const REAL *X, __global const REAL *Y, __global c
 #endif
             pca_ball(XA, Y, Z, W, ranges, co & CELL_MASK, (REAL3)(XA[g], Y[g], Z[g]),
                      POINT_BALL(W, g, ball), ih2, a, b, k);
-        } else {                     /* unused lane: the identity */
-            for (int e = 0; e < 6; ++e) b->c[e][k] = (REAL)(e == 0 || e == 3 || e == 5);
-            b->count[k] = 0;
-#if PCA_ANCHOR
-            b->ax[k] = b->ay[k] = b->az[k] = 0;
-            b->chh[k] = b->chx[k] = b->chy[k] = b->chz[k] = 0;
-#endif
+        } else {
+            pca_empty_lane(b, k);
         }
     }
     pca_decompose(b);
