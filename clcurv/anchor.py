@@ -30,13 +30,11 @@ def cell_normals(cloud):
     g, dev = cloud.grid, cloud.device
     ncells = max(g.ncells, 1)
     item = np.dtype(cloud.dtype).itemsize
-    ctx, mf = dev.context, cl.mem_flags
-    starts = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=g.cell_start)
-    buf = cl.Buffer(ctx, mf.READ_WRITE, size=3 * ncells * item)
+    buf = cl.Buffer(dev.context, cl.mem_flags.READ_WRITE, size=3 * ncells * item)
     prg = build(dev, "anchor.cl", cloud.defines)
     vw = int(cloud.defines["VW"])
-    launch(dev, prg.cell_normals, -(-g.ncells // vw), cloud.x, cloud.y, cloud.z, starts,
-           cloud.cell_of, cloud.ranges, np.uint32(cloud.n), np.uint32(g.ncells), buf)
+    launch(dev, prg.cell_normals, -(-g.ncells // vw), cloud.x, cloud.y, cloud.z,
+           cloud.cell_start, cloud.cell_of, cloud.ranges, np.uint32(cloud.n), np.uint32(g.ncells), buf)
     cloud._anchors = buf
     return buf
 

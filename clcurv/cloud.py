@@ -165,7 +165,8 @@ class DeviceCloud:
         self.cell_of = cl.Buffer(ctx, mf.READ_WRITE, size=4 * self.n)   # by expand_x
         self.order = up(g.order.astype(np.uint32))
         keys = up(sentinel_keys(g.keys))
-        cell_start = up(g.cell_start)
+        # kept: the anchor normals (clcurv.anchor) read the cells' starts too
+        self.cell_start = cell_start = up(g.cell_start)
         self.ranges = cl.Buffer(ctx, mf.READ_WRITE, size=max(g.ncells, 1) * 9 * 8)
         q.finish()
         t2 = time.perf_counter()
@@ -191,11 +192,11 @@ class DeviceCloud:
         smallest chunk of an operator, do not fit the device."""
         g, item = self.grid, np.dtype(self.dtype).itemsize
         cells = max(g.ncells, 1)
-        # x (3 copies), y, z | cell_of, order | 9 ranges per cell, and once an operator
-        # needs them the cells' anchor normals (clcurv.anchor) and their starts
+        # x (3 copies), y, z | cell_of, order | 9 ranges and the start per cell, and once an
+        # operator needs them the cells' anchor normals (clcurv.anchor)
         self.device_bytes = 5 * (self.n + PAD) * item + 8 * self.n + (76 + 3 * item) * cells
-        # keys and cell_start, and the input-order rows gathered to x, y, z (__init__)
-        temporary = 12 * cells + 4 + 3 * self.n * item
+        # the keys, and the input-order rows gathered to x, y, z (__init__)
+        temporary = 8 * cells + 3 * self.n * item
         # and the smallest chunk of the widest operator: a record and as many split fields
         # (record_bytes)
         self._require("the coordinates and the grid", temporary,
