@@ -10,6 +10,7 @@ from .operators import METHODS, OPERATORS
 from .smoothing import scale_space
 from .tiled import curvature_file
 from .cloud import DeviceCloud
+from .memory import release_memory
 from .device import devices, get_device, NoDeviceError
 from .program import BuildError, PrecisionError
 from .result import CurvatureResult
@@ -17,6 +18,6 @@ from . import data, io, render, shapes
 
 __version__ = "0.1.0"
 __all__ = ["curvature", "normals", "project", "features", "FeatureResult", "scale_space", "METHODS", "OPERATORS",
-           "DeviceCloud", "devices", "get_device", "NoDeviceError", "BuildError",
+           "DeviceCloud", "release_memory", "devices", "get_device", "NoDeviceError", "BuildError",
            "PrecisionError", "CurvatureResult", "data", "io", "render", "shapes",
            "__version__"]

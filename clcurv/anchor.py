@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .memory import buffer as device_buffer
 from .program import build, launch
 
 
@@ -26,11 +27,10 @@ def cell_normals(cloud):
     buf = getattr(cloud, "_anchors", None)
     if buf is not None:
         return buf
-    import pyopencl as cl
     g, dev = cloud.grid, cloud.device
     ncells = max(g.ncells, 1)
     item = np.dtype(cloud.dtype).itemsize
-    buf = cl.Buffer(dev.context, cl.mem_flags.READ_WRITE, size=3 * ncells * item)
+    buf = device_buffer(dev, 3 * ncells * item)
     prg = build(dev, "anchor.cl", cloud.defines)
     vw = int(cloud.defines["VW"])
     launch(dev, prg.cell_normals, -(-g.ncells // vw), cloud.x, cloud.y, cloud.z,

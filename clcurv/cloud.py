@@ -21,6 +21,7 @@ import numpy as np
 
 from .constants import PAD, RECORD_WIDTH as RECORD, record_selector
 from .device import get_device
+from .memory import buffer as device_buffer, release_memory
 from .grid import CELLS_PER_ITEM, bin_points, check_pairs, sentinel_keys
 from .program import build, launch, precision_defines
 from .validate import as_points, as_radius, device_radius
@@ -156,18 +157,18 @@ class DeviceCloud:
         # y, z and the first of x's three copies (neighbors.h) gathered on the device from
         # the input-order rows (gather.cl), the other copies made by grid.cl:expand_x
         m, item = self.n + PAD, np.dtype(self.dtype).itemsize
-        self.x = cl.Buffer(ctx, mf.READ_WRITE, size=3 * m * item)
-        self.y, self.z = (cl.Buffer(ctx, mf.READ_WRITE, size=m * item) for _ in range(2))
+        self.x = device_buffer(self.device, 3 * m * item)
+        self.y, self.z = (device_buffer(self.device, m * item) for _ in range(2))
         for a in (1, 2):                           # the pads of the other copies
             cl.enqueue_fill_buffer(q, self.x, self.dtype(0), (a * m + self.n) * item,
                                    PAD * item)
         rel = up(g.rel)
-        self.cell_of = cl.Buffer(ctx, mf.READ_WRITE, size=4 * self.n)   # by expand_x
+        self.cell_of = device_buffer(self.device, 4 * self.n)   # by expand_x
         self.order = up(g.order.astype(np.uint32))
         keys = up(sentinel_keys(g.keys))
         # kept: the anchor normals (clcurv.anchor) read the cells' starts too
         self.cell_start = cell_start = up(g.cell_start)
-        self.ranges = cl.Buffer(ctx, mf.READ_WRITE, size=max(g.ncells, 1) * 9 * 8)
+        self.ranges = device_buffer(self.device, max(g.ncells, 1) * 9 * 8)
         q.finish()
         t2 = time.perf_counter()
         self.timings["upload"] = t2 - t1
@@ -239,6 +240,8 @@ class DeviceCloud:
         widest = per_point if widest is None else widest
         held = self.device_bytes + reserve * (self.n + PAD)
         chunk = int(min((lim.budget - held) // per_point, lim.max_alloc // widest, self.n))
+        if chunk < self.n:          # short of memory: nothing held for later calls
+            release_memory(self.device)
         if chunk < min(self.n, MIN_CHUNK):
             k = min(self.n, MIN_CHUNK)
             self._require(label or what, 0, k * per_point, reserve, k * widest)
@@ -298,11 +301,11 @@ def upload_sorted(cloud, values):
     item = np.dtype(cloud.dtype).itemsize
     plan = cloud.plan("upload_normals", 3 * item, reserve=3 * item,
                       label="the coordinates, the grid and the reference normals")
-    ctx, mf, q = cloud.device.context, cl.mem_flags, cloud.device.queue
+    q = cloud.device.queue
     size = (cloud.n + PAD) * item
-    out = [cl.Buffer(ctx, mf.READ_WRITE, size=size) for _ in range(3)]
+    out = [device_buffer(cloud.device, size) for _ in range(3)]
     prg = build(cloud.device, "gather.cl", cloud.defines)
-    staging = cl.Buffer(ctx, mf.READ_ONLY, size=plan.chunk * 3 * item)
+    staging = device_buffer(cloud.device, plan.chunk * 3 * item)
     for lo, hi in plan.ranges():
         cl.enqueue_copy(q, staging, np.ascontiguousarray(values[lo:hi], dtype=cloud.dtype))
         launch(cloud.device, prg.gather_sorted, cloud.n + PAD, staging, cloud.order,
@@ -312,9 +315,8 @@ def upload_sorted(cloud, values):
 
 def record_buffer(cloud, count=None):
     """A device buffer for one output record per point (of ``count`` points; default all)."""
-    import pyopencl as cl
     size = (cloud.n if count is None else count) * RECORD * np.dtype(cloud.dtype).itemsize
-    return cl.Buffer(cloud.device.context, cl.mem_flags.READ_WRITE, size=max(size, 1))
+    return device_buffer(cloud.device, size)
 
 
 def record_bytes(cloud, layout):
@@ -355,7 +357,6 @@ def split_records(cloud, rec, layout, n, mapped=None):
     (REAL, count uint32, status uint8), in the records' order: a list of (name, array). The
     device splits the records into contiguous per-field arrays first (records.cl), so the
     host only casts."""
-    import pyopencl as cl
     fields = _fields(layout, n)
     real = fields[:-2]
     defines = dict(cloud.defines, NF=len(real), COL_COUNT=record_selector(layout["count"]),
@@ -365,11 +366,8 @@ def split_records(cloud, rec, layout, n, mapped=None):
         a, b = (col, col + 1) if isinstance(col, int) else (col.start, col.stop)
         defines[f"S{k}"], defines[f"W{k}"] = a, b - a
     prg = build(cloud.device, "records.cl", defines)
-    flags = cl.mem_flags.WRITE_ONLY
-    if cloud.device.info.kind == "cpu":
-        flags |= cl.mem_flags.ALLOC_HOST_PTR
     item = np.dtype(cloud.dtype).itemsize
-    new = lambda nbytes: cl.Buffer(cloud.device.context, flags, size=max(nbytes, 1))
+    new = lambda nbytes: device_buffer(cloud.device, nbytes)
     outs = [new(int(np.prod(shape)) * item) for _, shape, _ in real]
     outs += [outs[0] if outs else rec] * (6 - len(outs))       # unused placeholders
     count, status = new(4 * n), new(n)

@@ -23,16 +23,15 @@ import numpy as np
 from .anchor import cell_normals
 from .cloud import empty_fields, place_records, record_buffer, record_bytes, upload_sorted
 from .constants import PAD, RECORD_WIDTH
+from .memory import buffer as device_buffer
 from .program import batches, build, launch
 
 
 def device_counts(cloud, radius):
     """The density weights 1/#N_r(p) (#N_r(p): the point itself included) of every point,
     sorted order, device precision, padded: a device buffer."""
-    import pyopencl as cl
     prg = build(cloud.device, "density.cl", cloud.defines)
-    weights = cl.Buffer(cloud.device.context, cl.mem_flags.READ_WRITE,
-                        size=np.dtype(cloud.dtype).itemsize * (cloud.n + PAD))
+    weights = device_buffer(cloud.device, np.dtype(cloud.dtype).itemsize * (cloud.n + PAD))
     launch(cloud.device, prg.count_neighbors, cloud.n, cloud.x, cloud.y, cloud.z, cloud.cell_of,
            cloud.ranges, np.uint32(cloud.n), cloud.ball(radius), weights)
     return weights

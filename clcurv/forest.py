@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .memory import buffer as device_buffer
 from .program import build, launch
 
 #: Points per work-item of the kernels that read the neighbour lists; the edges that these
@@ -127,11 +128,11 @@ def spanning_forest(cloud, graph, edges=True):
         raise ValueError("the graph was built on another DeviceCloud")
     n, k, dev = cloud.n, graph.k, cloud.device
     blk = block_size(dev)
-    q, ctx, mf = dev.queue, dev.context, cl.mem_flags
+    q = dev.queue
     prg = build(dev, "forest.cl", cloud.defines)
     u32 = np.uint32
     t0 = time.perf_counter()
-    buf = lambda nbytes: cl.Buffer(ctx, mf.READ_WRITE, size=max(int(nbytes), 4))
+    buf = lambda nbytes: device_buffer(dev, max(int(nbytes), 4))
     comp, rank, bw, blo, bhi, flo, fhi, fmask = (buf(4 * n) for _ in range(8))
     links = [buf(4 * n), buf(4 * n)]
     par = buf(n)

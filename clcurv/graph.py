@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .cloud import DeviceMemoryError, upload_sorted
+from .memory import buffer as device_buffer
 from .program import build, launch
 
 #: Longest neighbour list (``KMAX`` in kernels/orient.h).
@@ -181,7 +182,6 @@ def knn_graph(cloud, radius, normals, k=10):
         Device buffers and host accessors (:meth:`Graph.neighbors`, :meth:`Graph.weights`,
         :meth:`Graph.edges`); ``timings`` holds ``upload_normals`` and ``knn`` (seconds).
     """
-    import pyopencl as cl
     r = cloud.check_radius(radius)
     k = int(k)
     if not 1 <= k <= KMAX:
@@ -193,9 +193,9 @@ def knn_graph(cloud, radius, normals, k=10):
     nrm, nvalid = _valid_normals(normals, cloud.n)
     cols = upload_sorted(cloud, nrm)
     prg = build(cloud.device, "knn.cl", knn_defines(cloud))
-    ctx, mf, q = cloud.device.context, cl.mem_flags, cloud.device.queue
-    nbr = cl.Buffer(ctx, mf.READ_WRITE, size=4 * cloud.n * k)
-    wgt = cl.Buffer(ctx, mf.READ_WRITE, size=4 * cloud.n * k)
+    q = cloud.device.queue
+    nbr = device_buffer(cloud.device, 4 * cloud.n * k)
+    wgt = device_buffer(cloud.device, 4 * cloud.n * k)
     q.finish()
     t1 = time.perf_counter()
     launch(cloud.device, prg.knn_graph, cloud.n, cloud.x, cloud.y, cloud.z, *cols,

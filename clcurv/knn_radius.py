@@ -45,6 +45,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .constants import PAD
+from .memory import buffer as device_buffer
 from .validate import as_points
 
 #: largest k (the kernel keeps k distances per work-item in private memory)
@@ -154,11 +155,11 @@ def _kth_launch(cloud, k, prev=None, levels=None):
     mf, ctx, q = cl.mem_flags, cloud.device.context, cloud.device.queue
     nbytes = cloud.n * np.dtype(cloud.dtype).itemsize
     if prev is None:
-        prev_buf = cl.Buffer(ctx, mf.READ_ONLY, size=nbytes)
+        prev_buf = device_buffer(cloud.device, nbytes)
         cl.enqueue_fill_buffer(q, prev_buf, cloud.dtype(np.inf), 0, nbytes)
     else:
         prev_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=prev)
-    out = cl.Buffer(ctx, mf.WRITE_ONLY, size=nbytes)
+    out = device_buffer(cloud.device, nbytes)
     launch(cloud.device, prg.kth_distance, cloud.n, cloud.x, cloud.y, cloud.z,
            cloud.cell_of, cloud.ranges, np.uint32(cloud.n), cloud.ball(cloud.cell), prev_buf,
            out)

@@ -17,6 +17,7 @@ import numpy as np
 
 from .cloud import DeviceCloud
 from .constants import PAD
+from .memory import buffer as device_buffer
 from .program import batches, build, launch
 from .validate import as_points, as_radius, choice
 
@@ -36,7 +37,7 @@ def _copies(cloud, buffers):
     import pyopencl as cl
     out = []
     for b in buffers:
-        out.append(cl.Buffer(cloud.device.context, cl.mem_flags.READ_WRITE, size=b.size))
+        out.append(device_buffer(cloud.device, b.size))
         cl.enqueue_copy(cloud.device.queue, out[-1], b)
     return out
 
@@ -47,11 +48,9 @@ class _DeviceState:
 
     def __init__(self, base, disp, radius, device, precision, density, frame=None,
                  iterate=None):
-        import pyopencl as cl
         self.cloud = c = DeviceCloud(base + disp, radius * (1 + 2 * MARGIN), device=device,
                                      precision=precision, frame=frame)
         g = c.grid
-        ctx = c.device.context
         item = np.dtype(c.dtype).itemsize
         # ping and pong (x in 3 copies, y, z), the displacement and the density weights
         self.plan = c.plan("scale_space", item + 1,          # drift, and its block maxima
@@ -68,8 +67,8 @@ class _DeviceState:
             self._load(iterate, d)
         self.disp = _buffers(c, d)
         chunk = self.plan.chunk
-        self.drift = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, size=item * chunk)
-        self.block_max = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, size=item * -(-chunk // BLOCK))
+        self.drift = device_buffer(c.device, item * chunk)
+        self.block_max = device_buffer(c.device, item * -(-chunk // BLOCK))
         self.weights = _buffers(c, [np.zeros(g.n + PAD, c.dtype)])[0] if density else c.x
 
     def _load(self, iterate, d):

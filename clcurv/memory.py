@@ -1,0 +1,102 @@
+"""Device scratch memory: a pool per device that keeps the buffers one call frees for the
+next call.
+
+Every public call bins its cloud into fresh device buffers (coordinates, grid, output
+records: ~150 bytes per point in float32) and frees them when it returns. Fresh memory is
+not free: on a CPU device every new page is faulted in and zeroed when a kernel first
+writes it, which cost ~25 ms of the ~190 ms of ``curvature(P, r, method="variation")`` on
+1M points (PoCL, 2 cores; the records' scattered stores alone ~15 ms). So device buffers
+come from a :class:`pyopencl.tools.MemoryPool` per device, as CuPy's and PyTorch's
+allocators do: a freed buffer goes back to the pool and the next request of a similar size
+(bins of 1/16 of a power of two) reuses it.
+
+What that means for a user:
+  - memory the last calls used stays allocated after they return (for a 1M-point call,
+    ~150-300 MB), up to :func:`hold_limit` (a quarter of clcurv's device budget,
+    :func:`clcurv.cloud.device_limits`); beyond that the pool lets go of what it holds;
+  - :func:`release_memory` gives it back now; ``CLCURV_POOL=0`` in the environment (read
+    when a device's pool is made) turns holding off: every buffer is then freed at once;
+  - a stage that has to run in chunks (the device is short of memory,
+    :meth:`clcurv.cloud.DeviceCloud.plan`) first releases what the pool holds;
+  - simulators (Oclgrind) get exact-size buffers that are never reused, so that their
+    out-of-bounds checks see the buffer a kernel was given.
+
+Pooled buffers may be larger than asked for; kernels never rely on a buffer's size.
+"""
+from __future__ import annotations
+
+import os
+import threading
+
+_POOLS, _LOCK = {}, threading.Lock()
+#: The fraction of the device budget (clcurv.cloud.device_limits) the pool may hold
+#: unused between calls.
+HOLD_FRACTION = 0.25
+#: Debugging: when set (a float32 value, e.g. NaN), every buffer is filled with it before it
+#: is handed out, as glibc's MALLOC_PERTURB_ does; tests/test_memory.py uses NaN to show that
+#: no kernel reads memory it did not write.
+FILL = None
+
+
+def _pool(device):
+    """The MemoryPool of ``device`` (a clcurv.device.Device), or None for a simulator."""
+    if device.info.simulator:
+        return None
+    with _LOCK:
+        pool = _POOLS.get(id(device))
+        if pool is None:
+            import pyopencl.tools as clt
+            pool = clt.MemoryPool(clt.ImmediateAllocator(device.queue))
+            if os.environ.get("CLCURV_POOL", "1").strip() == "0":
+                pool.stop_holding()
+            _POOLS[id(device)] = pool
+        return pool
+
+
+def hold_limit(device):
+    """Bytes the pool of ``device`` may hold unused."""
+    from .cloud import device_limits
+    return int(device_limits(device).budget * HOLD_FRACTION)
+
+
+def held_bytes(device):
+    """Bytes the pool of ``device`` holds unused (0 for a simulator)."""
+    pool = _pool(device)
+    return 0 if pool is None else int(pool.managed_bytes - pool.active_bytes)
+
+
+def buffer(device, nbytes):
+    """A READ_WRITE device buffer of at least ``nbytes`` bytes (>= 1) on ``device`` (a
+    clcurv.device.Device), from its pool (see the module docstring). Its content is
+    undefined."""
+    import pyopencl as cl
+    nbytes = max(int(nbytes), 1)
+    pool = _pool(device)
+    if pool is None:
+        buf = cl.Buffer(device.context, cl.mem_flags.READ_WRITE, size=nbytes)
+    else:
+        if pool.managed_bytes - pool.active_bytes > hold_limit(device):
+            pool.free_held()
+        buf = pool.allocate(nbytes)
+    if FILL is not None:
+        import numpy as np
+        size = buf.size - buf.size % 4
+        if size:
+            cl.enqueue_fill_buffer(device.queue, buf, np.float32(FILL), 0, size)
+    return buf
+
+
+def release_memory(device=None):
+    """Free the device memory that clcurv's pools hold unused: of ``device`` (as
+    :func:`clcurv.device.get_device` takes it), or of every device when None. Buffers in
+    use (a live :class:`~clcurv.cloud.DeviceCloud`) are not touched. Returns the bytes
+    freed."""
+    from .device import get_device
+    with _LOCK:
+        pools = list(_POOLS.values()) if device is None else \
+            [p for p in [_POOLS.get(id(get_device(device)))] if p is not None]
+    freed = 0
+    for pool in pools:
+        freed += int(pool.managed_bytes - pool.active_bytes)
+        pool.free_held()
+    return freed
