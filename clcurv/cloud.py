@@ -127,7 +127,8 @@ class DeviceCloud:
         import pyopencl as cl
         if binned is not None:                  # host_binning's result: no binning here
             points, cell, precision = binned.points, binned.cell, binned.precision
-        self.points = points = as_points(points)
+        # finiteness: checked on the binning's bounding box (grid.bin_points)
+        self.points = points = as_points(points, finite=False)
         self.cell = device_radius(as_radius(cell), precision)
         self.device = get_device(device)
         self.defines = precision_defines(self.device, precision)
@@ -281,7 +282,7 @@ def host_binning(points, cell, *, precision="float", frame=None):
     thread while the main thread drives the device (OpenCL calls stay on one thread; the
     Oclgrind simulator crashes when two threads use one queue)."""
     t0 = time.perf_counter()
-    points = as_points(points)
+    points = as_points(points, finite=False)        # checked by bin_points' bounding box
     cell = device_radius(as_radius(cell), precision)
     if len(points) == 0:
         raise ValueError("DeviceCloud needs at least one point")

@@ -40,6 +40,7 @@ from functools import cached_property
 import numpy as np
 
 from .constants import CELL_BITS, CELL_MASK, PAD   # noqa: F401 (CELL_BITS: grid users)
+from .validate import check_finite_box
 
 MAX_KEY = 2 ** 62
 #: Occupied cells per work-item of grid.cl (cell_ranges, expand_x): the rows of a cell are
@@ -267,6 +268,7 @@ def _check_inside(points, frame, cell):
         raise ValueError(f"frame cell {frame.cell} differs from cell {cell}")
     if len(points):
         lo, hi = _bounding_box(points)
+        check_finite_box(points, lo, hi)
         ijk_lo, ijk_hi = frame.cells_of(np.stack([lo, hi]))
         if (ijk_lo < 0).any() or (ijk_hi >= np.asarray(frame.dims)).any():
             raise ValueError(f"points from {_fmt(lo)} to {_fmt(hi)} lie outside the frame "
@@ -349,6 +351,7 @@ def bin_points(points, cell, dtype=np.float32, frame=None):
     n = len(points)
     if frame is None:
         lo, hi = _bounding_box(points)
+        check_finite_box(points, lo, hi)
         nx, ny, nz = _dims(points, lo, hi, cell)
     else:
         lo, (nx, ny, nz) = np.asarray(frame.origin, np.float64), frame.dims

@@ -6,11 +6,13 @@ import math
 import numpy as np
 
 
-def as_points(points, name="points"):
+def as_points(points, name="points", finite=True):
     """Return ``points`` as a C-contiguous float64 (N, 3) array, or raise.
 
     Raises TypeError for non-real dtypes and ValueError for a wrong shape or non-finite
-    coordinates (the message gives how many rows are bad and the first of them).
+    coordinates (the message gives how many rows are bad and the first of them). With
+    ``finite=False`` the caller checks finiteness itself (the binning's bounding box,
+    :func:`check_finite_box`), saving a pass over the points.
     """
     arr = np.asarray(points)
     if arr.dtype.kind not in "fiu":
@@ -18,7 +20,7 @@ def as_points(points, name="points"):
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise ValueError(f"{name} must have shape (N, 3), got {arr.shape}")
     arr = np.ascontiguousarray(arr, dtype=np.float64)
-    if np.isfinite(arr).all():      # fast path: one pass, no per-row mask
+    if not finite or np.isfinite(arr).all():      # fast path: one pass, no per-row mask
         return arr
     bad = ~np.isfinite(arr).all(axis=1)
     if bad.any():
@@ -27,6 +29,14 @@ def as_points(points, name="points"):
                          f"(first at index {first}); drop them first, e.g. "
                          f"{name}[np.isfinite({name}).all(axis=1)]")
     return arr
+
+
+def check_finite_box(points, lo, hi, name="points"):
+    """Raise as :func:`as_points` does when the per-column minima ``lo`` and maxima ``hi``
+    of ``points`` are not all finite (a NaN or an infinity among the points)."""
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+        as_points(points, name)
+        raise ValueError(f"{name} has NaN or Inf")      # (as_points raised already)
 
 
 def as_radius(radius):

@@ -33,6 +33,24 @@ def test_non_finite_points(value):
         clcurv.curvature(pts, 0.1)
 
 
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
+def test_non_finite_points_of_a_device_cloud(value, device):
+    """DeviceCloud, host_binning and a binning in a given frame (tiles) find them on the
+    bounding box (clcurv.validate.check_finite_box), with the same message."""
+    from clcurv.cloud import host_binning
+    from clcurv.grid import Frame, bin_points
+    pts = bumpy_surface(100, seed=0)
+    frame = Frame.covering(pts.min(axis=0) - 1, pts.max(axis=0) + 1, 0.1)
+    pts[[3, 7], 1] = value
+    msg = r"2 row\(s\) with NaN or Inf \(first at index 3\)"
+    with pytest.raises(ValueError, match=msg):
+        clcurv.DeviceCloud(pts, 0.1, device=device)
+    with pytest.raises(ValueError, match=msg):
+        host_binning(pts, 0.1)
+    with pytest.raises(ValueError, match=msg):
+        bin_points(pts, 0.1, frame=frame)
+
+
 @pytest.mark.parametrize("radius", [0, -1, np.nan, np.inf])
 def test_bad_radius(radius):
     with pytest.raises(ValueError, match="radius must be a positive finite"):
