@@ -17,7 +17,9 @@ What that means for a user:
   - :func:`release_memory` gives it back now; ``CLCURV_POOL=0`` in the environment (read
     when a device's pool is made) turns holding off: every buffer is then freed at once;
   - a stage that has to run in chunks (the device is short of memory,
-    :meth:`clcurv.cloud.DeviceCloud.plan`) first releases what the pool holds;
+    :meth:`clcurv.cloud.DeviceCloud.plan`) first releases what the pool holds, and tiled
+    runs (:func:`clcurv.tiled.compute_tile`, :func:`clcurv.tiled_scale.step_tile`) release
+    it after each tile, so that their memory budget holds as if every buffer were freed;
   - simulators (Oclgrind) get exact-size buffers that are never reused, so that their
     out-of-bounds checks see the buffer a kernel was given.
 

@@ -446,6 +446,7 @@ def compute_tile(task, device=None):
     from .api import curvature
     from .cloud import DeviceCloud
     from .job import result_fields
+    from .memory import release_memory
     params, tiling = task.params, task.tiling
     buckets = Buckets.from_state(Path(task.ws) / "buckets", task.buckets)
     rec = buckets.read_tile(Path(task.ws) / "tiles_in", task.t, state=task.smoothed)
@@ -476,6 +477,8 @@ def compute_tile(task, device=None):
             out[name] = f[name][own]
         if mst:
             _mst_records(task, out, own, pos, nl, node, rec["id"])
+        del cloud               # its device buffers back to the pool, which lets them go:
+        release_memory(device)  # the memory budget sizes tiles as if all were freed
     elif mst:
         _mst_records(task, out, np.zeros(0, bool), np.empty((0, 3)), np.empty((0, 3)),
                      np.empty(0, np.int64), np.empty(0, np.int64))

@@ -139,6 +139,7 @@ def step_tile(task):
     files (one per bucket they belong to); returns (t, largest drift of its points)."""
     from .smoothing import _DeviceState
     from .buckets import Buckets
+    from .memory import release_memory
     from .tiled import _worker_device
     from .tiling import within
     buckets = Buckets.from_state(Path(task.ws) / "buckets", task.buckets)
@@ -174,6 +175,8 @@ def step_tile(task):
             tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
             part.tofile(tmp)
             os.replace(tmp, path)
+        del st                  # as clcurv.tiled.compute_tile: the budget holds per tile
+        release_memory(device)
     return task.t, drift
 
 
