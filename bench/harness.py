@@ -146,6 +146,22 @@ def loadavg():
     return Path("/proc/loadavg").read_text().split()[:3]
 
 
+def hugepage_settings():
+    """Transparent huge pages: the kernel's enabled/defrag modes and whether numpy advises
+    them for its large arrays. With defrag 'madvise', numpy's advice can make a fresh output
+    array stall on compaction (numpy issue #31590): single calls then vary by 100s of ms."""
+    out = {}
+    for k in ("enabled", "defrag"):
+        try:
+            text = open(f"/sys/kernel/mm/transparent_hugepage/{k}").read()
+            out[k] = text.split("[")[1].split("]")[0]
+        except (OSError, IndexError):
+            out[k] = None
+    get = getattr(getattr(np, "_core", np.core).multiarray, "_get_madvise_hugepage", None)
+    out["numpy_madvise"] = None if get is None else bool(get())
+    return out
+
+
 def environment():
     """Machine and library versions."""
     import pyopencl as cl
@@ -153,7 +169,7 @@ def environment():
            "cpu": cpu_model(), "cpu_flags": cpu_flags(), "cpus": os.cpu_count(),
            "python": platform.python_version(), "numpy": np.__version__,
            "pyopencl": cl.VERSION_TEXT, "clcurv": clcurv.__version__, "open3d": None,
-           "loadavg": loadavg()}
+           "loadavg": loadavg(), "hugepages": hugepage_settings()}
     # the OpenCL platforms before Open3D: importing it first hides Intel's CPU runtime
     env["platforms"] = {p.name.strip(): p.version.strip() for p in cl.get_platforms()}
     try:

@@ -450,6 +450,8 @@ def summary_text(env, args, threads, jak_note):
         f"{env['python']}, numpy {env['numpy']}, pyopencl {env['pyopencl']}, open3d "
         f"{env['open3d'] or 'not available'}, jakteristics {env.get('jakteristics') or 'not available'}",
         f"OpenCL platforms: {plats}",
+        "transparent huge pages: " + ", ".join(f"{k} {v}" for k, v in
+                                              env.get("hugepages", {}).items()),
         *([f"jakteristics skipped: {jak_note}"] if jak_note else []),
         "thread checks (PoCL spin kernel, 1 vs 2 threads; BUSY when 2 threads are less than "
         f"x{THREADS_MIN_GAIN} faster):",
