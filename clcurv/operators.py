@@ -343,9 +343,11 @@ def program_variants(precision_defines):
                                "anchor.cl")]
     out.append(("scale_space.cl", dict(base, DENSITY=1, GAUSSIAN=0)))
     layout = MLS2.build_defines()
-    out.append(("records.cl", dict(base, NF=6, COL_COUNT=layout["COL_COUNT"],
-                                   COL_STATUS=layout["COL_STATUS"],
-                                   **{f"{a}{k}": 1 for k in range(6) for a in "SW"})))
+    split = dict(base, NF=6, COL_COUNT=layout["COL_COUNT"], COL_STATUS=layout["COL_STATUS"],
+                 **{f"{a}{k}": 1 for k in range(6) for a in "SW"})
+    out.append(("records.cl", dict(split, SPLIT_HOST=0)))
+    if base.get("REAL_IS_DOUBLE"):      # the split into float64 host arrays needs fp64
+        out.append(("records.cl", dict(split, SPLIT_HOST=1)))
     for k in {op.kernel.name: op.kernel for op in OPERATORS.values()}.values():
         gaussian = any("kernel" in op.options for op in OPERATORS.values() if op.kernel is k)
         out.append((k.file, dict(base, **k.build_defines(), DENSITY=1, GAUSSIAN=int(gaussian),

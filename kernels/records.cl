@@ -2,7 +2,10 @@
  * per point at its input index, or at its place in a chunk of sorted points (one cache line
  * per point: a scattered store per output array would cost a miss each); this splits the
  * records into contiguous arrays in the same order, one per field, so the host gets ready
- * columns (or scatters a chunk's) without a strided pass over all records per field. */
+ * columns (or scatters a chunk's) without a strided pass over all records per field.
+ * With SPLIT_HOST (a CPU device with cl_khr_fp64, clcurv/cloud.py:place_records) the
+ * arrays are the caller's float64 / int64 host arrays themselves (USE_HOST_PTR): the cast
+ * happens here, in the same pass, instead of in a second pass on the host. */
 #include "common.h"
 
 /* Field layout, set by build options (clcurv/cloud.py:fetch_records): NF real fields,
@@ -11,14 +14,24 @@
 #if !defined(NF) || !defined(COL_COUNT) || !defined(COL_STATUS)
 #error "records.cl needs NF, COL_COUNT and COL_STATUS (clcurv/cloud.py:fetch_records)"
 #endif
-#define SPLIT(k) for (int c = 0; c < W##k; ++c) o##k[(size_t)j * W##k + c] = v[S##k + c];
+#if defined(SPLIT_HOST) && SPLIT_HOST
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+#define OUT_REAL double
+#define OUT_COUNT long
+#else
+#define OUT_REAL REAL
+#define OUT_COUNT uint
+#endif
+#define SPLIT(k) \
+    for (int c = 0; c < W##k; ++c) o##k[(size_t)j * W##k + c] = (OUT_REAL)v[S##k + c];
 
 /* The first n records to contiguous per-field arrays in the same order: every read and
  * write is sequential. */
-__kernel void split_records(__global const REAL *rec, const uint n, __global REAL *o0,
-                            __global REAL *o1, __global REAL *o2, __global REAL *o3,
-                            __global REAL *o4, __global REAL *o5, __global uint *count,
-                            __global uchar *status)
+__kernel void split_records(__global const REAL *rec, const uint n,
+                            __global OUT_REAL *o0, __global OUT_REAL *o1,
+                            __global OUT_REAL *o2, __global OUT_REAL *o3,
+                            __global OUT_REAL *o4, __global OUT_REAL *o5,
+                            __global OUT_COUNT *count, __global uchar *status)
 {
     const uint j = get_global_id(0);
     if (j >= n) return;
@@ -43,6 +56,6 @@ __kernel void split_records(__global const REAL *rec, const uint n, __global REA
 #if NF > 5
     SPLIT(5)
 #endif
-    count[j] = REAL_AS_UINT(r.COL_COUNT);
+    count[j] = (OUT_COUNT)REAL_AS_UINT(r.COL_COUNT);
     status[j] = (uchar)r.COL_STATUS;
 }

@@ -15,6 +15,8 @@ def cloud_and_records(device, precision, n=5000):
     rng = np.random.default_rng(11)
     cloud = DeviceCloud(rng.normal(size=(n, 3)), 0.3, device=device, precision=precision)
     rec = rng.normal(size=(n, RECORD)).astype(cloud.dtype)
+    tiny = np.finfo(cloud.dtype).tiny
+    rec[:8, 0] = [np.nan, np.inf, -np.inf, -0.0, tiny / 4, -tiny, 3.4e38, 1e-30]
     counts = rng.integers(0, 2 ** 31, n, dtype=np.int64)
     bits = rec.view(np.uint32 if cloud.dtype == np.float32 else np.uint64)
     bits[:, 9] = counts
@@ -25,8 +27,10 @@ def cloud_and_records(device, precision, n=5000):
 
 
 @pytest.mark.parametrize("precision", ["float", "double"])
-@pytest.mark.parametrize("mapped", [True, False])
+@pytest.mark.parametrize("mapped", [True, False, None])
 def test_fetch_records_splits_fields_exactly(device, precision, mapped):
+    """mapped=None: the default, on a CPU device with fp64 the split straight into the host
+    arrays (clcurv.cloud.split_into_host); NaN, infinities, -0 and subnormals included."""
     if precision == "double" and not device.info.fp64:
         pytest.skip("device without fp64")
     cloud, rec, buf, counts = cloud_and_records(device, precision)
@@ -35,6 +39,7 @@ def test_fetch_records_splits_fields_exactly(device, precision, mapped):
     for name in ("a", "b", "c"):
         assert out[name].dtype == np.float64 and out[name].flags.c_contiguous
         np.testing.assert_array_equal(out[name], rec[:, LAYOUT[name]].astype(np.float64))
+        assert np.array_equal(np.signbit(out[name]), np.signbit(rec[:, LAYOUT[name]]))
     assert out["count"].dtype == np.int64 and np.array_equal(out["count"], counts)
     assert out["status"].dtype == np.uint8
     np.testing.assert_array_equal(out["status"], rec[:, 10].astype(np.uint8))
