@@ -100,7 +100,7 @@ def _inputs(points, radius, weights, backend, orient, normals, viewpoint, orient
     ref = None
     if normals is not None:
         if defer and backend == "opencl" and len(pts) >= DEFER_MIN:
-            from .cloud import host_pool
+            from .host_threads import host_pool
             ref = host_pool().submit(as_normals, normals, len(pts), unit)
         else:
             ref = as_normals(normals, len(pts), unit)

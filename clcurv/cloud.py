@@ -21,6 +21,7 @@ import numpy as np
 
 from .constants import PAD, RECORD_WIDTH as RECORD, record_selector
 from .device import get_device
+from .host_threads import host_pool
 from .memory import buffer as device_buffer, release_memory
 from .grid import CELLS_PER_ITEM, bin_points, check_pairs, sentinel_keys
 from .program import build, launch, precision_defines
@@ -448,18 +449,3 @@ def fetch_records(cloud, rec, layout, mapped=None):
     out = empty_fields(layout, cloud.n)
     place_records(cloud, rec, layout, out, 0, cloud.n, False, mapped)
     return out
-
-
-_POOL = None
-
-
-def host_pool():
-    """A small thread pool for host-side numpy work (checks, conversions) that can run
-    beside other host work (numpy releases the GIL)."""
-    global _POOL
-    if _POOL is None:
-        import os
-        from concurrent.futures import ThreadPoolExecutor
-        _POOL = ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1),
-                                   thread_name_prefix="clcurv-host")
-    return _POOL

@@ -28,18 +28,18 @@ Layout (sorted by cell key, but for ``rel``):
 The passes run over blocks of :data:`BLOCK` points, so their float64 and int64 temporaries
 stay in the core's cache instead of costing full-size arrays (memory traffic and fresh
 pages). The bounding box and the sort use up to 4 cores from :data:`MIN_PARALLEL` points on,
-as a few large numpy calls on threads (numpy releases the GIL in them).
+as a few large numpy calls on the host thread pool (clcurv.host_threads; numpy releases
+the GIL in them).
 """
 from __future__ import annotations
 
-import os
-import threading
 from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
 
 from .constants import CELL_BITS, CELL_MASK, PAD   # noqa: F401 (CELL_BITS: grid users)
+from .host_threads import cores, parallel
 from .validate import check_finite_box
 
 MAX_KEY = 2 ** 62
@@ -53,7 +53,6 @@ KEY_SENTINELS = 4
 BLOCK = 1 << 13
 #: Fewest points for which the bounding box and the sort use several cores.
 MIN_PARALLEL = 1 << 16
-_POOL, _POOL_LOCK = None, threading.Lock()
 
 
 @dataclass
@@ -110,37 +109,17 @@ class Grid:
         return self.origin + ijk * self.cell + rel
 
 
-def _cores():
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:              # not on every platform
-        return os.cpu_count() or 1
-
-
-def _parallel(fn, pieces):
-    """[fn(*p) for p in pieces], the first on the calling thread, the others on worker
-    threads (at most 3). Only for a few large numpy calls each, which release the GIL:
-    fine-grained calls on several threads were slower (GIL handoffs), measured."""
-    global _POOL
-    with _POOL_LOCK:
-        if _POOL is None:
-            from concurrent.futures import ThreadPoolExecutor
-            _POOL = ThreadPoolExecutor(max_workers=3, thread_name_prefix="clcurv-binning")
-    futures = [_POOL.submit(fn, *p) for p in pieces[1:]]
-    return [fn(*pieces[0])] + [f.result() for f in futures]
-
-
 def _parts(n, align=1):
     """The bounds of min(cores, 4) near-equal parts of range(n) (one below MIN_PARALLEL),
     inner bounds multiples of ``align``."""
-    k = min(_cores(), 4) if n >= MIN_PARALLEL else 1
+    k = min(cores(), 4) if n >= MIN_PARALLEL else 1
     cuts = [n * j // k // align * align for j in range(1, k)]
     return list(zip([0] + cuts, cuts + [n]))
 
 
 def _bounding_box(points):
     """Per-column min and max of a C-contiguous (N, 3) array, parts of it on several cores."""
-    boxes = _parallel(_box_part, [(points[a:b],) for a, b in _parts(len(points), 1024)])
+    boxes = parallel(_box_part, [(points[a:b],) for a, b in _parts(len(points), 1024)])
     return (np.min([lo for lo, _ in boxes], axis=0), np.max([hi for _, hi in boxes], axis=0))
 
 
@@ -167,7 +146,7 @@ def _sort_distinct(a):
     parts = _parts(len(a))
     if len(parts) > 1:
         a.partition([b for _, b in parts[:-1]])
-    _parallel(lambda lo, hi: a[lo:hi].sort(), parts)
+    parallel(lambda lo, hi: a[lo:hi].sort(), parts)
 
 
 def _index_bits(n, ncells_box):
