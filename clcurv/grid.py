@@ -117,7 +117,7 @@ def _parts(n, align=1):
     return list(zip([0] + cuts, cuts + [n]))
 
 
-def _bounding_box(points):
+def bounding_box(points):
     """Per-column min and max of a C-contiguous (N, 3) array, parts of it on several cores."""
     boxes = parallel(_box_part, [(points[a:b],) for a, b in _parts(len(points), 1024)])
     return (np.min([lo for lo, _ in boxes], axis=0), np.max([hi for _, hi in boxes], axis=0))
@@ -246,7 +246,7 @@ def _check_inside(points, frame, cell):
     if float(cell) != frame.cell:
         raise ValueError(f"frame cell {frame.cell} differs from cell {cell}")
     if len(points):
-        lo, hi = _bounding_box(points)
+        lo, hi = bounding_box(points)
         check_finite_box(points, lo, hi)
         ijk_lo, ijk_hi = frame.cells_of(np.stack([lo, hi]))
         if (ijk_lo < 0).any() or (ijk_hi >= np.asarray(frame.dims)).any():
@@ -329,7 +329,7 @@ def bin_points(points, cell, dtype=np.float32, frame=None):
     points = np.ascontiguousarray(points, dtype=np.float64)
     n = len(points)
     if frame is None:
-        lo, hi = _bounding_box(points)
+        lo, hi = bounding_box(points)
         check_finite_box(points, lo, hi)
         nx, ny, nz = _dims(points, lo, hi, cell)
     else:

@@ -3,23 +3,24 @@
  *
  * One work-item per sorted point; the same fixed-order walk over the 27 cells as the
  * operators (neighbors.h), the candidates within the cloud's cell c (open ball d^2 < c^2).
- * One walk, vector operations only, does two things per chunk:
- *   - counts the candidates in NBIN bins of d^2 over [0, c^2), which locate the bin
- *     [lo, hi) that holds the K-th smallest d^2 and its rank `need` there;
- *   - keeps, lane by lane, the KNN_LEVELS smallest d^2 of the lane (a min/max insertion
- *     network over KNN_LEVELS vectors), and the lane's count.
- * The K-th smallest is then the need-th smallest kept value in [lo, hi), taken by rounds of
- * vector minima. It is exact unless a lane held more than KNN_LEVELS candidates and dropped
- * some below hi (its largest kept value < hi): such a point (dense spots, many duplicates)
- * takes the counting path instead, which narrows [lo, hi) by further counting walks until
- * the bin holds at most KNN_CAP candidates, gathers them and picks the rank (a bin that
- * cannot be narrowed, many equal distances, gives its upper end). (A walk gathering every
- * candidate lane by lane into a buffer cost ~5x this one on PoCL: scalar lane loops.)
+ * One walk, vector operations only, keeps lane by lane the KNN_LEVELS smallest d^2 of the
+ * lane (a min/max insertion network over KNN_LEVELS vectors) and the lane's count. The K-th
+ * smallest is then selected from the kept values by two packed histograms (bins of d^2,
+ * then sub-bins of the bin that holds the K-th: one vector add per kept vector each, the
+ * counts of a lane packed in the nibbles of a uint) and a vector minimum within the
+ * sub-bin. It is exact unless a lane held more than KNN_LEVELS candidates and dropped some
+ * in or below that bin (its largest kept value lies there): such a point (dense spots, many
+ * duplicates) takes the counting path instead, which narrows an interval of d^2 by
+ * counting walks until it holds at most KNN_CAP candidates, gathers them and picks the
+ * rank (an interval that cannot be narrowed, many equal distances, gives its upper end).
+ * (A walk gathering every candidate lane by lane into a buffer cost ~5x this one on PoCL:
+ * scalar lane loops. The selection by rounds of vector minima within 8 bins of the
+ * kept values, before the histograms, cost as much as the walk.)
  * Points whose prev[g] is finite (found at a smaller cell, sorted order of this cloud) are
  * copied, not walked again.
  * Output d2k[g] (sorted order): the K-th smallest d^2, or +INFINITY when fewer than K
  * points lie within c (the host then bins at a larger cell).
- * Build option: KNN_K (1 .. clcurv.knn_radius.MAX_K); KNN_LEVELS (1 .. 16) overrides the
+ * Build option: KNN_K (1 .. clcurv.knn_radius.MAX_K); KNN_LEVELS (1 .. 15) overrides the
  * levels kept per lane (tests: 1 sends nearly every point down the counting path).
  */
 #include "common.h"
@@ -31,15 +32,16 @@
 
 /* The smallest d^2 kept per lane: ceil(2 K / VW), twice a lane's share of the K nearest
  * (the first cell's ball holds ~1.4 K candidates, clcurv/knn_radius.py FIRST_CELL), 4 to
- * 16 vectors; a point whose lanes drop values that matter takes the counting path. At K =
- * 30, VW = 8, the first cell of a 1M uniform sphere: kernel 113 ms with 8 levels, 118 with
- * 9, 125 with 10, 128 with 7 (best of 9, 2 threads; the same values). */
+ * 15 vectors (a lane's count per bin fits a nibble: packed_prefix); a point whose lanes
+ * drop values that matter takes the counting path. At K = 30, VW = 8, the first cell of a
+ * 1M uniform sphere: kernel 102 ms with 8 levels, 107 with 10, 125 with 7, 191 with 6
+ * (median of 7, 2 threads; the same values). */
 #ifndef KNN_LEVELS
 #define KNN_LEVELS_WANTED ((2 * KNN_K + VW - 1) / VW)
-#define KNN_LEVELS (KNN_LEVELS_WANTED < 4 ? 4 : KNN_LEVELS_WANTED > 16 ? 16 : KNN_LEVELS_WANTED)
+#define KNN_LEVELS (KNN_LEVELS_WANTED < 4 ? 4 : KNN_LEVELS_WANTED > 15 ? 15 : KNN_LEVELS_WANTED)
 #endif
-#if KNN_LEVELS < 1 || KNN_LEVELS > 16
-#error "KNN_LEVELS must be 1 .. 16"
+#if KNN_LEVELS < 1 || KNN_LEVELS > 15
+#error "KNN_LEVELS must be 1 .. 15"
 #endif
 
 #define KNN_CAP 64          /* the counting path gathers at most this many candidates */
@@ -176,17 +178,96 @@ inline uint count_lanes(IREALV m)
     return (uint)(-hsum(CAT(convert_, REALV)(m)));
 }
 
-/* The need-th smallest (from 1) of the values (bits) of a[0 .. KNN_LEVELS) in [lo, hi):
- * rounds of vector minima, each removing the current minimum (all its copies). */
-inline REAL kth_of_levels(IREALV a[KNN_LEVELS], IREAL lo, IREAL hi, uint need)
+#define PB 7            /* bins per packed histogram (field PB: the values outside them) */
+#define UINTV CAT(uint, VW)
+#define CONVERT_UINTV CAT(convert_uint, VW)
+#define AS_REALV CAT(as_, REALV)
+#define MASK_IREALV CAT(convert_, IREALV)    /* an int comparison mask as an IREALV mask */
+
+/* Sum of the lanes of a uint vector */
+inline uint hsum_uint(UINTV v)
 {
+#if VW == 16
+    uint8 a = v.lo + v.hi;
+    uint4 b = a.lo + a.hi;
+#elif VW == 8
+    uint4 b = v.lo + v.hi;
+#elif VW == 4
+    uint4 b = v;
+#endif
+#if VW >= 4
+    uint2 c = b.lo + b.hi;
+    return c.x + c.y;
+#else
+    return v.x + v.y;
+#endif
+}
+
+/* The cumulative histogram of the fields f[t] (0 .. PB) of the kept values: byte b of the
+ * result = the number of values whose field is <= b. A lane counts its fields in the 8
+ * nibbles of a uint (at most KNN_LEVELS <= 15 values per lane); the lanes are summed as
+ * bytes (fields 0 2 4 6 and 1 3 5 7 apart: at most 15 VW <= 240 per byte), interleaved
+ * into one ulong, whose product by 0x0101..01 adds each byte to those above it. */
+inline ulong packed_prefix(const UINTV f[KNN_LEVELS])
+{
+    UINTV h = 0;
     for (int t = 0; t < KNN_LEVELS; ++t)
-        a[t] = select((IREALV)INF_BITS, a[t], (a[t] >= (IREALV)lo) & (a[t] < (IREALV)hi));
-    for (;;) {
+        h += (UINTV)1 << (f[t] << 2);
+    const uint even = hsum_uint(h & (UINTV)0x0F0F0F0Fu);
+    const uint odd = hsum_uint((h >> 4) & (UINTV)0x0F0F0F0Fu);
+    ulong x = 0;
+    for (int i = 0; i < 4; ++i)
+        x |= (ulong)((even >> (8 * i)) & 0xff) << (16 * i)
+           | (ulong)((odd >> (8 * i)) & 0xff) << (16 * i + 8);
+    return x * 0x0101010101010101UL;
+}
+
+/* The first field b < PB whose cumulative count (packed_prefix) reaches need (PB: none),
+ * and the count of the fields before it in *below. */
+inline uint first_field(ulong prefix, uint need, uint *below)
+{
+    uint b = 0;
+    for (int i = 0; i < PB; ++i) b += ((prefix >> (8 * i)) & 0xff) < need;
+    *below = (uint)(((prefix << 8) >> (8 * min(b, (uint)(PB - 1)))) & 0xff);
+    return b;
+}
+
+/* The need-th smallest (from 1) of the kept values a[] (bits, ascending per lane), or NAN
+ * when the kept values cannot tell (the counting path's case, see the top). Bins of d^2:
+ * field trunc(d^2 s) (0 .. PB - 1 for d^2 < c^2, s = (PB - 1/2) / c^2; empty slots,
+ * INF, in field PB); then the bin b that holds the need-th, split into sub-bins
+ * trunc(d^2 s PB) - PB b (clamped: monotone in d^2, which is all the counts need); then
+ * the need'-th smallest of that sub-bin by rounds of vector minima (usually one). */
+inline REAL kth_of_levels(IREALV a[KNN_LEVELS], IREALV lanes, REAL c2, uint need)
+{
+    const REAL s = ((REAL)PB - (REAL)0.5) / c2, s2 = s * (REAL)PB;
+    if (!(s2 < (REAL)INFINITY)) return (REAL)NAN;             /* a cell below ~1e-19 */
+    UINTV f[KNN_LEVELS];
+    for (int t = 0; t < KNN_LEVELS; ++t)
+        f[t] = CONVERT_UINTV(fmin(AS_REALV(a[t]) * s, (REALV)PB));
+    uint below;
+    const uint b = first_field(packed_prefix(f), need, &below);
+    /* a lane that dropped values dropped only values >= its largest kept one: the counts
+       of the bins below that one's are exact */
+    const IREALV lost = (lanes < (IREALV)(-KNN_LEVELS))
+                      & MASK_IREALV(f[KNN_LEVELS - 1] <= (UINTV)b);
+    if (b == PB || any_lane(lost)) return (REAL)NAN;
+    need -= below;
+    const UINTV lo = (UINTV)(PB * b);
+    for (int t = 0; t < KNN_LEVELS; ++t) {
+        const UINTV u = CONVERT_UINTV(fmin(AS_REALV(a[t]) * s2, (REALV)(PB * PB + PB)));
+        f[t] = select((UINTV)PB, min(max(u, lo) - lo, (UINTV)(PB - 1)), f[t] == (UINTV)b);
+    }
+    const uint b2 = first_field(packed_prefix(f), need, &below);
+    need -= below;
+    for (int t = 0; t < KNN_LEVELS; ++t)
+        a[t] = select((IREALV)INF_BITS, a[t], MASK_IREALV(f[t] == (UINTV)b2));
+    IREAL x = INF_BITS;
+    for (int round = 0; round < KNN_LEVELS * VW; ++round) {    /* ends at need <= c */
         IREALV mn = a[0];
         for (int t = 1; t < KNN_LEVELS; ++t) mn = min(mn, a[t]);
-        const IREAL x = min_lane(mn);
-        if (x >= hi) return AS_REAL(hi);                   /* not reached (need <= inside) */
+        x = min_lane(mn);
+        if (need == 1) break;
         IREALV eq = 0;
         for (int t = 0; t < KNN_LEVELS; ++t) {
             const IREALV e = a[t] == (IREALV)x;
@@ -194,9 +275,10 @@ inline REAL kth_of_levels(IREALV a[KNN_LEVELS], IREAL lo, IREAL hi, uint need)
             a[t] = select(a[t], (IREALV)INF_BITS, e);
         }
         const uint c = count_lanes(eq);
-        if (need <= c) return AS_REAL(x);
+        if (need <= c) break;
         need -= c;
     }
+    return AS_REAL(x);
 }
 
 __kernel void kth_distance(__global const REAL *X, __global const REAL *Y,
@@ -225,33 +307,12 @@ __kernel void kth_distance(__global const REAL *X, __global const REAL *Y,
             a[t] = lo_;
         }
     NEIGHBOR_CHUNKS_END
-    /* the bins' counts from the kept values: exact below the K-th unless lost (below) */
-    const uint total = count_lanes(lanes);
-    IREAL edge[NBIN];
-    for (int b = 0; b < NBIN - 1; ++b) edge[b] = AS_IREAL(ball.x * (REAL)(b + 1) / NBIN);
-    edge[NBIN - 1] = AS_IREAL(ball.x);
-    uint below = 0, b = 0;
-    if (total >= KNN_K) {
-        for (; b < NBIN - 1; ++b) {
-            IREALV cb = 0;
-            for (int t = 0; t < KNN_LEVELS; ++t) cb += a[t] < (IREALV)edge[b];
-            const uint c = count_lanes(cb);
-            if (c >= KNN_K) break;
-            below = c;
-        }
-    }
-    REAL d;
-    if (total < KNN_K) {
-        d = (REAL)INFINITY;                            /* fewer than K within c */
-    } else {
-        const IREAL lo = b ? edge[b - 1] : 0, hi = edge[b];
-        /* a lane that dropped values below hi: the kept ones may miss some of [lo, hi) */
-        const IREALV lost = (lanes < (IREALV)(-KNN_LEVELS)) & (a[KNN_LEVELS - 1] < (IREALV)hi);
-        if (any_lane(lost)) {
+    REAL d = (REAL)INFINITY;                           /* fewer than K within c */
+    if (count_lanes(lanes) >= KNN_K) {
+        d = kth_of_levels(a, lanes, ball.x, KNN_K);
+        if (isnan(d)) {
             REAL buf[KNN_CAP];
             d = kth_by_counting(XA, Y, Z, ranges, cell, p, ball, buf);
-        } else {
-            d = kth_of_levels(a, lo, hi, KNN_K - below);
         }
     }
     d2k[g] = d;

@@ -77,7 +77,7 @@ def test_bounding_box_matches_min_max():
     rng = np.random.default_rng(3)
     for n in (1, 5, 1023, 1024, 1025, 5000, G.MIN_PARALLEL + 1001):    # last: in parts
         p = rng.normal(size=(n, 3))
-        lo, hi = G._bounding_box(p)
+        lo, hi = G.bounding_box(p)
         assert np.array_equal(lo, p.min(0)) and np.array_equal(hi, p.max(0))
 
 

@@ -58,6 +58,26 @@ def test_both_kernel_paths_select_the_same_distance(sphere, device, k):
     assert (ref[~ok] >= 0.999 * cloud.cell).all()     # unresolved: k-th beyond the cell
 
 
+@pytest.mark.parametrize("k", [5, 9, 30, 100])
+def test_selection_with_equal_distances(device, k):
+    """A lattice (every distance repeated 4 to 8 times) with each point twice: the kernel's
+    selection among equal d^2 (its sub-bin rounds take more than one minimum), its counting
+    path and a k-d tree give the same k-th distance."""
+    from scipy.spatial import cKDTree
+    from clcurv.cloud import DeviceCloud
+    from clcurv.knn_radius import kth_squared
+    g = np.arange(40) * 0.25
+    pts = np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
+    pts = np.c_[pts, np.zeros(len(pts))]
+    pts = np.concatenate([pts, pts])
+    ref = cKDTree(pts).query(pts, k)[0][:, -1]
+    cloud = DeviceCloud(pts, 1.5 * np.max(ref) + 0.01, device=device)
+    fast = kth_squared(cloud, k)
+    np.testing.assert_array_equal(fast, kth_squared(cloud, k, levels=1))
+    assert np.isfinite(fast).all()
+    np.testing.assert_allclose(np.sqrt(fast), ref, rtol=1e-6)
+
+
 def test_balls_hold_k_points(sphere, device):
     """The ball of each point at its own radius holds exactly k points (the margin of a few
     ulps adds only exact ties, absent here); the reference's closed balls of radius d_k agree,
