@@ -279,12 +279,13 @@ def _drop(spec):
 def _quantile(x, q):
     """The q-quantile of ``x`` (1-D, not empty), interpolated linearly between the order
     statistics at (len - 1) q as numpy.quantile's default, in float64; by one
-    numpy.partition, which on 1M values takes a tenth of numpy.quantile's time."""
+    numpy.partition at one index and the minimum above it (1.3 ms on 1M float32, where
+    numpy.quantile, and a partition at two indices, take 8-12)."""
     at = (len(x) - 1) * q
     i = int(np.floor(at))
-    j = min(i + 1, len(x) - 1)
-    part = np.partition(x, [i, j] if j > i else [i])
-    a, b = float(part[i]), float(part[j])
+    part = np.partition(x, i)
+    a = float(part[i])
+    b = float(part[i + 1:].min()) if i + 1 < len(x) else a
     return a + (b - a) * (at - i)
 
 
