@@ -145,8 +145,9 @@ def _kth_sorted(cloud, k, prev=None, levels=None):
 
 
 def _kth_launch(cloud, k, prev=None, levels=None):
-    """Enqueue and flush knn_radius.cl on ``cloud`` (see :func:`_kth_sorted`); returns the
-    output buffer for :func:`_kth_fetch`. The device works while the host goes on."""
+    """Enqueue and flush knn_radius.cl on ``cloud`` (see :func:`_kth_sorted`; ``prev`` a host
+    array or a device buffer); returns the output buffer for :func:`_kth_fetch`. The device
+    works while the host goes on."""
     import pyopencl as cl
     from .program import build, launch
     opts = dict(cloud.defines, KNN_K=int(k))
@@ -158,8 +159,10 @@ def _kth_launch(cloud, k, prev=None, levels=None):
     if prev is None:
         prev_buf = device_buffer(cloud.device, nbytes)
         cl.enqueue_fill_buffer(q, prev_buf, cloud.dtype(np.inf), 0, nbytes)
-    else:
+    elif isinstance(prev, np.ndarray):
         prev_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=prev)
+    else:
+        prev_buf = prev                             # a device buffer (sorted order)
     out = device_buffer(cloud.device, nbytes)
     launch(cloud.device, prg.kth_distance, cloud.n, cloud.x, cloud.y, cloud.z,
            cloud.cell_of, cloud.ranges, np.uint32(cloud.n), cloud.ball(cloud.cell), prev_buf,
@@ -187,7 +190,7 @@ def knn_radii(points, k, *, device=None, precision="float"):
     c = _first_cell(pts, k, lo, hi)
     cap = None
     levels = []
-    d2_in = None            # the k-th d^2 found so far, input order (inf: not yet)
+    d2_in = None            # device: the k-th d^2 found so far, input order (inf: not yet)
     spec = None
     stages = {"first_cell": time.perf_counter() - t0, "binning": 0.0, "kth": 0.0}
     if GROWTH * c <= diag:
@@ -200,9 +203,8 @@ def knn_radii(points, k, *, device=None, precision="float"):
             cloud = DeviceCloud(pts, c, device=device, precision=precision)
         if spec is not None and spec[0] <= c:
             spec = None
-        order = cloud.grid.order
         t2 = time.perf_counter()
-        out = _kth_launch(cloud, k, None if d2_in is None else d2_in[order])
+        out = _kth_launch(cloud, k, None if d2_in is None else _permute(cloud, d2_in, False))
         d2 = _kth_fetch(cloud, out)                                 # sorted order
         stages["binning"] += t2 - t1
         stages["kth"] += time.perf_counter() - t2
@@ -216,31 +218,36 @@ def knn_radii(points, k, *, device=None, precision="float"):
         c = GROWTH * c if cap is None else min(GROWTH * c, max(cap, c))
         if spec is not None and spec[0] != c:
             spec = _drop(spec)
-        d2_in = np.empty(cloud.n, cloud.dtype)
-        d2_in[order] = d2
+        d2_in = _permute(cloud, out, True)
     spec = _drop(spec)
-    # the last level's results, in its cloud's sorted order (device precision)
-    radius, iso_in = np.empty(cloud.n), np.zeros(cloud.n, bool)
+    # the last level's results: d2 in its cloud's sorted order (device precision)
+    order = cloud.grid.order
     if ok.all() and (cap is None or not np.sqrt(float(d2.max())) > cap):
-        isolated = None                          # the usual case: no point isolated
-        r2 = _margin(d2, cloud.dtype)
-        top = float(np.sqrt(float(r2.max())))
-        radius[order] = d2                       # (float64: the sqrt below is exact-rounded)
-        np.sqrt(radius, out=radius)
-    else:
-        d2 = d2.astype(np.float64)
-        isolated = ~ok
-        if cap is not None:                      # beyond the cap within the last cell
-            isolated |= np.sqrt(np.where(ok, d2, 0.0)) > cap
-        live = ~isolated
-        r2 = _margin(np.where(isolated, 0.0, d2), cloud.dtype)
-        r2[isolated] = 0
-        top = float(np.sqrt(r2[live].max())) if live.any() else 0.0
-        radius[order] = np.where(isolated, np.nan, np.sqrt(np.where(isolated, 0.0, d2)))
-        iso_in[order] = isolated
-    live_any = isolated is None or not isolated.all()
-    if live_any and c > REBIN_FACTOR * top and top > 1e-3 * c:
-        # the operators' walk at the largest radius, not at the last level's cell
+        # the usual case, no point isolated: the permutations and r^2 on the device
+        iso_in = np.zeros(cloud.n, bool)
+        top = float(np.sqrt(float(_margin(d2.max(keepdims=True), cloud.dtype)[0])))
+        d2_in = _permute(cloud, out, True)
+        radius = np.sqrt(_kth_fetch(cloud, d2_in), dtype=np.float64)
+        if c > REBIN_FACTOR * top and top > 1e-3 * c:
+            # the operators' walk at the largest radius, not at the last level's cell
+            cloud = DeviceCloud(pts, top, device=device, precision=precision)
+            levels.append(cloud.cell)
+            out = _permute(cloud, d2_in, False)
+        buf = _ball_r2(cloud, k, out)
+        stages["knn_radius"] = time.perf_counter() - t0
+        return KnnRadii(k, radius, iso_in, cloud, buf, levels, stages)
+    radius, iso_in = np.empty(cloud.n), np.zeros(cloud.n, bool)
+    d2 = d2.astype(np.float64)
+    isolated = ~ok
+    if cap is not None:                          # beyond the cap within the last cell
+        isolated |= np.sqrt(np.where(ok, d2, 0.0)) > cap
+    live = ~isolated
+    r2 = _margin(np.where(isolated, 0.0, d2), cloud.dtype)
+    r2[isolated] = 0
+    top = float(np.sqrt(r2[live].max())) if live.any() else 0.0
+    radius[order] = np.where(isolated, np.nan, np.sqrt(np.where(isolated, 0.0, d2)))
+    iso_in[order] = isolated
+    if live.any() and c > REBIN_FACTOR * top and top > 1e-3 * c:
         r2_in = np.empty(cloud.n, cloud.dtype)
         r2_in[order] = r2
         cloud = DeviceCloud(pts, top, device=device, precision=precision)
@@ -296,6 +303,30 @@ def _margin(d2, dtype):
     float64 product cast to float32 does.)"""
     x = np.multiply(d2, dtype(1 + MARGIN), dtype=dtype)
     return np.maximum(x, np.finfo(dtype).tiny, out=x)
+
+
+def _permute(cloud, buf, to_input):
+    """A one-column device buffer of ``cloud``'s points in the other order (gather.cl):
+    sorted to input order (``to_input``), or input to sorted order (padded with PAD zeros)."""
+    from .program import build, launch
+    prg = build(cloud.device, "gather.cl", cloud.defines)
+    item = np.dtype(cloud.dtype).itemsize
+    out = device_buffer(cloud.device, (cloud.n + (0 if to_input else PAD)) * item)
+    launch(cloud.device, prg.to_input if to_input else prg.to_sorted,
+           cloud.n + (0 if to_input else PAD), buf, cloud.order, np.uint32(cloud.n), out)
+    return out
+
+
+def _ball_r2(cloud, k, d2_sorted):
+    """The per-point r^2 (knn_radius.cl:ball_r2, :func:`_margin` on the device) of the k-th
+    d^2 in ``cloud``'s sorted order (a device buffer, no point isolated): a padded device
+    buffer."""
+    from .program import build, launch
+    prg = build(cloud.device, "knn_radius.cl", dict(cloud.defines, KNN_K=int(k)))
+    out = device_buffer(cloud.device, (cloud.n + PAD) * np.dtype(cloud.dtype).itemsize)
+    launch(cloud.device, prg.ball_r2, cloud.n + PAD, d2_sorted, np.uint32(cloud.n),
+           cloud.dtype(1 + MARGIN), out)
+    return out
 
 
 def _upload_sorted_r2(cloud, r2_sorted):

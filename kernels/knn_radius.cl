@@ -19,7 +19,8 @@
  * Points whose prev[g] is finite (found at a smaller cell, sorted order of this cloud) are
  * copied, not walked again.
  * Output d2k[g] (sorted order): the K-th smallest d^2, or +INFINITY when fewer than K
- * points lie within c (the host then bins at a larger cell).
+ * points lie within c (the host then bins at a larger cell). ball_r2 turns the last
+ * binning's d2k into the operators' per-point r^2.
  * Build option: KNN_K (1 .. clcurv.knn_radius.MAX_K); KNN_LEVELS (1 .. 15) overrides the
  * levels kept per lane (tests: 1 sends nearly every point down the counting path).
  */
@@ -316,4 +317,21 @@ __kernel void kth_distance(__global const REAL *X, __global const REAL *Y,
         }
     }
     d2k[g] = d;
+}
+
+#if REAL_IS_DOUBLE
+#define REAL_MIN_NORMAL DBL_MIN
+#else
+#define REAL_MIN_NORMAL FLT_MIN
+#endif
+
+/* The balls' r^2 (sorted order, padded with PAD zeros) from the k-th d^2 of every point (no
+ * point isolated): d^2 (1 + MARGIN), at least the smallest normal REAL, the operations of
+ * clcurv/knn_radius.py:_margin (grow = 1 + MARGIN, exact in REAL). */
+__kernel void ball_r2(__global const REAL *d2, const uint n, const REAL grow,
+                      __global REAL *r2)
+{
+    const uint g = get_global_id(0);
+    if (g < n) r2[g] = fmax(d2[g] * grow, REAL_MIN_NORMAL);
+    else if (g < n + PAD) r2[g] = 0;
 }

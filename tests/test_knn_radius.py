@@ -78,6 +78,29 @@ def test_selection_with_equal_distances(device, k):
     np.testing.assert_allclose(np.sqrt(fast), ref, rtol=1e-6)
 
 
+def test_rebinned_at_the_largest_radius(device):
+    """A first cell far above every radius (collinear points: the surface guess is ~3x
+    their k-NN radius): the operators' cloud is binned again at the largest radius, the
+    per-point r^2 (made on the device, knn_radius.cl:ball_r2) are the radii's squares
+    widened by MARGIN in its sorted order, and every ball holds its k points."""
+    import pyopencl as cl
+    from clcurv.knn_radius import MARGIN
+    x = np.random.default_rng(3).permutation(np.linspace(0.0, 1.0, 3001))
+    pts = np.c_[x, 0.5 * x, np.zeros_like(x)]          # (in random order)
+    got = knn_radii(pts, 5, device=device)
+    assert len(got.levels) == 2 and got.levels[1] < got.levels[0] / 2
+    np.testing.assert_allclose(got.radius, ref_knn_radii(pts, 5), rtol=4e-6)
+    n = len(pts)
+    host = np.empty(n, got.cloud.dtype)
+    cl.enqueue_copy(got.cloud.device.queue, host, got.r2_sorted)
+    r2 = np.empty(n)
+    r2[got.cloud.grid.order] = host
+    d2 = got.radius ** 2
+    assert (r2 >= d2).all()
+    np.testing.assert_allclose(r2, d2 * (1 + MARGIN), rtol=2e-7)
+    assert (clcurv.features(pts, k=5, features=["linearity"], device=device).count == 5).all()
+
+
 def test_balls_hold_k_points(sphere, device):
     """The ball of each point at its own radius holds exactly k points (the margin of a few
     ulps adds only exact ties, absent here); the reference's closed balls of radius d_k agree,
