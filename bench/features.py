@@ -17,8 +17,9 @@ the shared machine's speed hits both sides:
 - jakteristics.compute_features (same features, 2 threads, k-d tree included) and PDAL's
   filters.covariancefeatures when they are installed, on the same cloud in the same run.
 
-Writes bench/results/features.md and features.json; the free-cores check of bench.contention
-runs before and after.
+Every call's peak RSS is taken in a fresh process (the high-water mark reset just before the
+call: :func:`_peak_rss`). Writes bench/results/features.md and features.json; the free-cores
+check of bench.contention runs before and after.
 """
 from __future__ import annotations
 
@@ -33,7 +34,8 @@ import clcurv
 from clcurv.knn_radius import knn_radii
 
 from .contention import describe_threads, thread_check
-from .harness import REPO, environment, log, make_clouds, mpts, paired, radius_for, timed
+from .harness import (REPO, environment, log, make_clouds, mpts, paired, radius_for, run_python,
+                      timed)
 
 TARGETS = {"features_vs_normals": 1.2, "three_radii_vs_separate": 0.6,
            "three_radii_same_cloud": None, "knn_vs_moments": 1.5}
@@ -58,6 +60,55 @@ def _bench_pdal(pdal, pts, r):
     pipe = pdal.Pipeline(spec, arrays=[arr])
     s, _ = timed(pipe.execute)
     return s
+
+
+#: One call in a fresh process: its programs built and the context made on a small cloud,
+#: then the VmHWM high-water mark reset (/proc/self/clear_refs) just before the call on the
+#: n-point sphere of make_clouds (bench.measure.peak_rss does the same for the lead table).
+_PEAK_RSS = """
+import json, math, sys, time
+import clcurv
+from clcurv.knn_radius import knn_radii
+from bench.harness import make_clouds, radius_for
+n, what = int(sys.argv[1]), sys.argv[2]
+def status_mb(key):
+    with open("/proc/self/status") as f:
+        return int(next(ln for ln in f if ln.startswith(key + ":")).split()[1]) / 1024
+def call(pts, r):
+    radii = [r / math.sqrt(2), r, r * math.sqrt(2)]
+    return {"features": lambda: clcurv.features(pts, r),
+            "normals": lambda: clcurv.normals(pts, r, orient=None),
+            "three_radii": lambda: clcurv.features(pts, radii),
+            "knn": lambda: knn_radii(pts, 30),
+            "variation": lambda: clcurv.curvature(pts, r, method="variation",
+                                                  orient=None)}[what]
+small, _ = make_clouds(20_000)
+call(small, radius_for(30, 20_000))()
+pts, _ = make_clouds(n)
+with open("/proc/self/clear_refs", "w") as f:
+    f.write("5")
+base = status_mb("VmRSS")
+t0 = time.perf_counter()
+out = call(pts, radius_for(30, n))()
+print(json.dumps({"seconds": time.perf_counter() - t0, "base_mb": base,
+                  "peak_mb": status_mb("VmHWM")}))
+"""
+
+#: the calls of each row of the table, measured (a) and baseline (b), for _PEAK_RSS
+RSS_CALLS = {"features_vs_normals": ("features", "normals"),
+             "three_radii_vs_separate": ("three_radii", "features"),
+             "knn_vs_moments": ("knn", "variation")}
+
+
+def _peak_rss(n, what):
+    """Peak RSS of one call (``what``, a key of _PEAK_RSS's table) on the n-point sphere in
+    a fresh process, MB: {"peak_mb", "base_mb", "delta_mb"} or {"error"}."""
+    try:
+        out = json.loads(run_python(_PEAK_RSS, n, what).strip().splitlines()[-1])
+    except Exception as exc:  # noqa: BLE001 - reported in the table, the bench goes on
+        return {"error": str(exc)}
+    out["delta_mb"] = out["peak_mb"] - out["base_mb"]
+    return out
 
 
 def _stages(pts, r, repeats=3):
@@ -130,12 +181,15 @@ def run(n, repeats):
             peers["pdal"] = {"seconds": _bench_pdal(pdal, pts, r)}
         except Exception as exc:  # noqa: BLE001
             peers["pdal"] = {"skipped": f"{type(exc).__name__}: {exc}"}
+    rss = {what: _peak_rss(n, what) for what in sorted({w for p in RSS_CALLS.values()
+                                                         for w in p})}
     after = thread_check()
     log(describe_threads(after, "after"))
     out = {"points": n, "radius": r, "radii": radii, "mean_count": mean_count,
            "repeats": repeats, "device": dev.info.name, "environment": env,
            "threads_before": before, "threads_after": after, "peers": peers,
            "knn_levels": stages.levels, "knn_stages": stages.timings, "stages": split,
+           "peak_rss": rss,
            "rows": {k: {"a_seconds": a, "b_seconds": b, "ratio": a / b,
                         "target": TARGETS[k],
                         "met": None if TARGETS[k] is None else a / b <= TARGETS[k]}
@@ -155,14 +209,20 @@ def report(res):
              f"(mean {res['mean_count']:.1f} neighbours), device {res['device']}; best of "
              f"{res['repeats']} interleaved runs of each pair (a, b, a, b, ...), end to end "
              "(numpy in, numpy out, binning included).", "",
-             "| measured (a) | against (b) | a | b | a / b | target | met |",
-             "|---|---|---:|---:|---:|---:|---|"]
+             "| measured (a) | against (b) | a | b | a / b | target | met | peak RSS a, b |",
+             "|---|---|---:|---:|---:|---:|---|---|"]
     for k, row in res["rows"].items():
         a, b = names[k]
         target = "" if row["target"] is None else f"<= {row['target']}"
         met = "" if row["met"] is None else ("yes" if row["met"] else "NO")
+        rss = ", ".join(_rss_text(res.get("peak_rss", {}).get(w)) for w in RSS_CALLS.get(k, ()))
         lines.append(f"| `{a}` | `{b}` | {row['a_seconds'] * 1e3:.0f} ms | "
-                     f"{row['b_seconds'] * 1e3:.0f} ms | {row['ratio']:.2f} | {target} | {met} |")
+                     f"{row['b_seconds'] * 1e3:.0f} ms | {row['ratio']:.2f} | {target} | {met} "
+                     f"| {rss} |")
+    lines += ["", "Peak RSS: one call in a fresh process (programs built and context made "
+              "beforehand), the high-water mark reset just before it; in parentheses what "
+              "the call added to the RSS before it (interpreter, context, the input cloud); for "
+              "the three separate calls, one call at r."]
     sp = {k: v * 1e3 for k, v in res["stages"].items()}
     lines += ["", f"stages (best of 3) on a DeviceCloud at r: binning, upload and cell ranges "
               f"{sp['binning']:.0f} ms (both); features kernel {sp['features_kernel']:.0f} ms, "
@@ -185,6 +245,14 @@ def report(res):
     lines += ["", describe_threads(res["threads_before"], "cores before"),
               describe_threads(res["threads_after"], "cores after"), ""]
     return "\n".join(lines)
+
+
+def _rss_text(r):
+    if not r:
+        return ""
+    if "error" in r:
+        return f"failed ({r['error']})"
+    return f"{r['peak_mb']:.0f} MB (+{r['delta_mb']:.0f})"
 
 
 def main(argv=None):
