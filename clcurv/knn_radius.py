@@ -10,7 +10,8 @@ a point with fewer than k candidates within c is unresolved, and the cloud
 is binned again at 1.5c (:data:`GROWTH`; binned on a worker thread beside the first
 level, :func:`_bin_ahead`) for the unresolved points only (up to
 :data:`ISOLATION` times the 90th percentile of the k-NN radii: points still unresolved are
-isolated). The
+isolated); the distances found go from one binning's order to the next's on the device
+(gather.cl, :func:`_permute`). The
 operators then run on one cloud whose cell is the largest radius (the last level's, or
 binned again at the largest radius when that cell is much larger), every point's ball of
 squared radius r^2 = d_k^2 (1 + :data:`MARGIN`), so that their strict ball test holds the k
