@@ -95,7 +95,9 @@ def _inputs(points, radius, weights, backend, orient, normals, viewpoint, orient
     choice(backend, "backend", ("opencl", "numpy"))
     orient = _orient_spec(orient)
     as_count(orient_k, "orient_k", MAX_ORIENT_K)
-    pts = as_points(points)
+    # on the OpenCL backend the binning checks finiteness on its bounding box (every path
+    # bins before it reads a coordinate), with the same message: no extra pass here
+    pts = as_points(points, finite=backend != "opencl")
     r = as_radius(radius)
     ref = None
     if normals is not None:

@@ -27,9 +27,9 @@ Layout (sorted by cell key, but for ``rel``):
 
 The passes run over blocks of :data:`BLOCK` points, so their float64 and int64 temporaries
 stay in the core's cache instead of costing full-size arrays (memory traffic and fresh
-pages). The bounding box and the sort use up to 4 cores from :data:`MIN_PARALLEL` points on,
-as a few large numpy calls on the host thread pool (clcurv.host_threads; numpy releases
-the GIL in them).
+pages). The bounding box, the cell keys and the sort use up to 4 cores from
+:data:`MIN_PARALLEL` points on, as large numpy calls on the host thread pool
+(clcurv.host_threads; numpy releases the GIL in them).
 """
 from __future__ import annotations
 
@@ -51,6 +51,11 @@ CELLS_PER_ITEM = 32
 KEY_SENTINELS = 4
 #: Points per block of bin_points' passes (their temporaries stay in the core's cache).
 BLOCK = 1 << 13
+#: Points per block of the cell-key pass when it runs on several cores: fewer, larger numpy
+#: calls, since every call hands the GIL over (1M points on 2 cores, median of 9: 12.0 ms
+#: on one core, 13.2 on two with BLOCK, 10.4 with this; the keys and coordinates are the
+#: same).
+PARALLEL_BLOCK = 1 << 15
 #: Fewest points for which the bounding box and the sort use several cores.
 MIN_PARALLEL = 1 << 16
 
@@ -162,17 +167,31 @@ def _blocks(n, size=BLOCK):
 
 def _cell_keys(points, lo, cell, dims, dtype, bits):
     """(key, rel): the cell key of every point (``key << bits | index`` when ``bits``) and
-    the (N, 3) coordinates relative to the corner of its cell in ``dtype``.
-
-    The float passes run over the x, y, z of a block at once (flat, contiguous: numpy's
-    inner loops at full SIMD width) with ``lo`` tiled to the block's length."""
-    n, (nx, ny, _), inv = len(points), dims, 1.0 / cell
+    the (N, 3) coordinates relative to the corner of its cell in ``dtype``; parts of the
+    points on several cores from :data:`MIN_PARALLEL` points on (:func:`_cell_keys_part`)."""
+    n = len(points)
     key, rel = np.empty(n, np.int64), np.empty((n, 3), dtype)
-    m = 3 * min(BLOCK, n)
+    parts = _parts(n, PARALLEL_BLOCK)
+    size = BLOCK if len(parts) == 1 else PARALLEL_BLOCK
+    parallel(lambda a, b: _cell_keys_part(points, lo, cell, dims, bits, key, rel, a, b, size),
+             parts)
+    return key, rel
+
+
+def _cell_keys_part(points, lo, cell, dims, bits, key, rel, start, stop, size):
+    """:func:`_cell_keys` of the points [start, stop) into ``key`` and ``rel``, by blocks of
+    ``size`` points. The float passes run over the x, y, z of a block at once (flat,
+    contiguous: numpy's inner loops at full SIMD width) with ``lo`` tiled to the block's
+    length."""
+    (nx, ny, _), inv = dims, 1.0 / cell
+    m = 3 * min(size, stop - start)
+    if m == 0:
+        return
     u, f, i = np.empty(m), np.empty(m), np.empty(m, np.int64)    # block scratch
     lo3 = np.tile(np.asarray(lo, np.float64), m // 3)
     flat, rel_flat = points.reshape(-1), rel.reshape(-1)
-    for s, e in _blocks(n):
+    for s, e in _blocks(stop - start, size):
+        s, e = s + start, e + start
         k, m = key[s:e], 3 * (e - s)
         uu, ff, ii = u[:m], f[:m], i[:m]
         np.subtract(flat[3 * s:3 * e], lo3[:m], out=uu)
@@ -190,7 +209,6 @@ def _cell_keys(points, lo, cell, dims, dtype, bits):
         if bits:
             k <<= bits
             k |= np.arange(s, e, dtype=np.int64)
-    return key, rel
 
 
 def _sort_cells(key, bits):

@@ -33,6 +33,32 @@ def test_non_finite_points(value):
         clcurv.curvature(pts, 0.1)
 
 
+CALLS = {
+    "variation": lambda p, **kw: clcurv.curvature(p, 0.1, method="variation", **kw),
+    "mls2 scale_space": lambda p, **kw: clcurv.curvature(p, 0.1, method="mls2",
+                                                        scale_space=2, **kw),
+    "mls2 projections": lambda p, **kw: clcurv.curvature(p, 0.1, method="mls2",
+                                                        projections=1, **kw),
+    "radii": lambda p, **kw: clcurv.curvature(p, [0.05, 0.1], method="3dcov", **kw),
+    "k": lambda p, **kw: clcurv.curvature(p, method="mls1", k=10, **kw),
+    "normals viewpoint": lambda p, **kw: clcurv.normals(p, 0.1, viewpoint=(0, 0, 5), **kw),
+    "project": lambda p, **kw: clcurv.project(p, 0.1, **kw),
+    "features": lambda p, **kw: clcurv.features(p, 0.1, **kw),
+    "features k": lambda p, **kw: clcurv.features(p, k=10, **kw),
+}
+
+
+@pytest.mark.parametrize("call", list(CALLS))
+def test_every_call_refuses_non_finite_points(call, device):
+    """On the OpenCL backend the finiteness check is the binning's (on its bounding box),
+    not a pass of its own at the API: every public call still refuses NaN and Inf rows with
+    the same message, before a kernel runs."""
+    pts = bumpy_surface(400, seed=0)
+    pts[[3, 7], 1] = [np.nan, -np.inf]
+    with pytest.raises(ValueError, match=r"2 row\(s\) with NaN or Inf \(first at index 3\)"):
+        CALLS[call](pts, device=device)
+
+
 @pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
 def test_non_finite_points_of_a_device_cloud(value, device):
     """DeviceCloud, host_binning and a binning in a given frame (tiles) find them on the
