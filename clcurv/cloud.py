@@ -278,17 +278,18 @@ class Binned:
     seconds: float
 
 
-def host_binning(points, cell, *, precision="float", frame=None):
+def host_binning(points, cell, *, precision="float", frame=None, threads=None):
     """Bin ``points`` as :class:`DeviceCloud` does, on the host only: safe on a worker
     thread while the main thread drives the device (OpenCL calls stay on one thread; the
-    Oclgrind simulator crashes when two threads use one queue)."""
+    Oclgrind simulator crashes when two threads use one queue). ``threads``: as
+    :func:`clcurv.grid.bin_points`."""
     t0 = time.perf_counter()
     points = as_points(points, finite=False)        # checked by bin_points' bounding box
     cell = device_radius(as_radius(cell), precision)
     if len(points) == 0:
         raise ValueError("DeviceCloud needs at least one point")
     dtype = np.float64 if precision == "double" else np.float32
-    grid = bin_points(points, cell, dtype, frame)
+    grid = bin_points(points, cell, dtype, frame, threads)
     check_pairs(grid, points, cell)
     return Binned(points, cell, precision, grid, time.perf_counter() - t0)
 

@@ -114,17 +114,18 @@ class Grid:
         return self.origin + ijk * self.cell + rel
 
 
-def _parts(n, align=1):
-    """The bounds of min(cores, 4) near-equal parts of range(n) (one below MIN_PARALLEL),
-    inner bounds multiples of ``align``."""
-    k = min(cores(), 4) if n >= MIN_PARALLEL else 1
+def _parts(n, align=1, threads=None):
+    """The bounds of min(``threads`` or the cores, 4) near-equal parts of range(n) (one
+    below MIN_PARALLEL), inner bounds multiples of ``align``."""
+    k = min(threads or cores(), 4) if n >= MIN_PARALLEL else 1
     cuts = [n * j // k // align * align for j in range(1, k)]
     return list(zip([0] + cuts, cuts + [n]))
 
 
-def bounding_box(points):
-    """Per-column min and max of a C-contiguous (N, 3) array, parts of it on several cores."""
-    boxes = parallel(_box_part, [(points[a:b],) for a, b in _parts(len(points), 1024)])
+def bounding_box(points, threads=None):
+    """Per-column min and max of a C-contiguous (N, 3) array, parts of it on several cores
+    (at most ``threads``)."""
+    boxes = parallel(_box_part, [(points[a:b],) for a, b in _parts(len(points), 1024, threads)])
     return (np.min([lo for lo, _ in boxes], axis=0), np.max([hi for _, hi in boxes], axis=0))
 
 
@@ -144,11 +145,11 @@ def _box_part(points):
     return np.min(los, axis=0), np.max(his, axis=0)
 
 
-def _sort_distinct(a):
+def _sort_distinct(a, threads=None):
     """Sort the distinct values ``a`` in place: with several cores, one selection
     (np.partition) puts every value in the part of its rank, then the parts are sorted
     on threads; the values being distinct, the result is the one of ``a.sort()``."""
-    parts = _parts(len(a))
+    parts = _parts(len(a), 1, threads)
     if len(parts) > 1:
         a.partition([b for _, b in parts[:-1]])
     parallel(lambda lo, hi: a[lo:hi].sort(), parts)
@@ -165,13 +166,13 @@ def _blocks(n, size=BLOCK):
     return ((s, min(s + size, n)) for s in range(0, n, size))
 
 
-def _cell_keys(points, lo, cell, dims, dtype, bits):
+def _cell_keys(points, lo, cell, dims, dtype, bits, threads=None):
     """(key, rel): the cell key of every point (``key << bits | index`` when ``bits``) and
     the (N, 3) coordinates relative to the corner of its cell in ``dtype``; parts of the
     points on several cores from :data:`MIN_PARALLEL` points on (:func:`_cell_keys_part`)."""
     n = len(points)
     key, rel = np.empty(n, np.int64), np.empty((n, 3), dtype)
-    parts = _parts(n, PARALLEL_BLOCK)
+    parts = _parts(n, PARALLEL_BLOCK, threads)
     size = BLOCK if len(parts) == 1 else PARALLEL_BLOCK
     parallel(lambda a, b: _cell_keys_part(points, lo, cell, dims, bits, key, rel, a, b, size),
              parts)
@@ -211,7 +212,7 @@ def _cell_keys_part(points, lo, cell, dims, bits, key, rel, start, stop, size):
             k |= np.arange(s, e, dtype=np.int64)
 
 
-def _sort_cells(key, bits):
+def _sort_cells(key, bits, threads=None):
     """(order, keys, cell_start) of the keys of :func:`_cell_keys`, sorted stably (ties
     keep the input order, so the layout does not depend on numpy's sort algorithm). Packed
     keys (``bits``) are unique: one in-place sort of them replaces the much slower stable
@@ -219,7 +220,7 @@ def _sort_cells(key, bits):
     ``order``. Raises ValueError beyond CELL_MASK occupied cells."""
     n, size = len(key), 4 * BLOCK         # one int64 scratch here, not three: larger blocks
     if bits:
-        _sort_distinct(key)
+        _sort_distinct(key, threads)
         order, skey, sk = key, None, np.empty(min(size, n), np.int64)
     else:
         order = np.argsort(key, kind="stable")
@@ -339,23 +340,25 @@ class Frame:
         return u.astype(np.int64)
 
 
-def bin_points(points, cell, dtype=np.float32, frame=None):
+def bin_points(points, cell, dtype=np.float32, frame=None, threads=None):
     """Bin ``points`` (N, 3) float64 into cells of size ``cell``; see the module docstring.
 
     ``frame`` (a :class:`Frame` of cell size ``cell`` containing every point) bins them in
-    that frame instead of the one of their own bounding box."""
+    that frame instead of the one of their own bounding box. ``threads`` caps the cores the
+    passes use (default: up to 4; 1 for a binning on a worker thread beside another one,
+    clcurv.knn_radius)."""
     points = np.ascontiguousarray(points, dtype=np.float64)
     n = len(points)
     if frame is None:
-        lo, hi = bounding_box(points)
+        lo, hi = bounding_box(points, threads)
         check_finite_box(points, lo, hi)
         nx, ny, nz = _dims(points, lo, hi, cell)
     else:
         lo, (nx, ny, nz) = np.asarray(frame.origin, np.float64), frame.dims
         _check_inside(points, frame, cell)
     bits = _index_bits(n, float(nx) * float(ny) * float(nz))
-    key, rel = _cell_keys(points, lo, cell, (nx, ny, nz), dtype, bits)
-    order, keys, cell_start = _sort_cells(key, bits)
+    key, rel = _cell_keys(points, lo, cell, (nx, ny, nz), dtype, bits, threads)
+    order, keys, cell_start = _sort_cells(key, bits, threads)
     return Grid(n=n, origin=lo, cell=float(cell), dims=(nx, ny, nz), order=order, rel=rel,
                 keys=keys, cell_start=cell_start)
 

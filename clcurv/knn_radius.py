@@ -274,7 +274,9 @@ def _bin_ahead(pts, c, precision):
     from .cloud import host_binning
     if _HOST is None:
         _HOST = ThreadPoolExecutor(1, thread_name_prefix="clcurv-knn-bin")
-    return c, _HOST.submit(host_binning, pts, c, precision=precision)
+    # on one core: the main thread's binning of the first level uses both meanwhile (with
+    # its parts on the host pool too, the four threads' GIL hand-offs cost ~6 ms at 1M)
+    return c, _HOST.submit(host_binning, pts, c, precision=precision, threads=1)
 
 
 def _drop(spec):
