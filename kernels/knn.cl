@@ -66,43 +66,11 @@ inline ULONGV bin_of(REALV d2, REAL s)
 #define CONVERT_UINTV CAT(convert_uint, VW)
 #define CONVERT_INTV CAT(convert_int, VW)
 
-/* OR of the lanes of a uint vector */
-inline uint or_lanes(UINTV v)
-{
-#if VW == 16
-    uint8 a = v.lo | v.hi;
-    uint4 b = a.lo | a.hi;
-#elif VW == 8
-    uint4 b = v.lo | v.hi;
-#elif VW == 4
-    uint4 b = v;
-#endif
-#if VW >= 4
-    uint2 c = b.lo | b.hi;
-    return c.x | c.y;
-#else
-    return v.x | v.y;
-#endif
-}
+/* OR of the lanes of a uint vector; sum of the lanes of a ulong vector */
+LANE_REDUCTION(or_lanes, uint, LANE_OR)
+LANE_REDUCTION(hsum_ul, ulong, LANE_ADD)
 
-/* Sum of the lanes of a ulong vector */
-inline ulong hsum_ul(ULONGV v)
-{
-#if VW == 16
-    ulong8 a = v.lo + v.hi;
-    ulong4 b = a.lo + a.hi;
-#elif VW == 8
-    ulong4 b = v.lo + v.hi;
-#elif VW == 4
-    ulong4 b = v;
-#endif
-#if VW >= 4
-    ulong2 c = b.lo + b.hi;
-    return c.x + c.y;
-#else
-    return v.x + v.y;
-#endif
-}
+
 
 /* Bin counts packed 4 bits per bin in each lane of acc (at most 15 chunks' worth), as totals
  * (one lane per bin) */

@@ -155,23 +155,8 @@ inline REAL kth_by_counting(__global const REAL *XA, __global const REAL *Y,
 #define INF_BITS AS_IREAL((REAL)INFINITY)
 
 /* The smallest lane of v */
-inline IREAL min_lane(IREALV v)
-{
-#if VW == 16
-    CAT(IREAL, 8) a = min(v.lo, v.hi);
-    CAT(IREAL, 4) b = min(a.lo, a.hi);
-#elif VW == 8
-    CAT(IREAL, 4) b = min(v.lo, v.hi);
-#elif VW == 4
-    CAT(IREAL, 4) b = v;
-#endif
-#if VW >= 4
-    CAT(IREAL, 2) h = min(b.lo, b.hi);
-    return min(h.x, h.y);
-#else
-    return min(v.x, v.y);
-#endif
-}
+LANE_REDUCTION(min_lane, IREAL, min)
+
 
 /* How many lanes of a mask are set */
 inline uint count_lanes(IREALV m)
@@ -186,23 +171,8 @@ inline uint count_lanes(IREALV m)
 #define MASK_IREALV CAT(convert_, IREALV)    /* an int comparison mask as an IREALV mask */
 
 /* Sum of the lanes of a uint vector */
-inline uint hsum_uint(UINTV v)
-{
-#if VW == 16
-    uint8 a = v.lo + v.hi;
-    uint4 b = a.lo + a.hi;
-#elif VW == 8
-    uint4 b = v.lo + v.hi;
-#elif VW == 4
-    uint4 b = v;
-#endif
-#if VW >= 4
-    uint2 c = b.lo + b.hi;
-    return c.x + c.y;
-#else
-    return v.x + v.y;
-#endif
-}
+LANE_REDUCTION(hsum_uint, uint, LANE_ADD)
+
 
 /* The cumulative histogram of the fields f[t] (0 .. PB) of the kept values: byte b of the
  * result = the number of values whose field is <= b. A lane counts its fields in the 8

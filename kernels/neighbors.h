@@ -97,43 +97,51 @@ inline IREALV chunk_offsets(__global const REAL *X, __global const REAL *Y,
     return live & isless(d2, (REALV)ball.x);
 }
 
+/* LANE_REDUCTION(name, T, F) defines  inline T name(T<VW> v): the VW lanes of v combined
+ * by the binary F, pairwise (low half with high half, halving), a fixed order: sums are
+ * reproducible. One definition for every lane reduction of the kernels (sums, OR, minima). */
+#if VW == 16
+#define LANE_REDUCTION(name, T, F)                                                 \
+    inline T name(CAT(T, 16) v)                                                    \
+    {                                                                              \
+        const CAT(T, 8) a = F(v.lo, v.hi);                                         \
+        const CAT(T, 4) b = F(a.lo, a.hi);                                         \
+        const CAT(T, 2) c = F(b.lo, b.hi);                                         \
+        return F(c.x, c.y);                                                        \
+    }
+#elif VW == 8
+#define LANE_REDUCTION(name, T, F)                                                 \
+    inline T name(CAT(T, 8) v)                                                     \
+    {                                                                              \
+        const CAT(T, 4) b = F(v.lo, v.hi);                                         \
+        const CAT(T, 2) c = F(b.lo, b.hi);                                         \
+        return F(c.x, c.y);                                                        \
+    }
+#elif VW == 4
+#define LANE_REDUCTION(name, T, F)                                                 \
+    inline T name(CAT(T, 4) v)                                                     \
+    {                                                                              \
+        const CAT(T, 2) c = F(v.lo, v.hi);                                         \
+        return F(c.x, c.y);                                                        \
+    }
+#else
+#define LANE_REDUCTION(name, T, F)                                                 \
+    inline T name(CAT(T, 2) v) { return F(v.x, v.y); }
+#endif
+#define LANE_ADD(a, b) ((a) + (b))
+#define LANE_OR(a, b) ((a) | (b))
+
+/* Sum of the lanes in a fixed order (pairwise), so the result is reproducible. */
+LANE_REDUCTION(hsum, REAL, LANE_ADD)
+
+/* OR of the lanes of a mask */
+LANE_REDUCTION(or_mask, IREAL, LANE_OR)
+
 /* Is any lane of a mask set? An OR tree: PoCL 3.1's any() made the second pass of
  * knn_graph about twice as slow. */
 inline int any_lane(IREALV m)
 {
-#if VW == 16
-    CAT(IREAL, 8) a = m.lo | m.hi;
-    CAT(IREAL, 4) b = a.lo | a.hi;
-#elif VW == 8
-    CAT(IREAL, 4) b = m.lo | m.hi;
-#elif VW == 4
-    CAT(IREAL, 4) b = m;
-#endif
-#if VW >= 4
-    CAT(IREAL, 2) c = b.lo | b.hi;
-    return (c.x | c.y) != 0;
-#else
-    return (m.x | m.y) != 0;
-#endif
-}
-
-/* Sum of the lanes in a fixed order (pairwise), so the result is reproducible. */
-inline REAL hsum(REALV v)
-{
-#if VW == 16
-    CAT(REAL, 8) a = v.lo + v.hi;
-    CAT(REAL, 4) b = a.lo + a.hi;
-#elif VW == 8
-    CAT(REAL, 4) b = v.lo + v.hi;
-#elif VW == 4
-    CAT(REAL, 4) b = v;
-#endif
-#if VW >= 4
-    CAT(REAL, 2) c = b.lo + b.hi;
-    return c.x + c.y;
-#else
-    return v.x + v.y;
-#endif
+    return or_mask(m) != 0;
 }
 
 #endif
