@@ -221,22 +221,37 @@ def knn_radii(points, k, *, device=None, precision="float"):
             spec = _drop(spec)
         d2_in = _permute(cloud, out, True)
     spec = _drop(spec)
-    # the last level's results: d2 in its cloud's sorted order (device precision)
-    order = cloud.grid.order
+    # the last level's results: out (device) and d2 (host), its cloud's sorted order
     if ok.all() and (cap is None or not np.sqrt(float(d2.max())) > cap):
-        # the usual case, no point isolated: the permutations and r^2 on the device
-        iso_in = np.zeros(cloud.n, bool)
-        top = float(np.sqrt(float(_margin(d2.max(keepdims=True), cloud.dtype)[0])))
-        d2_in = _permute(cloud, out, True)
-        radius = np.sqrt(_kth_fetch(cloud, d2_in), dtype=np.float64)
-        if c > REBIN_FACTOR * top and top > 1e-3 * c:
-            # the operators' walk at the largest radius, not at the last level's cell
-            cloud = DeviceCloud(pts, top, device=device, precision=precision)
-            levels.append(cloud.cell)
-            out = _permute(cloud, d2_in, False)
-        buf = _ball_r2(cloud, k, out)
-        stages["knn_radius"] = time.perf_counter() - t0
-        return KnnRadii(k, radius, iso_in, cloud, buf, levels, stages)
+        radius, iso_in, cloud, buf = _all_resolved(pts, k, cloud, c, out, d2, levels)
+    else:
+        radius, iso_in, cloud, buf = _some_isolated(pts, cloud, c, d2, ok, cap, levels)
+    stages["knn_radius"] = time.perf_counter() - t0
+    return KnnRadii(k, radius, iso_in, cloud, buf, levels, stages)
+
+
+def _all_resolved(pts, k, cloud, c, out, d2, levels):
+    """(radius, isolated, the operators' cloud, its r^2 buffer) when every point has its k-th
+    distance ``d2`` within the last cell ``c`` (the usual case): the permutations and r^2 on
+    the device. The operators' cloud is the last level's, or binned again at the largest
+    radius when ``c`` is much larger (appended to ``levels``)."""
+    from .cloud import DeviceCloud
+    top = float(np.sqrt(float(_margin(d2.max(keepdims=True), cloud.dtype)[0])))
+    d2_in = _permute(cloud, out, True)
+    radius = np.sqrt(_kth_fetch(cloud, d2_in), dtype=np.float64)
+    if c > REBIN_FACTOR * top and top > 1e-3 * c:
+        # the operators' walk at the largest radius, not at the last level's cell
+        cloud = DeviceCloud(pts, top, device=cloud.device, precision=cloud.precision)
+        levels.append(cloud.cell)
+        out = _permute(cloud, d2_in, False)
+    return radius, np.zeros(cloud.n, bool), cloud, _ball_r2(cloud, k, out)
+
+
+def _some_isolated(pts, cloud, c, d2, ok, cap, levels):
+    """:func:`_all_resolved` when some points are isolated (no k-th neighbour within the
+    last cell, or one beyond ``cap``): their radius NaN and r^2 0, on the host."""
+    from .cloud import DeviceCloud
+    order = cloud.grid.order
     radius, iso_in = np.empty(cloud.n), np.zeros(cloud.n, bool)
     d2 = d2.astype(np.float64)
     isolated = ~ok
@@ -251,12 +266,10 @@ def knn_radii(points, k, *, device=None, precision="float"):
     if live.any() and c > REBIN_FACTOR * top and top > 1e-3 * c:
         r2_in = np.empty(cloud.n, cloud.dtype)
         r2_in[order] = r2
-        cloud = DeviceCloud(pts, top, device=device, precision=precision)
+        cloud = DeviceCloud(pts, top, device=cloud.device, precision=cloud.precision)
         levels.append(cloud.cell)
         r2 = r2_in[cloud.grid.order]
-    buf = _upload_sorted_r2(cloud, r2)
-    stages["knn_radius"] = time.perf_counter() - t0
-    return KnnRadii(k, radius, iso_in, cloud, buf, levels, stages)
+    return radius, iso_in, cloud, _upload_sorted_r2(cloud, r2)
 
 
 _HOST = None
