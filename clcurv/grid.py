@@ -56,7 +56,7 @@ BLOCK = 1 << 13
 #: on one core, 13.2 on two with BLOCK, 10.4 with this; the keys and coordinates are the
 #: same).
 PARALLEL_BLOCK = 1 << 15
-#: Fewest points for which the bounding box and the sort use several cores.
+#: Fewest points for which the bounding box, the cell keys and the sort use several cores.
 MIN_PARALLEL = 1 << 16
 
 
@@ -260,12 +260,12 @@ def sentinel_keys(keys):
     return out
 
 
-def _check_inside(points, frame, cell):
+def _check_inside(points, frame, cell, threads=None):
     """Refuse a frame of another cell size, or one some point lies outside of."""
     if float(cell) != frame.cell:
         raise ValueError(f"frame cell {frame.cell} differs from cell {cell}")
     if len(points):
-        lo, hi = bounding_box(points)
+        lo, hi = bounding_box(points, threads)
         check_finite_box(points, lo, hi)
         ijk_lo, ijk_hi = frame.cells_of(np.stack([lo, hi]))
         if (ijk_lo < 0).any() or (ijk_hi >= np.asarray(frame.dims)).any():
@@ -355,7 +355,7 @@ def bin_points(points, cell, dtype=np.float32, frame=None, threads=None):
         nx, ny, nz = _dims(points, lo, hi, cell)
     else:
         lo, (nx, ny, nz) = np.asarray(frame.origin, np.float64), frame.dims
-        _check_inside(points, frame, cell)
+        _check_inside(points, frame, cell, threads)
     bits = _index_bits(n, float(nx) * float(ny) * float(nz))
     key, rel = _cell_keys(points, lo, cell, (nx, ny, nz), dtype, bits, threads)
     order, keys, cell_start = _sort_cells(key, bits, threads)
