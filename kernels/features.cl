@@ -84,29 +84,31 @@ inline void features_pca(__global const REAL *X, __global const REAL *Y, __globa
         }
 #if PCA_ANCHOR
         const REAL3 a = vload3(co & CELL_MASK, CN);
-        REALV sh[NR], shh[NR], shx[NR], shy[NR], shz[NR];
-        for (int j = 0; j < NR; ++j) sh[j] = shh[j] = shx[j] = shy[j] = shz[j] = 0;
+        REAL3 fu, fw;
+        PCA_FRAME(a, fu, fw)
 #endif
-        REALV dx, dy, dz;
+        REALV dx, dy, dz, ex, ey, ez;
         const REAL2 bmax = (REAL2)(BALL_R2(W, g, r2max), ball.y);
         NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, ball, i, end, pr)
             const IREALV mmax = chunk_offsets(XA, Y, Z, i, end, pr, bmax, &dx, &dy, &dz);
+#if PCA_ANCHOR
+            PCA_REFLECT(fu, fw, dx, dy, dz, ex, ey, ez)   /* the masks: from d itself */
+#else
+            ex = dx; ey = dy; ez = dz;
+#endif
             for (int j = 0; j < NR; ++j) {
                 const IREALV m = NR == 1 ? mmax
                                  : ball_mask(mmax, dx, dy, dz, BALL_R2(W, g, r2[j]));
                 const REALV w = chunk_weights(W, i, dx, dy, dz, m, (REAL)0);
-                PCA_ACCUMULATE(w, m, dx, dy, dz, sc[j], sw[j], sx[j], sy[j], sz[j], sxx[j],
+                PCA_ACCUMULATE(w, m, ex, ey, ez, sc[j], sw[j], sx[j], sy[j], sz[j], sxx[j],
                                sxy[j], sxz[j], syy[j], syz[j], szz[j])
-#if PCA_ANCHOR
-                PCA_ANCHOR_ACCUMULATE(w, dx, dy, dz, a, sh[j], shh[j], shx[j], shy[j], shz[j])
-#endif
             }
         NEIGHBOR_CHUNKS_END
         for (int j = 0; j < NR; ++j) {
             pca_store_sums(sc[j], sw[j], sx[j], sy[j], sz[j], sxx[j], sxy[j], sxz[j], syy[j],
                            syz[j], szz[j], &pb[j], k);
 #if PCA_ANCHOR
-            pca_store_anchor(sh[j], shh[j], shx[j], shy[j], shz[j], a, &pb[j], k);
+            pb[j].ax[k] = a.x; pb[j].ay[k] = a.y; pb[j].az[k] = a.z;
 #endif
         }
     }

@@ -8,8 +8,8 @@
  * Build options: DENSITY (0|1) weights w(q) = 1/#N_r(q) read from W;
  *                REFINE_L0 (0|1) an accurate lambda0 = sum w <q - o, v0>^2 / sum w (float32
  *                one-pass moments lose ~2 digits of it on smooth surfaces): from the
- *                anchor's height sums of the same walk (pca.h, PCA_ANCHOR; CN from
- *                anchor.cl), or a second pass where the anchor is missing or too far;
+ *                sums of the same walk taken in the anchor's frame (pca.h, PCA_ANCHOR; CN
+ *                from anchor.cl), or a second pass where the anchor is missing or too far;
  *                MIN_COUNT and the record columns COL_NORMALS (3), COL_EIGENVALUES (3),
  *                COL_VARIATION, COL_SHIFT (3), COL_COUNT, COL_STATUS (clcurv/operators.py).
  */

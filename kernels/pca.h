@@ -7,13 +7,15 @@
  *              scalar eig3 per point costs more than the neighbour loops together);
  *   pca_refine_l0  lambda0 from a second pass (float32 one-pass moments lose ~2 digits);
  *   PCA_ANCHOR (on when the kernel is built with REFINE_L0=1)  lambda0 without the second
- *              pass: the walk also sums the heights h = <q - p, a> above an anchor plane
- *              of normal a (the PCA normal of the query's cell, anchor.cl), whose small
- *              sums keep their digits, and pca_anchor_l0 evaluates <v0, C v0> from them;
- *              lanes whose anchor is too far from v0 (or missing) are marked for the
- *              second pass;
- *   PCA_ACCUMULATE, pca_store_sums, pca_decompose, PCA_REFINE_ACCUMULATE  their steps, which
- *              the multi-radius walk of features.cl uses too (bit-identical sums).
+ *              pass: the walk sums the offsets in the anchor frame, reflected (Householder)
+ *              so that the anchor a (the PCA normal of the query's cell, anchor.cl) is the
+ *              z axis; the heights above the anchor plane are then a coordinate of their
+ *              own whose small sums keep their digits, and pca_anchor_l0 evaluates
+ *              <v0, C v0> there before it reflects v0, v2 and mu back; lanes whose anchor
+ *              is too far from v0 (or missing) are marked for the second pass;
+ *   PCA_REFLECT, PCA_ACCUMULATE, pca_store_sums, pca_decompose, PCA_REFINE_ACCUMULATE
+ *              their steps, which the multi-radius walk of features.cl uses too
+ *              (bit-identical sums).
  */
 #ifndef CLCURV_PCA_H
 #define CLCURV_PCA_H
@@ -47,10 +49,10 @@ typedef struct {
     REAL l0[VW], l1[VW], l2[VW];     /* ascending, clamped at 0 */
     REAL v0x[VW], v0y[VW], v0z[VW];  /* eigenvector of l0: the unoriented PCA normal */
     REAL v2x[VW], v2y[VW], v2z[VW];  /* eigenvector of l2 (the largest) */
-    REAL c[6][VW];                   /* centred covariance xx xy xz yy yz zz */
+    REAL c[6][VW];                   /* centred covariance xx xy xz yy yz zz (with
+                                        PCA_ANCHOR: in the lane's anchor frame) */
 #if PCA_ANCHOR
     REAL ax[VW], ay[VW], az[VW];     /* the anchor normal a (0: none) */
-    REAL chh[VW], chx[VW], chy[VW], chz[VW];  /* <a, C a> and C a, from the height sums */
     REAL l0a[VW];                    /* anchored lambda0, NaN: take the second pass */
 #endif
 } pca_batch_t;
@@ -73,13 +75,25 @@ typedef struct {
         syy += wy_ * (dy); syz += wy_ * (dz); szz += wz_ * (dz);                           \
     }
 
-/* One chunk's contribution to the anchor's height sums (PCA_ANCHOR): sum w h, sum w h^2,
- * sum w h d with h = <d, a>. */
-#define PCA_ANCHOR_ACCUMULATE(w, dx, dy, dz, a, sh, shh, shx, shy, shz)                  \
+/* The anchor frame (PCA_ANCHOR): the Householder reflection H = I - u w^T, w = 2 u / |u|^2,
+ * u = a + sign(a_z) e_z, maps the anchor normal a to -sign(a_z) e_z (no cancellation in u:
+ * |u|^2 >= 2 for a unit a). H is symmetric and its own inverse: H v = v - <w, v> u both
+ * ways. A missing anchor (a = 0) gives u = w = 0, the identity. In that frame the heights
+ * above the anchor plane are the z offsets: their sums, small numbers, keep the digits that
+ * lambda0 needs (pca_anchor_l0), at 6 operations per chunk (the former separate height sums
+ * cost 9 and 5 more accumulators). */
+#define PCA_FRAME(a, u, w)                                                               \
     {                                                                                    \
-        const REALV h_ = (dx) * (a).x + (dy) * (a).y + (dz) * (a).z;                    \
-        const REALV wh_ = (w) * h_;                                                      \
-        sh += wh_; shh += wh_ * h_; shx += wh_ * (dx); shy += wh_ * (dy); shz += wh_ * (dz); \
+        const REAL3 u_ = (REAL3)((a).x, (a).y, (a).z + ((a).z < 0 ? (REAL)-1 : (REAL)1)); \
+        const int has_ = (a).x != 0 || (a).y != 0 || (a).z != 0;                         \
+        u = has_ ? u_ : (REAL3)(0);                                                      \
+        w = has_ ? u_ * ((REAL)2 / dot(u_, u_)) : (REAL3)(0);                            \
+    }
+/* (ex, ey, ez) = H (dx, dy, dz) for a chunk's offsets */
+#define PCA_REFLECT(u, w, dx, dy, dz, ex, ey, ez)                                        \
+    {                                                                                    \
+        const REALV t_ = (dx) * (w).x + (dy) * (w).y + (dz) * (w).z;                     \
+        ex = (dx) - t_ * (u).x; ey = (dy) - t_ * (u).y; ez = (dz) - t_ * (u).z;          \
     }
 
 /* Lane k of b from the sums of PCA_ACCUMULATE: count, 1/sum w, mu = o - p and the centred
@@ -106,25 +120,10 @@ inline void pca_store_sums(REALV sc, REALV sw, REALV sx, REALV sy, REALV sz, REA
     b->c[5][k] = hsum(szz) * iw - mu.z * mu.z;
 }
 
-#if PCA_ANCHOR
-/* Lane k of b from the height sums of PCA_ANCHOR_ACCUMULATE (after pca_store_sums):
- * <a, C a> = E[h^2] - E[h]^2 and C a = E[h d] - E[d] E[h], with the ball's weights. */
-inline void pca_store_anchor(REALV sh, REALV shh, REALV shx, REALV shy, REALV shz, REAL3 a,
-                             pca_batch_t *b, uint k)
-{
-    const REAL iw = b->iw[k];
-    const REAL mh = hsum(sh) * iw;
-    b->ax[k] = a.x; b->ay[k] = a.y; b->az[k] = a.z;
-    b->chh[k] = hsum(shh) * iw - mh * mh;
-    b->chx[k] = hsum(shx) * iw - b->mux[k] * mh;
-    b->chy[k] = hsum(shy) * iw - b->muy[k] * mh;
-    b->chz[k] = hsum(shz) * iw - b->muz[k] * mh;
-}
-#endif
-
 /* The sums of the ball of p into lane k of b: count, 1/sum w, mu = o - p and the centred
- * covariance. (Results go through arrays, not a returned struct: PoCL spills struct
- * copies in the work-item loop at a large cost.) */
+ * covariance (with PCA_ANCHOR in the frame of the anchor a, PCA_FRAME; a is kept in b).
+ * (Results go through arrays, not a returned struct: PoCL spills struct copies in the
+ * work-item loop at a large cost.) */
 inline void pca_ball(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
                      __global const REAL *W, __global const uint2 *ranges, uint cell,
                      REAL3 p, REAL2 ball, REAL ih2, REAL3 a, pca_batch_t *b, uint k)
@@ -132,20 +131,21 @@ inline void pca_ball(__global const REAL *X, __global const REAL *Y, __global co
     REALV sc = 0, sw = 0, sx = 0, sy = 0, sz = 0;
     REALV sxx = 0, sxy = 0, sxz = 0, syy = 0, syz = 0, szz = 0;
 #if PCA_ANCHOR
-    REALV sh = 0, shh = 0, shx = 0, shy = 0, shz = 0;
+    REAL3 fu, fw;
+    PCA_FRAME(a, fu, fw)
 #endif
     REALV dx, dy, dz;
     NEIGHBOR_CHUNKS_BEGIN(ranges, cell, p, ball, i, end, pr)
         const IREALV m = chunk_offsets(X, Y, Z, i, end, pr, ball, &dx, &dy, &dz);
         const REALV w = chunk_weights(W, i, dx, dy, dz, m, ih2);
-        PCA_ACCUMULATE(w, m, dx, dy, dz, sc, sw, sx, sy, sz, sxx, sxy, sxz, syy, syz, szz)
 #if PCA_ANCHOR
-        PCA_ANCHOR_ACCUMULATE(w, dx, dy, dz, a, sh, shh, shx, shy, shz)
+        PCA_REFLECT(fu, fw, dx, dy, dz, dx, dy, dz)
 #endif
+        PCA_ACCUMULATE(w, m, dx, dy, dz, sc, sw, sx, sy, sz, sxx, sxy, sxz, syy, syz, szz)
     NEIGHBOR_CHUNKS_END
     pca_store_sums(sc, sw, sx, sy, sz, sxx, sxy, sxz, syy, syz, szz, b, k);
 #if PCA_ANCHOR
-    pca_store_anchor(sh, shh, shx, shy, shz, a, b, k);
+    b->ax[k] = a.x; b->ay[k] = a.y; b->az[k] = a.z;
 #endif
 }
 
@@ -168,31 +168,45 @@ inline void pca_decompose(pca_batch_t *b)
 }
 
 #if PCA_ANCHOR
-/* The anchored lambda0 of every lane (after pca_decompose): with v0 = alpha a + u (u
- * orthogonal to a),
- *     <v0, C v0> = alpha^2 <a, C a> + 2 alpha <u, C a> + <u, C u>,
- * the first two terms from the height sums (small numbers, full relative precision), only
- * the last from the one-pass covariance, whose rounding it scales by |u|^2 = sin^2 of the
- * angle between a and v0. Lanes with |u|^2 > ANCHOR_SIN2 (a missing anchor: |u| = 1) get
- * NaN, the mark for the second pass. */
+/* The anchored lambda0 of every lane (after pca_decompose, in the anchor frame of
+ * PCA_FRAME, where the anchor is the z axis), then v0, v2 and mu reflected back to the
+ * cloud's frame. With v0 = (vx, vy, vz) in that frame,
+ *     <v0, C v0> = vz^2 C_zz + 2 vz (vx C_xz + vy C_yz) + <u, C u>,  u = (vx, vy, 0),
+ * the first two terms from the sums of the heights (small numbers, full relative precision),
+ * only the last from the tangential sums, whose rounding it scales by |u|^2 = sin^2 of the
+ * angle between the anchor and v0. Lanes with |u|^2 > ANCHOR_SIN2, or without an anchor,
+ * get NaN, the mark for the second pass. */
 inline void pca_anchor_l0(pca_batch_t *b)
 {
     const REALV vx = VLOADV(0, b->v0x), vy = VLOADV(0, b->v0y), vz = VLOADV(0, b->v0z);
-    const REALV ax = VLOADV(0, b->ax), ay = VLOADV(0, b->ay), az = VLOADV(0, b->az);
-    const REALV al = vx * ax + vy * ay + vz * az;
-    const REALV ux = vx - al * ax, uy = vy - al * ay, uz = vz - al * az;
     const REALV c0 = VLOADV(0, b->c[0]), c1 = VLOADV(0, b->c[1]), c2 = VLOADV(0, b->c[2]);
     const REALV c3 = VLOADV(0, b->c[3]), c4 = VLOADV(0, b->c[4]), c5 = VLOADV(0, b->c[5]);
-    const REALV ucu = ux * (c0 * ux + (REAL)2 * (c1 * uy + c2 * uz))
-                    + uy * (c3 * uy + (REAL)2 * c4 * uz) + c5 * uz * uz;
-    const REALV uca = ux * VLOADV(0, b->chx) + uy * VLOADV(0, b->chy)
-                    + uz * VLOADV(0, b->chz);
-    const REALV l0 = al * al * VLOADV(0, b->chh) + (REAL)2 * al * uca + ucu;
-    const REALV u2 = ux * ux + uy * uy + uz * uz;
-    VSTOREV(select((REALV)NAN, fmax(l0, (REALV)0), isless(u2, (REALV)ANCHOR_SIN2)), 0, b->l0a);
+    const REALV ucu = vx * (c0 * vx + (REAL)2 * c1 * vy) + c3 * vy * vy;
+    const REALV uca = vx * c2 + vy * c4;
+    const REALV l0 = vz * vz * c5 + (REAL)2 * vz * uca + ucu;
+    const REALV u2 = vx * vx + vy * vy;
+    /* the frame of every lane (PCA_FRAME, lane-wise) */
+    const REALV ax = VLOADV(0, b->ax), ay = VLOADV(0, b->ay), az = VLOADV(0, b->az);
+    const IREALV has = isnotequal(ax, (REALV)0) | isnotequal(ay, (REALV)0)
+                       | isnotequal(az, (REALV)0);
+    const REALV uz = az + select((REALV)1, (REALV)-1, isless(az, (REALV)0));
+    const REALV s2 = select((REALV)0, (REAL)2 / (ax * ax + ay * ay + uz * uz), has);
+    const REALV ux = select((REALV)0, ax, has), uy = select((REALV)0, ay, has);
+    const REALV uzz = select((REALV)0, uz, has);
+    const REALV wx = ux * s2, wy = uy * s2, wz = uzz * s2;
+    VSTOREV(select((REALV)NAN, fmax(l0, (REALV)0), isless(u2, (REALV)ANCHOR_SIN2) & has),
+            0, b->l0a);
+    REALV t, x, y, z;
+#define PCA_UNREFLECT(fx, fy, fz)                                                        \
+    x = VLOADV(0, fx); y = VLOADV(0, fy); z = VLOADV(0, fz);                             \
+    t = x * wx + y * wy + z * wz;                                                        \
+    VSTOREV(x - t * ux, 0, fx); VSTOREV(y - t * uy, 0, fy); VSTOREV(z - t * uzz, 0, fz);
+    PCA_UNREFLECT(b->v0x, b->v0y, b->v0z)
+    PCA_UNREFLECT(b->v2x, b->v2y, b->v2z)
+    PCA_UNREFLECT(b->mux, b->muy, b->muz)
+#undef PCA_UNREFLECT
 }
 #endif
-
 
 /* Lane k of b unused (past the work-item's points): the identity covariance, no count, no
  * anchor, so that the vector eigen solve and pca_anchor_l0 see a harmless matrix. */
@@ -202,7 +216,7 @@ inline void pca_empty_lane(pca_batch_t *b, uint k)
     b->count[k] = 0;
 #if PCA_ANCHOR
     b->ax[k] = b->ay[k] = b->az[k] = 0;
-    b->chh[k] = b->chx[k] = b->chy[k] = b->chz[k] = 0;
+    b->mux[k] = b->muy[k] = b->muz[k] = 0;
 #endif
 }
 
