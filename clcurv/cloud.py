@@ -22,6 +22,7 @@ import numpy as np
 from .constants import PAD, RECORD_WIDTH as RECORD, record_selector
 from .device import get_device
 from .host_threads import host_pool
+from .host_memory import empty as host_empty
 from .memory import buffer as device_buffer, release_memory
 from .grid import CELLS_PER_ITEM, bin_points, check_pairs, sentinel_keys
 from .program import build, launch, precision_defines
@@ -388,8 +389,9 @@ def split_records(cloud, rec, layout, n, mapped=None):
 
 def empty_fields(layout, n):
     """Host arrays (uninitialised) for the fields of ``layout`` for ``n`` points, in the
-    types :func:`fetch_records` returns."""
-    return {name: np.empty(shape, dtype) for name, shape, dtype in _fields(layout, n)}
+    types :func:`fetch_records` returns; large ones from the pool of
+    :mod:`clcurv.host_memory` (the pages of results the caller dropped)."""
+    return {name: host_empty(shape, dtype) for name, shape, dtype in _fields(layout, n)}
 
 
 def split_into_host(cloud, rec, layout, out):

@@ -89,15 +89,17 @@ def buffer(device, nbytes):
 
 
 def release_memory(device=None):
-    """Free the device memory that clcurv's pools hold unused: of ``device`` (as
-    :func:`clcurv.device.get_device` takes it), or of every device when None. Buffers in
-    use (a live :class:`~clcurv.cloud.DeviceCloud`) are not touched. Returns the bytes
-    freed."""
+    """Free the memory that clcurv's pools hold unused: the device memory of ``device`` (as
+    :func:`clcurv.device.get_device` takes it), or when None of every device and the host
+    blocks of dropped result arrays (:mod:`clcurv.host_memory`). Buffers and arrays in use
+    (a live :class:`~clcurv.cloud.DeviceCloud`, a result) are not touched. Returns the
+    bytes freed."""
     from .device import get_device
+    from . import host_memory
     with _LOCK:
         pools = list(_POOLS.values()) if device is None else \
             [p for p in [_POOLS.get(id(get_device(device)))] if p is not None]
-    freed = 0
+    freed = host_memory.release() if device is None else 0
     for pool in pools:
         freed += int(pool.managed_bytes - pool.active_bytes)
         pool.free_held()
