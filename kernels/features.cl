@@ -222,13 +222,15 @@ __kernel void features(OPERATOR_ARGS, const REAL4 r2s, __global REAL *out1,
         const REALV e3x = VLOADV(0, pb[j].v0x), e3y = VLOADV(0, pb[j].v0y);
         const REALV e3z = VLOADV(0, pb[j].v0z);
         /* summed as moments.cl does (l0 + l1 + l2): surface_variation is its variation */
-        const REALV sum = L3 + L2 + L1, i1 = (REAL)1 / L1;
-        (void)sum; (void)i1; (void)e1x; (void)e1y; (void)e1z; (void)e3x; (void)e3y;
+        const REALV sum = L3 + L2 + L1, i1 = (REAL)1 / L1, isum = (REAL)1 / sum;
+        (void)sum; (void)i1; (void)isum; (void)e1x; (void)e1y; (void)e1z; (void)e3x;
+        (void)e3y;
 #ifdef COL_EIGENVALUE_SUM
         VSTORE_FEATURE(f_sum, sum)
 #endif
 #ifdef COL_OMNIVARIANCE
-        VSTORE_FEATURE(f_omni, cbrt(L1) * cbrt(L2) * cbrt(L3))
+        /* one cube root: of the ratios' product, which cannot overflow */
+        VSTORE_FEATURE(f_omni, L1 * cbrt((L2 * i1) * (L3 * i1)))
 #endif
 #ifdef COL_EIGENENTROPY
         VSTORE_FEATURE(f_ent, -(xlogx(L1) + xlogx(L2) + xlogx(L3)))
@@ -243,13 +245,13 @@ __kernel void features(OPERATOR_ARGS, const REAL4 r2s, __global REAL *out1,
         VSTORE_FEATURE(f_lin, (L1 - L2) * i1)
 #endif
 #ifdef COL_PCA1
-        VSTORE_FEATURE(f_pca1, L1 / sum)
+        VSTORE_FEATURE(f_pca1, L1 * isum)
 #endif
 #ifdef COL_PCA2
-        VSTORE_FEATURE(f_pca2, L2 / sum)
+        VSTORE_FEATURE(f_pca2, L2 * isum)
 #endif
 #ifdef COL_SURFACE_VARIATION
-        VSTORE_FEATURE(f_sv, L3 / sum)
+        VSTORE_FEATURE(f_sv, L3 / sum)        /* bit for bit the variation of moments.cl */
 #endif
 #ifdef COL_SPHERICITY
         VSTORE_FEATURE(f_sph, L3 * i1)
