@@ -62,18 +62,28 @@ typedef struct {
  * pca_ball and the multi-radius walk of features.cl, so that their sums are the same
  * operations in the same order (bit-identical results). */
 #if DENSITY || GAUSSIAN
-#define PCA_COUNT(sc, m) sc += select((REALV)0, (REALV)1, m);
-#else
-#define PCA_COUNT(sc, m)
-#endif
 #define PCA_ACCUMULATE(w, m, dx, dy, dz, sc, sw, sx, sy, sz, sxx, sxy, sxz, syy, syz, szz) \
     {                                                                                      \
-        PCA_COUNT(sc, m)                                                                   \
+        sc += select((REALV)0, (REALV)1, m);                                               \
         const REALV wx_ = (w) * (dx), wy_ = (w) * (dy), wz_ = (w) * (dz);                 \
         sw += (w); sx += wx_; sy += wy_; sz += wz_;                                        \
         sxx += wx_ * (dx); sxy += wx_ * (dy); sxz += wx_ * (dz);                           \
         syy += wy_ * (dy); syz += wy_ * (dz); szz += wz_ * (dz);                           \
     }
+#else
+/* Uniform weights (w = the mask as 0/1): each sum takes the lanes of m, as the masked
+ * update acc = m ? acc + x : acc, which AVX-512 does in one masked instruction (and other
+ * targets as an operation and a blend, what w x cost before). The same values as the
+ * weighted form, bit for bit (1 x = x, and a masked lane adds nothing). */
+#define PCA_MADD(acc, m, x) acc = select(acc, acc + (x), m);
+#define PCA_ACCUMULATE(w, m, dx, dy, dz, sc, sw, sx, sy, sz, sxx, sxy, sxz, syy, syz, szz) \
+    {                                                                                      \
+        PCA_MADD(sw, m, (REAL)1) PCA_MADD(sx, m, dx) PCA_MADD(sy, m, dy) PCA_MADD(sz, m, dz) \
+        PCA_MADD(sxx, m, (dx) * (dx)) PCA_MADD(sxy, m, (dx) * (dy))                        \
+        PCA_MADD(sxz, m, (dx) * (dz)) PCA_MADD(syy, m, (dy) * (dy))                        \
+        PCA_MADD(syz, m, (dy) * (dz)) PCA_MADD(szz, m, (dz) * (dz))                        \
+    }
+#endif
 
 /* The anchor frame (PCA_ANCHOR): the Householder reflection H = I - u w^T, w = 2 u / |u|^2,
  * u = a + sign(a_z) e_z, maps the anchor normal a to -sign(a_z) e_z (no cancellation in u:
