@@ -99,10 +99,18 @@ inline uchar mls2_system(__global const REAL *X, __global const REAL *Y, __globa
         const REALV y = dx * u2.x + dy * u2.y + dz * u2.z;
         const REALV h = dx * v0.x + dy * v0.y + dz * v0.z - cv0;
         const REALV xx = x * x, xy = x * y, yy = y * y;
+#if DENSITY || GAUSSIAN
         const REALV wxx = w * xx, wxy = w * xy, wyy = w * yy;
         s30 += wxx * x; s21 += wxx * y; s12 += wxy * y; s03 += wyy * y;
         s40 += wxx * xx; s31 += wxx * xy; s22 += wxx * yy; s13 += wxy * yy; s04 += wyy * yy;
         hxx += wxx * h; hxy += wxy * h; hyy += wyy * h;
+#else
+        (void)w;                                    /* uniform: masked updates (weights.h) */
+        MASKED_ADD(s30, m, xx * x) MASKED_ADD(s21, m, xx * y) MASKED_ADD(s12, m, xy * y)
+        MASKED_ADD(s03, m, yy * y) MASKED_ADD(s40, m, xx * xx) MASKED_ADD(s31, m, xx * xy)
+        MASKED_ADD(s22, m, xx * yy) MASKED_ADD(s13, m, xy * yy) MASKED_ADD(s04, m, yy * yy)
+        MASKED_ADD(hxx, m, xx * h) MASKED_ADD(hxy, m, xy * h) MASKED_ADD(hyy, m, yy * h)
+#endif
     NEIGHBOR_CHUNKS_END
     const REAL sw = (REAL)1 / pb->iw[k];
     const REAL c0 = pb->c[0][k], c1 = pb->c[1][k], c2 = pb->c[2][k];

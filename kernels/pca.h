@@ -71,17 +71,14 @@ typedef struct {
         syy += wy_ * (dy); syz += wy_ * (dz); szz += wz_ * (dz);                           \
     }
 #else
-/* Uniform weights (w = the mask as 0/1): each sum takes the lanes of m, as the masked
- * update acc = m ? acc + x : acc, which AVX-512 does in one masked instruction (and other
- * targets as an operation and a blend, what w x cost before). The same values as the
- * weighted form, bit for bit (1 x = x, and a masked lane adds nothing). */
-#define PCA_MADD(acc, m, x) acc = select(acc, acc + (x), m);
+/* Uniform weights: each sum a masked update of the ball's lanes (weights.h: MASKED_ADD) */
 #define PCA_ACCUMULATE(w, m, dx, dy, dz, sc, sw, sx, sy, sz, sxx, sxy, sxz, syy, syz, szz) \
     {                                                                                      \
-        PCA_MADD(sw, m, (REAL)1) PCA_MADD(sx, m, dx) PCA_MADD(sy, m, dy) PCA_MADD(sz, m, dz) \
-        PCA_MADD(sxx, m, (dx) * (dx)) PCA_MADD(sxy, m, (dx) * (dy))                        \
-        PCA_MADD(sxz, m, (dx) * (dz)) PCA_MADD(syy, m, (dy) * (dy))                        \
-        PCA_MADD(syz, m, (dy) * (dz)) PCA_MADD(szz, m, (dz) * (dz))                        \
+        MASKED_ADD(sw, m, (REAL)1) MASKED_ADD(sx, m, dx) MASKED_ADD(sy, m, dy)             \
+        MASKED_ADD(sz, m, dz) MASKED_ADD(sxx, m, (dx) * (dx))                              \
+        MASKED_ADD(sxy, m, (dx) * (dy)) MASKED_ADD(sxz, m, (dx) * (dz))                    \
+        MASKED_ADD(syy, m, (dy) * (dy)) MASKED_ADD(syz, m, (dy) * (dz))                    \
+        MASKED_ADD(szz, m, (dz) * (dz))                                                    \
     }
 #endif
 
