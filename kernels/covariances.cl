@@ -68,7 +68,6 @@ inline uint cov_ball(__global const REAL *X, __global const REAL *Y, __global co
     NEIGHBOR_CHUNKS_BEGIN(ranges, cell, p, ball, i, end, pr)
         const IREALV m = chunk_offsets(X, Y, Z, i, end, pr, ball, &dx, &dy, &dz);
         const REALV w = chunk_weights(W, i, dx, dy, dz, m, (REAL)0);
-        sc += select((REALV)0, (REALV)1, m);
 #if COV_METHOD == 1
         const REALV s = dx * nrm.x + dy * nrm.y + dz * nrm.z;
         const REALV fa = s * (dx * t1.x + dy * t1.y + dz * t1.z);
@@ -87,15 +86,30 @@ inline uint cov_ball(__global const REAL *X, __global const REAL *Y, __global co
 #else
         const REALV fa0 = qx - nrm.x, fb0 = qy - nrm.y, fd0 = qz - nrm.z;
 #endif
+#if DENSITY || GAUSSIAN
         /* lanes outside the ball have w = 0, but a NaN normal there must not leak */
         const REALV fa = select((REALV)0, fa0, m), fb = select((REALV)0, fb0, m);
         const REALV fd = select((REALV)0, fd0, m);
+#else
+        const REALV fa = fa0, fb = fb0, fd = fd0;      /* masked updates: never read */
 #endif
+#endif
+#if DENSITY || GAUSSIAN
+        sc += select((REALV)0, (REALV)1, m);
         const REALV wa = w * fa, wb = w * fb;
         sw += w; sa += wa; sb += wb; saa += wa * fa; sab += wa * fb; sbb += wb * fb;
 #if COV_METHOD == 3
         const REALV wd = w * fd;
         sd += wd; sad += wa * fd; sbd += wb * fd; sdd += wd * fd;
+#endif
+#else                                   /* uniform weights: masked updates (weights.h) */
+        (void)w;
+        MASKED_ADD(sw, m, (REAL)1) MASKED_ADD(sa, m, fa) MASKED_ADD(sb, m, fb)
+        MASKED_ADD(saa, m, fa * fa) MASKED_ADD(sab, m, fa * fb) MASKED_ADD(sbb, m, fb * fb)
+#if COV_METHOD == 3
+        MASKED_ADD(sd, m, fd) MASKED_ADD(sad, m, fa * fd) MASKED_ADD(sbd, m, fb * fd)
+        MASKED_ADD(sdd, m, fd * fd)
+#endif
 #endif
     NEIGHBOR_CHUNKS_END
     const REAL iw = (REAL)1 / hsum(sw);
@@ -103,7 +117,12 @@ inline uint cov_ball(__global const REAL *X, __global const REAL *Y, __global co
     c[0] = hsum(saa) * iw - ma * ma; c[1] = hsum(sab) * iw - ma * mb;
     c[2] = hsum(sad) * iw - ma * md; c[3] = hsum(sbb) * iw - mb * mb;
     c[4] = hsum(sbd) * iw - mb * md; c[5] = hsum(sdd) * iw - md * md;
+#if DENSITY || GAUSSIAN
     return (uint)hsum(sc);
+#else
+    (void)sc;
+    return (uint)hsum(sw);                  /* w = 1: the sum of the weights is the count */
+#endif
 }
 
 /* Eigenvalues (descending), magnitudes, directions and the record of one point. lam3/e3 are
