@@ -47,6 +47,7 @@ import numpy as np
 
 from .constants import PAD
 from .grid import bounding_box
+from .host_memory import empty as host_empty
 from .memory import buffer as device_buffer
 from .validate import as_points
 
@@ -175,7 +176,7 @@ def _kth_launch(cloud, k, prev=None, levels=None):
 def _kth_fetch(cloud, out):
     """The result of :func:`_kth_launch` on the host (waits for the kernel)."""
     import pyopencl as cl
-    host = np.empty(cloud.n, cloud.dtype)
+    host = host_empty(cloud.n, cloud.dtype)         # pooled pages (clcurv.host_memory)
     cl.enqueue_copy(cloud.device.queue, host, out)
     return host
 
@@ -238,7 +239,7 @@ def _all_resolved(pts, k, cloud, c, out, d2, levels):
     from .cloud import DeviceCloud
     top = float(np.sqrt(float(_margin(d2.max(keepdims=True), cloud.dtype)[0])))
     d2_in = _permute(cloud, out, True)
-    radius = np.sqrt(_kth_fetch(cloud, d2_in), dtype=np.float64)
+    radius = np.sqrt(_kth_fetch(cloud, d2_in), dtype=np.float64, out=host_empty(cloud.n))
     if c > REBIN_FACTOR * top and top > 1e-3 * c:
         # the operators' walk at the largest radius, not at the last level's cell
         cloud = DeviceCloud(pts, top, device=cloud.device, precision=cloud.precision)
