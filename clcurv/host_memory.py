@@ -15,8 +15,8 @@ pages.
 
 What that means for a user:
   - after a call's results are dropped, their memory stays with the process, up to
-    :func:`hold_limit` bytes (``min(1 GiB, RAM / 16)``); beyond that blocks are unmapped
-    when freed, as numpy's would be;
+    :func:`hold_limit` bytes (``min(1 GiB, RAM / 16)``); beyond that the blocks returned
+    longest ago are unmapped, so sizes no longer asked for make room for current ones;
   - :func:`clcurv.release_memory` (no argument) unmaps what the pool holds now;
     ``CLCURV_POOL=0`` in the environment (read at the first request) turns holding off for
     host and device pools alike;
@@ -43,7 +43,7 @@ MIN_BYTES = 1 << 20
 MAX_HOLD = 1 << 30
 
 _LOCK = threading.RLock()          # a finalizer may run inside a locked section (GC)
-_FREE: dict[int, list] = {}        # bin size -> free mappings
+_FREE: list = []                   # (bin size, mapping), oldest returned first
 _STATE = {"held": 0, "holding": None}
 
 
@@ -77,13 +77,21 @@ def _bin(nbytes):
 
 
 def _give_back(block, size):
-    """Finalizer of a block's holder: keep the mapping for the next request when the pool
-    has room. (Otherwise it is unmapped with its last reference, just after the holder has
-    released its buffer: the finalizer runs first, so it must not close the mapping.)"""
+    """Finalizer of a block's holder: keep the mapping for the next request, letting go of
+    the blocks returned longest ago when the pool would exceed :func:`hold_limit` (so that
+    blocks of sizes no longer asked for do not crowd out the current ones). A mapping let
+    go of is unmapped with its last reference (for the block being returned: just after
+    its holder has released its buffer; the finalizer runs first, so it must not close the
+    mapping)."""
+    limit = hold_limit()
     with _LOCK:
-        if _STATE["held"] + size <= hold_limit():
-            _FREE.setdefault(size, []).append(block)
-            _STATE["held"] += size
+        if size > limit:
+            return
+        _FREE.append((size, block))
+        _STATE["held"] += size
+        while _STATE["held"] > limit:
+            old, _ = _FREE.pop(0)
+            _STATE["held"] -= old
 
 
 def _advise(block):
@@ -107,11 +115,13 @@ def empty(shape, dtype=np.float64):
     if nbytes < MIN_BYTES or not _holding():
         return np.empty(shape, dtype)
     size = _bin(nbytes)
+    block = None
     with _LOCK:
-        free = _FREE.get(size)
-        block = free.pop() if free else None
-        if block is not None:
-            _STATE["held"] -= size
+        for j in range(len(_FREE) - 1, -1, -1):        # the most recently returned first
+            if _FREE[j][0] == size:
+                block = _FREE.pop(j)[1]
+                _STATE["held"] -= size
+                break
     if block is None:
         block = mmap.mmap(-1, size)
         _advise(block)
@@ -124,7 +134,7 @@ def empty(shape, dtype=np.float64):
 def release():
     """Unmap every block the pool holds unused; returns the bytes freed."""
     with _LOCK:
-        blocks = [b for bs in _FREE.values() for b in bs]
+        blocks = [b for _, b in _FREE]
         _FREE.clear()
         freed, _STATE["held"] = _STATE["held"], 0
     for b in blocks:

@@ -49,7 +49,13 @@ def test_results_survive_pickling_and_the_pool_respects_its_limit(pool, monkeypa
     size = pool._bin(a.nbytes)
     monkeypatch.setattr(pool, "hold_limit", lambda: size)   # room for one block
     c = pool.empty(500_000, np.int64)
-    del a, c
+    latest = c.ctypes.data
+    del a, c                  # the later one returned stays, the earlier one is let go
+    assert pool.held_bytes() == size
+    d = pool.empty(500_000, np.int64)
+    assert d.ctypes.data == latest and pool.held_bytes() == 0
+    big = pool.empty(2 * size // 8, np.int64)                 # larger than the limit
+    del d, big
     assert pool.held_bytes() == size
     assert pool.release() == size and pool.held_bytes() == 0
 
