@@ -118,6 +118,35 @@ def bench_open3d(o3d, clouds, r, repeats):
     return out
 
 
+#: interleaved (clcurv, Open3D) pairs of the default-call target (bench.targets
+#: DEFAULT_VARIATION_VS_OPEN3D)
+VARIATION_PAIRS = 5
+
+
+def bench_variation_pairs(o3d, clouds, r, device, repeats=VARIATION_PAIRS):
+    """``curvature(P, r, method="variation")`` with default arguments on the random-order
+    cloud (on ``device``) and Open3D's ``estimate_normals`` on the sorted copy, interleaved
+    (clcurv, Open3D, clcurv, ...): the minimum of each over ``repeats`` pairs, so that the
+    target's ratio compares runs made in the same seconds (the separate blocks run minutes
+    apart on a machine whose speed drifts). Open3D gets a fresh PointCloud per run, built
+    outside the timed region."""
+    param = o3d.geometry.KDTreeSearchParamRadius(r)
+    pts, srt = clouds["random"], clouds["sorted"]
+    clcurv.curvature(pts, r, method="variation", device=device)          # warm-up
+    best_c = best_o = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        res = clcurv.curvature(pts, r, method="variation", device=device)
+        best_c = min(best_c, time.perf_counter() - t0)
+        del res
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(srt))
+        t0 = time.perf_counter()
+        pcd.estimate_normals(param)
+        best_o = min(best_o, time.perf_counter() - t0)
+        del pcd
+    return {"clcurv_s": best_c, "open3d_s": best_o, "pairs": repeats, "device": device}
+
+
 #: the orientation graph's neighbour count (clcurv's default orient_k; Open3D's argument)
 ORIENT_K = 10
 #: the stages of clcurv.orient.flip_on_device, in its cloud.timings

@@ -16,7 +16,7 @@ from .measure import BUILD_PCA, KERNEL_PCA, PAIRED_REPEATS, STAGES
 from .ops import (CALL_ROWS, HEADLINE, NORMAL_OPS, PAIRED, POINT_OPS, SIGNED_NORMAL_OPS,
                   SS_ITERATIONS, UNSIGNED_NORMAL_OPS, base, call_text,
                   default_orientation, label)
-from .peers import JAK_FEATURES, ORIENT_K, ref_extrapolated
+from .peers import JAK_FEATURES, ORIENT_K, VARIATION_PAIRS, ref_extrapolated
 from .targets import (AGREE_MIN, BINNING_OVER_KERNEL_MAX, COS_TOL, COV_VS_NORMALS,
                       DEFAULT_VARIATION_VS_OPEN3D, KERNEL_MPTS_AT_30, MLS2_VS_NORMALS,
                       MLS2_VS_REFERENCE, ORIENT_MPTS, ORIENT_VS_OPEN3D, PIPELINE_DEFAULT_MAX_S,
@@ -27,14 +27,19 @@ RESULTS = Path(__file__).resolve().parent / "results"
 
 
 # ----------------------------------------------------------------------------- ratios, targets
-def ratios(n, dev_k, ref, o3d_k, jak_k):
-    """Throughputs and ratios of one device in one column (None when not measured)."""
+def ratios(n, dev_k, ref, o3d_k, jak_k, device=None):
+    """Throughputs and ratios of one device (index ``device``) in one column (None when not
+    measured)."""
     e = dev_k["e2e_s"]
     e2e = dev_k["calls_s"][HEADLINE]["default"]     # curvature(method=HEADLINE), defaults
     warm = dev_k["split"]["warm"]
     o3d_normals = o3d_k["sorted"]["normals_s"] if o3d_k else None
     ss = dev_k["scale_space"]
+    pair = (o3d_k or {}).get("paired")
+    pair = pair if pair and pair["device"] == device else None
     out = {"e2e_variation_mpts": mpts(n, e2e),
+           # the same two calls interleaved (peers.bench_variation_pairs): the target's ratio
+           "vs_open3d_paired": pair["open3d_s"] / pair["clcurv_s"] if pair else None,
            "kernel_mpts": mpts(n, warm[KERNEL_PCA]),
            "vs_open3d_normals_sorted": o3d_normals / e2e if o3d_normals else None,
            "vs_reference": ref["seconds"] / ref["points"] * n / e2e,
@@ -72,9 +77,13 @@ def evaluate_targets(dev, rat, orientation, cols):
     v = dev["k"][c30]["calls_s"]["pipeline"]["default"]
     rows = [at_most(f"{call_text('pipeline')} e2e, default arguments, seconds, {c30}", v,
                     PIPELINE_DEFAULT_MAX_S, " s")]
-    rows += [at_least(f"{call_text(HEADLINE)} e2e, default arguments / Open3D estimate_normals "
-                      f"(sorted), {cid}", rat[cid]["vs_open3d_normals_sorted"],
-                      DEFAULT_VARIATION_VS_OPEN3D) for cid in tcols]
+    for cid in tcols:               # interleaved pairs where measured, else the two blocks
+        paired = rat[cid]["vs_open3d_paired"]
+        how = "interleaved pairs" if paired is not None else "separate blocks"
+        rows.append(at_least(f"{call_text(HEADLINE)} e2e, default arguments / Open3D "
+                             f"estimate_normals (sorted), {how}, {cid}",
+                             paired if paired is not None else
+                             rat[cid]["vs_open3d_normals_sorted"], DEFAULT_VARIATION_VS_OPEN3D))
     top = max(orientation["sizes"])
     o = orientation["sizes"][top]
     rows.append(at_least(f"orientation alone (flip_on_device) M pts/s, {top:,} pts", o["mpts"],
@@ -233,7 +242,9 @@ def ratio_rows(rat, ids, jak):
     col = lambda key, spec: [fmt(rat[c][key], spec, "x") for c in ids]
     rows = [("**ratios**", [""] * len(ids)),
             (f"e2e {call_text(HEADLINE)} / Open3D estimate_normals (sorted)",
-             col("vs_open3d_normals_sorted", ".1f"))]
+             col("vs_open3d_normals_sorted", ".1f")),
+            (f"the same, {VARIATION_PAIRS} interleaved pairs (min of each)",
+             col("vs_open3d_paired", ".1f"))]
     if jak:
         rows.append((f"e2e {call_text(HEADLINE)} / jakteristics (sorted)",
                      col("vs_jakteristics_sorted", ".1f")))
@@ -484,7 +495,7 @@ def report(args, env, guard, cols, refs, o3d_res, jak_res, jak_note, orientation
     o_sizes, o_rows = orientation_rows(orientation)
     for dev in devs:
         rat = {c["id"]: ratios(c["n"], dev["k"][c["id"]], refs[c["id"]], o3d_res.get(c["id"]),
-                               jak_res.get(c["id"])) for c in cols}
+                               jak_res.get(c["id"]), dev["device"]["index"]) for c in cols}
         d = dev["device"]
         title = (f"[{d['index']}] {d['name']} — {d['platform']} "
                  f"({env['platforms'].get(d['platform'], '?')}), driver {d['driver']}, "

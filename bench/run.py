@@ -29,11 +29,15 @@ fraction of each. Then the detail: the stages of one moments run, each kernel al
 ratios, the MLS1 scale space (1 iteration; 5 with ``return_stats``). Peers: the NumPy
 reference of every operator (timed once on a polar cap of the same cloud, extrapolated
 linearly), Open3D ``estimate_normals``/``estimate_covariances`` and jakteristics
-``compute_features``. Results are checked against the reference on the cap, with the
+``compute_features``; at the largest size, the default variation call on the first device
+and Open3D's ``estimate_normals`` interleaved in 5 pairs, whose ratio of minima is the
+default-call target's (both sides in the same seconds; the separate blocks' ratio is
+listed too). Results are checked against the reference on the cap, with the
 tolerances of ``bench/targets.py`` (those the tests assert), and the speed targets of that
 module are evaluated (PASS/FAIL).
 
-Each block (reference, clcurv per device and column, Open3D, jakteristics, orientation) runs
+Each block (reference, clcurv per device and column, Open3D, jakteristics, the pairs,
+orientation) runs
 between two checks that both cores are free (a PoCL kernel timed with 1 and 2 threads); busy
 blocks are measured again, and flagged if still busy. Prints a table, writes
 ``bench/results/bench-<devicekind>.json`` and ``bench/results/bench.md``.
@@ -54,7 +58,8 @@ from .contention import Guard
 from .harness import cap_indices, environment, exact_normals, log, make_clouds, radius_for
 from .measure import bench_device
 from .peers import (bench_jakteristics, bench_open3d, bench_orientation, bench_reference,
-                    jakteristics_or_reason, jakteristics_version, open3d_or_none)
+                    bench_variation_pairs, jakteristics_or_reason, jakteristics_version,
+                    open3d_or_none)
 from .report import report
 
 
@@ -156,6 +161,14 @@ def main(argv=None):
                 label = f"{name} {c['id']}"
                 res[c["id"]] = guard.block(label, lambda: fn(mod, clouds, c["r"], args.repeats))
                 res[c["id"]]["threads"] = guard.gains(label)
+    if o3d is not None:             # the default-call target, interleaved with Open3D
+        top = max(c["n"] for c in cols)
+        for c in cols:
+            if c["n"] == top:
+                clouds = {"random": data[top]["random"], "sorted": data[top]["sorted"]}
+                label = f"variation / Open3D interleaved {c['id']}"
+                o3d_res[c["id"]]["paired"] = guard.block(label, lambda: bench_variation_pairs(
+                    o3d, clouds, c["r"], infos[0].index))
     oclouds = {n: data[n]["random"] if n in data else make_clouds(n)[0]
                for n in sorted(set(args.sizes) | {args.orient_points})}
     orientation = guard.block("orientation", lambda: bench_orientation(

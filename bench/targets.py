@@ -38,7 +38,8 @@ THREADS_MIN_GAIN = 1.6
 # the project's goals; the bench evaluates them at its largest size (1M points in a full run)
 # curvature(P, r, method="variation") with default arguments (an unsigned method: normals and
 # variation, no orientation) end to end / Open3D estimate_normals with the same radius on the
-# spatially sorted copy of the same cloud, same run, at least
+# spatially sorted copy of the same cloud, same run (interleaved pairs: peers.VARIATION_PAIRS),
+# at least
 DEFAULT_VARIATION_VS_OPEN3D = 10.0
 # curvature(P, r, method="mls2", scale_space=5) with default arguments (the scale space, the
 # PCA normals, their orientation on the device, MLS2) end to end, seconds at ~30 neighbours, at most
