@@ -108,7 +108,7 @@ inline void features_pca(__global const REAL *X, __global const REAL *Y, __globa
             pca_store_sums(sc[j], sw[j], sx[j], sy[j], sz[j], sxx[j], sxy[j], sxz[j], syy[j],
                            syz[j], szz[j], &pb[j], k);
 #if PCA_ANCHOR
-            pb[j].ax[k] = a.x; pb[j].ay[k] = a.y; pb[j].az[k] = a.z;
+            PCA_KEEP_FRAME(&pb[j], k, fu, fw)
 #endif
         }
     }

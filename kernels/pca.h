@@ -52,7 +52,7 @@ typedef struct {
     REAL c[6][VW];                   /* centred covariance xx xy xz yy yz zz (with
                                         PCA_ANCHOR: in the lane's anchor frame) */
 #if PCA_ANCHOR
-    REAL ax[VW], ay[VW], az[VW];     /* the anchor normal a (0: none) */
+    REAL fu[3][VW], fw[3][VW];       /* the anchor frame's u and w (PCA_FRAME; 0: none) */
     REAL l0a[VW];                    /* anchored lambda0, NaN: take the second pass */
 #endif
 } pca_batch_t;
@@ -96,6 +96,12 @@ typedef struct {
         u = has_ ? u_ : (REAL3)(0);                                                      \
         w = has_ ? u_ * ((REAL)2 / dot(u_, u_)) : (REAL3)(0);                            \
     }
+/* Lane k of b keeps the frame (u, w) for pca_anchor_l0 */
+#define PCA_KEEP_FRAME(b, k, u, w)                                                       \
+    {                                                                                    \
+        (b)->fu[0][k] = (u).x; (b)->fu[1][k] = (u).y; (b)->fu[2][k] = (u).z;             \
+        (b)->fw[0][k] = (w).x; (b)->fw[1][k] = (w).y; (b)->fw[2][k] = (w).z;             \
+    }
 /* (ex, ey, ez) = H (dx, dy, dz) for a chunk's offsets */
 #define PCA_REFLECT(u, w, dx, dy, dz, ex, ey, ez)                                        \
     {                                                                                    \
@@ -128,7 +134,7 @@ inline void pca_store_sums(REALV sc, REALV sw, REALV sx, REALV sy, REALV sz, REA
 }
 
 /* The sums of the ball of p into lane k of b: count, 1/sum w, mu = o - p and the centred
- * covariance (with PCA_ANCHOR in the frame of the anchor a, PCA_FRAME; a is kept in b).
+ * covariance (with PCA_ANCHOR in the frame of the anchor a, PCA_FRAME, kept in b).
  * (Results go through arrays, not a returned struct: PoCL spills struct copies in the
  * work-item loop at a large cost.) */
 inline void pca_ball(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
@@ -152,7 +158,7 @@ inline void pca_ball(__global const REAL *X, __global const REAL *Y, __global co
     NEIGHBOR_CHUNKS_END
     pca_store_sums(sc, sw, sx, sy, sz, sxx, sxy, sxz, syy, syz, szz, b, k);
 #if PCA_ANCHOR
-    b->ax[k] = a.x; b->ay[k] = a.y; b->az[k] = a.z;
+    PCA_KEEP_FRAME(b, k, fu, fw)
 #endif
 }
 
@@ -192,15 +198,11 @@ inline void pca_anchor_l0(pca_batch_t *b)
     const REALV uca = vx * c2 + vy * c4;
     const REALV l0 = vz * vz * c5 + (REAL)2 * vz * uca + ucu;
     const REALV u2 = vx * vx + vy * vy;
-    /* the frame of every lane (PCA_FRAME, lane-wise) */
-    const REALV ax = VLOADV(0, b->ax), ay = VLOADV(0, b->ay), az = VLOADV(0, b->az);
-    const IREALV has = isnotequal(ax, (REALV)0) | isnotequal(ay, (REALV)0)
-                       | isnotequal(az, (REALV)0);
-    const REALV uz = az + select((REALV)1, (REALV)-1, isless(az, (REALV)0));
-    const REALV s2 = select((REALV)0, (REAL)2 / (ax * ax + ay * ay + uz * uz), has);
-    const REALV ux = select((REALV)0, ax, has), uy = select((REALV)0, ay, has);
-    const REALV uzz = select((REALV)0, uz, has);
-    const REALV wx = ux * s2, wy = uy * s2, wz = uzz * s2;
+    /* the frame of every lane (PCA_FRAME; w = 0: no anchor) */
+    const REALV ux = VLOADV(0, b->fu[0]), uy = VLOADV(0, b->fu[1]), uzz = VLOADV(0, b->fu[2]);
+    const REALV wx = VLOADV(0, b->fw[0]), wy = VLOADV(0, b->fw[1]), wz = VLOADV(0, b->fw[2]);
+    const IREALV has = isnotequal(wx, (REALV)0) | isnotequal(wy, (REALV)0)
+                       | isnotequal(wz, (REALV)0);
     VSTOREV(select((REALV)NAN, fmax(l0, (REALV)0), isless(u2, (REALV)ANCHOR_SIN2) & has),
             0, b->l0a);
     REALV t, x, y, z;
@@ -222,7 +224,7 @@ inline void pca_empty_lane(pca_batch_t *b, uint k)
     for (int e = 0; e < 6; ++e) b->c[e][k] = (REAL)(e == 0 || e == 3 || e == 5);
     b->count[k] = 0;
 #if PCA_ANCHOR
-    b->ax[k] = b->ay[k] = b->az[k] = 0;
+    for (int e = 0; e < 3; ++e) b->fu[e][k] = b->fw[e][k] = 0;
     b->mux[k] = b->muy[k] = b->muz[k] = 0;
 #endif
 }
