@@ -123,7 +123,8 @@ def empty(shape, dtype=np.float64):
                 _STATE["held"] -= size
                 break
     if block is None:
-        block = mmap.mmap(-1, size)
+        # private (copy-on-write after a fork, as numpy's memory), not mmap's default shared
+        block = mmap.mmap(-1, size, flags=mmap.MAP_PRIVATE)
         _advise(block)
     holder = np.frombuffer(block, np.uint8, count=nbytes)
     fin = weakref.finalize(holder, _give_back, block, size)

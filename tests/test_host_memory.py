@@ -1,5 +1,6 @@
 """The host pool of result arrays (clcurv.host_memory): a dropped result's pages are reused,
 never while any view of them is alive, within the hold limit; release and CLCURV_POOL=0."""
+import os
 import pickle
 
 import numpy as np
@@ -58,6 +59,19 @@ def test_results_survive_pickling_and_the_pool_respects_its_limit(pool, monkeypa
     del d, big
     assert pool.held_bytes() == size
     assert pool.release() == size and pool.held_bytes() == 0
+
+
+def test_a_forked_child_writes_its_own_copy(pool):
+    """Pooled pages are private, as numpy's: a child's writes after a fork (multiprocessing)
+    do not reach the parent's array."""
+    a = pool.empty(300_000)
+    a[:] = 1.0
+    pid = os.fork()
+    if pid == 0:                                      # the child
+        a[:] = 2.0
+        os._exit(0)
+    os.waitpid(pid, 0)
+    assert (a == 1.0).all()
 
 
 def test_pool_off(monkeypatch):
