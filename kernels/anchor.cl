@@ -2,9 +2,9 @@
  * pca.h (PCA_ANCHOR): the PCA normal of the cell's own points.
  *
  * One work-item per VW consecutive cells: each cell's points (or, for a cell of fewer than
- * ANCHOR_MIN_POINTS, those of its row of three cells along x) are summed twice (mean, then
- * centred covariance, in the coordinates of neighbors.h: small numbers), then the VW
- * covariances are decomposed at once by eig3_sym_v. Fewer than 3 points, or a covariance
+ * ANCHOR_MIN_POINTS, those of its row of three cells along x) are summed in one pass, VW
+ * points at a time, as offsets from the first of them, then the VW covariances are
+ * decomposed at once by eig3_sym_v. Fewer than 3 points, or a covariance
  * of rank < 2, give the zero vector: the cell's points then take the second walk (pca.h).
  * The anchor only has to be near the balls' own normals; its sign is irrelevant.
  */
@@ -37,18 +37,25 @@ __kernel void cell_normals(__global const REAL *X, __global const REAL *Y,
         }
         /* the x copy of the cell's rows (neighbors.h): continuous over the row of 3 cells */
         __global const REAL *XA = x_rows(X, cell_of[cell_start[cell]], n);
-        REAL3 m = (REAL3)(0);
-        for (uint i = a; i < b; ++i) m += (REAL3)(XA[i], Y[i], Z[i]);
-        const REAL inv = (REAL)1 / (REAL)max(b - a, 1u);
-        m *= inv;
-        REAL sxx = 0, sxy = 0, sxz = 0, syy = 0, syz = 0, szz = 0;
-        for (uint i = a; i < b; ++i) {
-            const REAL3 d = (REAL3)(XA[i], Y[i], Z[i]) - m;
-            sxx += d.x * d.x; sxy += d.x * d.y; sxz += d.x * d.z;
-            syy += d.y * d.y; syz += d.y * d.z; szz += d.z * d.z;
+        /* one pass, VW points at a time (the arrays are padded: neighbors.h), offsets from
+         * the first point: small numbers, and the anchor needs only its direction to
+         * ~1e-2 (pca.h: ANCHOR_SIN2), which the one-pass covariance holds by far */
+        const REAL3 o = (REAL3)(XA[a], Y[a], Z[a]);
+        REALV sx = 0, sy = 0, sz = 0, sxx = 0, sxy = 0, sxz = 0, syy = 0, syz = 0, szz = 0;
+        for (uint i = a; i < b; i += VW) {
+            const IREALV live = LANES < (IREALV)((IREAL)(b - i));
+            const REALV dx = VLOADV(0, XA + i) - o.x, dy = VLOADV(0, Y + i) - o.y;
+            const REALV dz = VLOADV(0, Z + i) - o.z;
+            MASKED_ADD(sx, live, dx) MASKED_ADD(sy, live, dy) MASKED_ADD(sz, live, dz)
+            MASKED_ADD(sxx, live, dx * dx) MASKED_ADD(sxy, live, dx * dy)
+            MASKED_ADD(sxz, live, dx * dz) MASKED_ADD(syy, live, dy * dy)
+            MASKED_ADD(syz, live, dy * dz) MASKED_ADD(szz, live, dz * dz)
         }
-        c[0][k] = sxx * inv; c[1][k] = sxy * inv; c[2][k] = sxz * inv;
-        c[3][k] = syy * inv; c[4][k] = syz * inv; c[5][k] = szz * inv;
+        const REAL inv = (REAL)1 / (REAL)max(b - a, 1u);
+        const REAL3 m = (REAL3)(hsum(sx), hsum(sy), hsum(sz)) * inv;
+        c[0][k] = hsum(sxx) * inv - m.x * m.x; c[1][k] = hsum(sxy) * inv - m.x * m.y;
+        c[2][k] = hsum(sxz) * inv - m.x * m.z; c[3][k] = hsum(syy) * inv - m.y * m.y;
+        c[4][k] = hsum(syz) * inv - m.y * m.z; c[5][k] = hsum(szz) * inv - m.z * m.z;
         cnt[k] = b - a;
     }
     REALV w0, w1, w2;

@@ -62,6 +62,10 @@
     { (rec).COL_COUNT = UINT_AS_REAL(count); (rec).COL_STATUS = (REAL)(status); }
 #define REC_STORE(rec, j, out) vstore16((rec), (j), (out))
 
+/* acc += x in the lanes of the mask m only: acc = m ? acc + x : acc (weights.h: the sums of
+ * a ball with uniform weights; anchor.cl: the points of a cell). */
+#define MASKED_ADD(acc, m, x) acc = select(acc, acc + (x), m);
+
 /* The arguments of every operator kernel, in the order clcurv/driver.py passes them: the
  * sorted coordinates (neighbors.h), the sorted reference normals NX, NY, NZ (unused by the
  * moments), the density weights W (read when DENSITY), the cells' anchor normals CN

@@ -23,9 +23,8 @@ inline REALV chunk_weights(__global const REAL *W, uint i, REALV dx, REALV dy, R
     return select((REALV)0, w, m);
 }
 
-/* acc += x over the lanes of the ball m with uniform weights (w = the mask as 0/1): a
- * masked update, acc = m ? acc + x : acc, one masked instruction on AVX-512 (an operation
- * and a blend elsewhere, what the product w x cost), the same values as acc += w x bit for
- * bit (1 x = x; a masked lane adds nothing, and its x, NaN or not, is never read). */
-#define MASKED_ADD(acc, m, x) acc = select(acc, acc + (x), m);
+/* MASKED_ADD (common.h) with uniform weights (w = the mask as 0/1) gives the same values as
+ * acc += w x bit for bit (1 x = x; a masked lane adds nothing, and its x, NaN or not, is
+ * never read), at one masked instruction on AVX-512 (an operation and a blend elsewhere,
+ * what the product w x cost). */
 #endif
