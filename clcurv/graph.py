@@ -32,10 +32,12 @@ CPU_GROUP = 1
 
 
 def knn_defines(cloud):
-    """Build options of knn.cl on ``cloud``'s device: the cloud's, with ``VW`` (candidates per
-    vector) raised on a CPU device to its native vector width for the precision when that is
-    8 or 16 (queried: 16 floats with AVX-512, where the kernel's CPU time is ~5% lower than
-    at 8 on PoCL 3.1, outputs identical)."""
+    """Build options of the k-NN kernels (knn.cl here, knn_radius.cl for the k-NN radius) on
+    ``cloud``'s device: the cloud's, with ``VW`` (candidates per vector) raised on a CPU
+    device to its native vector width for the precision when that is 8 or 16 (queried: 16
+    floats with AVX-512, where knn.cl's CPU time is ~5% lower than at 8 on PoCL 3.1 and
+    knn_radius.cl's ~25% lower, with the levels of clcurv.knn_radius.knn_levels; outputs
+    identical)."""
     dev = cloud.device.cl_device
     native = (dev.native_vector_width_double if cloud.precision == "double"
               else dev.native_vector_width_float)

@@ -40,6 +40,7 @@ point with r(p), and nothing in the paper bounds the error of a radius that vari
 """
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -127,6 +128,28 @@ def _first_cell(pts, k, lo, hi, sample=20000):
     return float(FIRST_CELL * np.sqrt(k * area / (np.pi * n)))
 
 
+#: the share of points allowed to take knn_radius.cl's counting path (see knn_levels)
+OVERFLOW_RATE = 0.12
+
+
+def knn_levels(k, vw):
+    """The d^2 values knn_radius.cl keeps per vector lane (KNN_LEVELS, 4 to 15) for ``k`` on
+    ``vw`` lanes: the fewest for which the points with a lane holding more of their k nearest
+    than it keeps, the points that take the slower counting path, are expected to be at
+    most OVERFLOW_RATE of them, a lane's share of the k nearest being about Poisson with
+    mean k / vw (expected share vw P(X > levels)). Each level costs a min and a max per
+    chunk of candidates, so too many cost as well: at k = 30 on the first cell of a 1M
+    sphere this gives 8 levels at vw = 8 and 6 at vw = 16, the fastest measured
+    (kernels/knn_radius.cl has the figures)."""
+    mu, term, cdf = k / vw, math.exp(-k / vw), 0.0
+    for levels in range(15):
+        cdf += term
+        if levels >= 4 and vw * (1.0 - cdf) <= OVERFLOW_RATE:
+            return levels
+        term *= mu / (levels + 1)
+    return 15
+
+
 def kth_squared(cloud, k, known=None, levels=None):
     """The squared distance to the k-th nearest point within the cloud's cell (device
     values as float64, input order; +inf where fewer than k points lie within it). Points
@@ -151,11 +174,8 @@ def _kth_launch(cloud, k, prev=None, levels=None):
     array or a device buffer); returns the output buffer for :func:`_kth_fetch`. The device
     works while the host goes on."""
     import pyopencl as cl
-    from .program import build, launch
-    opts = dict(cloud.defines, KNN_K=int(k))
-    if levels is not None:
-        opts["KNN_LEVELS"] = int(levels)
-    prg = build(cloud.device, "knn_radius.cl", opts)
+    from .program import launch
+    prg = _program(cloud, k, levels)
     mf, ctx, q = cl.mem_flags, cloud.device.context, cloud.device.queue
     nbytes = cloud.n * np.dtype(cloud.dtype).itemsize
     if prev is None:
@@ -171,6 +191,17 @@ def _kth_launch(cloud, k, prev=None, levels=None):
            out)
     q.flush()
     return out
+
+
+def _program(cloud, k, levels=None):
+    """knn_radius.cl for ``k`` on ``cloud``'s device: VW the native width on a CPU (16 with
+    AVX-512, clcurv.graph.knn_defines), KNN_LEVELS :func:`knn_levels` unless ``levels``."""
+    from .graph import knn_defines
+    from .program import build
+    opts = knn_defines(cloud)
+    opts.update(KNN_K=int(k), KNN_LEVELS=int(knn_levels(k, int(opts["VW"]))
+                                              if levels is None else levels))
+    return build(cloud.device, "knn_radius.cl", opts)
 
 
 def _kth_fetch(cloud, out):
@@ -338,8 +369,8 @@ def _ball_r2(cloud, k, d2_sorted):
     """The per-point r^2 (knn_radius.cl:ball_r2, :func:`_margin` on the device) of the k-th
     d^2 in ``cloud``'s sorted order (a device buffer, no point isolated): a padded device
     buffer."""
-    from .program import build, launch
-    prg = build(cloud.device, "knn_radius.cl", dict(cloud.defines, KNN_K=int(k)))
+    from .program import launch
+    prg = _program(cloud, k)
     out = device_buffer(cloud.device, (cloud.n + PAD) * np.dtype(cloud.dtype).itemsize)
     launch(cloud.device, prg.ball_r2, cloud.n + PAD, d2_sorted, np.uint32(cloud.n),
            cloud.dtype(1 + MARGIN), out)

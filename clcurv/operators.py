@@ -360,5 +360,7 @@ def program_variants(precision_defines):
     for group in layouts(tuple(FEATURES)):               # clcurv.features: every column
         out.append(("features.cl", dict(base, **program_defines(group, 4))))
         out.append(("features.cl", dict(base, **program_defines(group, 1, True))))
-    out.append(("knn_radius.cl", dict(base, KNN_K=30)))
+    from .knn_radius import knn_levels
+    out.append(("knn_radius.cl",
+                dict(base, KNN_K=30, KNN_LEVELS=knn_levels(30, int(base["VW"])))))
     return out

@@ -21,8 +21,9 @@
  * Output d2k[g] (sorted order): the K-th smallest d^2, or +INFINITY when fewer than K
  * points lie within c (the host then bins at a larger cell). ball_r2 turns the last
  * binning's d2k into the operators' per-point r^2.
- * Build option: KNN_K (1 .. clcurv.knn_radius.MAX_K); KNN_LEVELS (1 .. 15) overrides the
- * levels kept per lane (tests: 1 sends nearly every point down the counting path).
+ * Build options: KNN_K (1 .. clcurv.knn_radius.MAX_K); KNN_LEVELS (1 .. 15) the levels kept
+ * per lane (clcurv/knn_radius.py:knn_levels; tests: 1 sends nearly every point down the
+ * counting path).
  */
 #include "common.h"
 #include "neighbors.h"
@@ -31,15 +32,14 @@
 #error "knn_radius.cl needs KNN_K (clcurv/knn_radius.py)"
 #endif
 
-/* The smallest d^2 kept per lane: ceil(2 K / VW), twice a lane's share of the K nearest
- * (the first cell's ball holds ~1.4 K candidates, clcurv/knn_radius.py FIRST_CELL), 4 to
- * 15 vectors (a lane's count per bin fits a nibble: packed_prefix); a point whose lanes
- * drop values that matter takes the counting path. At K = 30, VW = 8, the first cell of a
- * 1M uniform sphere: kernel 102 ms with 8 levels, 107 with 10, 125 with 7, 191 with 6
- * (median of 7, 2 threads; the same values). */
+/* KNN_LEVELS, the smallest d^2 kept per lane (4 to 15 vectors: a lane's count per bin fits
+ * a nibble, packed_prefix), is the host's choice (clcurv/knn_radius.py:knn_levels): enough
+ * that few points have a lane holding more of their K nearest than it keeps, since those
+ * take the counting path. At K = 30 on the first cell of a 1M uniform sphere: VW = 8,
+ * kernel 102 ms with 8 levels, 107 with 10, 125 with 7, 191 with 6; VW = 16 (AVX-512),
+ * 144 ms with 4, ~92 with 5, ~83 with 6, ~87 with 7, ~92 with 8 (the same values). */
 #ifndef KNN_LEVELS
-#define KNN_LEVELS_WANTED ((2 * KNN_K + VW - 1) / VW)
-#define KNN_LEVELS (KNN_LEVELS_WANTED < 4 ? 4 : KNN_LEVELS_WANTED > 15 ? 15 : KNN_LEVELS_WANTED)
+#error "knn_radius.cl needs KNN_LEVELS (clcurv/knn_radius.py:knn_levels)"
 #endif
 #if KNN_LEVELS < 1 || KNN_LEVELS > 15
 #error "KNN_LEVELS must be 1 .. 15"
