@@ -279,10 +279,10 @@ class Binned:
     seconds: float
 
 
-def host_binning(points, cell, *, precision="float", frame=None, threads=None):
+def host_binning(points, cell, *, precision="float", frame=None, threads=None, box=None):
     """Bin ``points`` as :class:`DeviceCloud` does, on the host only: safe on a worker
     thread while the main thread drives the device (OpenCL calls stay on one thread; the
-    Oclgrind simulator crashes when two threads use one queue). ``threads``: as
+    Oclgrind simulator crashes when two threads use one queue). ``threads`` and ``box``: as
     :func:`clcurv.grid.bin_points`."""
     t0 = time.perf_counter()
     points = as_points(points, finite=False)        # checked by bin_points' bounding box
@@ -290,7 +290,7 @@ def host_binning(points, cell, *, precision="float", frame=None, threads=None):
     if len(points) == 0:
         raise ValueError("DeviceCloud needs at least one point")
     dtype = np.float64 if precision == "double" else np.float32
-    grid = bin_points(points, cell, dtype, frame, threads)
+    grid = bin_points(points, cell, dtype, frame, threads, box)
     check_pairs(grid, points, cell)
     return Binned(points, cell, precision, grid, time.perf_counter() - t0)
 

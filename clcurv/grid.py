@@ -340,17 +340,18 @@ class Frame:
         return u.astype(np.int64)
 
 
-def bin_points(points, cell, dtype=np.float32, frame=None, threads=None):
+def bin_points(points, cell, dtype=np.float32, frame=None, threads=None, box=None):
     """Bin ``points`` (N, 3) float64 into cells of size ``cell``; see the module docstring.
 
     ``frame`` (a :class:`Frame` of cell size ``cell`` containing every point) bins them in
     that frame instead of the one of their own bounding box. ``threads`` caps the cores the
     passes use (default: up to 4; 1 for a binning on a worker thread beside another one,
-    clcurv.knn_radius)."""
+    clcurv.knn_radius). ``box``: the points' :func:`bounding_box` (lo, hi) when the caller
+    has it already (clcurv.knn_radius bins the same points twice), saving its pass."""
     points = np.ascontiguousarray(points, dtype=np.float64)
     n = len(points)
     if frame is None:
-        lo, hi = bounding_box(points, threads)
+        lo, hi = bounding_box(points, threads) if box is None else box
         check_finite_box(points, lo, hi)
         nx, ny, nz = _dims(points, lo, hi, cell)
     else:

@@ -50,7 +50,7 @@ from .constants import PAD
 from .grid import bounding_box
 from .host_memory import empty as host_empty
 from .memory import buffer as device_buffer
-from .validate import as_points
+from .validate import as_points, check_finite_box
 
 #: largest k (the kernel keeps k distances per work-item in private memory)
 MAX_K = 256
@@ -214,11 +214,12 @@ def _kth_fetch(cloud, out):
 
 def knn_radii(points, k, *, device=None, precision="float"):
     """The :class:`KnnRadii` of ``points`` for ``k`` (see the module notes)."""
-    from .cloud import DeviceCloud
-    pts = as_points(points)
+    from .cloud import DeviceCloud, host_binning
+    pts = as_points(points, finite=False)      # checked on the bounding box
     t0 = time.perf_counter()
     k = check_k(k, len(pts))
-    lo, hi = bounding_box(pts)
+    lo, hi = box = bounding_box(pts)
+    check_finite_box(pts, lo, hi)
     diag = float(np.linalg.norm(hi - lo))
     c = _first_cell(pts, k, lo, hi)
     cap = None
@@ -227,13 +228,12 @@ def knn_radii(points, k, *, device=None, precision="float"):
     spec = None
     stages = {"first_cell": time.perf_counter() - t0, "binning": 0.0, "kth": 0.0}
     if GROWTH * c <= diag:
-        spec = _bin_ahead(pts, GROWTH * c, precision)
+        spec = _bin_ahead(pts, GROWTH * c, precision, box)
     while True:
         t1 = time.perf_counter()
-        if spec is not None and spec[0] == c:
-            cloud = DeviceCloud(None, None, binned=spec[1].result(), device=device)
-        else:
-            cloud = DeviceCloud(pts, c, device=device, precision=precision)
+        binned = spec[1].result() if spec is not None and spec[0] == c else \
+            host_binning(pts, c, precision=precision, box=box)
+        cloud = DeviceCloud(None, None, binned=binned, device=device)
         if spec is not None and spec[0] <= c:
             spec = None
         t2 = time.perf_counter()
@@ -307,7 +307,7 @@ def _some_isolated(pts, cloud, c, d2, ok, cap, levels):
 _HOST = None
 
 
-def _bin_ahead(pts, c, precision):
+def _bin_ahead(pts, c, precision, box):
     """(c, future of :func:`clcurv.cloud.host_binning` at c) on a worker thread: the second
     level's cell is GROWTH times the first in nearly every run (a uniform surface leaves ~5%
     of the points for it), and its binning (numpy, one core) then runs beside the first
@@ -321,7 +321,7 @@ def _bin_ahead(pts, c, precision):
         _HOST = ThreadPoolExecutor(1, thread_name_prefix="clcurv-knn-bin")
     # on one core: the main thread's binning of the first level uses both meanwhile (with
     # its parts on the host pool too, the four threads' GIL hand-offs cost ~6 ms at 1M)
-    return c, _HOST.submit(host_binning, pts, c, precision=precision, threads=1)
+    return c, _HOST.submit(host_binning, pts, c, precision=precision, threads=1, box=box)
 
 
 def _drop(spec):
