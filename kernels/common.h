@@ -60,7 +60,21 @@
 /* count and status, the two columns every record has */
 #define REC_COUNT_STATUS(rec, count, status) \
     { (rec).COL_COUNT = UINT_AS_REAL(count); (rec).COL_STATUS = (REAL)(status); }
+/* Records land at input indices, i.e. scattered: a store that misses the cache. Where the
+ * compiler has it (clang, as PoCL's), a non-temporal store of the whole record: one write of
+ * a full line that needs no read of it first (vstore16 became three partial stores, each
+ * waiting for its line; the moments kernel spent ~10% of its time on them). The record
+ * buffers are aligned to their vector size (OpenCL: CL_DEVICE_MEM_BASE_ADDR_ALIGN >= the
+ * largest type, REAL16 records at multiples of it). */
+#if defined(__has_builtin)
+#if __has_builtin(__builtin_nontemporal_store)
+#define REC_STORE(rec, j, out) \
+    __builtin_nontemporal_store((rec), (__global REAL16 *)(out) + (j))
+#endif
+#endif
+#ifndef REC_STORE
 #define REC_STORE(rec, j, out) vstore16((rec), (j), (out))
+#endif
 
 /* acc += x in the lanes of the mask m only: acc = m ? acc + x : acc (weights.h: the sums of
  * a ball with uniform weights; anchor.cl: the points of a cell). */
