@@ -259,7 +259,8 @@ def features(points, radius=None, features=DEFAULT_FEATURES, *, k=None, ddof=0, 
     if isinstance(up, str):
         raise ValueError(f"orient must be None, 'up' or a direction, got {orient!r}")
     points, cloud = _cloud_points(points)
-    pts = as_points(points)
+    # finiteness: the OpenCL path checks it on the binning's bounding box (one pass fewer)
+    pts = as_points(points, finite=backend != "opencl")
     if isinstance(radius, str):
         k = _parse_knn(radius, k)
         radius = None
