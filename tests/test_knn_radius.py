@@ -188,3 +188,24 @@ def test_duplicates_and_isolated_points(device):
     assert same.mean() > 0.998
     np.testing.assert_allclose(with_far.variation[:-1][same], alone.variation[same],
                                rtol=1e-4, atol=1e-7)
+
+
+def test_levels_kept_per_lane():
+    """knn_levels: the fewest levels for which the expected share of points whose lane holds
+    more of their k nearest than it keeps (Poisson, mean k / VW) is at most OVERFLOW_RATE;
+    at k = 30 the fastest measured, 8 at VW 8 and 6 at VW 16 (kernels/knn_radius.cl), within
+    4 .. 15 (a lane's count per bin fits a nibble), and growing with k."""
+    from math import exp, factorial
+    from clcurv.knn_radius import OVERFLOW_RATE, knn_levels
+    assert knn_levels(30, 8) == 8 and knn_levels(30, 16) == 6
+    for vw in (2, 4, 8, 16):
+        got = [knn_levels(k, vw) for k in range(1, 257)]
+        assert min(got) >= 4 and max(got) <= 15
+        assert all(a <= b for a, b in zip(got, got[1:]))
+        for k, lv in zip(range(1, 257), got):
+            mu = k / vw
+            tail = lambda L: 1 - sum(exp(-mu) * mu ** i / factorial(i) for i in range(L + 1))
+            if lv < 15:
+                assert vw * tail(lv) <= OVERFLOW_RATE + 1e-12
+            if lv > 4:
+                assert vw * tail(lv - 1) > OVERFLOW_RATE
