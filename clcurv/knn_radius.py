@@ -244,7 +244,7 @@ def knn_radii(points, k, *, device=None, precision="float"):
         levels.append(c)
         ok = np.isfinite(d2)
         if cap is None and ok.mean() >= 0.9:
-            cap = ISOLATION * float(np.sqrt(_quantile(d2[ok], 0.9)))
+            cap = ISOLATION * float(np.sqrt(_quantile(d2, 0.9, int(np.count_nonzero(ok)))))
         if ok.all() or c > diag or (cap is not None and c >= cap) \
                 or len(levels) >= _MAX_LEVELS:
             break
@@ -331,16 +331,19 @@ def _drop(spec):
     return None
 
 
-def _quantile(x, q):
-    """The q-quantile of ``x`` (1-D, not empty), interpolated linearly between the order
-    statistics at (len - 1) q as numpy.quantile's default, in float64; by one
+def _quantile(x, q, count=None):
+    """The q-quantile of the ``count`` smallest values of ``x`` (1-D; all of them when None;
+    clcurv passes the finite ones, the others being +inf), interpolated linearly between the
+    order statistics at (count - 1) q as numpy.quantile's default, in float64; by one
     numpy.partition at one index and the minimum above it (1.3 ms on 1M float32, where
-    numpy.quantile, and a partition at two indices, take 8-12)."""
-    at = (len(x) - 1) * q
+    numpy.quantile, and a partition at two indices, take 8-12; no copy of the finite
+    values first)."""
+    count = len(x) if count is None else count
+    at = (count - 1) * q
     i = int(np.floor(at))
     part = np.partition(x, i)
     a = float(part[i])
-    b = float(part[i + 1:].min()) if i + 1 < len(x) else a
+    b = float(part[i + 1:].min()) if i + 1 < count else a
     return a + (b - a) * (at - i)
 
 

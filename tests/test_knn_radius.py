@@ -209,3 +209,17 @@ def test_levels_kept_per_lane():
                 assert vw * tail(lv) <= OVERFLOW_RATE + 1e-12
             if lv > 4:
                 assert vw * tail(lv - 1) > OVERFLOW_RATE
+
+
+def test_quantile_of_the_finite_values():
+    """_quantile (the isolation cap's 90th percentile): numpy.quantile's value, of all values
+    or of the ``count`` finite ones among +inf (the unresolved points), without a copy."""
+    from clcurv.knn_radius import _quantile
+    rng = np.random.default_rng(1)
+    for n in (1, 2, 5, 1000, 100001):
+        x = rng.random(n).astype(np.float32)
+        y = np.concatenate([x, np.full(n // 3 + 1, np.inf, np.float32)])
+        rng.shuffle(y)
+        want = np.quantile(x.astype(np.float64), 0.9)
+        assert abs(_quantile(y, 0.9, n) - want) <= 1e-7
+        assert abs(_quantile(x, 0.9) - want) <= 1e-7
