@@ -53,8 +53,7 @@
  * chunk_offsets gives at r2, bit for bit: tests/test_multi_radius.py). */
 inline IREALV ball_mask(IREALV m, REALV dx, REALV dy, REALV dz, REAL r2)
 {
-    const REALV d2 = dx * dx + dy * dy + dz * dz;
-    return m & isless(d2, (REALV)r2);
+    return m & isless(offsets_d2(dx, dy, dz), (REALV)r2);
 }
 
 #if NR > 1
@@ -145,7 +144,7 @@ inline void features_pca(__global const REAL *X, __global const REAL *Y, __globa
                 ex = dx; ey = dy; ez = dz;
 #endif
                 bx[nb] = ex; by[nb] = ey; bz[nb] = ez; bm[nb] = mmax;
-                bd[nb] = dx * dx + dy * dy + dz * dz;         /* as ball_mask's d^2 */
+                bd[nb] = offsets_d2(dx, dy, dz);              /* as ball_mask's */
                 if (++nb == FEATURES_BUF) {
                     FEATURES_FLUSH(nb)
                     nb = 0;

@@ -56,7 +56,7 @@ inline IREALV chunk_d2(__global const REAL *X, __global const REAL *Y, __global 
 {
     REALV dx, dy, dz;
     const IREALV m = chunk_offsets(X, Y, Z, i, end, pr, ball, &dx, &dy, &dz);
-    *d2 = dx * dx + dy * dy + dz * dz;
+    *d2 = offsets_d2(dx, dy, dz);
     return m;
 }
 

@@ -83,6 +83,14 @@ inline REAL row_gap2(REAL3 p, REAL2 ball, int nb_y, int nb_z)
         for (uint i = nb_se.x; i < end; i += VW) {
 #define NEIGHBOR_CHUNKS_END }}
 
+/* |q - p|^2 of a chunk's offsets: the one expression of every ball test (chunk_offsets,
+ * features.cl's balls, knn_radius.cl), so that a lane's membership, to the last bit, does
+ * not depend on which kernel asks. */
+inline REALV offsets_d2(REALV dx, REALV dy, REALV dz)
+{
+    return dx * dx + dy * dy + dz * dz;
+}
+
 /* Offsets q - p of the chunk starting at i (pr: the query point as seen from the chunk's
  * row, see the top) and the mask of lanes that are neighbours. */
 inline IREALV chunk_offsets(__global const REAL *X, __global const REAL *Y,
@@ -92,7 +100,7 @@ inline IREALV chunk_offsets(__global const REAL *X, __global const REAL *Y,
     *dx = VLOADV(0, X + i) - pr.x;
     *dy = VLOADV(0, Y + i) - pr.y;
     *dz = VLOADV(0, Z + i) - pr.z;
-    const REALV d2 = (*dx) * (*dx) + (*dy) * (*dy) + (*dz) * (*dz);
+    const REALV d2 = offsets_d2(*dx, *dy, *dz);
     const IREALV live = LANES < (IREALV)((IREAL)(end - i));
     return live & isless(d2, (REALV)ball.x);
 }
