@@ -255,34 +255,32 @@ def knn_radii(points, k, *, device=None, precision="float"):
     spec = _drop(spec)
     # the last level's results: out (device) and d2 (host), its cloud's sorted order
     if ok.all() and (cap is None or not np.sqrt(float(d2.max())) > cap):
-        radius, iso_in, cloud, buf = _all_resolved(pts, k, cloud, c, out, d2, levels)
+        radius, iso_in, cloud, buf = _all_resolved(pts, box, k, cloud, c, out, d2, levels)
     else:
-        radius, iso_in, cloud, buf = _some_isolated(pts, cloud, c, d2, ok, cap, levels)
+        radius, iso_in, cloud, buf = _some_isolated(pts, box, cloud, c, d2, ok, cap, levels)
     stages["knn_radius"] = time.perf_counter() - t0
     return KnnRadii(k, radius, iso_in, cloud, buf, levels, stages)
 
 
-def _all_resolved(pts, k, cloud, c, out, d2, levels):
+def _all_resolved(pts, box, k, cloud, c, out, d2, levels):
     """(radius, isolated, the operators' cloud, its r^2 buffer) when every point has its k-th
     distance ``d2`` within the last cell ``c`` (the usual case): the permutations and r^2 on
     the device. The operators' cloud is the last level's, or binned again at the largest
     radius when ``c`` is much larger (appended to ``levels``)."""
-    from .cloud import DeviceCloud
     top = float(np.sqrt(float(_margin(d2.max(keepdims=True), cloud.dtype)[0])))
     d2_in = _permute(cloud, out, True)
     radius = np.sqrt(_kth_fetch(cloud, d2_in), dtype=np.float64, out=host_empty(cloud.n))
     if c > REBIN_FACTOR * top and top > 1e-3 * c:
         # the operators' walk at the largest radius, not at the last level's cell
-        cloud = DeviceCloud(pts, top, device=cloud.device, precision=cloud.precision)
+        cloud = _rebin(pts, box, top, cloud)
         levels.append(cloud.cell)
         out = _permute(cloud, d2_in, False)
     return radius, np.zeros(cloud.n, bool), cloud, _ball_r2(cloud, k, out)
 
 
-def _some_isolated(pts, cloud, c, d2, ok, cap, levels):
+def _some_isolated(pts, box, cloud, c, d2, ok, cap, levels):
     """:func:`_all_resolved` when some points are isolated (no k-th neighbour within the
     last cell, or one beyond ``cap``): their radius NaN and r^2 0, on the host."""
-    from .cloud import DeviceCloud
     order = cloud.grid.order
     radius, iso_in = np.empty(cloud.n), np.zeros(cloud.n, bool)
     d2 = d2.astype(np.float64)
@@ -298,10 +296,18 @@ def _some_isolated(pts, cloud, c, d2, ok, cap, levels):
     if live.any() and c > REBIN_FACTOR * top and top > 1e-3 * c:
         r2_in = np.empty(cloud.n, cloud.dtype)
         r2_in[order] = r2
-        cloud = DeviceCloud(pts, top, device=cloud.device, precision=cloud.precision)
+        cloud = _rebin(pts, box, top, cloud)
         levels.append(cloud.cell)
         r2 = r2_in[cloud.grid.order]
     return radius, iso_in, cloud, _upload_sorted_r2(cloud, r2)
+
+
+def _rebin(pts, box, cell, cloud):
+    """The operators' cloud binned again at ``cell`` (the largest radius), on ``cloud``'s
+    device and precision; ``box``: the points' bounding box, known already."""
+    from .cloud import DeviceCloud, host_binning
+    return DeviceCloud(None, None, device=cloud.device,
+                       binned=host_binning(pts, cell, precision=cloud.precision, box=box))
 
 
 _HOST = None
