@@ -36,6 +36,7 @@
 #include "weights.h"
 #include "pca.h"
 #include "radius.h"
+#include "ln.h"
 
 #if !defined(NR) || NR < 1 || NR > 4 || !defined(REFINE_L0) || !defined(MIN_COUNT) \
     || !defined(COL_COUNT) || !defined(COL_STATUS)
@@ -210,7 +211,7 @@ inline void features_refine(__global const REAL *X, __global const REAL *Y,
 /* x ln x, 0 at 0 (its limit) */
 inline REALV xlogx(REALV x)
 {
-    return select((REALV)0, x * log(x), isgreater(x, (REALV)0));
+    return select((REALV)0, x * ln_pos(x), isgreater(x, (REALV)0));
 }
 
 #define VSTORE_FEATURE(name, expr) REAL name[VW]; VSTOREV((expr), 0, name);
