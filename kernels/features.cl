@@ -81,8 +81,42 @@ inline IREALV ball_mask(IREALV m, REALV dx, REALV dy, REALV dz, REAL r2)
     }
 #endif
 
+#if NR > 1
+/* The walk of features_pca for NR balls, offsets in the anchor frame of axis AX (a
+ * constant: PCA_BY_AXIS): the chunks with a lane in the largest ball are kept (offsets in
+ * the anchor frame, d^2 as ball_mask computes it, the mask) FEATURES_BUF at a time, and each
+ * ball's sums then run over them with only that ball's accumulators live (with every
+ * ball's at once, 10 vectors each, the registers spilled: three balls cost 245 ms at 1M
+ * points against 222 for three single-radius walks; kept chunks, 214). The same lanes,
+ * additions and order as a single-radius walk (pca_ball): bit-identical sums. */
+#define FEATURES_WALK(AX)                                                                 \
+    {                                                                                     \
+        REALV bx[FEATURES_BUF], by[FEATURES_BUF], bz[FEATURES_BUF], bd[FEATURES_BUF];     \
+        IREALV bm[FEATURES_BUF];                                                          \
+        uint nb = 0;                                                                      \
+        NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, ball, i, end, pr)                \
+            const IREALV mmax = chunk_offsets(XA, Y, Z, i, end, pr, bmax, &dx, &dy, &dz); \
+            if (any_lane(mmax)) {         /* else no ball gets anything from the chunk */ \
+                FEATURES_FRAME(AX)                                                        \
+                bx[nb] = ex; by[nb] = ey; bz[nb] = ez; bm[nb] = mmax;                     \
+                bd[nb] = offsets_d2(dx, dy, dz);              /* as ball_mask's */        \
+                if (++nb == FEATURES_BUF) {                                               \
+                    FEATURES_FLUSH(nb)                                                    \
+                    nb = 0;                                                               \
+                }                                                                         \
+            }                                                                             \
+        NEIGHBOR_CHUNKS_END                                                               \
+        FEATURES_FLUSH(nb)                                                                \
+    }
+#if PCA_ANCHOR
+#define FEATURES_FRAME(AX) PCA_SHEAR(AX, fs, dx, dy, dz, ex, ey, ez)  /* masks: from d */
+#else
+#define FEATURES_FRAME(AX) ex = dx; ey = dy; ez = dz;
+#endif
+#endif
+
 /* The PCA of the NR balls of the VW consecutive sorted points g0 .. g0 + kn - 1: one walk
- * per point at the cloud's cells, ball j's lanes masked at r2[j]. */
+ * per point at the cloud's cells, ball j's lanes masked at r2[j] (NR = 1: pca_ball). */
 inline void features_pca(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
                          __global const REAL *W, __global const REAL *CN,
                          __global const uint *cell_of,
@@ -100,67 +134,36 @@ inline void features_pca(__global const REAL *X, __global const REAL *Y, __globa
         const uint co = cell_of[g];
         __global const REAL *XA = x_rows(X, co, n);
         const REAL3 p = (REAL3)(XA[g], Y[g], Z[g]);
+#if PCA_ANCHOR
+        const REAL3 a = vload3(co & CELL_MASK, CN);
+#else
+        const REAL3 a = (REAL3)(0);
+#endif
+        const REAL2 bmax = (REAL2)(BALL_R2(W, g, r2max), ball.y);
+#if NR == 1
+        pca_ball_framed(XA, Y, Z, W, ranges, co & CELL_MASK, p, bmax, (REAL)0, a, &pb[0], k);
+#else
         REALV sc[NR], sw[NR], sx[NR], sy[NR], sz[NR];
         REALV sxx[NR], sxy[NR], sxz[NR], syy[NR], syz[NR], szz[NR];
         for (int j = 0; j < NR; ++j) {
             sc[j] = sw[j] = sx[j] = sy[j] = sz[j] = 0;
             sxx[j] = sxy[j] = sxz[j] = syy[j] = syz[j] = szz[j] = 0;
         }
-#if PCA_ANCHOR
-        const REAL3 a = vload3(co & CELL_MASK, CN);
-        REAL3 fu, fw;
-        PCA_FRAME(a, fu, fw)
-#endif
         REALV dx, dy, dz, ex, ey, ez;
-        const REAL2 bmax = (REAL2)(BALL_R2(W, g, r2max), ball.y);
-#if NR == 1
-        NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, ball, i, end, pr)
-            const IREALV m = chunk_offsets(XA, Y, Z, i, end, pr, bmax, &dx, &dy, &dz);
+        int ax = 2;
+        REAL2 fs = (REAL2)(0);
 #if PCA_ANCHOR
-            PCA_REFLECT(fu, fw, dx, dy, dz, ex, ey, ez)   /* the masks: from d itself */
-#else
-            ex = dx; ey = dy; ez = dz;
+        PCA_FRAME(a, ax, fs)
 #endif
-            const REALV w = chunk_weights(W, i, dx, dy, dz, m, (REAL)0);
-            PCA_ACCUMULATE(w, m, ex, ey, ez, sc[0], sw[0], sx[0], sy[0], sz[0], sxx[0],
-                           sxy[0], sxz[0], syy[0], syz[0], szz[0])
-        NEIGHBOR_CHUNKS_END
-#else
-        /* Several balls: the chunks with a lane in the largest ball are kept (offsets in the
-           anchor frame, d^2 as ball_mask computes it, the mask) FEATURES_BUF at a time, and
-           each ball's sums then run over them with only that ball's accumulators live
-           (with every ball's at once, 10 vectors each, the registers spilled: three balls
-           cost 245 ms at 1M points against 222 for three single-radius walks; kept
-           chunks, 214). The same lanes, additions and order as a single-radius walk:
-           bit-identical sums. */
-        REALV bx[FEATURES_BUF], by[FEATURES_BUF], bz[FEATURES_BUF], bd[FEATURES_BUF];
-        IREALV bm[FEATURES_BUF];
-        uint nb = 0;
-        NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, ball, i, end, pr)
-            const IREALV mmax = chunk_offsets(XA, Y, Z, i, end, pr, bmax, &dx, &dy, &dz);
-            if (any_lane(mmax)) {             /* else no ball gets anything from the chunk */
-#if PCA_ANCHOR
-                PCA_REFLECT(fu, fw, dx, dy, dz, ex, ey, ez)   /* the masks: from d itself */
-#else
-                ex = dx; ey = dy; ez = dz;
-#endif
-                bx[nb] = ex; by[nb] = ey; bz[nb] = ez; bm[nb] = mmax;
-                bd[nb] = offsets_d2(dx, dy, dz);              /* as ball_mask's */
-                if (++nb == FEATURES_BUF) {
-                    FEATURES_FLUSH(nb)
-                    nb = 0;
-                }
-            }
-        NEIGHBOR_CHUNKS_END
-        FEATURES_FLUSH(nb)
-#endif
+        PCA_BY_AXIS(ax, FEATURES_WALK)
         for (int j = 0; j < NR; ++j) {
             pca_store_sums(sc[j], sw[j], sx[j], sy[j], sz[j], sxx[j], sxy[j], sxz[j], syy[j],
                            syz[j], szz[j], &pb[j], k);
 #if PCA_ANCHOR
-            PCA_KEEP_FRAME(&pb[j], k, fu, fw)
+            PCA_KEEP_FRAME(&pb[j], k, ax, fs, any(a != (REAL3)(0)))
 #endif
         }
+#endif
     }
     for (int j = 0; j < NR; ++j) {
         pca_decompose(&pb[j]);

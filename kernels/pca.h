@@ -7,13 +7,16 @@
  *              scalar eig3 per point costs more than the neighbour loops together);
  *   pca_refine_l0  lambda0 from a second pass (float32 one-pass moments lose ~2 digits);
  *   PCA_ANCHOR (on when the kernel is built with REFINE_L0=1)  lambda0 without the second
- *              pass: the walk sums the offsets in the anchor frame, reflected (Householder)
- *              so that the anchor a (the PCA normal of the query's cell, anchor.cl) is the
- *              z axis; the heights above the anchor plane are then a coordinate of their
- *              own whose small sums keep their digits, and pca_anchor_l0 evaluates
- *              <v0, C v0> there before it reflects v0, v2 and mu back; lanes whose anchor
- *              is too far from v0 (or missing) are marked for the second pass;
- *   PCA_REFLECT, PCA_ACCUMULATE, pca_store_sums, pca_decompose, PCA_REFINE_ACCUMULATE
+ *              pass: the walk sums the offsets in the anchor frame, sheared along the
+ *              anchor a's dominant axis (the PCA normal of the query's cell, anchor.cl) so
+ *              that the heights above the anchor plane (over a's component) are a
+ *              coordinate of their own whose small sums keep their digits;
+ *              pca_decompose shears the covariance back, pca_anchor_l0 evaluates
+ *              <v0, C v0> from the sheared sums and takes v0, v2 and mu back to the
+ *              cloud's axes; lanes whose anchor is too far from v0 (or missing) are marked
+ *              for the second pass;
+ *   pca_ball_framed  pca_ball in the anchor frame (PCA_FRAME, the walk unswitched by axis);
+ *   PCA_SHEAR, PCA_ACCUMULATE, pca_store_sums, pca_decompose, PCA_REFINE_ACCUMULATE
  *              their steps, which the multi-radius walk of features.cl uses too
  *              (bit-identical sums).
  */
@@ -50,9 +53,9 @@ typedef struct {
     REAL v0x[VW], v0y[VW], v0z[VW];  /* eigenvector of l0: the unoriented PCA normal */
     REAL v2x[VW], v2y[VW], v2z[VW];  /* eigenvector of l2 (the largest) */
     REAL c[6][VW];                   /* centred covariance xx xy xz yy yz zz (with
-                                        PCA_ANCHOR: in the lane's anchor frame) */
+                                        PCA_ANCHOR: of the sheared offsets, PCA_SHEAR) */
 #if PCA_ANCHOR
-    REAL fu[3][VW], fw[3][VW];       /* the anchor frame's u and w (PCA_FRAME; 0: none) */
+    REAL fs[2][VW], fax[VW], fh[VW]; /* the anchor frame (PCA_FRAME: s, axis; has one) */
     REAL l0a[VW];                    /* anchored lambda0, NaN: take the second pass */
 #endif
 } pca_batch_t;
@@ -82,31 +85,39 @@ typedef struct {
     }
 #endif
 
-/* The anchor frame (PCA_ANCHOR): the Householder reflection H = I - u w^T, w = 2 u / |u|^2,
- * u = a + sign(a_z) e_z, maps the anchor normal a to -sign(a_z) e_z (no cancellation in u:
- * |u|^2 >= 2 for a unit a). H is symmetric and its own inverse: H v = v - <w, v> u both
- * ways. A missing anchor (a = 0) gives u = w = 0, the identity. In that frame the heights
- * above the anchor plane are the z offsets: their sums, small numbers, keep the digits that
- * lambda0 needs (pca_anchor_l0), at 6 operations per chunk (the former separate height sums
- * cost 9 and 5 more accumulators). */
-#define PCA_FRAME(a, u, w)                                                               \
+/* The anchor frame (PCA_ANCHOR): a shear along the axis of the anchor a's largest
+ * component. With that axis ax and the two others t1, t2 in cyclic order after it (ax = z:
+ * x, y; ax = x: y, z; ax = y: z, x), an offset d becomes
+ *     e = (d_t1, d_t2, d_ax + s1 d_t1 + s2 d_t2),  s = (a_t1, a_t2) / a_ax  (|s_i| <= 1),
+ * so e_3 = <d, a> / a_ax is the height above the anchor plane over a_ax (1 / sqrt 3 <=
+ * |a_ax| <= 1): small numbers whose sums keep the digits that lambda0 needs
+ * (pca_anchor_l0), at 2 operations per chunk. (The Householder reflection that mapped a to
+ * e_z before cost 6 and 4.4 ms of the 1M-point features kernel more; the shear needs the
+ * axis known at compile time, so each walk is unswitched by it: PCA_BY_AXIS.) A missing
+ * anchor (a = 0) gives ax = z, s = 0: the identity. */
+#define PCA_FRAME(a, ax, s)                                                              \
     {                                                                                    \
-        const REAL3 u_ = (REAL3)((a).x, (a).y, (a).z + ((a).z < 0 ? (REAL)-1 : (REAL)1)); \
-        const int has_ = (a).x != 0 || (a).y != 0 || (a).z != 0;                         \
-        u = has_ ? u_ : (REAL3)(0);                                                      \
-        w = has_ ? u_ * ((REAL)2 / dot(u_, u_)) : (REAL3)(0);                            \
+        const REAL3 m_ = fabs(a);                                                        \
+        ax = m_.z >= m_.x && m_.z >= m_.y ? 2 : m_.x >= m_.y ? 0 : 1;                   \
+        const REAL3 r_ = ax == 2 ? (a) : ax == 0 ? (a).yzx : (a).zxy;                    \
+        s = r_.z != 0 ? r_.xy / r_.z : (REAL2)(0);                                       \
     }
-/* Lane k of b keeps the frame (u, w) for pca_anchor_l0 */
-#define PCA_KEEP_FRAME(b, k, u, w)                                                       \
+/* (ex, ey, ez) = e for a chunk's offsets, AX (0, 1, 2: x, y, z) a compile-time constant */
+#define PCA_SHEAR(AX, s, dx, dy, dz, ex, ey, ez)                                         \
     {                                                                                    \
-        (b)->fu[0][k] = (u).x; (b)->fu[1][k] = (u).y; (b)->fu[2][k] = (u).z;             \
-        (b)->fw[0][k] = (w).x; (b)->fw[1][k] = (w).y; (b)->fw[2][k] = (w).z;             \
+        const REALV t1_ = (AX) == 2 ? (dx) : (AX) == 0 ? (dy) : (dz);                    \
+        const REALV t2_ = (AX) == 2 ? (dy) : (AX) == 0 ? (dz) : (dx);                    \
+        const REALV h_ = (AX) == 2 ? (dz) : (AX) == 0 ? (dx) : (dy);                     \
+        ex = t1_; ey = t2_; ez = h_ + (s).x * t1_ + (s).y * t2_;                         \
     }
-/* (ex, ey, ez) = H (dx, dy, dz) for a chunk's offsets */
-#define PCA_REFLECT(u, w, dx, dy, dz, ex, ey, ez)                                        \
+/* BODY(AX) for the run-time axis ax, unswitched: each copy with AX a constant */
+#define PCA_BY_AXIS(ax, BODY)                                                            \
+    if ((ax) == 2) { BODY(2) } else if ((ax) == 0) { BODY(0) } else { BODY(1) }
+/* Lane k of b keeps the frame for pca_decompose and pca_anchor_l0 */
+#define PCA_KEEP_FRAME(b, k, ax, s, has)                                                 \
     {                                                                                    \
-        const REALV t_ = (dx) * (w).x + (dy) * (w).y + (dz) * (w).z;                     \
-        ex = (dx) - t_ * (u).x; ey = (dy) - t_ * (u).y; ez = (dz) - t_ * (u).z;          \
+        (b)->fs[0][k] = (s).x; (b)->fs[1][k] = (s).y;                                    \
+        (b)->fax[k] = (REAL)(ax); (b)->fh[k] = (REAL)(has);                              \
     }
 
 /* Lane k of b from the sums of PCA_ACCUMULATE: count, 1/sum w, mu = o - p and the centred
@@ -134,45 +145,73 @@ inline void pca_store_sums(REALV sc, REALV sw, REALV sx, REALV sy, REALV sz, REA
 }
 
 /* The sums of the ball of p into lane k of b: count, 1/sum w, mu = o - p and the centred
- * covariance (with PCA_ANCHOR in the frame of the anchor a, PCA_FRAME, kept in b).
+ * covariance (with PCA_ANCHOR of the offsets sheared along axis AX by s, PCA_SHEAR; AX a
+ * constant at each call, pca_ball_framed).
  * (Results go through arrays, not a returned struct: PoCL spills struct copies in the
  * work-item loop at a large cost.) */
 inline void pca_ball(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
                      __global const REAL *W, __global const uint2 *ranges, uint cell,
-                     REAL3 p, REAL2 ball, REAL ih2, REAL3 a, pca_batch_t *b, uint k)
+                     REAL3 p, REAL2 ball, REAL ih2, REAL2 s, const int AX, pca_batch_t *b,
+                     uint k)
 {
     REALV sc = 0, sw = 0, sx = 0, sy = 0, sz = 0;
     REALV sxx = 0, sxy = 0, sxz = 0, syy = 0, syz = 0, szz = 0;
-#if PCA_ANCHOR
-    REAL3 fu, fw;
-    PCA_FRAME(a, fu, fw)
-#endif
     REALV dx, dy, dz;
+    (void)s; (void)AX;
     NEIGHBOR_CHUNKS_BEGIN(ranges, cell, p, ball, i, end, pr)
         const IREALV m = chunk_offsets(X, Y, Z, i, end, pr, ball, &dx, &dy, &dz);
         const REALV w = chunk_weights(W, i, dx, dy, dz, m, ih2);
 #if PCA_ANCHOR
-        PCA_REFLECT(fu, fw, dx, dy, dz, dx, dy, dz)
+        PCA_SHEAR(AX, s, dx, dy, dz, dx, dy, dz)
 #endif
         PCA_ACCUMULATE(w, m, dx, dy, dz, sc, sw, sx, sy, sz, sxx, sxy, sxz, syy, syz, szz)
     NEIGHBOR_CHUNKS_END
     pca_store_sums(sc, sw, sx, sy, sz, sxx, sxy, sxz, syy, syz, szz, b, k);
+}
+
+/* pca_ball of p into lane k of b, with PCA_ANCHOR in the frame of the anchor a (PCA_FRAME,
+ * kept in b), the walk unswitched by its axis. */
+inline void pca_ball_framed(__global const REAL *X, __global const REAL *Y,
+                            __global const REAL *Z, __global const REAL *W,
+                            __global const uint2 *ranges, uint cell, REAL3 p, REAL2 ball,
+                            REAL ih2, REAL3 a, pca_batch_t *b, uint k)
+{
 #if PCA_ANCHOR
-    PCA_KEEP_FRAME(b, k, fu, fw)
+    int ax;
+    REAL2 s;
+    PCA_FRAME(a, ax, s)
+#define PCA_BALL_AX(AX) pca_ball(X, Y, Z, W, ranges, cell, p, ball, ih2, s, AX, b, k);
+    PCA_BY_AXIS(ax, PCA_BALL_AX)
+#undef PCA_BALL_AX
+    PCA_KEEP_FRAME(b, k, ax, s, any(a != (REAL3)(0)))
+#else
+    (void)a;
+    pca_ball(X, Y, Z, W, ranges, cell, p, ball, ih2, (REAL2)(0), 2, b, k);
 #endif
 }
 
 #define VSTOREV CAT(vstore, VW)
 
 /* The VW covariances of b decomposed at once (eig3_sym_v): eigenvalues clamped at 0, the
- * eigenvectors of the smallest and the largest. */
+ * eigenvectors of the smallest and the largest. With PCA_ANCHOR the covariance of the
+ * sheared offsets E (b->c, kept for pca_anchor_l0) is sheared back first: C = S^-1 E S^-T,
+ * S^-1 = I - e_3 (s1, s2, 0)^T, the covariance in the axes (t1, t2, ax) of each lane's
+ * frame; the eigenvectors stay in those axes (pca_anchor_l0 takes them back). */
 inline void pca_decompose(pca_batch_t *b)
 {
     REALV w0, w1, w2;
     eig3_v3_v e0, e1, e2;
-    eig3_sym_v(VLOADV(0, b->c[0]), VLOADV(0, b->c[1]), VLOADV(0, b->c[2]),
-               VLOADV(0, b->c[3]), VLOADV(0, b->c[4]), VLOADV(0, b->c[5]),
+    const REALV c0 = VLOADV(0, b->c[0]), c1 = VLOADV(0, b->c[1]), c3 = VLOADV(0, b->c[3]);
+#if PCA_ANCHOR
+    const REALV s1 = VLOADV(0, b->fs[0]), s2 = VLOADV(0, b->fs[1]);
+    const REALV m31 = VLOADV(0, b->c[2]) - s1 * c0 - s2 * c1;       /* row 3 of S^-1 E */
+    const REALV m32 = VLOADV(0, b->c[4]) - s1 * c1 - s2 * c3;
+    const REALV m33 = VLOADV(0, b->c[5]) - s1 * VLOADV(0, b->c[2]) - s2 * VLOADV(0, b->c[4]);
+    eig3_sym_v(c0, c1, m31, c3, m32, m33 - s1 * m31 - s2 * m32, &w0, &w1, &w2, &e0, &e1, &e2);
+#else
+    eig3_sym_v(c0, c1, VLOADV(0, b->c[2]), c3, VLOADV(0, b->c[4]), VLOADV(0, b->c[5]),
                &w0, &w1, &w2, &e0, &e1, &e2);
+#endif
     VSTOREV(fmax(w0, (REALV)0), 0, b->l0);
     VSTOREV(fmax(w1, (REALV)0), 0, b->l1);
     VSTOREV(fmax(w2, (REALV)0), 0, b->l2);
@@ -181,40 +220,46 @@ inline void pca_decompose(pca_batch_t *b)
 }
 
 #if PCA_ANCHOR
-/* The anchored lambda0 of every lane (after pca_decompose, in the anchor frame of
- * PCA_FRAME, where the anchor is the z axis), then v0, v2 and mu reflected back to the
- * cloud's frame. With v0 = (vx, vy, vz) in that frame,
- *     <v0, C v0> = vz^2 C_zz + 2 vz (vx C_xz + vy C_yz) + <u, C u>,  u = (vx, vy, 0),
+/* (x, y, z) from the frame's axes (t1, t2, ax) of every lane (PCA_FRAME), in place */
+#define PCA_TO_CLOUD_AXES(fx, fy, fz)                                                    \
+    {                                                                                    \
+        const REALV t1_ = VLOADV(0, fx), t2_ = VLOADV(0, fy), h_ = VLOADV(0, fz);        \
+        VSTOREV(select(select(t2_, h_, is0), t1_, is2), 0, fx);                          \
+        VSTOREV(select(select(h_, t1_, is0), t2_, is2), 0, fy);                          \
+        VSTOREV(select(select(t1_, t2_, is0), h_, is2), 0, fz);                          \
+    }
+/* The anchored lambda0 of every lane (after pca_decompose), then v0, v2 and mu taken to the
+ * cloud's axes. With v0 = (v1, v2, v3) in the lane's axes (t1, t2, ax) and
+ * w = S^-T v0 = (v1 - s1 v3, v2 - s2 v3, v3),
+ *     <v0, C v0> = <w, E w> = v3^2 E_33 + 2 v3 (w1 E_13 + w2 E_23) + <u, E u>, u = (w1, w2, 0),
  * the first two terms from the sums of the heights (small numbers, full relative precision),
- * only the last from the tangential sums, whose rounding it scales by |u|^2 = sin^2 of the
- * angle between the anchor and v0. Lanes with |u|^2 > ANCHOR_SIN2, or without an anchor,
- * get NaN, the mark for the second pass. */
+ * only the last from the tangential sums, whose rounding it scales by |u|^2 (0 when v0 is
+ * the anchor; <= ~6 sin^2 of their angle). Lanes with |u|^2 > ANCHOR_SIN2, or without an
+ * anchor, get NaN, the mark for the second pass. */
 inline void pca_anchor_l0(pca_batch_t *b)
 {
     const REALV vx = VLOADV(0, b->v0x), vy = VLOADV(0, b->v0y), vz = VLOADV(0, b->v0z);
+    const REALV s1 = VLOADV(0, b->fs[0]), s2 = VLOADV(0, b->fs[1]);
     const REALV c0 = VLOADV(0, b->c[0]), c1 = VLOADV(0, b->c[1]), c2 = VLOADV(0, b->c[2]);
     const REALV c3 = VLOADV(0, b->c[3]), c4 = VLOADV(0, b->c[4]), c5 = VLOADV(0, b->c[5]);
-    const REALV ucu = vx * (c0 * vx + (REAL)2 * c1 * vy) + c3 * vy * vy;
-    const REALV uca = vx * c2 + vy * c4;
+    const REALV wx = vx - s1 * vz, wy = vy - s2 * vz;
+    const REALV ucu = wx * (c0 * wx + (REAL)2 * c1 * wy) + c3 * wy * wy;
+    const REALV uca = wx * c2 + wy * c4;
     const REALV l0 = vz * vz * c5 + (REAL)2 * vz * uca + ucu;
-    const REALV u2 = vx * vx + vy * vy;
-    /* the frame of every lane (PCA_FRAME; w = 0: no anchor) */
-    const REALV ux = VLOADV(0, b->fu[0]), uy = VLOADV(0, b->fu[1]), uzz = VLOADV(0, b->fu[2]);
-    const REALV wx = VLOADV(0, b->fw[0]), wy = VLOADV(0, b->fw[1]), wz = VLOADV(0, b->fw[2]);
-    const IREALV has = isnotequal(wx, (REALV)0) | isnotequal(wy, (REALV)0)
-                       | isnotequal(wz, (REALV)0);
+    const REALV u2 = wx * wx + wy * wy;
+    const IREALV has = isnotequal(VLOADV(0, b->fh), (REALV)0);
     VSTOREV(select((REALV)NAN, fmax(l0, (REALV)0), isless(u2, (REALV)ANCHOR_SIN2) & has),
             0, b->l0a);
-    REALV t, x, y, z;
-#define PCA_UNREFLECT(fx, fy, fz)                                                        \
-    x = VLOADV(0, fx); y = VLOADV(0, fy); z = VLOADV(0, fz);                             \
-    t = x * wx + y * wy + z * wz;                                                        \
-    VSTOREV(x - t * ux, 0, fx); VSTOREV(y - t * uy, 0, fy); VSTOREV(z - t * uzz, 0, fz);
-    PCA_UNREFLECT(b->v0x, b->v0y, b->v0z)
-    PCA_UNREFLECT(b->v2x, b->v2y, b->v2z)
-    PCA_UNREFLECT(b->mux, b->muy, b->muz)
-#undef PCA_UNREFLECT
+    /* mu: S^-1 of the sheared mean, then every vector to the cloud's axes */
+    const REALV m1 = VLOADV(0, b->mux), m2 = VLOADV(0, b->muy);
+    VSTOREV(VLOADV(0, b->muz) - s1 * m1 - s2 * m2, 0, b->muz);
+    const REALV ax = VLOADV(0, b->fax);
+    const IREALV is0 = isequal(ax, (REALV)0), is2 = isequal(ax, (REALV)2);
+    PCA_TO_CLOUD_AXES(b->v0x, b->v0y, b->v0z)
+    PCA_TO_CLOUD_AXES(b->v2x, b->v2y, b->v2z)
+    PCA_TO_CLOUD_AXES(b->mux, b->muy, b->muz)
 }
+#undef PCA_TO_CLOUD_AXES
 #endif
 
 /* Lane k of b unused (past the work-item's points): the identity covariance, no count, no
@@ -224,7 +269,9 @@ inline void pca_empty_lane(pca_batch_t *b, uint k)
     for (int e = 0; e < 6; ++e) b->c[e][k] = (REAL)(e == 0 || e == 3 || e == 5);
     b->count[k] = 0;
 #if PCA_ANCHOR
-    for (int e = 0; e < 3; ++e) b->fu[e][k] = b->fw[e][k] = 0;
+    b->fs[0][k] = b->fs[1][k] = 0;
+    b->fax[k] = 2;
+    b->fh[k] = 0;
     b->mux[k] = b->muy[k] = b->muz[k] = 0;
 #endif
 }
@@ -245,8 +292,8 @@ inline void pca_batch(__global const REAL *X, __global const REAL *Y, __global c
 #else
             const REAL3 a = (REAL3)(0);
 #endif
-            pca_ball(XA, Y, Z, W, ranges, co & CELL_MASK, (REAL3)(XA[g], Y[g], Z[g]),
-                     POINT_BALL(W, g, ball), ih2, a, b, k);
+            pca_ball_framed(XA, Y, Z, W, ranges, co & CELL_MASK, (REAL3)(XA[g], Y[g], Z[g]),
+                            POINT_BALL(W, g, ball), ih2, a, b, k);
         } else {
             pca_empty_lane(b, k);
         }
