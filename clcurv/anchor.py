@@ -3,10 +3,10 @@
 The kernels that need an accurate smallest eigenvalue lambda0 (surface variation, the
 covariance features) used to walk every ball twice, because float32 one-pass moments lose
 about two digits of lambda0 on smooth surfaces. With an anchor normal ``a`` near the ball's
-own normal, one walk suffices: it sums the offsets in a frame whose z axis is ``a`` (a
-Householder reflection), where the heights above the anchor plane are a coordinate of
+own normal, one walk suffices: it sums the offsets sheared along ``a``'s dominant axis, so
+that the heights above the anchor plane (over that component of ``a``) are a coordinate of
 their own, small numbers that keep their digits, and lambda0 = <v0, C v0> is evaluated
-there (kernels/pca.h, PCA_ANCHOR). The anchor of a cell is the PCA normal of the cell's own points
+from those sums (kernels/pca.h, PCA_ANCHOR). The anchor of a cell is the PCA normal of the cell's own points
 (kernels/anchor.cl); a cell with fewer than 3 points or collinear points has none (the zero
 vector), and its points, like those whose anchor is too far from their normal, take the
 second walk as before.
