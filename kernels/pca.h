@@ -15,7 +15,7 @@
  *              <v0, C v0> from the sheared sums and takes v0, v2 and mu back to the
  *              cloud's axes; lanes whose anchor is too far from v0 (or missing) are marked
  *              for the second pass;
- *   pca_ball_framed  pca_ball in the anchor frame (PCA_FRAME, the walk unswitched by axis);
+ *   pca_ball_framed  pca_ball in the anchor frame (PCA_FRAME; one walk per axis);
  *   PCA_SHEAR, PCA_ACCUMULATE, pca_store_sums, pca_decompose, PCA_REFINE_ACCUMULATE
  *              their steps, which the multi-radius walk of features.cl uses too
  *              (bit-identical sums).
@@ -92,9 +92,10 @@ typedef struct {
  * so e_3 = <d, a> / a_ax is the height above the anchor plane over a_ax (1 / sqrt 3 <=
  * |a_ax| <= 1): small numbers whose sums keep the digits that lambda0 needs
  * (pca_anchor_l0), at 2 operations per chunk. (The Householder reflection that mapped a to
- * e_z before cost 6 and 4.4 ms of the 1M-point features kernel more; the shear needs the
- * axis known at compile time, so each walk is unswitched by it: PCA_BY_AXIS.) A missing
- * anchor (a = 0) gives ax = z, s = 0: the identity. */
+ * e_z before cost 6: the 1M-point features kernel took 55.8 ms with it, 52.5 with the
+ * shear, the moments kernel of surface variation 52.5 and 48.8. The shear needs the axis
+ * known at compile time, so each walk has a copy per axis: pca_ball_x, _y, _z,
+ * PCA_BY_AXIS.) A missing anchor (a = 0) gives ax = z, s = 0: the identity. */
 #define PCA_FRAME(a, ax, s)                                                              \
     {                                                                                    \
         const REAL3 m_ = fabs(a);                                                        \
@@ -145,29 +146,40 @@ inline void pca_store_sums(REALV sc, REALV sw, REALV sx, REALV sy, REALV sz, REA
 }
 
 /* The sums of the ball of p into lane k of b: count, 1/sum w, mu = o - p and the centred
- * covariance (with PCA_ANCHOR of the offsets sheared along axis AX by s, PCA_SHEAR; AX a
- * constant at each call, pca_ball_framed).
+ * covariance (with PCA_ANCHOR of the offsets sheared along axis AX by s, PCA_SHEAR). One
+ * function per axis, pca_ball_x, _y, _z (AX a constant in each: PoCL does not inline
+ * pca_ball into its callers, so a parameter would stay a run-time choice per chunk).
  * (Results go through arrays, not a returned struct: PoCL spills struct copies in the
  * work-item loop at a large cost.) */
-inline void pca_ball(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
-                     __global const REAL *W, __global const uint2 *ranges, uint cell,
-                     REAL3 p, REAL2 ball, REAL ih2, REAL2 s, const int AX, pca_batch_t *b,
-                     uint k)
-{
-    REALV sc = 0, sw = 0, sx = 0, sy = 0, sz = 0;
-    REALV sxx = 0, sxy = 0, sxz = 0, syy = 0, syz = 0, szz = 0;
-    REALV dx, dy, dz;
-    (void)s; (void)AX;
-    NEIGHBOR_CHUNKS_BEGIN(ranges, cell, p, ball, i, end, pr)
-        const IREALV m = chunk_offsets(X, Y, Z, i, end, pr, ball, &dx, &dy, &dz);
-        const REALV w = chunk_weights(W, i, dx, dy, dz, m, ih2);
 #if PCA_ANCHOR
-        PCA_SHEAR(AX, s, dx, dy, dz, dx, dy, dz)
+#define PCA_BALL_SHEAR(AX) PCA_SHEAR(AX, s, dx, dy, dz, dx, dy, dz)
+#else
+#define PCA_BALL_SHEAR(AX)
 #endif
-        PCA_ACCUMULATE(w, m, dx, dy, dz, sc, sw, sx, sy, sz, sxx, sxy, sxz, syy, syz, szz)
-    NEIGHBOR_CHUNKS_END
-    pca_store_sums(sc, sw, sx, sy, sz, sxx, sxy, sxz, syy, syz, szz, b, k);
+#define PCA_BALL(name, AX)                                                                \
+inline void name(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,   \
+                 __global const REAL *W, __global const uint2 *ranges, uint cell, REAL3 p, \
+                 REAL2 ball, REAL ih2, REAL2 s, pca_batch_t *b, uint k)                    \
+{                                                                                         \
+    REALV sc = 0, sw = 0, sx = 0, sy = 0, sz = 0;                                         \
+    REALV sxx = 0, sxy = 0, sxz = 0, syy = 0, syz = 0, szz = 0;                           \
+    REALV dx, dy, dz;                                                                     \
+    (void)s;                                                                              \
+    NEIGHBOR_CHUNKS_BEGIN(ranges, cell, p, ball, i, end, pr)                              \
+        const IREALV m = chunk_offsets(X, Y, Z, i, end, pr, ball, &dx, &dy, &dz);         \
+        const REALV w = chunk_weights(W, i, dx, dy, dz, m, ih2);                          \
+        PCA_BALL_SHEAR(AX)                                                                \
+        PCA_ACCUMULATE(w, m, dx, dy, dz, sc, sw, sx, sy, sz, sxx, sxy, sxz, syy, syz, szz) \
+    NEIGHBOR_CHUNKS_END                                                                   \
+    pca_store_sums(sc, sw, sx, sy, sz, sxx, sxy, sxz, syy, syz, szz, b, k);               \
 }
+PCA_BALL(pca_ball_z, 2)
+#if PCA_ANCHOR
+PCA_BALL(pca_ball_x, 0)
+PCA_BALL(pca_ball_y, 1)
+#endif
+#undef PCA_BALL
+#undef PCA_BALL_SHEAR
 
 /* pca_ball of p into lane k of b, with PCA_ANCHOR in the frame of the anchor a (PCA_FRAME,
  * kept in b), the walk unswitched by its axis. */
@@ -180,13 +192,13 @@ inline void pca_ball_framed(__global const REAL *X, __global const REAL *Y,
     int ax;
     REAL2 s;
     PCA_FRAME(a, ax, s)
-#define PCA_BALL_AX(AX) pca_ball(X, Y, Z, W, ranges, cell, p, ball, ih2, s, AX, b, k);
-    PCA_BY_AXIS(ax, PCA_BALL_AX)
-#undef PCA_BALL_AX
+    if (ax == 2) pca_ball_z(X, Y, Z, W, ranges, cell, p, ball, ih2, s, b, k);
+    else if (ax == 0) pca_ball_x(X, Y, Z, W, ranges, cell, p, ball, ih2, s, b, k);
+    else pca_ball_y(X, Y, Z, W, ranges, cell, p, ball, ih2, s, b, k);
     PCA_KEEP_FRAME(b, k, ax, s, any(a != (REAL3)(0)))
 #else
     (void)a;
-    pca_ball(X, Y, Z, W, ranges, cell, p, ball, ih2, (REAL2)(0), 2, b, k);
+    pca_ball_z(X, Y, Z, W, ranges, cell, p, ball, ih2, (REAL2)(0), b, k);
 #endif
 }
 
