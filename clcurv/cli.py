@@ -57,8 +57,9 @@ def render_cmd(args, out=print):
 
 def features_cmd(args, out=print):
     """``clcurv features``: covariance features (:func:`clcurv.features`) of a file's points
-    at one radius, several (fields named ``<feature>_r<radius>``) or a k-NN radius (plus a
-    ``knn_radius`` field), written with the input's points (LAS/LAZ: header kept)."""
+    at one radius, several (fields named ``<feature>_r<radius>``), a k-NN radius (plus a
+    ``knn_radius`` field) or each point's optimal radius among several (``--optimal``, plus
+    an ``optimal_radius`` field), written with the input's points (LAS/LAZ: header kept)."""
     from .features import features, radius_suffix
     io.check_output(args.output)            # before reading and computing
     if (args.radius is None) == (args.k is None):
@@ -68,9 +69,11 @@ def features_cmd(args, out=print):
     except ValueError:
         raise UsageError(f"--radius takes numbers separated by commas, got {args.radius!r}")
     cloud = io.read(args.input)
+    if args.optimal and (radius is None or len(radius) < 2):
+        raise UsageError("--optimal chooses among radii: give --radius R1,R2[,...]")
     res = features(cloud.points, radius if radius is None or len(radius) > 1 else radius[0],
-                   args.features, k=args.k, ddof=args.ddof, device=args.device,
-                   precision=args.precision)
+                   args.features, k=args.k, ddof=args.ddof, optimal=args.optimal,
+                   device=args.device, precision=args.precision)
     normals = None
     if isinstance(res, list):
         fields = {}
@@ -84,6 +87,8 @@ def features_cmd(args, out=print):
                 del fields[a]
         if args.k is not None:
             fields["knn_radius"] = res.radius
+        if args.optimal:
+            fields["optimal_radius"] = res.radius
     path = io.write(args.output, cloud.points, fields, normals=normals, like=cloud)
     out(f"wrote {path}: {len(cloud.points)} points, {len(fields)} fields")
     return path
@@ -189,6 +194,9 @@ def build_parser():
                    "separated by commas (one neighbour walk; fields named <feature>_r<radius>)")
     f.add_argument("--k", type=int, default=None, help="per-point radius: the distance to "
                    "the k-th nearest point")
+    f.add_argument("--optimal", action="store_true", help="with several radii: each point's "
+                   "features at the radius of least eigenentropy among them (optimal "
+                   "neighbourhood; one set of fields plus optimal_radius)")
     f.add_argument("--features", default=",".join(FEATURE_NAMES), help="comma-separated "
                    "names (jakteristics or PDAL spellings) or 'all'")
     f.add_argument("--ddof", type=int, default=0, choices=[0, 1],

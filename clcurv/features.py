@@ -208,7 +208,7 @@ def _radii(radius):
 
 
 def features(points, radius=None, features=DEFAULT_FEATURES, *, k=None, ddof=0, orient=None,
-             device=None, precision="float", backend="opencl"):
+             optimal=False, device=None, precision="float", backend="opencl"):
     """Covariance features of the ball N_r(p) = {q : |q - p| < r} of every point.
 
     Parameters
@@ -232,13 +232,20 @@ def features(points, radius=None, features=DEFAULT_FEATURES, *, k=None, ddof=0, 
     orient : None, 'up' or 3 floats
         Orientation of ``normals``: None keeps the PCA sign (arbitrary, as jakteristics);
         'up' or a direction turns them to a positive dot product with it.
+    optimal : bool
+        With a list of at least two radii: each point's features at the one radius, among
+        them, whose ball has the least eigenentropy of its sum-normalised eigenvalues (the
+        optimal neighbourhood of Weinmann et al. 2015 and PDAL's
+        ``filters.optimalneighborhood``, over radii; :mod:`clcurv.optimal`). One result,
+        whose ``radius`` is each point's chosen radius.
     device, precision, backend
         As :func:`clcurv.curvature`; ``backend='numpy'`` runs the float64 reference
         (:mod:`clcurv.reference_features`).
 
     Returns
     -------
-    FeatureResult, or a list of them (one per radius, in the order given) for a sequence.
+    FeatureResult, or a list of them (one per radius, in the order given) for a sequence
+    (one, per-point radii, with ``optimal=True``).
 
     Examples
     --------
@@ -267,11 +274,21 @@ def features(points, radius=None, features=DEFAULT_FEATURES, *, k=None, ddof=0, 
     if k is not None:
         if radius is not None:
             raise ValueError("give either radius or k (or radius='knn:K'), not both")
+        if optimal:
+            raise ValueError("optimal=True chooses among a list of radii, not with k")
         return _finish(_knn_features(pts, k, names, ddof, device, precision, backend), up)
     if radius is None:
         raise ValueError("features needs radius= (a number, a list of numbers or 'knn:K') "
                          "or k=")
     radii, multi = _radii(radius)
+    if optimal:
+        if not multi or len(radii) < 2:
+            raise ValueError("optimal=True needs a list of at least two radii to choose from, "
+                             f"got radius={radius!r}")
+        res = _optimal_features(pts, cloud, sorted(radii), names, ddof, device, precision,
+                                backend)
+        _warn_sparse(res)
+        return _finish(res, up)
     if len(pts) == 0:
         out = [_empty(names, r, ddof) for r in radii]
     elif backend == "numpy":
@@ -320,6 +337,36 @@ def _knn_features(pts, k, names, ddof, device, precision, backend):
     status = np.where(radii.isolated, np.uint8(TOO_FEW), status)
     return FeatureResult(radii.radius, vals, count, status, ddof=ddof,
                          info={"k": k, "timings": radii.timings})
+
+
+def _optimal_features(pts, cloud, radii, names, ddof, device, precision, backend):
+    """The FeatureResult of features(optimal=True) (clcurv.optimal) for sorted ``radii``."""
+    from . import optimal as opt
+    if len(pts) == 0:
+        res = _empty(names, np.empty(0), ddof)
+        res.info.update(radii=radii, optimal_index=np.empty(0, np.intp))
+        return res
+    if backend == "numpy":
+        from . import reference_features as ref
+        need = list(dict.fromkeys(list(names) + list(opt.EIGEN)))
+        cand = [ref.features(pts, r, need, ddof=ddof) for r in radii]
+        ent = np.stack([opt.eigenentropy_normalised(*(v[n] for n in opt.EIGEN))
+                        for v, _, _ in cand])
+        idx, _ = opt.choose(ent, np.stack([s for _, _, s in cand]))
+        rows = np.arange(len(pts))
+        pick = lambda a: np.stack(a)[idx, rows]
+        vals = {n: pick([v[n] for v, _, _ in cand]) for n in names}
+        count, status = pick([c for _, c, _ in cand]), pick([s for _, _, s in cand])
+        radius = np.asarray(radii)[idx]
+    else:
+        from .cloud import DeviceCloud
+        if cloud is None:
+            cloud = DeviceCloud(pts, radii[-1], device=device, precision=precision)
+        for r in radii:
+            cloud.check_radius(r)
+        vals, count, status, radius, idx = opt.optimal_features(cloud, radii, names, ddof)
+    return FeatureResult(radius, vals, count, status, ddof=ddof,
+                         info={"radii": radii, "optimal_index": idx})
 
 
 def _finish(res, up):
