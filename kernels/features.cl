@@ -160,7 +160,7 @@ inline void features_pca(__global const REAL *X, __global const REAL *Y, __globa
             pca_store_sums(sc[j], sw[j], sx[j], sy[j], sz[j], sxx[j], sxy[j], sxz[j], syy[j],
                            syz[j], szz[j], &pb[j], k);
 #if PCA_ANCHOR
-            PCA_KEEP_FRAME(&pb[j], k, ax, fs, any(a != (REAL3)(0)))
+            PCA_KEEP_FRAME(&pb[j], k, ax, fs, a)
 #endif
         }
 #endif

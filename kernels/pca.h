@@ -114,11 +114,12 @@ typedef struct {
 /* BODY(AX) for the run-time axis ax, unswitched: each copy with AX a constant */
 #define PCA_BY_AXIS(ax, BODY)                                                            \
     if ((ax) == 2) { BODY(2) } else if ((ax) == 0) { BODY(0) } else { BODY(1) }
-/* Lane k of b keeps the frame for pca_decompose and pca_anchor_l0 */
-#define PCA_KEEP_FRAME(b, k, ax, s, has)                                                 \
+/* Lane k of b keeps the frame (ax, s) of the anchor a for pca_decompose and
+ * pca_anchor_l0 */
+#define PCA_KEEP_FRAME(b, k, ax, s, a)                                                   \
     {                                                                                    \
         (b)->fs[0][k] = (s).x; (b)->fs[1][k] = (s).y;                                    \
-        (b)->fax[k] = (REAL)(ax); (b)->fh[k] = (REAL)(has);                              \
+        (b)->fax[k] = (REAL)(ax); (b)->fh[k] = (REAL)any((a) != (REAL3)(0));             \
     }
 
 /* Lane k of b from the sums of PCA_ACCUMULATE: count, 1/sum w, mu = o - p and the centred
@@ -195,7 +196,7 @@ inline void pca_ball_framed(__global const REAL *X, __global const REAL *Y,
     if (ax == 2) pca_ball_z(X, Y, Z, W, ranges, cell, p, ball, ih2, s, b, k);
     else if (ax == 0) pca_ball_x(X, Y, Z, W, ranges, cell, p, ball, ih2, s, b, k);
     else pca_ball_y(X, Y, Z, W, ranges, cell, p, ball, ih2, s, b, k);
-    PCA_KEEP_FRAME(b, k, ax, s, any(a != (REAL3)(0)))
+    PCA_KEEP_FRAME(b, k, ax, s, a)
 #else
     (void)a;
     pca_ball_z(X, Y, Z, W, ranges, cell, p, ball, ih2, (REAL2)(0), b, k);
