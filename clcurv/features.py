@@ -347,17 +347,8 @@ def _optimal_features(pts, cloud, radii, names, ddof, device, precision, backend
         res.info.update(radii=radii, optimal_index=np.empty(0, np.intp))
         return res
     if backend == "numpy":
-        from . import reference_features as ref
-        need = list(dict.fromkeys(list(names) + list(opt.EIGEN)))
-        cand = [ref.features(pts, r, need, ddof=ddof) for r in radii]
-        ent = np.stack([opt.eigenentropy_normalised(*(v[n] for n in opt.EIGEN))
-                        for v, _, _ in cand])
-        idx, _ = opt.choose(ent, np.stack([s for _, _, s in cand]))
-        rows = np.arange(len(pts))
-        pick = lambda a: np.stack(a)[idx, rows]
-        vals = {n: pick([v[n] for v, _, _ in cand]) for n in names}
-        count, status = pick([c for _, c, _ in cand]), pick([s for _, _, s in cand])
-        radius = np.asarray(radii)[idx]
+        vals, count, status, radius, idx = opt.reference_optimal_features(pts, radii, names,
+                                                                          ddof)
     else:
         from .cloud import DeviceCloud
         if cloud is None:

@@ -80,3 +80,18 @@ def optimal_features(cloud, radii, names, ddof=0):
                     hostbuf=host)
     vals, count, status = run_features(cloud, [radii[-1]], names, ddof, point_r2=buf)[0]
     return vals, count, status, np.asarray(radii)[idx], idx
+
+
+def reference_optimal_features(points, radii, names, ddof=0):
+    """:func:`optimal_features` by the float64 reference (clcurv.reference_features at each
+    of the sorted ``radii``, the same criterion and choice), for the tests."""
+    from . import reference_features as ref
+    need = list(dict.fromkeys(list(names) + list(EIGEN)))
+    cand = [ref.features(points, r, need, ddof=ddof) for r in radii]
+    ent = np.stack([eigenentropy_normalised(*(v[n] for n in EIGEN)) for v, _, _ in cand])
+    idx, _ = choose(ent, np.stack([s for _, _, s in cand]))
+    rows = np.arange(len(points))
+    pick = lambda arrays: np.stack(arrays)[idx, rows]
+    vals = {n: pick([v[n] for v, _, _ in cand]) for n in names}
+    count, status = pick([c for _, c, _ in cand]), pick([s for _, _, s in cand])
+    return vals, count, status, np.asarray(radii, np.float64)[idx], idx
