@@ -372,8 +372,10 @@ def _warn_sparse(res):
     import warnings
     few = int(np.count_nonzero(res.status == TOO_FEW))
     if few > len(res.status) // 2:
+        where = (f"radius {res.radius}" if np.ndim(res.radius) == 0
+                 else "their own radius (per point)")
         warnings.warn(f"{few} of {len(res.status)} points have fewer than {MIN_COUNT_PCA} "
-                      f"neighbours within radius {res.radius}: their features are NaN; the "
+                      f"neighbours within {where}: their features are NaN; the "
                       "radius is probably too small", RuntimeWarning, stacklevel=3)
 
 

@@ -95,7 +95,8 @@ def test_a_wire_above_a_plane_keeps_to_the_wire(device):
 
 def test_edge_cases(device):
     """An isolated point: no candidate of status 0, the largest radius and its status
-    (NaN values). Errors: one radius, optimal with k. Empty input: an empty result."""
+    (NaN values). Errors: one radius, optimal with k. Empty input: an empty result; a
+    single point: status 1 and the sparse-ball warning."""
     pts = np.vstack([clcurv.shapes.sphere(3000, 1.0, seed=3)["points"], [[10.0, 10, 10]]])
     res = clcurv.features(pts, [0.1, 0.2], ["planarity"], optimal=True, device=device)
     assert res.radius[-1] == 0.2 and res.status[-1] == TOO_FEW
@@ -110,6 +111,9 @@ def test_edge_cases(device):
     empty = clcurv.features(np.empty((0, 3)), [0.1, 0.2], ["planarity"], optimal=True,
                             device=device)
     assert len(empty) == 0 and len(empty["planarity"]) == 0
+    with pytest.warns(RuntimeWarning, match="within their own radius"):
+        one = clcurv.features([[1.0, 2.0, 3.0]], [0.1, 0.2], optimal=True, device=device)
+    assert one.radius.tolist() == [0.2] and one.status.tolist() == [TOO_FEW]
 
 
 def test_cli_optimal(tmp_path):

@@ -45,6 +45,7 @@ CALLS = {
     "project": lambda p, **kw: clcurv.project(p, 0.1, **kw),
     "features": lambda p, **kw: clcurv.features(p, 0.1, **kw),
     "features k": lambda p, **kw: clcurv.features(p, k=10, **kw),
+    "features optimal": lambda p, **kw: clcurv.features(p, [0.05, 0.1], optimal=True, **kw),
 }
 
 
