@@ -452,3 +452,13 @@ def fetch_records(cloud, rec, layout, mapped=None):
     out = empty_fields(layout, cloud.n)
     place_records(cloud, rec, layout, out, 0, cloud.n, False, mapped)
     return out
+
+
+def upload_point_r2(cloud, r2_sorted):
+    """Per-point squared radii (``cloud``'s sorted order; radius.h's POINT_RADIUS: the k-NN
+    radius, the optimal neighbourhood) as a device buffer padded with PAD zeros."""
+    import pyopencl as cl
+    host = np.zeros(cloud.n + PAD, cloud.dtype)
+    host[:cloud.n] = r2_sorted
+    return cl.Buffer(cloud.device.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
+                     hostbuf=host)

@@ -299,7 +299,8 @@ def _some_isolated(pts, box, cloud, c, d2, ok, cap, levels):
         cloud = _rebin(pts, box, top, cloud)
         levels.append(cloud.cell)
         r2 = r2_in[cloud.grid.order]
-    return radius, iso_in, cloud, _upload_sorted_r2(cloud, r2)
+    from .cloud import upload_point_r2
+    return radius, iso_in, cloud, upload_point_r2(cloud, r2)
 
 
 def _rebin(pts, box, cell, cloud):
@@ -384,12 +385,3 @@ def _ball_r2(cloud, k, d2_sorted):
     launch(cloud.device, prg.ball_r2, cloud.n + PAD, d2_sorted, np.uint32(cloud.n),
            cloud.dtype(1 + MARGIN), out)
     return out
-
-
-def _upload_sorted_r2(cloud, r2_sorted):
-    """The per-point r^2 (the cloud's sorted order) as a padded device buffer."""
-    import pyopencl as cl
-    host = np.zeros(cloud.n + PAD, cloud.dtype)
-    host[:cloud.n] = r2_sorted
-    return cl.Buffer(cloud.device.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
-                     hostbuf=host)

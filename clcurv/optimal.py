@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .constants import OK, PAD
+from .constants import OK
 
 #: the eigenvalue columns the criterion needs
 EIGEN = ("eigenvalue1", "eigenvalue2", "eigenvalue3")
@@ -66,7 +66,7 @@ def optimal_features(cloud, radii, names, ddof=0):
     """(values, count, status, radius per point, chosen index) of ``names`` at each point's
     optimal radius among ``radii`` (sorted ascending, at least 2) on ``cloud`` (a
     DeviceCloud whose cell is >= the largest): see the module notes. Input order."""
-    import pyopencl as cl
+    from .cloud import upload_point_r2
     from .features import run_features
     radii = [float(r) for r in radii]
     cand = run_features(cloud, radii, list(EIGEN), ddof)
@@ -74,10 +74,7 @@ def optimal_features(cloud, radii, names, ddof=0):
     idx, _ = choose(ent, np.stack([s for _, _, s in cand]))
     del cand, ent
     r2 = np.array([cloud.dtype(r * r) for r in radii], dtype=cloud.dtype)  # as the fixed path
-    host = np.zeros(cloud.n + PAD, cloud.dtype)
-    host[:cloud.n] = r2[idx[cloud.grid.order]]
-    buf = cl.Buffer(cloud.device.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
-                    hostbuf=host)
+    buf = upload_point_r2(cloud, r2[idx[cloud.grid.order]])
     vals, count, status = run_features(cloud, [radii[-1]], names, ddof, point_r2=buf)[0]
     return vals, count, status, np.asarray(radii)[idx], idx
 
