@@ -11,11 +11,25 @@ and vectoriser remarks ("Compilation started", "remark: loop not vectorized", "K
 was successfully vectorized"); the lines that say ``warning`` or ``error`` are re-raised
 as a :class:`BuildWarning` naming the file, so a real compiler warning is never hidden
 (when the program is compiled from source: a program pyopencl loads from its binary cache,
-which it uses on Intel's runtime but not on PoCL, comes with no compiler messages).
+which it uses on Intel's runtime but not on PoCL, comes with no compiler messages). One
+kind of line is dropped (:data:`ABI_NOTE`): clang's note that a 512-bit vector argument
+"without 'avx512f' enabled changes the ABI", which PoCL logs on every AVX2 CPU for each
+float16/ulong8 value passed to one of its builtins. It concerns calls between objects
+compiled for different targets; PoCL compiles the kernel and its builtin library for the
+same CPU, so there is nothing to act on. (clang's -Wno-psabi would silence it at the
+source, but build options beyond the OpenCL standard's are refused by other runtimes.)
+PoCL's clang also writes its count ("20 warnings generated.") straight to the process's
+standard error on a compile that is not in PoCL's kernel cache: during a build, file
+descriptor 2 goes to a temporary file, whose lines but those counts are written back to
+standard error afterwards (:func:`_stderr_counts_dropped`; a line another thread writes
+meanwhile is delayed, not lost).
 """
 from __future__ import annotations
 
+import contextlib
+import os
 import re
+import tempfile
 import threading
 import warnings
 from pathlib import Path
@@ -90,7 +104,7 @@ def build(device, filename, defines=None):
         source = (kdir / filename).read_text()
         options = ["-I", str(kdir)] + [f"-D{k}={v}" for k, v in sorted(defines.items())]
         try:
-            with warnings.catch_warnings():
+            with warnings.catch_warnings(), _stderr_counts_dropped():
                 warnings.simplefilter("ignore", cl.CompilerWarning)   # read below
                 built = cl.Program(device.context, source).build(options=options)
         except cl.Error as exc:
@@ -102,16 +116,64 @@ def build(device, filename, defines=None):
 
 
 _WARNING_LINE = re.compile(r"\b(warning|error)\b", re.IGNORECASE)
+#: clang's -Wpsabi note on a vector wider than the target's registers (see the module notes)
+ABI_NOTE = re.compile(r"warning: .*\bAVX vector (argument|return) of type '[^']*' "
+                      r"\([^)]*\) without '[\w.]+' enabled changes the ABI\s*$")
+
+
+#: clang's count of its diagnostics, written to standard error (see the module notes)
+COUNT_LINE = re.compile(rb"^\d+ (warning|error)s? generated\.\s*$")
+
+
+@contextlib.contextmanager
+def _stderr_counts_dropped():
+    """File descriptor 2 to a temporary file for the block; then its lines, but for
+    :data:`COUNT_LINE`'s, written to the real standard error. Does nothing where fd 2 is not
+    open."""
+    import sys
+    try:
+        saved = os.dup(2)
+    except OSError:
+        yield
+        return
+    with tempfile.TemporaryFile() as tmp:
+        try:
+            sys.stderr.flush()
+        except (AttributeError, ValueError, OSError):
+            pass
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield
+        finally:
+            try:
+                sys.stderr.flush()
+            except (AttributeError, ValueError, OSError):
+                pass
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            kept = [ln for ln in tmp.read().splitlines(keepends=True)
+                    if not COUNT_LINE.match(ln)]
+            if kept:
+                os.write(2, b"".join(kept))
+
+
+def log_warnings(log):
+    """The lines of a build ``log`` that say ``warning`` or ``error``, but for
+    :data:`ABI_NOTE`'s."""
+    return [ln for ln in log.splitlines()
+            if _WARNING_LINE.search(ln) and not ABI_NOTE.search(ln)]
 
 
 def _warn_from_log(device, filename, program):
-    """Raise a :class:`BuildWarning` with the build log's warning/error lines, if any."""
+    """Raise a :class:`BuildWarning` with the build log's warning/error lines
+    (:func:`log_warnings`), if any."""
     import pyopencl as cl
     try:
         log = program.get_build_info(device.cl_device, cl.program_build_info.LOG) or ""
     except cl.Error:
         return
-    lines = [ln for ln in log.splitlines() if _WARNING_LINE.search(ln)]
+    lines = log_warnings(log)
     if lines:
         warnings.warn(f"{filename} on {device.info.name}: " + "\n".join(lines),
                       BuildWarning, stacklevel=3)

@@ -11,7 +11,8 @@ import clcurv
 from clcurv import cli
 from clcurv.device import _default
 from clcurv.operators import program_variants
-from clcurv.program import BuildError, BuildWarning, _warn_from_log, build, kernels_dir
+from clcurv.program import (BuildError, BuildWarning, _warn_from_log, build, kernels_dir,
+                            log_warnings)
 
 from conftest import DEVICES, SIMULATORS
 
@@ -135,6 +136,49 @@ def test_build_log_warnings_are_raised_and_remarks_dropped(device):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         build(device, "grid.cl", {"REAL_IS_DOUBLE": 0, "VW": 8})
+
+
+#: PoCL's build log of knn.cl on an AVX2 CPU without AVX-512 (AMD EPYC, PoCL 3.1), two of its
+#: 20 lines: clang's -Wpsabi notes on 512-bit vectors passed to builtins
+ABI_LOG = (
+    "warning: /root/.cache/pocl/kcache/tempfile_EHDnz5.cl:63:12 <Spelling=<scratch space>:55:1>"
+    ": AVX vector return of type 'ulong8' (vector of 8 'ulong' values) without 'avx512f' "
+    "enabled changes the ABI\n"
+    "warning: /root/.cache/pocl/kcache/tempfile_EHDnz5.cl:84:12 <Spelling=/lib/x86_64-linux-gnu/"
+    "../../share/pocl/include/_builtin_renames.h:839:27>: AVX vector argument of type "
+    "'__private ulong16' (vector of 16 'ulong' values) without 'avx512f' enabled changes the "
+    "ABI\n")
+
+
+def test_abi_notes_are_dropped_and_real_warnings_kept():
+    """clang's notes on wide vectors (logged by PoCL on every AVX2 CPU) are no BuildWarning;
+    a real warning or error beside them still is."""
+    assert log_warnings(ABI_LOG) == []
+    real = "x.cl:3:2: warning: unused variable 'v'"
+    error = "x.cl:9:1: error: AVX vector argument missing"
+    assert log_warnings(ABI_LOG + real + "\n" + error + "\n") == [real, error]
+    assert log_warnings("Compilation started\nremark: loop not vectorized\n") == []
+
+
+def test_compiler_diagnostic_counts_do_not_reach_stderr():
+    """PoCL's clang writes "N warnings generated." to fd 2 on a compile missing from its
+    kernel cache: a build under _stderr_counts_dropped leaves stderr with the other lines
+    only (here a line written to fd 2 directly and a Python one), in order."""
+    code = (
+        "import os, sys, uuid, warnings, pyopencl as cl\n"
+        "from clcurv.program import _stderr_counts_dropped\n"
+        "from clcurv.device import get_device\n"
+        "dev = get_device()\n"
+        "src = f'#warning clcurv-count-test\\n__kernel void k_{uuid.uuid4().hex}"
+        "(__global float *a) {{ a[0] = 1.0f; }}'\n"
+        "with warnings.catch_warnings(), _stderr_counts_dropped():\n"
+        "    warnings.simplefilter('ignore')\n"
+        "    os.write(2, b'2 warnings generated.\\nbefore\\n')\n"
+        "    cl.Program(dev.context, src).build()\n"
+        "    print('after', file=sys.stderr)\n")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    assert run.stderr == "before\nafter\n"
 
 
 def test_program_built_once_per_options(device):
