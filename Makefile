@@ -61,8 +61,11 @@ $(VENV)/.oclgrind: $(VENV)/.installed
 demo: setup
 	$(ICDS) $(VENV)/bin/clcurv demo --outdir out
 
+# two pytest processes (pytest-xdist): much of the suite is single-threaded (kernel builds,
+# Oclgrind, subprocesses, the float64 references), and 2 workers halve its time on a 2-core
+# machine (a fixed count: each worker's OpenCL device uses every core, and holds up to ~2.5 GB)
 test: setup oclgrind
-	$(ICDS) $(PY) -m pytest -q
+	$(ICDS) $(PY) -m pytest -q -n 2
 
 bench: setup
 	$(ICDS) $(PY) -m bench.run
