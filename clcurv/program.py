@@ -29,6 +29,7 @@ from __future__ import annotations
 import contextlib
 import os
 import re
+import sys
 import tempfile
 import threading
 import warnings
@@ -125,30 +126,31 @@ ABI_NOTE = re.compile(r"warning: .*\bAVX vector (argument|return) of type '[^']*
 COUNT_LINE = re.compile(rb"^\d+ (warning|error)s? generated\.\s*$")
 
 
+def _flush_stderr():
+    """Flush Python's standard error, whatever replaced it (may be None, closed)."""
+    try:
+        sys.stderr.flush()
+    except (AttributeError, ValueError, OSError):
+        pass
+
+
 @contextlib.contextmanager
 def _stderr_counts_dropped():
     """File descriptor 2 to a temporary file for the block; then its lines, but for
     :data:`COUNT_LINE`'s, written to the real standard error. Does nothing where fd 2 is not
     open."""
-    import sys
     try:
         saved = os.dup(2)
     except OSError:
         yield
         return
     with tempfile.TemporaryFile() as tmp:
-        try:
-            sys.stderr.flush()
-        except (AttributeError, ValueError, OSError):
-            pass
+        _flush_stderr()
         os.dup2(tmp.fileno(), 2)
         try:
             yield
         finally:
-            try:
-                sys.stderr.flush()
-            except (AttributeError, ValueError, OSError):
-                pass
+            _flush_stderr()
             os.dup2(saved, 2)
             os.close(saved)
             tmp.seek(0)
