@@ -28,16 +28,10 @@
 /* Most candidates the second pass collects (those in the bins up to the one reached by k);
  * a point with more (many coincident points) takes the insertion path instead */
 #define MCAP 48                 /* a multiple of 16 */
-#define KEY_NONE 0xffffffffffffffffUL
-#define ULONGV CAT(ulong, VW)
-#define LONGV CAT(long, VW)
-#define CONVERT_ULONGV CAT(convert_ulong, VW)
-#define CONVERT_LONGV CAT(convert_long, VW)
 #define CONVERT_FLOATV CAT(convert_float, VW)
 #define CONVERT_IREALV CAT(convert_, IREALV)
 #define FLOATV CAT(float, VW)
 #define VSTOREF CAT(vstore, VW)
-#define NIBBLES 0x0f0f0f0f0f0f0f0fUL
 
 /* Offsets q - p of the chunk at i as seen from a row (pr, neighbors.h) and its live lanes
  * (the ball test is the caller's, on sqdist, so both passes see the same numbers). */
@@ -56,32 +50,34 @@ inline REALV sqdist(REALV dx, REALV dy, REALV dz)
     return fma(dz, dz, fma(dy, dy, dx * dx));
 }
 
-/* The bin of each lane (see NBIN; s = NBIN / r^2; NaN -> the last bin) */
-inline ULONGV bin_of(REALV d2, REAL s)
-{
-    return CONVERT_ULONGV(fmin(d2 * s, (REALV)(NBIN - 1)));
-}
-
 #define UINTV CAT(uint, VW)
 #define CONVERT_UINTV CAT(convert_uint, VW)
 #define CONVERT_INTV CAT(convert_int, VW)
 
-/* OR of the lanes of a uint vector; sum of the lanes of a ulong vector */
-LANE_REDUCTION(or_lanes, uint, LANE_OR)
-LANE_REDUCTION(hsum_ul, ulong, LANE_ADD)
-
-
-
-/* Bin counts packed 4 bits per bin in each lane of acc (at most 15 chunks' worth), as totals
- * (one lane per bin) */
-inline uint16 unpack_bins(ULONGV acc)
+/* The bin of each lane (see NBIN; s = NBIN / r^2; NaN -> the last bin) */
+inline UINTV bin_of(REALV d2, REAL s)
 {
-    /* 8-bit fields (at most 15 VW <= 240): the even bins in e, the odd ones in o */
-    const ulong e = hsum_ul(acc & NIBBLES), o = hsum_ul((acc >> 4) & NIBBLES);
-    const ulong8 sh = (ulong8)(0, 8, 16, 24, 32, 40, 48, 56);
-    const ulong8 ev = ((ulong8)e >> sh) & (ulong8)0xff, ov = ((ulong8)o >> sh) & (ulong8)0xff;
-    return convert_uint16((ulong16)(ev.s0, ov.s0, ev.s1, ov.s1, ev.s2, ov.s2, ev.s3, ov.s3,
-                                    ev.s4, ov.s4, ev.s5, ov.s5, ev.s6, ov.s6, ev.s7, ov.s7));
+    return CAT(as_uint, VW)(CONVERT_INTV(fmin(d2 * s, (REALV)(NBIN - 1))));
+}
+
+/* OR and sum of the lanes of a uint vector */
+LANE_REDUCTION(or_lanes, uint, LANE_OR)
+LANE_REDUCTION(hsum_ui, uint, LANE_ADD)
+
+
+
+/* Bin counts packed 4 bits per bin in the lanes of lo (bins 0 .. 7) and hi (8 .. 15) (at
+ * most 15 chunks' worth), as totals (one lane per bin) */
+inline uint16 unpack_bins(UINTV lo, UINTV hi)
+{
+    /* 8-bit fields (at most 15 VW <= 240): the even bins of a half in e, the odd ones in o */
+    const uint4 sh = (uint4)(0, 8, 16, 24);
+    const uint4 el = ((uint4)hsum_ui(lo & (UINTV)0x0f0f0f0fu) >> sh) & (uint4)0xff;
+    const uint4 ol = ((uint4)hsum_ui((lo >> 4) & (UINTV)0x0f0f0f0fu) >> sh) & (uint4)0xff;
+    const uint4 eh = ((uint4)hsum_ui(hi & (UINTV)0x0f0f0f0fu) >> sh) & (uint4)0xff;
+    const uint4 oh = ((uint4)hsum_ui((hi >> 4) & (UINTV)0x0f0f0f0fu) >> sh) & (uint4)0xff;
+    return (uint16)(el.s0, ol.s0, el.s1, ol.s1, el.s2, ol.s2, el.s3, ol.s3,
+                    eh.s0, oh.s0, eh.s1, oh.s1, eh.s2, oh.s2, eh.s3, oh.s3);
 }
 
 /* The ordering key of a neighbour: its squared distance (as float: for double precision
@@ -91,19 +87,20 @@ inline ulong nkey(REAL d2, uint input)
     return (ulong)as_uint((float)d2) << 32 | input;
 }
 
-/* The ordering keys (nkey) of the lanes of the chunk at sorted index i (d2: their squared
- * distances) */
-inline ULONGV lane_keys(REALV d2, __global const uint *order, uint i, uint n)
+/* The input indices of the lanes of the chunk at sorted index i */
+inline UINTV lane_inputs(__global const uint *order, uint i, uint n)
 {
-    UINTV o;
-    if (i + VW <= n) {
-        o = CAT(vload, VW)(0, order + i);
-    } else {                               /* the cloud's last chunk: order is not padded */
-        uint t[VW];
-        for (uint l = 0; l < VW; ++l) t[l] = order[min(i + l, n - 1)];
-        o = CAT(vload, VW)(0, t);
-    }
-    return CONVERT_ULONGV(CAT(as_uint, VW)(CONVERT_FLOATV(d2))) << 32 | CONVERT_ULONGV(o);
+    if (i + VW <= n) return CAT(vload, VW)(0, order + i);
+    uint t[VW];                            /* the cloud's last chunk: order is not padded */
+    for (uint l = 0; l < VW; ++l) t[l] = order[min(i + l, n - 1)];
+    return CAT(vload, VW)(0, t);
+}
+
+/* The squared distances of the lanes as the high half of nkey: float bits, ordered as the
+ * values (d2 >= 0) */
+inline UINTV lane_dbits(REALV d2)
+{
+    return CAT(as_uint, VW)(CONVERT_FLOATV(d2));
 }
 
 /* The weight of the edge {g, j} (see the top) when order[j] < order[g]: from the offset of
@@ -143,11 +140,14 @@ inline FLOATV lane_weights(REALV dx, REALV dy, REALV dz, REAL3 ng, REALV njx, RE
 /* The k nearest neighbours of every sorted point and their edge weights (see the top).
  *
  * Pass 1 counts the valid points of the ball in NBIN squared-distance bins (4-bit counters
- * packed in a ulong per lane, emptied every 15 chunks); the first bin up to which at least k
+ * packed in two uints per lane, emptied every 15 chunks); the first bin up to which at least k
  * others lie bounds the k-th distance. Pass 2 collects the (about k) others up to that bin
  * with their weights, and each one's rank among them (by (distance, input index)) is its
  * place in the list: no sorting. More than MCAP of them (coincident points): a bounded
- * insertion sort over the whole ball instead. */
+ * insertion sort over the whole ball instead. The common path uses 32-bit vector lanes only:
+ * 64-bit vector compares, shifts and float conversions are emulated on AVX2 CPUs and GPUs
+ * (on a 2-core AMD EPYC, PoCL 3.1, 1M sphere, k = 10: 513 -> ~320 ms with the same output
+ * bits as the earlier ulong bins and keys). */
 __kernel void knn_graph(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
                         __global const REAL *NX, __global const REAL *NY,
                         __global const REAL *NZ, __global const uint *cell_of,
@@ -168,7 +168,7 @@ __kernel void knn_graph(__global const REAL *X, __global const REAL *Y, __global
         const uint og = order[g];
         const REAL s = (REAL)NBIN / ball.x;
         REALV dx, dy, dz;
-        ULONGV acc = 0;
+        UINTV lo = 0, hi = 0;              /* 4-bit counts of bins 0 .. 7, 8 .. 15 */
         UINTV rowor[9];                    /* per row, the bins its lanes met */
         for (int r = 0; r < 9; ++r)
             rowor[r] = 0;
@@ -178,24 +178,27 @@ __kernel void knn_graph(__global const REAL *X, __global const REAL *Y, __global
             IREALV m = lane_offsets(XA, Y, Z, i, end, pr, &dx, &dy, &dz);
             const REALV d2 = sqdist(dx, dy, dz);
             m &= ~isnan(VLOADV(0, NX + i)) & isless(d2, (REALV)ball.x);
-            const ULONGV bn = bin_of(d2, s);
-            acc += select((ULONGV)0, (ULONGV)1 << (bn << 2), CONVERT_LONGV(m));
-            rowor[nb_z * 3 + nb_y] |= select((UINTV)0, (UINTV)1 << CONVERT_UINTV(bn),
-                                             CONVERT_INTV(m));
+            const UINTV bn = bin_of(d2, s);
+            const UINTV live = CAT(as_uint, VW)(CONVERT_INTV(m));
+            const UINTV one = ((UINTV)1 << ((bn & (UINTV)7) << 2)) & live;
+            const UINTV upper = (UINTV)0 - (bn >> 3);          /* all ones for bins 8 .. 15 */
+            lo += one & ~upper;
+            hi += one & upper;
+            rowor[nb_z * 3 + nb_y] |= ((UINTV)1 << bn) & live;
             if (++nch == 15) {
-                tot += unpack_bins(acc);
-                acc = 0;
+                tot += unpack_bins(lo, hi);
+                lo = hi = 0;
                 nch = 0;
             }
         NEIGHBOR_CHUNKS_END
-        tot += unpack_bins(acc);
+        tot += unpack_bins(lo, hi);
         /* the point itself is in bin 0 (d = 0) */
         uint c[NBIN];
         vstore16(tot, 0, c);
         c[0] -= 1;
         for (int b = 1; b < NBIN; ++b)
             c[b] += c[b - 1];
-        ulong bsel = NBIN - 1;
+        uint bsel = NBIN - 1;
         uint below = c[NBIN - 1];
         for (int b = NBIN - 2; b >= 0; --b)
             if (c[b] >= k) { bsel = b; below = c[b]; }
@@ -203,12 +206,14 @@ __kernel void knn_graph(__global const REAL *X, __global const REAL *Y, __global
         for (int r = 0; r < 9; ++r)
             need |= (uint)((or_lanes(rowor[r]) & ((2u << bsel) - 1)) != 0) << r;
         if (below <= MCAP) {
-            ulong key[MCAP + 16];          /* rounded up to 16 with KEY_NONE for the ranks */
+            /* the candidates' nkey as two 32-bit halves (AVX2 and GPUs have no 64-bit vector
+               compare), rounded up to 16 for the ranks */
+            uint kd[MCAP + 16], ki[MCAP + 16];
             uint ref[MCAP + 1];            /* the candidate's chunk slot * VW + lane */
             uint cbase[MCAP + 1];          /* per chunk slot: its first sorted index, row */
             uchar crow[MCAP + 1];
             float cw[(MCAP + 1) * VW];     /* per chunk slot: the lanes' weights */
-            ulong ka[VW];
+            uint da[VW], ia[VW];
             IREAL ma[VW];
             uint nc = 0;
             NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, ball, i, end, pr)
@@ -216,17 +221,19 @@ __kernel void knn_graph(__global const REAL *X, __global const REAL *Y, __global
                 IREALV m = lane_offsets(XA, Y, Z, i, end, pr, &dx, &dy, &dz);
                 const REALV d2 = sqdist(dx, dy, dz);
                 m &= ~isnan(VLOADV(0, NX + i)) & isless(d2, (REALV)ball.x)
-                     & CONVERT_IREALV(bin_of(d2, s) <= bsel)
+                     & CONVERT_IREALV(bin_of(d2, s) <= (UINTV)bsel)
                      & ((IREALV)(IREAL)(g - i) != LANES);
                 if (any_lane(m)) {
-                    VSTOREV(lane_keys(d2, order, i, n), 0, ka);
+                    CAT(vstore, VW)(lane_dbits(d2), 0, da);
+                    CAT(vstore, VW)(lane_inputs(order, i, n), 0, ia);
                     VSTOREV(m, 0, ma);
                     VSTOREF(lane_weights(dx, dy, dz, ng, VLOADV(0, NX + i), VLOADV(0, NY + i),
                                          VLOADV(0, NZ + i)), nc, cw);
                     cbase[nc] = i;
                     crow[nc] = (uchar)(nb_z * 3 + nb_y);
                     for (uint l = 0; l < VW; ++l) {       /* branch-free append */
-                        key[cnt] = ka[l];
+                        kd[cnt] = da[l];
+                        ki[cnt] = ia[l];
                         ref[cnt] = nc * VW + l;
                         cnt = min(cnt + (uint)(ma[l] & 1), (uint)MCAP);
                     }
@@ -234,20 +241,23 @@ __kernel void knn_graph(__global const REAL *X, __global const REAL *Y, __global
                 }
             NEIGHBOR_CHUNKS_END
             for (uint a = cnt; a < ((cnt + 15) & ~15u); ++a)
-                key[a] = KEY_NONE;
+                kd[a] = ki[a] = 0;                    /* ranks past cnt are not used */
             for (uint a0 = 0; a0 < cnt; a0 += 16) {
-                const ulong16 kb = vload16(0, key + a0);
-                long16 r16 = 0;                       /* -1 per key below each of kb */
-                for (uint b = 0; b < cnt; ++b)
-                    r16 += kb > (ulong16)key[b];
+                /* both halves < 2^31 (d2 >= 0 finite, input < 2^31): signed compares */
+                const int16 db = as_int16(vload16(0, kd + a0)), ib = as_int16(vload16(0, ki + a0));
+                int16 r16 = 0;                        /* -1 per key below each of (db, ib) */
+                for (uint b = 0; b < cnt; ++b) {
+                    const int16 d = (int16)(int)kd[b], e = (int16)(int)ki[b];
+                    r16 += (db > d) | ((db == d) & (ib > e));
+                }
                 uint rk[16];
-                vstore16(convert_uint16(-r16), 0, rk);
+                vstore16(as_uint16(-r16), 0, rk);
                 for (uint a = a0; a < min(a0 + 16, cnt); ++a) {
                     const uint r = rk[a - a0];
                     if (r < k) {
                         const uint c = ref[a] / VW, j = cbase[c] + ref[a] % VW;
                         out[r] = j;
-                        outw[r] = (uint)key[a] < og
+                        outw[r] = ki[a] < og
                             ? mirror_weight(X, Y, Z, NX, NY, NZ, cell_of, n, ball.y, p, ng, g,
                                             j, crow[c])
                             : cw[ref[a]];

@@ -363,3 +363,29 @@ def test_weights_symmetric_to_the_bit(device):
     assert len(both) > 0.5 * len(pos)
     a, b = np.array(both).T
     assert np.array_equal(a, b)
+
+
+@pytest.mark.parametrize("precision", ["float", "double"])
+def test_exact_ties_ordered_by_input_index(device, precision):
+    """Exactly equal distances, in the ranked path (fewer than MCAP candidates): a plane grid
+    of dyadic spacing (the offsets and squared distances are exact in float32, so the 4 or 8
+    points of a grid ring are at bit-equal distances) and 2 extra copies of every 7th point
+    in shuffled input order (distance 0). Every list equals the exact order (distance, then
+    input index): dropping the index from the rank gives equal ranks and wrong lists."""
+    if precision == "double" and not device.info.fp64:
+        pytest.skip(f"{device.info.name} has no float64")
+    g = np.arange(-24, 25) / 16.0
+    xy = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    pts = np.column_stack([xy, np.zeros(len(xy))])
+    pts = np.concatenate([pts, pts[::7], pts[::7]])
+    pts = pts[np.random.default_rng(3).permutation(len(pts))]
+    nrm = np.tile([0.0, 0.0, 1.0], (len(pts), 1))
+    radius = 0.25                        # 4 grid steps, dyadic (the cell too): ~50 per ball
+    cloud = DeviceCloud(pts, radius, device=device, precision=precision)
+    nb = knn_graph(cloud, radius, nrm, K).neighbors()
+    d2 = np.sum((pts[:, None, :] - pts[None, :, :]) ** 2, axis=2)    # exact: dyadic
+    idx = np.arange(len(pts))
+    for i in range(0, len(pts), 3):
+        inside = (d2[i] < radius ** 2) & (idx != i)
+        j = idx[inside][np.lexsort((idx[inside], d2[i][inside]))][:K]
+        assert np.array_equal(nb[i], j), (i, nb[i], j)
