@@ -60,8 +60,10 @@ inline IREALV chunk_d2(__global const REAL *X, __global const REAL *Y, __global 
     return m;
 }
 
-/* Append the lanes of d2 set in m to buf (got values so far; past KNN_CAP the count goes on
- * and the last slot is overwritten: the caller checks got <= KNN_CAP). */
+/* Append the lanes of d2 set in m to buf (got values so far). Every lane is written, at
+ * the next free slot (a live lane then keeps it), so buf has a scratch slot past KNN_CAP
+ * values: with KNN_CAP values held, the lanes that follow write there, not over the last
+ * value (past KNN_CAP the count goes on: the caller checks got <= KNN_CAP). */
 inline uint append_lanes(REALV d2, IREALV m, REAL *buf, uint got)
 {
     REAL dl[VW];
@@ -69,7 +71,7 @@ inline uint append_lanes(REALV d2, IREALV m, REAL *buf, uint got)
     CAT(vstore, VW)(d2, 0, dl);
     CAT(vstore, VW)(m, 0, ml);
     for (int l = 0; l < VW; ++l) {
-        buf[min(got, (uint)(KNN_CAP - 1))] = dl[l];
+        buf[min(got, (uint)KNN_CAP)] = dl[l];
         got += ml[l] ? 1 : 0;
     }
     return got;
@@ -102,7 +104,7 @@ inline REAL select_rank(REAL *buf, uint cnt, uint rank)
 }
 
 /* The counting path (see the top) for a point whose ball holds more than KNN_CAP
- * candidates: the K-th smallest d^2, buf as scratch. */
+ * candidates: the K-th smallest d^2, buf (KNN_CAP + 1 values) as scratch. */
 inline REAL kth_by_counting(__global const REAL *XA, __global const REAL *Y,
                             __global const REAL *Z, __global const uint2 *ranges, uint cell,
                             REAL3 p, REAL2 ball, REAL *buf)
@@ -282,7 +284,7 @@ __kernel void kth_distance(__global const REAL *X, __global const REAL *Y,
     if (count_lanes(lanes) >= KNN_K) {
         d = kth_of_levels(a, lanes, ball.x, KNN_K);
         if (isnan(d)) {
-            REAL buf[KNN_CAP];
+            REAL buf[KNN_CAP + 1];           /* a scratch slot: append_lanes */
             d = kth_by_counting(XA, Y, Z, ranges, cell, p, ball, buf);
         }
     }

@@ -58,6 +58,25 @@ def test_both_kernel_paths_select_the_same_distance(sphere, device, k):
     assert (ref[~ok] >= 0.999 * cloud.cell).all()     # unresolved: k-th beyond the cell
 
 
+@pytest.mark.parametrize("k", [27, 30, 64, 100])
+def test_counting_path_with_a_full_gather(sphere, device, k):
+    """Balls of ~500 candidates (a cell 4x the median k-th distance on the 10x sphere): the
+    counting path narrows to intervals of up to KNN_CAP = 64 candidates, exactly 64 for some
+    points, whose gather must keep all 64 (the lanes after the last one once overwrote it,
+    and those points got their (k+1)-th distance: 39-115 of 20000 points wrong)."""
+    from scipy.spatial import cKDTree
+    from clcurv.cloud import DeviceCloud
+    from clcurv.knn_radius import kth_squared
+    pts = sphere[::2]
+    ref = cKDTree(pts).query(pts, k)[0][:, -1]
+    cloud = DeviceCloud(pts, 0.2353, device=device)
+    fast = kth_squared(cloud, k)
+    ok = np.isfinite(fast)
+    assert ok.mean() > 0.95
+    np.testing.assert_array_equal(fast, kth_squared(cloud, k, levels=1))
+    np.testing.assert_allclose(np.sqrt(fast[ok]), ref[ok], rtol=4e-6)
+
+
 @pytest.mark.parametrize("k", [5, 9, 30, 100])
 def test_selection_with_equal_distances(device, k):
     """A lattice (every distance repeated 4 to 8 times) with each point twice: the kernel's
