@@ -146,7 +146,7 @@ inline FLOATV lane_weights(REALV dx, REALV dy, REALV dz, REAL3 ng, REALV njx, RE
  * place in the list: no sorting. More than MCAP of them (coincident points): a bounded
  * insertion sort over the whole ball instead. The common path uses 32-bit vector lanes only:
  * 64-bit vector compares, shifts and float conversions are emulated on AVX2 CPUs and GPUs
- * (on a 2-core AMD EPYC, PoCL 3.1, 1M sphere, k = 10: 513 -> ~320 ms with the same output
+ * (on a 2-core AMD EPYC, PoCL 3.1, 1M sphere, k = 10: 482 -> 319 ms with the same output
  * bits as the earlier ulong bins and keys). */
 __kernel void knn_graph(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
                         __global const REAL *NX, __global const REAL *NY,
