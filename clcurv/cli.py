@@ -182,7 +182,9 @@ def build_parser():
     r = sub.add_parser("render", help="PNG of a cloud coloured by a field")
     r.add_argument("input")
     r.add_argument("--field", default="mean_curvature")
-    r.add_argument("--unit", default="1/length")
+    r.add_argument("--unit", default="auto", help="the colour bar's unit (default: the "
+                   "field's own when clcurv wrote it: 1/length for curvatures, none for "
+                   "planarity...; none for other fields)")
     r.add_argument("--up", default="auto", help="the cloud's up axis: auto (default: z for "
                    "LAS/LAZ, the thin axis of a flat cloud, else y), x, y, z, -z, ...; "
                    "terrain is drawn from the top and obliquely")

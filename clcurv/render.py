@@ -50,6 +50,7 @@ matplotlib is imported inside :func:`render` only; without it :class:`MissingMat
 """
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -58,7 +59,7 @@ from .io import atomic_output, check_output
 from .operators import OPERATORS, signed_file_fields
 
 __all__ = ["render", "figure", "check_image_output", "MissingMatplotlibError", "VIEWS",
-           "SIGNED_FIELDS", "IMAGE_FORMATS", "up_axis", "default_views"]
+           "SIGNED_FIELDS", "IMAGE_FORMATS", "up_axis", "default_views", "field_unit"]
 
 #: Extensions :func:`render` writes (lower case) -> the format given to matplotlib's
 #: ``savefig`` (Agg canvas; JPEG, TIFF and WebP through Pillow, a matplotlib dependency).
@@ -72,6 +73,36 @@ IMAGE_FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".pdf": "pdf",
 SIGNED_FIELDS = frozenset(signed_file_fields()
                           | {o.name for op in OPERATORS.values() for o in op.outputs if o.signed}
                           | {"h", "k"})
+
+#: The unit of every other field clcurv writes (besides the operators' outputs and the
+#: covariance features, which carry theirs): counts and statuses have none.
+_OTHER_UNITS = {"neighbours": "", "status": "", "number_of_neighbors": "",
+                "feature_status": "", "nx": "", "ny": "", "nz": "",
+                "knn_radius": "length", "optimal_radius": "length"}
+_RADIUS_SUFFIX = re.compile(r"^(.+)_r[0-9.eE+-]+$")
+
+
+def field_unit(name):
+    """The unit of a field that clcurv writes, for the colour-bar label: the registry's
+    (:mod:`clcurv.operators` outputs, e.g. ``"1/length"`` for ``mean_curvature``,
+    ``"1/length^2"`` for ``gaussian_curvature``; :data:`clcurv.features.FEATURES`, also with
+    a ``_r<radius>`` suffix, e.g. ``"length^2"`` for ``eigenvalue_sum``), ``""`` for a
+    dimensionless field (planarity, directions, counts, statuses), None for a name clcurv
+    does not write (a field of another tool: its unit is unknown)."""
+    from .features import FEATURES
+    for op in OPERATORS.values():
+        for o in op.outputs:
+            if name in o.file_fields() or name == o.name:
+                return "" if o.unit == "1" else o.unit
+    m = _RADIUS_SUFFIX.match(name)
+    for base in (name, m.group(1) if m else None):
+        if base in FEATURES:
+            unit = FEATURES[base].unit
+            return "" if unit == "1" else unit
+        if base in _OTHER_UNITS:
+            return _OTHER_UNITS[base]
+    return None
+
 
 _S3 = 1.0 / np.sqrt(3.0)
 _S2 = 1.0 / np.sqrt(2.0)
@@ -242,7 +273,7 @@ def check_image_output(path) -> Path:
     return check_output(path, IMAGE_FORMATS, what="picture")
 
 
-def render(points, values, path, *, field="mean_curvature", unit="1/length unit",
+def render(points, values, path, *, field="mean_curvature", unit="auto",
            signed=None, views=None, up="auto", source=None, max_points=200_000,
            percentiles=(2, 98), title=None, dpi=110, seed=0) -> Path:
     """Write a picture of ``points`` coloured by ``values`` seen from ``views``; return its path.
@@ -258,7 +289,9 @@ def render(points, values, path, *, field="mean_curvature", unit="1/length unit"
         (``.png``, ``.jpg``, ``.pdf``, ``.svg``...). The folder must exist. Written
         atomically: on failure the previous file is kept and nothing else is left.
     field, unit : str
-        Colorbar label ``"field [unit]"`` (``unit`` may be empty or None).
+        Colorbar label ``"field [unit]"`` (``unit`` may be empty or None: ``"field"``).
+        ``unit="auto"``: :func:`field_unit` of ``field`` (none for a dimensionless field
+        or a name clcurv does not write).
     signed : bool or None
         Diverging colormap centred on 0 (True) or sequential (False). None: signed when the
         robust range contains both signs, or when ``field`` is a curvature name
@@ -306,12 +339,13 @@ def render(points, values, path, *, field="mean_curvature", unit="1/length unit"
     return path
 
 
-def figure(points, values, *, field="mean_curvature", unit="1/length unit", signed=None,
+def figure(points, values, *, field="mean_curvature", unit="auto", signed=None,
            views=None, up="auto", source=None, max_points=200_000, percentiles=(2, 98),
            title=None, dpi=110, seed=0):
     """The matplotlib Figure that :func:`render` writes (same parameters, no path), and a
-    dict: ``views``, ``up`` (unit vector), ``terrain``, ``label_bbox`` (the colour-bar
-    label's (x0, y0, x1, y1) in pixels of the written picture, origin bottom left) and
+    dict: ``views``, ``up`` (unit vector), ``terrain``, ``label`` (the colour-bar label),
+    ``label_bbox`` (its (x0, y0, x1, y1) in pixels of the written picture, origin bottom
+    left) and
     ``size`` (width, height) in pixels."""
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
@@ -465,6 +499,8 @@ def figure(points, values, *, field="mean_curvature", unit="1/length unit", sign
     cb_x = fig_w - cbar_w + 0.12
     cb_w = 0.16
     cb_y0, cb_h = bottom_pad + 0.6, panel_h - 1.1
+    if unit == "auto":
+        unit = field_unit(field)
     label = f"{field} [{unit}]" if unit else f"{field}"
     cax = add_axes((cb_x, cb_y0, cb_w, cb_h))
     if finite.size:
@@ -518,7 +554,7 @@ def figure(points, values, *, field="mean_curvature", unit="1/length unit", sign
     bbox = _fit_label(fig, placed, cax, label_artist, fig_h)
     w_px, h_px = (int(round(x * dpi)) for x in fig.get_size_inches())
     return fig, {"views": views, "up": upv, "terrain": is_terrain(pts, upv) if n else False,
-                 "label_bbox": bbox, "size": (w_px, h_px)}
+                 "label_bbox": bbox, "label": label, "size": (w_px, h_px)}
 
 
 def _right_edge(cax, label, renderer):

@@ -283,3 +283,34 @@ def test_cli_render_las_and_up(tmp_path):
     assert load_rgb(out).shape[1] == round((3.7 * 2 + 0.9) * 110)
     assert main(["render", str(AUTZEN), "--field", field, "--up", "y", "-o", str(out)]) == 0
     assert load_rgb(out).shape[1] == round((3.7 * 3 + 0.9) * 110)
+
+
+@pytest.mark.parametrize("name, unit", [
+    ("mean_curvature", "1/length"), ("k2", "1/length"), ("gaussian_curvature", "1/length^2"),
+    ("dir1_x", ""), ("surface_variation", ""), ("planarity", ""), ("planarity_r0.5", ""),
+    ("eigenvalue_sum_r4", "length^2"), ("eigenvalue3", "length^2"), ("density", "1/length^3"),
+    ("nx_r2", ""), ("number_of_neighbors", ""), ("neighbours", ""), ("status", ""),
+    ("knn_radius", "length"), ("optimal_radius", "length"), ("intensity", None),
+    ("planarity_rx", None)])
+def test_field_units(name, unit):
+    """The unit of each field clcurv writes, from the registries (operators' outputs,
+    covariance features with or without a radius suffix): "" when dimensionless, None for
+    a field of another tool."""
+    assert R.field_unit(name) == unit
+
+
+def test_colourbar_unit_follows_the_field(tmp_path):
+    """The label's unit is the field's own by default (a feature is dimensionless, a
+    curvature 1/length, an unknown field has none); --unit overrides it."""
+    p = sphere(2_000, seed=4)
+    v = p[:, 0]
+    for field, label in (("planarity_r0.5", "planarity_r0.5"),
+                         ("mean_curvature", "mean_curvature [1/length]"),
+                         ("eigenvalue_sum", "eigenvalue_sum [length^2]"),
+                         ("intensity", "intensity")):
+        assert figure(p, v, field=field, dpi=DPI)[1]["label"] == label
+    assert figure(p, v, field="mean_curvature", unit="1/mm", dpi=DPI)[1]["label"] == \
+        "mean_curvature [1/mm]"
+    from clcurv.cli import build_parser
+    args = build_parser().parse_args(["render", "in.ply", "-o", "o.png"])
+    assert args.unit == "auto"
