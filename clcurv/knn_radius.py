@@ -243,8 +243,8 @@ def knn_radii(points, k, *, device=None, precision="float"):
         stages["kth"] += time.perf_counter() - t2
         levels.append(c)
         ok = np.isfinite(d2)
-        if cap is None and ok.mean() >= 0.9:
-            cap = ISOLATION * float(np.sqrt(_quantile(d2, 0.9, int(np.count_nonzero(ok)))))
+        if cap is None:
+            cap = _isolation_cap(d2, int(np.count_nonzero(ok)))
         if ok.all() or c > diag or (cap is not None and c >= cap) \
                 or len(levels) >= _MAX_LEVELS:
             break
@@ -338,20 +338,27 @@ def _drop(spec):
     return None
 
 
-def _quantile(x, q, count=None):
-    """The q-quantile of the ``count`` smallest values of ``x`` (1-D; all of them when None;
-    clcurv passes the finite ones, the others being +inf), interpolated linearly between the
-    order statistics at (count - 1) q as numpy.quantile's default, in float64; by one
-    numpy.partition at one index and the minimum above it (1.3 ms on 1M float32, where
-    numpy.quantile, and a partition at two indices, take 8-12; no copy of the finite
-    values first)."""
-    count = len(x) if count is None else count
-    at = (count - 1) * q
+def _isolation_cap(d2, resolved):
+    """ISOLATION times the 90th percentile of the k-NN radii of all the points
+    (numpy.quantile's linear interpolation over the n radii), or None while it is unknown.
+    ``d2``: the n squared radii found so far, ``resolved`` of them finite, +inf the others.
+    An unresolved point's radius exceeds every resolved one (it lies beyond the cell that
+    resolved them), so the percentile's two order statistics are among the resolved radii
+    once more than ~90% of the points are resolved (taking the percentile of the resolved
+    radii alone instead, as before, understated it: on the Autzen tile at k = 30, 96%
+    resolved, 8.65 against 9.57 ft, and 149 points were made isolated instead of 91). By
+    one numpy.partition at one index and the minimum above it (1.3 ms on 1M float32, where
+    numpy.quantile takes 8-12; no copy of the values)."""
+    n = len(d2)
+    at = (n - 1) * 0.9
     i = int(np.floor(at))
-    part = np.partition(x, i)
-    a = float(part[i])
-    b = float(part[i + 1:].min()) if i + 1 < count else a
-    return a + (b - a) * (at - i)
+    frac = at - i
+    if resolved < i + (2 if frac > 0 else 1):
+        return None
+    part = np.partition(d2, i)
+    a = math.sqrt(float(part[i]))
+    b = math.sqrt(float(part[i + 1:].min())) if frac > 0 else a
+    return ISOLATION * (a + (b - a) * frac)
 
 
 def _margin(d2, dtype):

@@ -1,6 +1,8 @@
 """The k-NN radius (clcurv.knn_radius, kernels/knn_radius.cl): radii against a k-d tree,
 balls of k points, each operator's constants at its point's own radius, the 10x
 density-varying sphere, and k > N, duplicates, isolated points."""
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -230,15 +232,55 @@ def test_levels_kept_per_lane():
                 assert vw * tail(lv - 1) > OVERFLOW_RATE
 
 
-def test_quantile_of_the_finite_values():
-    """_quantile (the isolation cap's 90th percentile): numpy.quantile's value, of all values
-    or of the ``count`` finite ones among +inf (the unresolved points), without a copy."""
-    from clcurv.knn_radius import _quantile
+def test_isolation_cap_is_the_percentile_of_all_radii():
+    """_isolation_cap: 4x numpy.quantile(radii, 0.9) of all n radii, from the resolved ones
+    alone (the unresolved, +inf, are the largest), as soon as the percentile's two order
+    statistics are resolved; None before. (The 90th percentile of the resolved radii alone
+    is smaller whenever some are unresolved.)"""
+    from clcurv.knn_radius import ISOLATION, _isolation_cap
     rng = np.random.default_rng(1)
-    for n in (1, 2, 5, 1000, 100001):
-        x = rng.random(n).astype(np.float32)
-        y = np.concatenate([x, np.full(n // 3 + 1, np.inf, np.float32)])
-        rng.shuffle(y)
-        want = np.quantile(x.astype(np.float64), 0.9)
-        assert abs(_quantile(y, 0.9, n) - want) <= 1e-7
-        assert abs(_quantile(x, 0.9) - want) <= 1e-7
+    for n in (1, 2, 5, 11, 1000, 100001):
+        r = np.sort(rng.random(n).astype(np.float32))
+        want = ISOLATION * np.quantile(r.astype(np.float64), 0.9)
+        at = (n - 1) * 0.9
+        need = int(np.floor(at)) + (2 if at % 1 else 1)
+        for resolved in {n, need, need - 1, max(n - n // 20, need)} - {0}:
+            d2 = (r.astype(np.float64) ** 2).astype(np.float32)
+            d2[resolved:] = np.inf
+            perm = rng.permutation(n)
+            got = _isolation_cap(d2[perm], resolved)
+            if resolved < need:
+                assert got is None
+            else:
+                assert abs(got - want) <= 4e-7 * want, (n, resolved, got, want)
+
+
+def _isolation_cases():
+    """A ground plane whose density falls as a power of the distance from the origin (a long
+    tail of k-NN radii, like the sparse edges of an aerial tile), and the Autzen tile."""
+    rng = np.random.default_rng(0)
+    rho = rng.pareto(1.2, 30000) + 1.0
+    ang = rng.uniform(0, 2 * np.pi, 30000)
+    yield np.c_[rho * np.cos(ang), rho * np.sin(ang), np.zeros(30000)]
+    autzen = Path(__file__).resolve().parents[2] / "shared" / "data" / "laspy_autzen_trim.laz"
+    if autzen.exists():
+        yield clcurv.io.read(autzen).points
+
+
+def test_isolated_points_are_those_beyond_the_cap(device):
+    """The documented rule, exactly: a point is isolated when its k-th neighbour is farther
+    than 4x the 90th percentile of all the k-NN radii (k-d tree), and only then. (With the
+    percentile of the radii resolved at the first binning that resolved 90%, 69-139 of the
+    plane's 30000 points and 58 of Autzen's 110000 were isolated with a k-th neighbour
+    within the cap.)"""
+    from scipy.spatial import cKDTree
+    for pts in _isolation_cases():
+        got = knn_radii(pts, 30, device=device)
+        d = cKDTree(pts).query(pts, 30)[0][:, -1]
+        cap = 4 * np.quantile(d, 0.9)
+        near = np.abs(d - cap) <= 1e-5 * cap                     # float32 radii at the cap
+        assert (got.isolated == (d > cap))[~near].all()
+        assert 0 < got.isolated.sum() < 0.05 * len(pts)
+        # float32 offsets from the corners of cells up to the last level's: a few ulps of it
+        np.testing.assert_allclose(got.radius[~got.isolated], d[~got.isolated], rtol=4e-6,
+                                   atol=2.0 ** -21 * max(got.levels))
