@@ -124,7 +124,8 @@ def demo_cmd(args, out=print):
 
 
 def _compute_parser(sub):
-    c = sub.add_parser("compute", help="compute an operator on a point cloud file")
+    c = sub.add_parser("compute", help="compute an operator on a point cloud file",
+                       allow_abbrev=False)
     c.add_argument("input", nargs="+", help="a point cloud file; several LAS/LAZ (or NPY) "
                    "files are one cloud (a catalog), run in tiles, one output per input in "
                    "the folder -o")
@@ -174,12 +175,14 @@ def _compute_parser(sub):
 
 
 def build_parser():
-    p = argparse.ArgumentParser(prog="clcurv", description="Curvatures of raw point clouds "
+    # no abbreviations: `compute --k 30` (an option of `features`) would be taken as --kernel
+    p = argparse.ArgumentParser(prog="clcurv", allow_abbrev=False,
+                                description="Curvatures of raw point clouds "
                                 "(Digne & Morel operators, OpenCL).")
     sub = p.add_subparsers(dest="command", required=True)
     _compute_parser(sub)
-    sub.add_parser("devices", help="list the OpenCL devices")
-    r = sub.add_parser("render", help="PNG of a cloud coloured by a field")
+    sub.add_parser("devices", help="list the OpenCL devices", allow_abbrev=False)
+    r = sub.add_parser("render", help="PNG of a cloud coloured by a field", allow_abbrev=False)
     r.add_argument("input")
     r.add_argument("--field", default="mean_curvature")
     r.add_argument("--unit", default="auto", help="the colour bar's unit (default: the "
@@ -189,7 +192,8 @@ def build_parser():
                    "LAS/LAZ, the thin axis of a flat cloud, else y), x, y, z, -z, ...; "
                    "terrain is drawn from the top and obliquely")
     r.add_argument("-o", "--output", required=True)
-    f = sub.add_parser("features", help="covariance features (planarity, linearity, ...)")
+    f = sub.add_parser("features", help="covariance features (planarity, linearity, ...)",
+                       allow_abbrev=False)
     f.add_argument("input")
     f.add_argument("-o", "--output", required=True, help=".ply, .las/.laz, .npz, .csv, .txt")
     f.add_argument("--radius", default=None, help="ball radius in the file's unit, or several "
@@ -206,7 +210,7 @@ def build_parser():
     f.add_argument("--device", default=None)
     f.add_argument("--precision", default="float", choices=["float", "double"])
     f.add_argument("-q", "--quiet", action="store_true")
-    d = sub.add_parser("demo", help="run the pipeline on the bundled bunny")
+    d = sub.add_parser("demo", help="run the pipeline on the bundled bunny", allow_abbrev=False)
     d.add_argument("--outdir", default="out")
     d.add_argument("--device", default=None)
     d.add_argument("-q", "--quiet", action="store_true")

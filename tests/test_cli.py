@@ -75,6 +75,10 @@ def test_devices_lists_the_default():
      2, "--projections is an option of --method mls2 only"),
     (["compute", "{sample}", "-o", "{tmp}/x.ply", "--method", "mls2", "--h", "0.01"],
      2, "kernel='gaussian'"),
+    # no abbreviated options: --k (a `features` option) is not taken for --kernel
+    (["compute", "{sample}", "-o", "{tmp}/x.ply", "--k", "30"], 2, "unrecognized arguments: --k"),
+    (["compute", "{sample}", "-o", "{tmp}/x.ply", "--scale", "2"], 2,
+     "unrecognized arguments: --scale"),
 ])
 def test_bad_arguments_exit_codes(tmp_path, args, code, msg):
     args = [a.format(sample=sample_path(), tmp=tmp_path) for a in args]
