@@ -134,6 +134,11 @@ def _compute_parser(sub):
     c.add_argument("--method", default="mls2", choices=METHODS)
     c.add_argument("--radius", default="auto", help="ball radius in the file's unit, or 'auto' "
                    "(about 30 neighbours)")
+    c.add_argument("--k", type=int, default=None, metavar="K",
+                   help="instead of --radius, each point's radius is the distance to its K-th "
+                   "nearest point (the point itself the first; a knn_radius field is "
+                   "written); in memory only, not with --scale-space, --projections, "
+                   "--weights density or --kernel gaussian")
     c.add_argument("--scale-space", type=int, default=0, metavar="N",
                    help="MLS1 scale-space iterations first (the paper's pipeline)")
     c.add_argument("--weights", default="uniform", choices=["uniform", "density"])
@@ -175,7 +180,8 @@ def _compute_parser(sub):
 
 
 def build_parser():
-    # no abbreviations: `compute --k 30` (an option of `features`) would be taken as --kernel
+    # no abbreviations: a prefix is taken for the one option it begins (`--k 30` was taken
+    # for --kernel before compute had --k)
     p = argparse.ArgumentParser(prog="clcurv", allow_abbrev=False,
                                 description="Curvatures of raw point clouds "
                                 "(Digne & Morel operators, OpenCL).")

@@ -52,7 +52,8 @@ class Job:
     options of the methods that take them (MLS2). ``fields``: the fields to write
     (``"normals"`` and the names of :func:`result_fields`; None: all). ``positions``:
     write the ``"original"`` positions or the ``"projected"`` ones (the operator's
-    projection, else the smoothed cloud).
+    projection, else the smoothed cloud). ``k``: instead of ``radius``, each point's radius
+    is the distance to its k-th nearest point (:mod:`clcurv.knn_radius`; in memory only).
     """
     input: str | Path
     output: str | Path
@@ -75,6 +76,7 @@ class Job:
     tile_size: float | None = None
     workers: int | None = None
     scheduler: str | None = None
+    k: int | None = None
 
     @classmethod
     def from_args(cls, args):
@@ -87,10 +89,11 @@ class Job:
 
 @dataclass
 class Done:
-    """What a job did: the input points ((N, 3) float64, file order), the radius used,
-    the :class:`~clcurv.result.CurvatureResult` and the fields written."""
+    """What a job did: the input points ((N, 3) float64, file order), the radius used
+    (with ``k``: each point's, NaN where isolated), the
+    :class:`~clcurv.result.CurvatureResult` and the fields written."""
     points: np.ndarray
-    radius: float
+    radius: float | np.ndarray
     result: CurvatureResult
     fields: dict
 
@@ -169,6 +172,14 @@ def check_options(job):
     for name, takers in extra.items():
         raise UsageError(f"--{name} is an option of --method {' or '.join(takers)} only, "
                          f"not of {job.method}")
+    if job.k is not None:
+        if job.radius != "auto":
+            raise UsageError("give --radius or --k, not both")
+        for name, on in (("--scale-space", job.scale_space), ("--projections", job.projections),
+                         ("--weights density", job.weights == "density"),
+                         ("--kernel gaussian", job.kernel == "gaussian")):
+            if on:
+                raise UsageError(f"{name} does not combine with --k (a k-NN radius)")
 
 
 def result_fields(res, wanted=None):
@@ -182,6 +193,8 @@ def result_fields(res, wanted=None):
     for name, (attr, col) in OPERATORS[res.method].file_fields().items():
         a = getattr(res, attr)
         f[name] = a if col is None else a[:, col]
+    if np.ndim(res.radius):                  # a k-NN radius: each point's
+        f["knn_radius"] = np.asarray(res.radius, dtype=np.float64)
     f["neighbours"] = res.count.astype(np.int32)
     f["status"] = res.status.astype(np.uint8)
     if not wanted:
@@ -224,7 +237,8 @@ def _evaluate(job, cloud, radius, device, st):
         with st.stage("scale space", total=job.scale_space) as tick:
             work = scale_space(work, radius, job.scale_space, progress=tick, **common)
     with st.stage(job.method):
-        res = curvature(work, radius, method=job.method, normals=_input_normals(job, cloud),
+        res = curvature(work, radius, k=job.k, method=job.method,
+                        normals=_input_normals(job, cloud),
                         viewpoint=job.viewpoint, orient=orientation(job, cloud),
                         kernel=job.kernel, h=job.h, projections=job.projections, **common)
     return res, work
@@ -258,7 +272,16 @@ def _summary(job, cloud, done, device, times, normals_written):
     res, pts = done.result, done.points
     dropped = f" ({cloud.dropped} non-finite dropped)" if cloud.dropped else ""
     yield f"\n{len(pts)} points from {job.input}{dropped}"
-    yield (f"method {job.method}, radius {done.radius:.6g}, scale space {job.scale_space} "
+    if np.ndim(done.radius):
+        r = done.radius
+        iso = np.count_nonzero(np.isnan(r))
+        radius = (f"radius the distance to the {job.k}th nearest point (median "
+                  f"{np.nanmedian(r):.6g}, p99 {np.nanpercentile(r, 99):.6g}"
+                  f"{f', {iso} isolated' if iso else ''})") if iso < len(r) else \
+            f"radius the distance to the {job.k}th nearest point (every point isolated)"
+    else:
+        radius = f"radius {done.radius:.6g}"
+    yield (f"method {job.method}, {radius}, scale space {job.scale_space} "
            f"iteration(s), weights {job.weights}")
     yield (f"mean neighbours {res.count.mean():.1f} (median {np.median(res.count):.0f}); "
            f"status ok {np.mean(res.valid):.1%}")
@@ -284,10 +307,11 @@ def run(job, out=print):
     st = Stages(job.quiet)
     with st.stage("reading"):
         cloud = io.read(job.input)
-    radius = resolve_radius(job.radius, cloud.points, out)
+    radius = None if job.k is not None else resolve_radius(job.radius, cloud.points, out)
     device = get_device(job.device)
     res, work = _evaluate(job, cloud, radius, device, st)
-    done = Done(cloud.points, radius, res, result_fields(res, job.fields))
+    done = Done(cloud.points, res.radius if job.k is not None else radius, res,
+                result_fields(res, job.fields))
     normals = None if job.fields and "normals" not in job.fields else res.normals
     with st.stage("writing"):
         io.write(job.output, _positions(job, cloud, res, work), fields=done.fields,

@@ -26,7 +26,7 @@ def wants_tiles(job):
         n = stream.open_source(job.input).n
     except Exception:                       # the in-memory reader reports it
         return False
-    if job.projections or job.positions != "original":
+    if job.projections or job.positions != "original" or job.k is not None:
         # options only the in-memory job has: tiles only when it cannot fit at all (the
         # tiled run then says which option it lacks)
         return not fits_memory(n, int(available_memory() * AUTO_FRACTION))
@@ -92,6 +92,9 @@ def run_job(job, out=print):
     """The file job ``job`` in tiles (:func:`curvature_file`); prints a summary on ``out``
     and returns the summary dict."""
     from .job import ORIENT_CHOICES, UsageError
+    if job.k is not None:
+        raise UsageError("--k (a k-NN radius) needs the whole cloud in memory: it does not "
+                         "run in tiles; give --radius, or more --memory")
     if job.radius == "auto" or job.radius is None:
         src = (stream.Catalog(job.input) if isinstance(job.input, (list, tuple))
                else stream.open_source(job.input))

@@ -61,6 +61,25 @@ def test_devices_lists_the_default():
     assert p.returncode == 0 and "*" in p.stdout and "fp64" in p.stdout
 
 
+def test_compute_with_a_knn_radius(tmp_path):
+    """`compute --k 30`: each point's radius is the distance to its 30th nearest point (the
+    k-d tree's), written as knn_radius; every ball holds 30 points (more only on ties), the
+    same values as the API call."""
+    from scipy.spatial import cKDTree
+    import clcurv
+    out = tmp_path / "bunny_k.ply"
+    p = run("compute", sample_path(), "-o", out, "--method", "variation", "--k", 30, "-q")
+    assert p.returncode == 0, p.stderr
+    assert "the distance to the 30th nearest point" in p.stdout and "radius auto" not in p.stdout
+    a = io.read(out).attributes
+    pts = io.read(sample_path()).points
+    d = cKDTree(pts).query(pts, 30)[0][:, -1]
+    np.testing.assert_allclose(a["knn_radius"], d, rtol=4e-6)
+    assert (a["neighbours"] >= 30).all() and (a["neighbours"] == 30).mean() > 0.99
+    api = clcurv.curvature(pts, method="variation", k=30)
+    np.testing.assert_array_equal(a["surface_variation"], api.variation)
+
+
 @pytest.mark.parametrize("args,code,msg", [
     (["compute", "/no/such/file.ply", "-o", "x.ply"], 3, "no/such/file.ply"),
     (["compute", "{sample}", "-o", "{tmp}/x.ply", "--radius", "-1"], 2, "--radius must be positive"),
@@ -75,10 +94,20 @@ def test_devices_lists_the_default():
      2, "--projections is an option of --method mls2 only"),
     (["compute", "{sample}", "-o", "{tmp}/x.ply", "--method", "mls2", "--h", "0.01"],
      2, "kernel='gaussian'"),
-    # no abbreviated options: --k (a `features` option) is not taken for --kernel
-    (["compute", "{sample}", "-o", "{tmp}/x.ply", "--k", "30"], 2, "unrecognized arguments: --k"),
+    # no abbreviated options (--k, before compute had it, was taken for --kernel)
+    (["compute", "{sample}", "-o", "{tmp}/x.ply", "--proj", "1"], 2,
+     "unrecognized arguments: --proj"),
     (["compute", "{sample}", "-o", "{tmp}/x.ply", "--scale", "2"], 2,
      "unrecognized arguments: --scale"),
+    (["compute", "{sample}", "-o", "{tmp}/x.ply", "--k", "30", "--radius", "0.01"], 2,
+     "give --radius or --k, not both"),
+    (["compute", "{sample}", "-o", "{tmp}/x.ply", "--k", "30", "--scale-space", "2"], 2,
+     "--scale-space does not combine with --k"),
+    (["compute", "{sample}", "-o", "{tmp}/x.ply", "--k", "30", "--weights", "density"], 2,
+     "--weights density does not combine with --k"),
+    (["compute", "{sample}", "-o", "{tmp}/x.ply", "--k", "30", "--tile-size", "0.05"], 2,
+     "does not run in tiles"),
+    (["compute", "{sample}", "-o", "{tmp}/x.ply", "--k", "0"], 2, "k must be"),
 ])
 def test_bad_arguments_exit_codes(tmp_path, args, code, msg):
     args = [a.format(sample=sample_path(), tmp=tmp_path) for a in args]
