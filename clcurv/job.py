@@ -267,22 +267,26 @@ def _positions(job, cloud, res, work):
     return res.points if res.points is not None else work
 
 
+def _radius_text(job, radius):
+    """The summary's radius: the number, or with ``--k`` the per-point radii's median, p99
+    and isolated count."""
+    if not np.ndim(radius):
+        return f"radius {radius:.6g}"
+    iso = int(np.count_nonzero(np.isnan(radius)))
+    if iso == len(radius):
+        return f"radius the distance to the k-th nearest point, k = {job.k} (every point isolated)"
+    more = f", {iso} isolated" if iso else ""
+    return (f"radius the distance to the k-th nearest point, k = {job.k} (median "
+            f"{np.nanmedian(radius):.6g}, p99 {np.nanpercentile(radius, 99):.6g}{more})")
+
+
 def _summary(job, cloud, done, device, times, normals_written):
     """The summary lines printed after a job."""
     res, pts = done.result, done.points
     dropped = f" ({cloud.dropped} non-finite dropped)" if cloud.dropped else ""
     yield f"\n{len(pts)} points from {job.input}{dropped}"
-    if np.ndim(done.radius):
-        r = done.radius
-        iso = np.count_nonzero(np.isnan(r))
-        radius = (f"radius the distance to the {job.k}th nearest point (median "
-                  f"{np.nanmedian(r):.6g}, p99 {np.nanpercentile(r, 99):.6g}"
-                  f"{f', {iso} isolated' if iso else ''})") if iso < len(r) else \
-            f"radius the distance to the {job.k}th nearest point (every point isolated)"
-    else:
-        radius = f"radius {done.radius:.6g}"
-    yield (f"method {job.method}, {radius}, scale space {job.scale_space} "
-           f"iteration(s), weights {job.weights}")
+    yield (f"method {job.method}, {_radius_text(job, done.radius)}, scale space "
+           f"{job.scale_space} iteration(s), weights {job.weights}")
     yield (f"mean neighbours {res.count.mean():.1f} (median {np.median(res.count):.0f}); "
            f"status ok {np.mean(res.valid):.1%}")
     yield f"device {device.info.name} ({device.info.platform})"

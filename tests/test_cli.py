@@ -70,7 +70,8 @@ def test_compute_with_a_knn_radius(tmp_path):
     out = tmp_path / "bunny_k.ply"
     p = run("compute", sample_path(), "-o", out, "--method", "variation", "--k", 30, "-q")
     assert p.returncode == 0, p.stderr
-    assert "the distance to the 30th nearest point" in p.stdout and "radius auto" not in p.stdout
+    assert "the distance to the k-th nearest point, k = 30" in p.stdout
+    assert "radius auto" not in p.stdout
     a = io.read(out).attributes
     pts = io.read(sample_path()).points
     d = cKDTree(pts).query(pts, 30)[0][:, -1]
