@@ -9,6 +9,7 @@ from .features import features, FeatureResult
 from .operators import METHODS, OPERATORS
 from .smoothing import scale_space
 from .tiled import curvature_file
+from .tiled_features import features_file
 from .cloud import DeviceCloud
 from .memory import release_memory
 from .device import devices, get_device, NoDeviceError
@@ -19,5 +20,5 @@ from . import data, io, render, shapes
 __version__ = "0.1.0"
 __all__ = ["curvature", "normals", "project", "features", "FeatureResult", "scale_space", "METHODS", "OPERATORS",
            "DeviceCloud", "release_memory", "devices", "get_device", "NoDeviceError", "BuildError",
-           "PrecisionError", "CurvatureResult", "data", "io", "render", "shapes",
+           "PrecisionError", "CurvatureResult", "curvature_file", "features_file", "data", "io", "render", "shapes",
            "__version__"]

@@ -56,42 +56,45 @@ def render_cmd(args, out=print):
 
 
 def features_cmd(args, out=print):
-    """``clcurv features``: covariance features (:func:`clcurv.features`) of a file's points
-    at one radius, several (fields named ``<feature>_r<radius>``), a k-NN radius (plus a
-    ``knn_radius`` field) or each point's optimal radius among several (``--optimal``, plus
-    an ``optimal_radius`` field), written with the input's points (LAS/LAZ: header kept)."""
-    from .features import features, radius_suffix
-    io.check_output(args.output)            # before reading and computing
+    """``clcurv features``: covariance features (:func:`clcurv.features_file`) of a file's
+    points at one radius, several (fields named ``<feature>_r<radius>``), a k-NN radius
+    (plus a ``knn_radius`` field) or each point's optimal radius among several
+    (``--optimal``, plus an ``optimal_radius`` field), written with the input's points
+    (LAS/LAZ: header kept); in tiles when the cloud does not fit ``--memory`` (or with
+    ``--tile-size``, ``--workers``, ``--scheduler``), with the same output."""
+    from .tiled_features import features_file
+    from .tiled_job import tile_session
+    from .tiling import TilingError
+    inputs = args.input if len(args.input) > 1 else args.input[0]
+    if len(args.input) == 1:
+        io.check_output(args.output)        # before reading and computing
     if (args.radius is None) == (args.k is None):
         raise UsageError("give --radius R[,R2,...] or --k K")
     try:
         radius = None if args.radius is None else [float(r) for r in args.radius.split(",")]
     except ValueError:
         raise UsageError(f"--radius takes numbers separated by commas, got {args.radius!r}")
-    cloud = io.read(args.input)
     if args.optimal and (radius is None or len(radius) < 2):
         raise UsageError("--optimal chooses among radii: give --radius R1,R2[,...]")
-    res = features(cloud.points, radius if radius is None or len(radius) > 1 else radius[0],
-                   args.features, k=args.k, ddof=args.ddof, optimal=args.optimal,
-                   device=args.device, precision=args.precision)
-    normals = None
-    if isinstance(res, list):
-        fields = {}
-        for r, f in zip(radius, res):
-            fields.update(f.file_fields(radius_suffix(r)))
-    else:
-        fields = res.file_fields()
-        if "normals" in res.values:         # the file's own normals slot
-            normals = res.values["normals"]
-            for a in ("nx", "ny", "nz"):
-                del fields[a]
-        if args.k is not None:
-            fields["knn_radius"] = res.radius
-        if args.optimal:
-            fields["optimal_radius"] = res.radius
-    path = io.write(args.output, cloud.points, fields, normals=normals, like=cloud)
-    out(f"wrote {path}: {len(cloud.points)} points, {len(fields)} fields")
-    return path
+    if args.workers is not None and args.workers < 1:
+        raise UsageError(f"--workers must be >= 1, got {args.workers}")
+    if radius is not None and len(radius) == 1:
+        radius = radius[0]
+    try:
+        with tile_session(args.quiet, args.scheduler) as (progress, client):
+            done = features_file(
+                inputs, args.output, radius, args.features, k=args.k, ddof=args.ddof,
+                optimal=args.optimal, memory=args.memory, tile=args.tile_size,
+                device=args.device, precision=args.precision, progress=progress,
+                out=None if args.quiet else (lambda s: print(s, file=sys.stderr)),
+                client=client, workers=args.workers)
+    except TilingError as exc:
+        raise UsageError(str(exc)) from exc
+    nf = len(done["fields"]) - ("normals" in done["fields"])
+    tiles = f" in {done['tiles']} tile(s)" if done["tiled"] else ""
+    out(f"wrote {done['dst'] if len(args.input) == 1 else args.output}: {done['points']} "
+        f"points, {nf} fields{tiles}")
+    return done["dst"]
 
 
 def devices_cmd(args, out=print):
@@ -163,10 +166,16 @@ def _compute_parser(sub):
                    help="write the input positions or the smoothed/projected ones")
     c.add_argument("--ignore-normals", action="store_true",
                    help="do not use normals stored in the input file")
+    _tile_options(c)
+    c.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+
+
+def _tile_options(c):
+    """--memory, --tile-size, --workers | --scheduler: the tiled runs' options."""
     c.add_argument("--memory", default="auto", metavar="SIZE",
                    help="host memory budget, e.g. 2GiB (default auto: half the available "
-                   "RAM). LAS/LAZ/NPY input that does not fit runs in tiles with an exact "
-                   "halo (same results as in memory), output LAS/LAZ/NPZ")
+                   "RAM, at most 512 MiB). LAS/LAZ/NPY input that does not fit runs in tiles "
+                   "with an exact halo (same results as in memory), output LAS/LAZ/NPZ")
     c.add_argument("--tile-size", type=float, default=None, metavar="S",
                    help="run in tiles of S x S (file unit) even if the cloud fits")
     w = c.add_mutually_exclusive_group()
@@ -176,7 +185,6 @@ def _compute_parser(sub):
     w.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="run the tiles on the Dask cluster at ADDRESS (its workers must see "
                    "the input and the output's folder at the same paths)")
-    c.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
 
 
 def build_parser():
@@ -200,8 +208,11 @@ def build_parser():
     r.add_argument("-o", "--output", required=True)
     f = sub.add_parser("features", help="covariance features (planarity, linearity, ...)",
                        allow_abbrev=False)
-    f.add_argument("input")
-    f.add_argument("-o", "--output", required=True, help=".ply, .las/.laz, .npz, .csv, .txt")
+    f.add_argument("input", nargs="+", help="a point cloud file; several LAS/LAZ (or NPY) "
+                   "files are one cloud (a catalog), run in tiles, one output per input in "
+                   "the folder -o")
+    f.add_argument("-o", "--output", required=True, help=".ply, .las/.laz, .npz, .csv, .txt "
+                   "(a folder for several inputs)")
     f.add_argument("--radius", default=None, help="ball radius in the file's unit, or several "
                    "separated by commas (one neighbour walk; fields named <feature>_r<radius>)")
     f.add_argument("--k", type=int, default=None, help="per-point radius: the distance to "
@@ -215,7 +226,8 @@ def build_parser():
                    help="covariance divided by n - ddof (1: jakteristics)")
     f.add_argument("--device", default=None)
     f.add_argument("--precision", default="float", choices=["float", "double"])
-    f.add_argument("-q", "--quiet", action="store_true")
+    _tile_options(f)
+    f.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     d = sub.add_parser("demo", help="run the pipeline on the bundled bunny", allow_abbrev=False)
     d.add_argument("--outdir", default="out")
     d.add_argument("--device", default=None)

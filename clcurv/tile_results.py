@@ -8,9 +8,20 @@ from pathlib import Path
 
 import numpy as np
 
-#: points per id window of the merge (its records are what the writing pass holds; a
-#: multiple of READ_CHUNK, so a written chunk never spans two windows)
+#: points per id window of the merge, at most (its records are what the writing pass
+#: holds; a multiple of READ_CHUNK, so a written chunk never spans two windows)
 WINDOW = 1 << 18
+#: bytes of one window's records, at most: wide records (a features run's dozens of
+#: columns) get windows of fewer points (:func:`window_points`), so that the writing pass,
+#: which holds a window twice while it loads, stays within a tile's budget
+WINDOW_BYTES = 32 << 20
+
+
+def window_points(dtype):
+    """Points per window for records of ``dtype``: WINDOW, or the power of two that keeps
+    a window within WINDOW_BYTES (at least 4096)."""
+    fit = max(WINDOW_BYTES // max(np.dtype(dtype).itemsize, 1), 1)
+    return int(min(WINDOW, max(1 << 12, 1 << (fit.bit_length() - 1))))
 
 
 class Windows:
@@ -21,7 +32,8 @@ class Windows:
 
     def __init__(self, folder, n, dtype):
         self.folder, self.n, self.dtype = Path(folder), n, dtype
-        self.count = -(-n // WINDOW)
+        self.size = window_points(dtype)          # points per window
+        self.count = -(-n // self.size)
         self.status = np.zeros(4, np.int64)
         self._w, self._rec = -1, None
         self.transform = None           # applied to a copy of the rows given out
@@ -33,10 +45,10 @@ class Windows:
         return self.folder / f"h{w}.bin"
 
     def window(self, w):
-        """The records of window w, indexed by id - w * WINDOW; RuntimeError unless every
+        """The records of window w, indexed by id - w * size; RuntimeError unless every
         id of the window is there exactly once (a bug, never a silently partial output)."""
         if w != self._w:
-            lo, hi = w * WINDOW, min(self.n, (w + 1) * WINDOW)
+            lo, hi = w * self.size, min(self.n, (w + 1) * self.size)
             p = self.path(w)
             rec = np.fromfile(p, self.dtype) if p.exists() else np.empty(0, self.dtype)
             seen = np.bincount(rec["id"] - lo, minlength=hi - lo)
@@ -54,18 +66,19 @@ class Windows:
         """The records of ids start..stop-1 (may span windows)."""
         parts = []
         while start < stop:
-            w = start // WINDOW
+            w = start // self.size
             rec = self.window(w)
-            end = min(stop, (w + 1) * WINDOW)
-            parts.append(rec[start - w * WINDOW:end - w * WINDOW])
+            end = min(stop, (w + 1) * self.size)
+            parts.append(rec[start - w * self.size:end - w * self.size])
             start = end
         out = parts[0] if len(parts) == 1 else np.concatenate(parts)
         return self.transform(out.copy()) if self.transform is not None else out
 
 
-def to_windows(rec, path_of):
-    """Append the records ``rec`` (with an 'id') to the files of their id windows."""
-    w = rec["id"] // WINDOW
+def to_windows(rec, path_of, size=WINDOW):
+    """Append the records ``rec`` (with an 'id') to the files of their id windows of
+    ``size`` points."""
+    w = rec["id"] // size
     order = np.argsort(w, kind="stable")
     w, rec = w[order], rec[order]
     cuts = np.flatnonzero(np.diff(w)) + 1
@@ -87,11 +100,11 @@ def partition(ws, n, count, specs, mst=False):
         if "status" in rec.dtype.names and len(rec):
             win.status += np.bincount(rec["status"], minlength=4)[:4]
         if len(rec):
-            to_windows(rec, win.path)
+            to_windows(rec, win.path, win.size)
         if mst:
             halo = np.load(tile_file(ws, t).with_suffix(".halo.npy"))
             if len(halo):
-                to_windows(halo, win.halo_path)
+                to_windows(halo, win.halo_path, win.size)
     return win
 
 

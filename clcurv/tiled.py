@@ -34,6 +34,8 @@ cloud) computes, bit for bit on the same device. How:
   for bit: a component's propagation tree differs near tile borders.
 * **Scale space.** ``scale_space=N`` runs the N MLS1 steps in lock step over tiles
   (:mod:`clcurv.tiled_scale`): bit for bit the in-memory steps, re-binnings included.
+* **Features.** :func:`clcurv.features_file` runs the covariance features on this engine
+  (:mod:`clcurv.tiled_features`: cells of the largest radius, a halo of one cell).
 * **Not tiled:** ``projections`` and the projected positions (refused with a message),
   ascii PLY and the text formats. Input: LAS/LAZ, NPY, binary PLY, or a list of such files
   read as one cloud (a catalog: one output per input file); output: LAS/LAZ (from LAS/LAZ
@@ -110,6 +112,22 @@ class _Params:
     ignore_normals: bool
     scale_space: int = 0
     orient_k: int = 10
+    #: what the tiles compute (clcurv.tiled_features.FeatureParams: "features")
+    kind = "curvature"
+
+    def halo(self, file_normals):
+        """Cells of halo of this run's tiles (:func:`halo_cells`)."""
+        return halo_cells(self.method, self.weights, file_normals)
+
+    def orientation(self, src, file_normals):
+        return _orientation(self, src, file_normals)
+
+    def specs(self, wanted):
+        return _wanted_specs(self, wanted)
+
+    def bytes_per_point(self):
+        """Peak host bytes per point of a tile (its points with their halo)."""
+        return TILE_BYTES_PER_POINT
 
     def key(self):
         d = dict(self.__dict__)
@@ -142,7 +160,7 @@ def source_aerial(src):
     return src.format in ("las", "laz")
 
 
-def _workspace(dst, workdir):
+def workspace(dst, workdir):
     dst = Path(dst)
     return Path(workdir) if workdir is not None else dst.parent / f".{dst.name}.clcurv-tiles"
 
@@ -218,7 +236,7 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
     catalog = isinstance(src, (list, tuple))
     if catalog:
         source = stream.Catalog(src)
-        dst = _catalog_outputs(source, dst)
+        dst = catalog_outputs(source, dst)
     else:
         dst = io.check_output(dst)
         source = stream.open_source(src)
@@ -228,24 +246,29 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
                           "the points across tiles): run them in memory")
     if int(scale_space) < 0:
         raise ValueError(f"scale_space must be >= 0, got {scale_space}")
-    for d in (dst if catalog else [dst]):
+    check_tiled_outputs(dst if catalog else [dst], source)
+    params = _Params(method, r, weights, orient, viewpoint, kernel, h, device, precision,
+                     bool(ignore_normals), int(scale_space))
+    if not catalog and tile is None and fits_memory(source.n, budget) and client is None \
+            and not workers:
+        return _in_memory(src, dst, params, fields, say)
+    ws = workspace(dst[0].parent / ".catalog" if catalog else dst, workdir)
+    return run_tiles(source, dst, params, budget, tile, ws, fields, progress, say, client,
+                workers)
+
+
+def check_tiled_outputs(dsts, source):
+    """TilingError unless a tiled run can write every path of ``dsts`` from ``source``."""
+    for d in dsts:
         ext = d.suffix.lower()
         if ext not in stream.STREAM_WRITES:
             raise TilingError(f"{d}: a tiled run writes {', '.join(stream.STREAM_WRITES)}")
         if ext in (".las", ".laz") and source.format not in ("las", "laz"):
             raise TilingError(f"{d}: a tiled run writes LAS/LAZ from LAS/LAZ input only (it "
                               "keeps the input's header); write .npz")
-    params = _Params(method, r, weights, orient, viewpoint, kernel, h, device, precision,
-                     bool(ignore_normals), int(scale_space))
-    if not catalog and tile is None and fits_memory(source.n, budget) and client is None \
-            and not workers:
-        return _in_memory(src, dst, params, fields, say)
-    ws = _workspace(dst[0].parent / ".catalog" if catalog else dst, workdir)
-    return _run(source, dst, params, budget, tile, ws, fields, progress, say, client,
-                workers)
 
 
-def _catalog_outputs(source, dst):
+def catalog_outputs(source, dst):
     """The output path of every file of a catalog: ``dst`` (an existing folder) / the
     input's name (an NPY input's as .npz); never an input itself."""
     folder = Path(dst)
@@ -286,7 +309,7 @@ def _prepare(ws, source, params, budget, tile, say):
     if ws.exists():
         shutil.rmtree(ws)
     (ws / "buckets").mkdir(parents=True)
-    target = max(budget // TILE_BYTES_PER_POINT, 1)
+    target = max(budget // params.bytes_per_point(), 1)
     origin, side, shape = bucket_grid(source, target)
     b = Buckets(ws / "buckets", origin, side, shape, source.has_normals)
     for start, xyz, nrm in source.chunks(READ_CHUNK):
@@ -304,8 +327,11 @@ def _write_json(path, obj):
     os.replace(tmp, path)
 
 
-def _run(source, dst, params, budget, tile, ws, wanted, progress, say, client=None,
+def run_tiles(source, dst, params, budget, tile, ws, wanted, progress, say, client=None,
          workers=None):
+    """Passes (1) to (3) of a tiled run of ``params`` (:class:`_Params`, or
+    clcurv.tiled_features.FeatureParams: the tiles' computation, halo, fields and budget per
+    point) from ``source`` to ``dst``, in the workspace ``ws``; the summary dict."""
     times = {}
     t0 = time.perf_counter()
     try:
@@ -313,11 +339,12 @@ def _run(source, dst, params, budget, tile, ws, wanted, progress, say, client=No
         times["bucketing"] = time.perf_counter() - t0
         file_normals = (buckets.normals_finite and "n" in buckets.dtype.names
                         and not params.ignore_normals)
-        how = _orientation(params, source, file_normals)
-        halo = halo_cells(params.method, params.weights, file_normals)
-        specs = _wanted_specs(params, wanted)
+        how = params.orientation(source, file_normals)
+        halo = params.halo(file_normals)
+        specs = params.specs(wanted)
         if not params.scale_space:
-            tiling = plan_tiles(buckets, params.radius, halo, budget, tile)
+            tiling = plan_tiles(buckets, params.radius, halo, budget, tile,
+                                bytes_per_point=params.bytes_per_point())
     except (io.ReadError, ValueError):
         # bad input or options: the same command cannot succeed, so nothing is kept to
         # resume from (an interruption or a failure while computing keeps the workspace)
@@ -459,19 +486,24 @@ def compute_tile(task, device=None):
             device = _worker_device(params.device)
         cloud = DeviceCloud(pos, params.radius, device=device,
                             precision=params.precision, frame=tiling.frame)
-        normals, how = (rec["n"] if task.file_normals else None), task.how
-        if mst:
-            nl, node = tiled_orient.orient_tile(cloud, params.radius, params.orient_k,
-                                                task.t, tiling.frame.origin)
-            normals = np.where(node[:, None] >= 0, nl, (0.0, 0.0, 1.0))
-            how = "normals"
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)   # per tile; summed at the end
-            res = curvature(cloud, params.radius, method=params.method,
-                            weights=params.weights, normals=normals, orient=how,
-                            viewpoint=params.viewpoint, kernel=params.kernel, h=params.h)
-        f = result_fields(res)
-        f["normals"] = res.normals
+        if params.kind == "features":           # clcurv.tiled_features.FeatureParams
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                f = params.tile_fields(cloud)
+        else:
+            normals, how = (rec["n"] if task.file_normals else None), task.how
+            if mst:
+                nl, node = tiled_orient.orient_tile(cloud, params.radius, params.orient_k,
+                                                    task.t, tiling.frame.origin)
+                normals = np.where(node[:, None] >= 0, nl, (0.0, 0.0, 1.0))
+                how = "normals"
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)   # per tile; summed at the end
+                res = curvature(cloud, params.radius, method=params.method,
+                                weights=params.weights, normals=normals, orient=how,
+                                viewpoint=params.viewpoint, kernel=params.kernel, h=params.h)
+            f = result_fields(res)
+            f["normals"] = res.normals
         out["id"] = rec["id"][own]
         for name, _, _ in task.specs:
             out[name] = f[name][own]
@@ -550,24 +582,25 @@ def _write_output(dst, source, windows, specs):
     if isinstance(source, stream.Catalog):
         for part, off, d in zip(source.parts, source.offsets, dst):
             rows = (lambda o: lambda a, b: windows.rows(o + a, o + b))(int(off))
-            _write_one(d, part, rows, part.n, specs)
+            _write_one(d, part, rows, part.n, specs, windows.size)
         return
-    _write_one(dst, source, windows.rows, windows.n, specs)
+    _write_one(dst, source, windows.rows, windows.n, specs, windows.size)
 
 
-def _write_one(dst, source, rows, n, specs):
+def _write_one(dst, source, rows, n, specs, chunk=READ_CHUNK):
+    """One output file, ``chunk`` points at a time (a window's: wide records, fewer)."""
     names = [name for name, _, _ in specs]
     with io.atomic_output(dst) as tmp:
         if dst.suffix.lower() in (".las", ".laz"):
-            stream.write_las(tmp, source, names, rows, chunk=READ_CHUNK)
+            stream.write_las(tmp, source, names, rows, chunk=chunk)
         elif dst.suffix.lower() == ".ply":
             stream.write_ply(tmp, source, names, rows, n,
                              {name: (width, dtype) for name, width, dtype in specs},
-                             chunk=READ_CHUNK)
+                             chunk=chunk)
         else:
             stream.write_npz(tmp, source, names, rows, n,
                              {name: (width, dtype) for name, width, dtype in specs},
-                             chunk=READ_CHUNK)
+                             chunk=chunk)
 
 
 # --------------------------------------------------------------------------- the file job

@@ -5,6 +5,7 @@ from __future__ import annotations
 import sys
 import tempfile
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -88,6 +89,38 @@ def auto_radius_tiled(src, k=30, regions=16, sample=5000, seed=0, budget=None):
         return r
 
 
+@contextmanager
+def tile_session(quiet, scheduler=None):
+    """(progress, client) of a tiled CLI run: a tqdm bar of the tiles on stderr (None when
+    ``quiet``) and a Dask client of ``scheduler`` (None without); both closed at the end."""
+    client = None
+    if scheduler:
+        from .cluster import _import
+        client = _import().Client(scheduler)
+    bar = None
+    if not quiet:
+        from tqdm import tqdm
+        bar = tqdm(desc="tiles", unit="tile", file=sys.stderr, leave=True)
+    started = [None]
+
+    def progress(done, total, points):
+        if bar is not None:
+            if bar.total != total:
+                bar.reset(total=total)
+            now = time.perf_counter()
+            started[0] = started[0] or now
+            rate = points / max(now - started[0], 1e-9) / 1e6 if points else 0.0
+            bar.set_postfix_str(f"{points} points, {rate:.2f} M points/s", refresh=False)
+            bar.update(done - bar.n)
+    try:
+        yield progress, client
+    finally:
+        if bar is not None:
+            bar.close()
+        if client is not None:
+            client.close()
+
+
 def run_job(job, out=print):
     """The file job ``job`` in tiles (:func:`curvature_file`); prints a summary on ``out``
     and returns the summary dict."""
@@ -106,43 +139,19 @@ def run_job(job, out=print):
         raise UsageError("a tiled run writes the original positions (--positions original)")
     if job.workers is not None and job.workers < 1:
         raise UsageError(f"--workers must be >= 1, got {job.workers}")
-    client = None
-    if job.scheduler:
-        from .cluster import _import
-        client = _import().Client(job.scheduler)
-    bar = None
-    if not job.quiet:
-        from tqdm import tqdm
-        bar = tqdm(desc="tiles", unit="tile", file=sys.stderr, leave=True)
-
-    started = [None]
-
-    def progress(done, total, points):
-        if bar is not None:
-            if bar.total != total:
-                bar.reset(total=total)
-            now = time.perf_counter()
-            started[0] = started[0] or now
-            rate = points / max(now - started[0], 1e-9) / 1e6 if points else 0.0
-            bar.set_postfix_str(f"{points} points, {rate:.2f} M points/s", refresh=False)
-            bar.update(done - bar.n)
     try:
-        summary = curvature_file(
-            job.input, job.output, float(job.radius), method=job.method,
-            weights=job.weights, orient=ORIENT_CHOICES.get(job.orient, job.orient),
-            viewpoint=job.viewpoint, kernel=job.kernel, h=job.h,
-            scale_space=job.scale_space, projections=job.projections, memory=job.memory,
-            tile=job.tile_size, fields=job.fields, ignore_normals=job.ignore_normals,
-            device=job.device, precision=job.precision, progress=progress,
-            out=None if job.quiet else (lambda s: print(s, file=sys.stderr)),
-            client=client, workers=job.workers)
+        with tile_session(job.quiet, job.scheduler) as (progress, client):
+            summary = curvature_file(
+                job.input, job.output, float(job.radius), method=job.method,
+                weights=job.weights, orient=ORIENT_CHOICES.get(job.orient, job.orient),
+                viewpoint=job.viewpoint, kernel=job.kernel, h=job.h,
+                scale_space=job.scale_space, projections=job.projections, memory=job.memory,
+                tile=job.tile_size, fields=job.fields, ignore_normals=job.ignore_normals,
+                device=job.device, precision=job.precision, progress=progress,
+                out=None if job.quiet else (lambda s: print(s, file=sys.stderr)),
+                client=client, workers=job.workers)
     except TilingError as exc:
         raise UsageError(str(exc)) from exc
-    finally:
-        if bar is not None:
-            bar.close()
-        if client is not None:
-            client.close()
     times = ", ".join(f"{k} {v:.2f} s" for k, v in summary["times"].items())
     st = summary["status"] or []
     ok = st[0] / max(sum(st), 1) if st else float("nan")

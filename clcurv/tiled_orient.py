@@ -165,14 +165,14 @@ def flip_fields(rec, mask, method):
 def reconcile_windows(ws, windows, count, method):
     """Votes between tile components from the halo points and their owners, window by
     window; sets ``windows.transform`` to the final flips (clcurv.tiled_orient)."""
-    from .tile_results import WINDOW, tile_file
+    from .tile_results import tile_file
     votes = {}
     for w in range(windows.count):
         hp = windows.halo_path(w)
         if not hp.exists():
             continue
         halo = np.fromfile(hp, HALO_DTYPE)
-        own = windows.window(w)[halo["id"] - w * WINDOW]
+        own = windows.window(w)[halo["id"] - w * windows.size]
         ok = own["node"] >= 0
         halo, own = halo[ok], own[ok]
         agree = np.einsum("ij,ij->i", halo["nl"].astype(np.float64),

@@ -78,9 +78,10 @@ def budget_of(memory):
     return parse_memory(memory)
 
 
-def fits_memory(n, budget):
-    """Does an in-memory run of ``n`` points fit ``budget`` bytes?"""
-    return n * IN_MEMORY_BYTES_PER_POINT <= budget
+def fits_memory(n, budget, extra_per_point=0):
+    """Does an in-memory run of ``n`` points fit ``budget`` bytes (``extra_per_point``: the
+    bytes per point a run needs beyond a curvature file job's, e.g. more output fields)?"""
+    return n * (IN_MEMORY_BYTES_PER_POINT + extra_per_point) <= budget
 
 
 def halo_cells(method, weights="uniform", file_normals=False):
@@ -131,12 +132,13 @@ def within(cells, rng):
             & (cells[:, 1] >= cy0) & (cells[:, 1] < cy1))
 
 
-def plan_tiles(buckets, radius, halo, budget, tile=None, frame=None):
+def plan_tiles(buckets, radius, halo, budget, tile=None, frame=None,
+               bytes_per_point=TILE_BYTES_PER_POINT):
     """The :class:`Tiling` of the whole cloud: its frame from the exact bounds (or
     ``frame``), and tiles of ``tile`` (length) or, from the budget, as large as the
-    densest tile allows."""
+    densest tile allows at ``bytes_per_point`` (a tile's peak host bytes per point)."""
     frame = frame if frame is not None else Frame.covering(buckets.lo, buckets.hi, radius)
-    limit = max(int(budget // TILE_BYTES_PER_POINT), 1)
+    limit = max(int(budget // bytes_per_point), 1)
     if tile is not None:
         size = int(math.floor(float(tile) / frame.cell))
         if size < max(halo, 1):
@@ -155,7 +157,7 @@ def plan_tiles(buckets, radius, halo, budget, tile=None, frame=None):
             raise TilingError(
                 f"the memory budget ({budget / 2**20:.0f} MiB) is too small for one tile: "
                 f"the densest tile of {size} x {size} cells of the radius holds about "
-                f"{worst} points with its halo, {TILE_BYTES_PER_POINT} bytes each; give "
+                f"{worst} points with its halo, {bytes_per_point} bytes each; give "
                 "more memory (--memory) or a smaller radius")
         size = max(max(halo, 1), int(size * min(0.7, math.sqrt(limit / worst))))
 

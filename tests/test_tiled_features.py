@@ -1,0 +1,139 @@
+"""Covariance features in tiles (clcurv.tiled_features, `clcurv features --tile-size`): the
+output of a tiled run is the in-memory run's, bit for bit (same fields, same order, every
+point once in input order), for one radius, several radii and the optimal neighbourhood;
+the memory budget decides and grows with the fields; what a tiled run cannot do is refused
+before any output is written."""
+import os
+
+import numpy as np
+import pytest
+
+import clcurv
+from clcurv import tiled_features
+from clcurv.features import canonical_names
+from clcurv.tiling import TILE_BYTES_PER_POINT
+from tests.hostile import run_cli
+from tests.test_tiled import AUTZEN, SCALE, _dims, _scene
+
+laspy = pytest.importorskip("laspy")
+
+RADII = [0.6, 1.0, 1.4]             # the scene's terrain: ~11 to ~60 neighbours
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    d = tmp_path_factory.mktemp("tiled_features")
+    pts, kind = _scene(20_000, seed=5)
+    hdr = laspy.LasHeader(point_format=3, version="1.2")
+    hdr.scales = [SCALE] * 3
+    hdr.offsets = np.floor(pts.min(axis=0))
+    las = laspy.LasData(hdr)
+    las.x, las.y, las.z = pts.T
+    las.classification = kind
+    path = d / "scene.laz"
+    las.write(str(path))
+    return d, path, pts
+
+
+def _assert_same(a, b):
+    la, da = _dims(a)
+    lb, db = _dims(b)
+    assert la.header.point_count == lb.header.point_count
+    assert list(da) == list(db)
+    diff = [n for n in da if not np.array_equal(da[n], db[n], equal_nan=True)]
+    assert diff == [], f"fields differ between tiled and in-memory output: {diff}"
+    return da
+
+
+CASES = {
+    "one radius, all features": dict(radius=1.0, features="all"),
+    "three radii": dict(radius=RADII),
+    "optimal among three": dict(radius=RADII, optimal=True,
+                                features=["planarity", "linearity", "normals"]),
+}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_tiles_equal_the_in_memory_features_bit_for_bit(scene, case):
+    d, path, pts = scene
+    kw = CASES[case]
+    tag = case.replace(" ", "_").replace(",", "")
+    mem = clcurv.features_file(path, d / f"mem_{tag}.laz", memory="64GiB", **kw)
+    til = clcurv.features_file(path, d / f"til_{tag}.laz", tile=6.0, **kw)
+    assert not mem["tiled"] and til["tiled"] and til["tiles"] >= 25
+    assert til["halo"] == 1 and til["fields"] == mem["fields"]
+    dims = _assert_same(d / f"mem_{tag}.laz", d / f"til_{tag}.laz")
+    las = laspy.read(str(d / f"til_{tag}.laz"))
+    assert np.array_equal(np.column_stack([las.x, las.y, las.z]), pts)   # input order
+    status = [k for k in dims if k.startswith("feature_status")]
+    assert status and all((dims[k] == 0).mean() > 0.9 for k in status)
+    # the values are the API's on the whole cloud (not only the file job's)
+    api = clcurv.features(pts, **kw)
+    first = api[0] if isinstance(api, list) else api
+    suffix = "_r0.6" if isinstance(api, list) else ""
+    np.testing.assert_array_equal(dims[f"planarity{suffix}"], first["planarity"])
+    np.testing.assert_array_equal(dims[f"number_of_neighbors{suffix}"], first.count)
+
+
+def test_the_budget_decides_and_grows_with_the_fields(scene, tmp_path):
+    """A budget too small for the whole cloud in memory tiles without a tile size, with the
+    same output; a tile's bytes per point grow with the fields and radii written."""
+    d, path, _ = scene
+    one = tiled_features.FeatureParams((1.0,), ("planarity",), 0, False, None, "float")
+    many = tiled_features.FeatureParams(tuple(RADII), canonical_names("all"), 0, False, None,
+                                        "float")
+    assert one.bytes_per_point() == TILE_BYTES_PER_POINT + 16 * 3 + 64
+    # 17 features, normals 3 wide, count and status: 21 columns a radius
+    assert many.columns() == 3 * 21
+    assert many.bytes_per_point() == TILE_BYTES_PER_POINT + 16 * 63 + 3 * 64
+    a = clcurv.features_file(path, tmp_path / "mem.laz", RADII, memory="64GiB")
+    # 20,700 points: in memory ~47 MB with these 48 columns (1,300 + 960 bytes a point);
+    # a tile takes 1,860 bytes a point, so one tile of the whole scene fits 40 MiB
+    b = clcurv.features_file(path, tmp_path / "small.laz", RADII, memory="40MiB")
+    assert not a["tiled"] and b["tiled"]
+    _assert_same(tmp_path / "mem.laz", tmp_path / "small.laz")
+
+
+def test_cli_tiles_equal_the_cli_in_memory(scene, tmp_path):
+    _, path, _ = scene
+    a, b = tmp_path / "mem.laz", tmp_path / "til.laz"
+    r1 = run_cli("features", path, "-o", a, "--radius", "0.6,1", "-q")
+    r2 = run_cli("features", path, "-o", b, "--radius", "0.6,1", "-q", "--tile-size", "6")
+    assert r1.code == 0 and r2.code == 0, (r1.stderr, r2.stderr)
+    assert "tile(s)" in r2.stdout and "tile(s)" not in r1.stdout
+    _assert_same(a, b)
+    # what a tiled run cannot do: refused before any output, exit code 2
+    for args, msg in (
+            (("--k", "30", "--tile-size", "6"), "whole cloud in memory"),
+            (("--radius", "1", "--tile-size", "0.5"), "smaller than the halo"),
+            (("--radius", "1", "--tile-size", "6", "--workers", "0"), "--workers")):
+        out = tmp_path / "x.laz"
+        r = run_cli("features", path, "-o", out, "-q", *args)
+        assert r.code == 2 and msg in r.stderr, (args, r.stderr)
+        assert not out.exists()
+    r = run_cli("features", path, "-o", tmp_path / "x.xyz", "--radius", "1", "-q",
+                "--tile-size", "6")
+    assert r.code == 2 and "a tiled run writes" in r.stderr
+    assert not (tmp_path / "x.xyz").exists()
+
+
+def test_dask_workers_equal_one_process(scene, tmp_path):
+    pytest.importorskip("distributed")
+    _, path, _ = scene
+    one, two = tmp_path / "one.laz", tmp_path / "two.laz"
+    clcurv.features_file(path, one, RADII, tile=6.0)
+    s = clcurv.features_file(path, two, RADII, tile=6.0, workers=2)
+    assert s["tiled"] and s["tiles"] >= 25
+    assert one.read_bytes() == two.read_bytes()
+
+
+def test_a_real_aerial_scan_tiles_exactly(tmp_path):
+    """The Autzen LAZ (110k points, feet), features at 4, 6 and 9 ft in 100-ft tiles: the
+    in-memory output, bit for bit."""
+    if not os.path.exists(AUTZEN):
+        pytest.skip("the shared Autzen LAZ is not present")
+    a, b = tmp_path / "mem.laz", tmp_path / "til.laz"
+    clcurv.features_file(AUTZEN, a, [4.0, 6.0, 9.0], "all", memory="64GiB")
+    s = clcurv.features_file(AUTZEN, b, [4.0, 6.0, 9.0], "all", tile=100.0)
+    assert s["tiles"] >= 50
+    _assert_same(a, b)
