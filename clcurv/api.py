@@ -159,12 +159,15 @@ def _flip(run, n, how, normals, viewpoint, k):
     return np.zeros(len(n), dtype=bool)
 
 
-def _warn_sparse(status, radius, need):
+def _warn_sparse(status, radius, need, k=None):
+    """RuntimeWarning when most points have too few neighbours (``k``: a k-NN radius)."""
     few = np.count_nonzero(status == TOO_FEW)
     if few > len(status) // 2:
+        where = (f"radius {radius}: their outputs are NaN; the radius is probably too small"
+                 if k is None else f"their k-NN radius (k = {k}): their outputs are NaN; "
+                 f"k must be at least {need}")
         warnings.warn(f"{few} of {len(status)} points have fewer than {need} neighbours within "
-                      f"radius {radius}: their outputs are NaN; the radius is probably too small",
-                      RuntimeWarning, stacklevel=3)
+                      f"{where}", RuntimeWarning, stacklevel=3)
 
 
 def _oriented(run, raw, how, ref_normals, vp, k):
@@ -389,7 +392,7 @@ def curvature(points, radius=None, *, method="mls1", weights="uniform", normals=
     if knn is not None:                 # each point's own radius in the constants
         r = knn.radius
         raw["status"][knn.isolated] = TOO_FEW
-    _warn_sparse(raw["status"], r, op.min_count)
+    _warn_sparse(raw["status"], r, op.min_count, None if knn is None else knn.k)
     res = _result(op, r, weights, raw["count"], raw["status"],
                   op.finish(raw, pts, r, use, ref_normals))
     res.info["orientation"] = how

@@ -14,8 +14,14 @@ isolated); the distances found go from one binning's order to the next's on the 
 (gather.cl, :func:`_permute`). The
 operators then run on one cloud whose cell is the largest radius (the last level's, or
 binned again at the largest radius when that cell is much larger), every point's ball of
-squared radius r^2 = d_k^2 (1 + :data:`MARGIN`), so that their strict ball test holds the k
-points on any grid (ties, and distances within ~1e-5 of d_k, enter too).
+squared radius r^2 = (d_k + e)^2 (1 + :data:`MARGIN`), e the float round-off of a distance
+on a grid of the largest cell c (:data:`ROUND_OFF` eps c, ~2e-6 c in float), so that their
+strict ball test holds the k points on any grid (ties, and distances within ~1e-6 of d_k
+or within e of it, enter too). The constants (2 / r, ...) take the ball's radius, d_k + e
+to ~1e-6. Where the radius varies more than ~500x across a cloud (float; the sparsest
+points set c), e exceeds 1e-3 of the smallest radii: a RuntimeWarning says so, as their
+balls may then take a few more points than k and their constants a radius that much
+larger (precision='double' makes e ~4e-15 c).
 
 Cost: the operators walk cells as large as the largest radius, so with a radius that varies
 3x across the cloud the densest parts walk ~10x the candidates of a fixed-radius call at
@@ -58,11 +64,24 @@ MAX_K = 256
 #: k-NN radii is isolated (status 1): the grid would otherwise need cells as large as its distance, and
 #: every point's walk would cover them
 ISOLATION = 4.0
-#: the ball's r^2 is d_k^2 (1 + MARGIN): the k-th point then passes the operators' strict
-#: test d^2 < r^2 on any grid (float32 offsets from another cell corner round d^2 apart by
-#: ~1e-6 relative at most, cell <= ISOLATION r); points within that margin of d_k (ties)
+#: the ball's r^2 is (d_k + ROUND_OFF eps c)^2 (1 + MARGIN): the relative margin covers the
+#: rounding of r^2 itself and of d^2 (a few ulps); points within the margins of d_k (ties)
 #: enter too
-MARGIN = 2.0 ** -16
+MARGIN = 2.0 ** -19
+#: the ball's radius also exceeds d_k by ROUND_OFF device epsilons of the last level's cell
+#: c: the absolute round-off of a distance on a grid of cell at most c (each offset q - p is
+#: made of coordinates stored relative to cell corners, exact to half an ulp of 3c, and of
+#: a row shift: ~5 eps c at most on d, whatever d), on the level that found d_k and again on
+#: the operators' grid. A relative MARGIN alone (2^-16 before) covered it only for radii
+#: near the cell: where the k-NN radius varies 15x and more across a cloud (one grid, cells
+#: of the largest radius) the balls of the densest points held k - 1 points (k - 2) in float
+ROUND_OFF = 16
+#: warn when ROUND_OFF eps c exceeds this fraction of the radius of more than
+#: ROUND_OFF_SHARE of the points: points so much denser than the sparsest have balls whose
+#: edge the float grid blurs (precision='double' resolves it); a few near-coincident points
+#: (a tiny k-th distance at small k) do not warn
+ROUND_OFF_WARN = 1e-3
+ROUND_OFF_SHARE = 1e-3
 #: the first cell is this many times the k-NN radius estimated for a surface at the cloud's
 #: mean density (:func:`_first_cell`): ~1.16x the median k-NN radius of a uniform sphere,
 #: where ~5% of the points (k = 30) need the next level. (1.6, ~1.5x the median radius,
@@ -93,7 +112,9 @@ class KnnRadii:
 
 
 def check_k(k, n):
-    """``k`` as an int in [1, min(MAX_K, n)], or ValueError."""
+    """``k`` as an int in [1, min(MAX_K, n)], or TypeError / ValueError."""
+    if isinstance(k, (bool, np.bool_)):
+        raise TypeError(f"k must be an integer, got {k!r}")
     try:
         kk = int(k)
     except (TypeError, ValueError):
@@ -112,12 +133,22 @@ def _first_cell(pts, k, lo, hi, sample=20000):
     points occupies (s large enough for ~20 subsample points per cell of a plane; a surface
     crosses ~1.5 cells per s^2 of its area on average)."""
     n = len(pts)
+    sub = pts[::max(n // sample, 1)]
+    # the extents of the subsample's middle 98% (per axis; the bounding box when that is
+    # empty): a far outlier or a "no data" point would otherwise make the cell as large
+    # as its distance, and every other point's float offsets within it imprecise (one
+    # point at 1e7 beside a 0.15 bunny gave every radius 1.1 instead of 0.014)
+    if len(sub) >= 50:
+        slo = np.quantile(sub, 0.01, axis=0, method="lower")
+        shi = np.quantile(sub, 0.99, axis=0, method="higher")
+        if (shi - slo).max() > 0:
+            lo, hi = slo, shi
+            sub = sub[np.all((sub >= lo) & (sub <= hi), axis=1)]
     ext = np.sort(hi - lo)[::-1]
     if not ext[0] > 0:
         return 1.0                                 # all coincident: any cell holds them
     if not ext[1] > 0:
         return 1.5 * ext[0] * k / n                # collinear
-    sub = pts[::max(n // sample, 1)]
     s = np.sqrt(20.0 * ext[0] * ext[1] / len(sub))
     if not ext[0] / s < 2.0 ** 40:                 # a needle: the bounding-box guess
         return float(1.5 * np.sqrt(k * ext[0] * ext[1] / (np.pi * n)))
@@ -267,7 +298,8 @@ def _all_resolved(pts, box, k, cloud, c, out, d2, levels):
     distance ``d2`` within the last cell ``c`` (the usual case): the permutations and r^2 on
     the device. The operators' cloud is the last level's, or binned again at the largest
     radius when ``c`` is much larger (appended to ``levels``)."""
-    top = float(np.sqrt(float(_margin(d2.max(keepdims=True), cloud.dtype)[0])))
+    slack = _slack(c, cloud.dtype)
+    top = float(np.sqrt(float(_margin(d2.max(keepdims=True), cloud.dtype, slack)[0])))
     d2_in = _permute(cloud, out, True)
     radius = np.sqrt(_kth_fetch(cloud, d2_in), dtype=np.float64, out=host_empty(cloud.n))
     if c > REBIN_FACTOR * top and top > 1e-3 * c:
@@ -275,7 +307,8 @@ def _all_resolved(pts, box, k, cloud, c, out, d2, levels):
         cloud = _rebin(pts, box, top, cloud)
         levels.append(cloud.cell)
         out = _permute(cloud, d2_in, False)
-    return radius, np.zeros(cloud.n, bool), cloud, _ball_r2(cloud, k, out)
+    _warn_round_off(c, slack, radius)
+    return radius, np.zeros(cloud.n, bool), cloud, _ball_r2(cloud, k, out, slack)
 
 
 def _some_isolated(pts, box, cloud, c, d2, ok, cap, levels):
@@ -288,11 +321,13 @@ def _some_isolated(pts, box, cloud, c, d2, ok, cap, levels):
     if cap is not None:                          # beyond the cap within the last cell
         isolated |= np.sqrt(np.where(ok, d2, 0.0)) > cap
     live = ~isolated
-    r2 = _margin(np.where(isolated, 0.0, d2), cloud.dtype)
+    slack = _slack(c, cloud.dtype)
+    r2 = _margin(np.where(isolated, 0.0, d2), cloud.dtype, slack)
     r2[isolated] = 0
     top = float(np.sqrt(r2[live].max())) if live.any() else 0.0
     radius[order] = np.where(isolated, np.nan, np.sqrt(np.where(isolated, 0.0, d2)))
     iso_in[order] = isolated
+    _warn_round_off(c, slack, radius)
     if live.any() and c > REBIN_FACTOR * top and top > 1e-3 * c:
         r2_in = np.empty(cloud.n, cloud.dtype)
         r2_in[order] = r2
@@ -361,13 +396,36 @@ def _isolation_cap(d2, resolved):
     return ISOLATION * (a + (b - a) * frac)
 
 
-def _margin(d2, dtype):
-    """d2 widened by the relative MARGIN (at least the smallest normal of ``dtype``, so that
-    coincident points, d2 = 0, pass d^2 < r^2), in ``dtype``. (1 + MARGIN needs 17 bits: the
-    product of two float32 is exact in float64, so one float32 multiply rounds as the
-    float64 product cast to float32 does.)"""
-    x = np.multiply(d2, dtype(1 + MARGIN), dtype=dtype)
+def _slack(cell, dtype):
+    """The absolute widening of every radius on grids of cells at most ``cell``: ROUND_OFF
+    epsilons of ``dtype`` times the cell, in ``dtype``."""
+    return dtype(ROUND_OFF * np.finfo(dtype).eps * cell)
+
+
+def _margin(d2, dtype, slack):
+    """The balls' r^2 from the k-th d^2 (the operations of knn_radius.cl:ball_r2, in
+    ``dtype``): (sqrt(d2) + slack)^2 (1 + MARGIN), at least the smallest normal of
+    ``dtype`` (so that coincident points, d2 = 0, pass d^2 < r^2)."""
+    d = np.sqrt(np.asarray(d2, dtype=dtype)) + dtype(slack)
+    x = np.multiply(d * d, dtype(1 + MARGIN), dtype=dtype)
     return np.maximum(x, np.finfo(dtype).tiny, out=x)
+
+
+def _warn_round_off(cell, slack, radius):
+    """RuntimeWarning when the grid's round-off ``slack`` (:func:`_slack` of ``cell``)
+    exceeds ROUND_OFF_WARN of some positive ``radius`` (zeros: coincident points)."""
+    live = radius[np.isfinite(radius) & (radius > 0)]
+    few = int(np.count_nonzero(live * ROUND_OFF_WARN < float(slack)))
+    if not few > ROUND_OFF_SHARE * len(radius):
+        return
+    import warnings
+    warnings.warn(f"k-NN radius: {few} of {len(radius)} points have a radius below "
+                  f"{float(slack) / ROUND_OFF_WARN:.3g} (the smallest {float(live.min()):.3g}), "
+                  f"far below the grid's cell {cell:.3g} that the sparsest points set: the "
+                  f"float round-off of the grid ({float(slack):.2g}) blurs the edge of their "
+                  "balls, which may hold a few more than k points, and enters their radius in "
+                  "the constants (2 / r, ...) by over 1e-3; precision='double' resolves it",
+                  RuntimeWarning, stacklevel=6)    # the caller of features / curvature
 
 
 def _permute(cloud, buf, to_input):
@@ -382,13 +440,13 @@ def _permute(cloud, buf, to_input):
     return out
 
 
-def _ball_r2(cloud, k, d2_sorted):
+def _ball_r2(cloud, k, d2_sorted, slack):
     """The per-point r^2 (knn_radius.cl:ball_r2, :func:`_margin` on the device) of the k-th
-    d^2 in ``cloud``'s sorted order (a device buffer, no point isolated): a padded device
-    buffer."""
+    d^2 in ``cloud``'s sorted order (a device buffer, no point isolated), ``slack`` the
+    grid's round-off (:func:`_slack`): a padded device buffer."""
     from .program import launch
     prg = _program(cloud, k)
     out = device_buffer(cloud.device, (cloud.n + PAD) * np.dtype(cloud.dtype).itemsize)
     launch(cloud.device, prg.ball_r2, cloud.n + PAD, d2_sorted, np.uint32(cloud.n),
-           cloud.dtype(1 + MARGIN), out)
+           cloud.dtype(1 + MARGIN), cloud.dtype(slack), out)
     return out

@@ -298,12 +298,15 @@ __kernel void kth_distance(__global const REAL *X, __global const REAL *Y,
 #endif
 
 /* The balls' r^2 (sorted order, padded with PAD zeros) from the k-th d^2 of every point (no
- * point isolated): d^2 (1 + MARGIN), at least the smallest normal REAL, the operations of
- * clcurv/knn_radius.py:_margin (grow = 1 + MARGIN, exact in REAL). */
+ * point isolated): (sqrt(d^2) + slack)^2 (1 + MARGIN), at least the smallest normal REAL,
+ * the operations of clcurv/knn_radius.py:_margin (grow = 1 + MARGIN, exact in REAL; slack
+ * the grids' round-off of a distance, ROUND_OFF eps of the last level's cell). */
 __kernel void ball_r2(__global const REAL *d2, const uint n, const REAL grow,
-                      __global REAL *r2)
+                      const REAL slack, __global REAL *r2)
 {
     const uint g = get_global_id(0);
-    if (g < n) r2[g] = fmax(d2[g] * grow, REAL_MIN_NORMAL);
-    else if (g < n + PAD) r2[g] = 0;
+    if (g < n) {
+        const REAL d = sqrt(d2[g]) + slack;
+        r2[g] = fmax(d * d * grow, REAL_MIN_NORMAL);
+    } else if (g < n + PAD) r2[g] = 0;
 }
