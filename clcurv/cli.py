@@ -29,7 +29,7 @@ from .device import APT_HINT, NoDeviceError, devices
 from .job import UsageError
 from .features import DEFAULT_FEATURES as FEATURE_NAMES
 from .operators import METHODS
-from .program import PrecisionError
+from .program import BuildError, PrecisionError
 
 EXIT_ERROR, EXIT_USAGE, EXIT_IO, EXIT_DEVICE, EXIT_MEMORY = 1, 2, 3, 4, 5
 EXIT_INTERRUPTED = 130
@@ -68,6 +68,7 @@ def features_cmd(args, out=print):
     inputs = args.input if len(args.input) > 1 else args.input[0]
     if len(args.input) == 1:
         io.check_output(args.output)        # before reading and computing
+        io.check_not_input(args.output, args.input[0])
     if (args.radius is None) == (args.k is None):
         raise UsageError("give --radius R[,R2,...] or --k K")
     try:
@@ -92,8 +93,10 @@ def features_cmd(args, out=print):
         raise UsageError(str(exc)) from exc
     nf = len(done["fields"]) - ("normals" in done["fields"])
     tiles = f" in {done['tiles']} tile(s)" if done["tiled"] else ""
+    dropped = done.get("dropped", 0)
+    dropped = f" ({dropped} non-finite dropped)" if dropped else ""
     out(f"wrote {done['dst'] if len(args.input) == 1 else args.output}: {done['points']} "
-        f"points, {nf} fields{tiles}")
+        f"points{dropped}, {nf} fields{tiles}")
     return done["dst"]
 
 
@@ -240,6 +243,7 @@ def build_parser():
 _EXIT_CODES = ((MemoryError, EXIT_MEMORY), (UsageError, EXIT_USAGE), (io.ReadError, EXIT_IO),
                (io.WriteError, EXIT_IO),
                (OSError, EXIT_IO), (NoDeviceError, EXIT_DEVICE), (PrecisionError, EXIT_DEVICE),
+               (BuildError, EXIT_DEVICE),
                (ValueError, EXIT_USAGE), (TypeError, EXIT_USAGE), (ImportError, EXIT_ERROR))
 
 

@@ -190,8 +190,10 @@ class FeatureResult:
 
 
 def radius_suffix(r):
-    """The field-name suffix of radius ``r`` in files: ``_r0.5``."""
-    return f"_r{r:g}"
+    """The field-name suffix of radius ``r`` in files: ``_r0.5``, ``_r2``, ``_r300.0001``:
+    the shortest positional digits that give ``r`` back, so distinct radii never share a
+    name (``%g``'s six digits made 300 and 300.0001 one field, and 1e6 a name with '+')."""
+    return "_r" + np.format_float_positional(float(r), trim="-")
 
 
 def _radii(radius):
@@ -276,7 +278,9 @@ def features(points, radius=None, features=DEFAULT_FEATURES, *, k=None, ddof=0, 
             raise ValueError("give either radius or k (or radius='knn:K'), not both")
         if optimal:
             raise ValueError("optimal=True chooses among a list of radii, not with k")
-        return _finish(_knn_features(pts, k, names, ddof, device, precision, backend), up)
+        res = _finish(_knn_features(pts, k, names, ddof, device, precision, backend), up)
+        _warn_sparse(res)
+        return res
     if radius is None:
         raise ValueError("features needs radius= (a number, a list of numbers or 'knn:K') "
                          "or k=")
@@ -330,7 +334,7 @@ def _knn_features(pts, k, names, ddof, device, precision, backend):
         from . import reference_features as ref
         r = ref.knn_radii(pts, k)        # the closed ball of radius d_k: k points
         return FeatureResult(r, *ref.features(pts, r * (1 + 1e-12), names, ddof=ddof),
-                             ddof=ddof)
+                             ddof=ddof, info={"k": k})
     radii = knn_radii(pts, k, device=device, precision=precision)
     vals, count, status = run_features(radii.cloud, [radii.cloud.cell], names, ddof,
                                        point_r2=radii.r2_sorted)[0]
@@ -372,11 +376,14 @@ def _warn_sparse(res):
     import warnings
     few = int(np.count_nonzero(res.status == TOO_FEW))
     if few > len(res.status) // 2:
-        where = (f"radius {res.radius}" if np.ndim(res.radius) == 0
-                 else "their own radius (per point)")
+        k = res.info.get("k")
+        where = (f"radius {res.radius}: their features are NaN; the radius is probably too "
+                 "small" if np.ndim(res.radius) == 0 else
+                 "their own radius (per point): their features are NaN" if k is None else
+                 f"their k-NN radius (k = {k}): their features are NaN; k must be at least "
+                 f"{MIN_COUNT_PCA}")
         warnings.warn(f"{few} of {len(res.status)} points have fewer than {MIN_COUNT_PCA} "
-                      f"neighbours within {where}: their features are NaN; the "
-                      "radius is probably too small", RuntimeWarning, stacklevel=3)
+                      f"neighbours within {where}", RuntimeWarning, stacklevel=3)
 
 
 def _empty(names, radius, ddof):

@@ -306,6 +306,7 @@ def run(job, out=print):
     if isinstance(job.input, (list, tuple)):        # a catalog: always in tiles
         return tiled_job.run_job(job, out)
     io.check_output(job.output)             # before any work: extension, folder, rights
+    io.check_not_input(job.output, job.input)
     if tiled_job.wants_tiles(job):
         return tiled_job.run_job(job, out)
     st = Stages(job.quiet)

@@ -234,5 +234,5 @@ def _in_memory(src, dst, radii, names, k, ddof, optimal, device, precision):
     path = io.write(dst, cloud.points, fields, normals=normals, like=cloud)
     names_out = list(fields) + ([] if normals is None else ["normals"])
     return {"tiled": False, "tiles": 1, "halo": 0, "points": len(cloud.points),
-            "fields": names_out, "times": {"in memory": time.perf_counter() - t0},
-            "dst": path}
+            "dropped": int(getattr(cloud, "dropped", 0) or 0), "fields": names_out,
+            "times": {"in memory": time.perf_counter() - t0}, "dst": path}

@@ -268,3 +268,55 @@ def test_cli_features(tmp_path):
     assert main(["features", str(src), "-o", str(knn)]) == 2           # neither --radius nor --k
     assert main(["features", str(src), "-o", str(knn), "--radius", "0.2",
                  "--features", "curviness"]) == 2
+
+
+def test_radius_suffixes_are_distinct_and_plain():
+    """Field suffixes give the radius back: %g's six digits made 300 and 300.0001 one
+    field (one radius's results silently overwritten) and 1e6 a name with '+'."""
+    from clcurv.features import radius_suffix
+    assert [radius_suffix(r) for r in (0.5, 2.0, 1e6, 0.0123456789)] == \
+        ["_r0.5", "_r2", "_r1000000", "_r0.0123456789"]
+    assert radius_suffix(300) != radius_suffix(300.0001)
+
+
+def test_cli_features_counts_dropped_rows_and_keeps_integer_dimensions(tmp_path):
+    """Non-finite rows are dropped and counted in the summary (as `compute` does); a LAS
+    input whose own uint8 dimension is named like a feature is not silently truncated
+    (planarity stored as 0, counts wrapped): exit code 3 and no output."""
+    laspy = pytest.importorskip("laspy")
+    from tests.hostile import run_cli
+    pts = clcurv.shapes.sphere(3000, 1.0, noise=0.005, seed=8)["points"]
+    bad = pts.copy()
+    bad[[5, 9, 11]] = [np.nan, 0, 0], [np.inf, 1, 0], [0, 0, -np.inf]
+    src = tmp_path / "nan.npy"
+    np.save(src, bad)
+    r = run_cli("features", src, "-o", tmp_path / "out.ply", "--radius", "0.2", "-q")
+    assert r.code == 0 and "2997 points (3 non-finite dropped)" in r.stdout, r.stdout
+    hdr = laspy.LasHeader(point_format=3, version="1.2")
+    hdr.scales = [1e-4] * 3
+    las = laspy.LasData(hdr)
+    las.x, las.y, las.z = pts.T
+    las.add_extra_dims([laspy.ExtraBytesParams(name="planarity", type=np.uint8)])
+    typed = tmp_path / "typed.las"
+    las.write(str(typed))
+    out = tmp_path / "typed_f.las"
+    r = run_cli("features", typed, "-o", out, "--radius", "0.2", "-q")
+    assert r.code == 3 and "'planarity' is uint8" in r.stderr, r.stderr
+    assert not out.exists()
+
+
+def test_cli_output_that_is_the_input(tmp_path):
+    """-o the input file: refused for a PLY mesh (its faces would be lost),
+    by compute and features, exit code 3, the input untouched."""
+    from tests.hostile import run_cli
+    src = tmp_path / "mesh.ply"
+    src.write_text("ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\n"
+                   "property float y\nproperty float z\nelement face 1\n"
+                   "property list uchar int vertex_indices\nend_header\n"
+                   "0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 1 2\n")
+    before = src.read_bytes()
+    for cmd in (("features", src, "-o", src, "--radius", "2"),
+                ("compute", src, "-o", src, "--radius", "2", "--method", "variation")):
+        r = run_cli(*cmd, "-q")
+        assert r.code == 3 and "the output is the input file" in r.stderr, r.stderr
+        assert src.read_bytes() == before

@@ -248,6 +248,33 @@ def _new_temp(target):
     raise FileExistsError(errno.EEXIST, "no free temporary name", str(target.parent))
 
 
+def check_not_input(output, source):
+    """OutputPathError when ``output`` is the input file ``source`` and would lose what the
+    input holds beyond its points: a PLY with other elements than its vertices (a mesh's
+    faces), or a PCD (an organised grid, whose non-finite points are dropped on reading).
+    LAS/LAZ outputs keep every record and dimension of their input; the other formats
+    hold points and their properties only."""
+    try:
+        same = Path(output).resolve() == Path(source).resolve()
+    except (OSError, RuntimeError, TypeError):
+        return
+    ext = Path(output).suffix.lower()
+    if not same or ext not in (".ply", ".pcd"):
+        return
+    if ext == ".ply":
+        try:
+            with open(source, "rb") as f:
+                head = f.read(1 << 16).split(b"end_header", 1)[0].decode("ascii", "replace")
+        except OSError:
+            return
+        others = [ln.split() for ln in head.splitlines() if ln.startswith("element ")]
+        if not any(len(e) == 3 and e[1] != "vertex" and e[2] != "0" for e in others):
+            return
+    raise OutputPathError(f"{output}: the output is the input file, which would lose what "
+                          "it holds beyond the points (a mesh's faces, an organised grid): "
+                          "choose another output")
+
+
 def check_output(path, formats=None, *, what="point cloud") -> Path:
     """Check that ``path`` can be written, without writing it; return it as a Path.
 

@@ -434,8 +434,33 @@ def _extra_dims(laspy, path, columns, header):
     return new
 
 
+def check_fits(path, point_format, name, a):
+    """WriteError unless the existing unscaled integer dimension ``name`` of
+    ``point_format`` (a dimension of the input file that a field overwrites) holds the
+    values ``a`` exactly: a feature in [0, 1] stored in the input's uint8 ``planarity`` was
+    all 0, counts over 255 wrapped."""
+    info = point_format.dimension_by_name(name)
+    dt = np.dtype(info.dtype) if info.dtype is not None else None
+    if dt is None or dt.kind not in "iu" or getattr(info, "scales", None) is not None:
+        return
+    v = np.asarray(a)
+    if v.dtype.kind in "iub":
+        ok = not len(v) or (v.min() >= np.iinfo(dt).min and v.max() <= np.iinfo(dt).max)
+    else:
+        with np.errstate(invalid="ignore"):
+            ok = bool(np.all(np.isfinite(v) & (v == np.round(v)) & (v >= np.iinfo(dt).min)
+                             & (v <= np.iinfo(dt).max)))
+    if not ok:
+        raise WriteError(f"{path}: the input's LAS dimension {name!r} is {dt.name}, which "
+                         f"cannot hold clcurv's {name!r} (fractions, NaN or out of range): "
+                         "rename or drop that dimension, or write another format")
+
+
 def _store(laspy, path, las, header, values):
     """Set every dimension of ``las`` named in ``values``; WriteError if one cannot hold it."""
+    for name, a in values.items():
+        if name in las.point_format.dimension_names:
+            check_fits(path, las.point_format, name, a)
     try:
         for name, a in values.items():
             if name in las.point_format.dimension_names:

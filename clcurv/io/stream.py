@@ -273,6 +273,7 @@ def write_las(path, src, names, rows, chunk=1_000_000):
                 if name in added:                     # unscaled extra bytes: raw = value
                     out.array[name] = a
                 elif name in dims:
+                    las.check_fits(path, header.point_format, name, a)
                     out[name] = a
             writer.write_points(out)
             start += m
