@@ -259,3 +259,34 @@ def test_cli_fails_cleanly_on_crafted_file(tmp_path, name):
     out = run_cli("compute", crafted(tmp_path, name), "-o", tmp_path / "o.ply", "-q")
     assert_clean_failure(out, what=name)
     assert_names(out.lines[0], CRAFTED[name][1])
+
+
+_ASCII_MESH = ("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+               "property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
+               "end_header\n0 0 0.125\n1 0 0.25\n0 1 -0.0197253\n3 0 1 2\n")
+
+
+@pytest.mark.parametrize("cut, what", [
+    (len(_ASCII_MESH) - len("3 0 1 2\n"), "rows of other elements"),   # the faces lost
+    (len(_ASCII_MESH) - len("0197253\n3 0 1 2\n"), "rows of other elements"),
+])
+def test_ascii_ply_cut_before_its_last_rows_is_corrupt(tmp_path, cut, what):
+    """An ascii PLY cut inside its last vertex line read the cut number (z -0.0197253 as
+    -0.0) and one cut before its other elements read as whole: both CorruptFileError."""
+    p = tmp_path / "cut.ply"
+    p.write_bytes(_ASCII_MESH[:cut].encode())
+    with pytest.raises(cio.CorruptFileError, match=what):
+        cio.read(p)
+
+
+def test_ascii_ply_vertices_cut_at_the_end_are_corrupt(tmp_path):
+    """Vertices only, the file cut inside the last line (no newline after it): an error,
+    not a shorter last number; the whole file reads."""
+    whole = ("ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
+             "property float z\nend_header\n0 0 0.125\n0 1 -0.0197253\n")
+    p = tmp_path / "v.ply"
+    p.write_bytes(whole.encode())
+    assert cio.read(p).points[-1, 2] == np.float32(-0.0197253)
+    p.write_bytes(whole[:-5].encode())
+    with pytest.raises(cio.CorruptFileError, match="ends inside its last line"):
+        cio.read(p)

@@ -137,6 +137,24 @@ def _ascii_vertices(raw, start, n, props, path):
     return _struct_columns(v)
 
 
+def _check_ascii_lines(path, raw, start, n, later):
+    """CorruptFileError unless the ascii body has a line for each of the ``n`` vertices and
+    ``later`` rows of the elements after them, and, when the vertices are the last rows, a
+    newline after the last one: a file cut inside its last vertex line parsed as a shorter
+    number (z -0.0197253 read as -0.0), and one cut before its other elements was read as
+    if whole."""
+    body = raw[start:]
+    end = body.rstrip(b" \t")
+    lines = body.count(b"\n") + (1 if end and not end.endswith(b"\n") else 0)
+    if lines < n + later:
+        raise CorruptFileError(f"{path}: PLY header says {n} vertices and {later} rows of "
+                               f"other elements but the ascii data has {lines} lines "
+                               "(truncated?)")
+    if not later and n and end and not end.endswith((b"\n", b"\r")):
+        raise CorruptFileError(f"{path}: the ascii PLY data ends inside its last line "
+                               "(truncated?): the last vertex may be cut short")
+
+
 def _vertex_columns(raw, path):
     """Columns of the PLY vertex element and the header dict (see the module docstring)."""
     import plyfile
@@ -155,6 +173,7 @@ def _vertex_columns(raw, path):
     if simple and fmt != "ascii":
         return _binary_vertices(raw, start, n, props, fmt, path), header
     if simple:
+        _check_ascii_lines(path, raw, start, n, sum(e[1] for e in elements[1:]))
         return _ascii_vertices(raw, start, n, props, path), header
     _check_elements(path, fmt, elements, len(raw) - start)
     with _quiet():  # plyfile warns on empty ascii elements
