@@ -268,8 +268,21 @@ def _warn_line(message, category, filename, lineno, file=None, line=None):
     print(f"clcurv: warning: {' '.join(str(message).split())}", file=sys.stderr)
 
 
+def _glue_negative_axes(argv):
+    """``--up -z`` as ``--up=-z``: argparse takes a value starting with '-' for an option
+    (the README spells the axes x, y, z, -x, -y, -z)."""
+    out = []
+    for a in argv:
+        if out and out[-1] == "--up" and a in ("-x", "-y", "-z"):
+            out[-1] = f"--up={a}"
+        else:
+            out.append(a)
+    return out
+
+
 def main(argv=None):
     """Entry point of the ``clcurv`` command; returns the exit code."""
+    argv = _glue_negative_axes(sys.argv[1:] if argv is None else [str(a) for a in argv])
     args = build_parser().parse_args(argv)
     run = {"compute": compute, "devices": devices_cmd, "render": render_cmd, "demo": demo_cmd,
            "features": features_cmd}

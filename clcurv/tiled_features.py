@@ -179,7 +179,8 @@ def features_file(src, dst, radius=None, features=DEFAULT_FEATURES, *, k=None, d
             raise ValueError("optimal=True chooses among a list of radii, not with k")
         if forced or catalog:
             raise TilingError("k (a k-NN radius) needs the whole cloud in memory: it does "
-                              "not run in tiles; give a radius, or more memory")
+                              "not run in tiles (a tile size, workers, a scheduler or several "
+                              "input files); give a radius to run in tiles")
         return _in_memory(src, io.check_output(dst), None, names, k, ddof, False, device,
                           precision)
     if radius is None:
@@ -188,6 +189,9 @@ def features_file(src, dst, radius=None, features=DEFAULT_FEATURES, *, k=None, d
     if optimal and len(radii) < 2:
         raise ValueError(f"optimal=True needs a list of at least two radii, got {radius!r}")
     params = FeatureParams(tuple(radii), names, int(ddof), bool(optimal), device, precision)
+    for d in ([dst] if not catalog else []):
+        if Path(d).suffix.lower() in (".las", ".laz"):     # before any work: LAS's limit
+            io.las.check_extra_count(d, params.columns())
     if catalog:
         source = stream.Catalog(src)
         dst = tiled.catalog_outputs(source, dst)

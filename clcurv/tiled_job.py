@@ -127,7 +127,9 @@ def run_job(job, out=print):
     from .job import ORIENT_CHOICES, UsageError
     if job.k is not None:
         raise UsageError("--k (a k-NN radius) needs the whole cloud in memory: it does not "
-                         "run in tiles; give --radius, or more --memory")
+                         "run in tiles (--tile-size, --workers, --scheduler, several input "
+                         "files, or a cloud larger than this machine's memory); give --radius "
+                         "to run in tiles")
     if job.radius == "auto" or job.radius is None:
         src = (stream.Catalog(job.input) if isinstance(job.input, (list, tuple))
                else stream.open_source(job.input))

@@ -320,3 +320,17 @@ def test_cli_output_that_is_the_input(tmp_path):
         r = run_cli(*cmd, "-q")
         assert r.code == 3 and "the output is the input file" in r.stderr, r.stderr
         assert src.read_bytes() == before
+
+
+def test_cli_too_many_las_fields_is_refused_before_any_work(tmp_path):
+    """20 radii of every feature are 420 fields; a LAS file describes at most 341 extra
+    dimensions (a 16-bit ExtraBytes VLR): exit code 3 before reading, no output (before,
+    laspy failed after the whole computation with "VLR record_date length ... exceeds")."""
+    pytest.importorskip("laspy")
+    from tests.hostile import run_cli
+    src = tmp_path / "missing.las"          # not even read: the count is known beforehand
+    out = tmp_path / "many.las"
+    radii = ",".join(str(1 + i) for i in range(20))
+    r = run_cli("features", src, "-o", out, "--radius", radii, "--features", "all", "-q")
+    assert r.code == 3 and "420 extra-bytes dimensions" in r.stderr, r.stderr
+    assert not out.exists()

@@ -419,9 +419,24 @@ def _scaled_ints(path, pts, header):
     return ints
 
 
+#: extra-bytes dimensions a LAS file can describe: its ExtraBytes VLR (192 bytes each) has
+#: a 16-bit length
+MAX_EXTRA_DIMS = 65535 // 192
+
+
+def check_extra_count(path, count):
+    """WriteError when ``count`` extra-bytes dimensions exceed what LAS can describe."""
+    if count > MAX_EXTRA_DIMS:
+        raise WriteError(f"{path}: {count} extra-bytes dimensions, but a LAS file describes "
+                         f"at most {MAX_EXTRA_DIMS} (its ExtraBytes VLR has a 16-bit length): "
+                         "write fewer fields (radii, features), or NPZ or PLY")
+
+
 def _extra_dims(laspy, path, columns, header):
     """ExtraBytesParams for the columns that are not dimensions of the header already."""
     existing = set(header.point_format.dimension_names)
+    check_extra_count(path, len(list(header.point_format.extra_dimension_names))
+                      + sum(1 for name in columns if name not in existing))
     new = []
     for name, a in columns.items():
         if name in existing:
