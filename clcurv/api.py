@@ -30,6 +30,7 @@ class _Run:
         self.cloud = None
         # the k-NN radius (clcurv.knn_radius.KnnRadii): per-point balls, radius the largest
         self.point_r2 = None if knn is None else knn.r2_sorted
+        self.knn_k = None if knn is None else knn.k
         if backend == "opencl":                # DeviceCloud checks the radius and the pairs
             from .cloud import DeviceCloud
             self.cloud = cloud if cloud is not None else DeviceCloud(
@@ -62,7 +63,10 @@ class _Run:
         radius: on the device (the same graph and forest), or the float64 reference."""
         if self.cloud is None:
             return _orient.flip_by_propagation(self.points, normals, k=k, radius=self.radius)
-        return _orient.flip_on_device(self.cloud, normals, self.radius, k)
+        # a k-NN ball of K points holds each point's k < K nearest: the orientation graph
+        # walks that ball, not the grid's largest radius
+        own = self.point_r2 if self.knn_k is not None and k < self.knn_k else None
+        return _orient.flip_on_device(self.cloud, normals, self.radius, k, own)
 
     def pca_normals(self, weights):
         """Unoriented PCA normals (and count, status) only: the orientation pass."""

@@ -45,9 +45,11 @@ def device_counts(cloud, radius):
 PRUNE_BELOW = 0.8
 
 
-def row_prune(cloud, r):
-    """The ROW_PRUNE build option for a walk at radius ``r`` on ``cloud``."""
-    return int(r < PRUNE_BELOW * cloud.cell)
+def row_prune(cloud, r, per_point=False):
+    """The ROW_PRUNE build option for a walk at radius ``r`` on ``cloud`` (``per_point``:
+    each point's own radius, at most ``r``, which the walk's row test then takes: on,
+    since the grid's cell is the largest radius and most balls are smaller)."""
+    return int(per_point or r < PRUNE_BELOW * cloud.cell)
 
 
 def _par(cloud, r, h):
@@ -92,7 +94,8 @@ def run_kernel(kernel, cloud, radius, *, normals=None, weights="uniform", h=None
     r = cloud.check_radius(radius)
     if normals is not None and not kernel.reads_normals:
         raise ValueError(f"the {kernel.name} kernel takes no normals")
-    opts = dict(cloud.defines, **kernel.build_defines(), ROW_PRUNE=row_prune(cloud, r))
+    opts = dict(cloud.defines, **kernel.build_defines(),
+                ROW_PRUNE=row_prune(cloud, r, point_r2 is not None))
     if point_r2 is not None and weights == "density":
         raise ValueError("per-point radii and density weights exclude each other")
     opts.update(defines or {}, DENSITY=int(weights == "density"), GAUSSIAN=int(h is not None),

@@ -458,8 +458,9 @@ def run_features(cloud, radii, names, ddof=0, point_r2=None):
             used = sum(FEATURES[n].width for n in group)
             layout = _split_layout(used)
             t0 = time.perf_counter()
-            opts = dict(cloud.defines, **program_defines(group, nr, point_r2 is not None,
-                                                         row_prune(cloud, max(walk))))
+            opts = dict(cloud.defines, **program_defines(
+                group, nr, point_r2 is not None,
+                row_prune(cloud, max(walk), point_r2 is not None)))
             prg = build(cloud.device, "features.cl", opts)
             t_build += time.perf_counter() - t0
             plan = cloud.plan("kernel_features", nr * record_bytes(cloud, layout),

@@ -160,7 +160,7 @@ def _check_graph_memory(cloud, k):
             "tiles, or use a device with more memory")
 
 
-def knn_graph(cloud, radius, normals, k=10):
+def knn_graph(cloud, radius, normals, k=10, point_r2=None):
     """The k-nearest-neighbour orientation graph of ``cloud`` on its device.
 
     Parameters
@@ -173,6 +173,11 @@ def knn_graph(cloud, radius, normals, k=10):
         such points have no neighbours and are nobody's neighbour.
     k : int, 1 <= k <= KMAX
         Longest neighbour list; a list is shorter when the ball holds fewer valid points.
+    point_r2 : device buffer, optional
+        Each point's own squared radius (sorted order, padded: clcurv.knn_radius), at most
+        ``radius``: neighbours lie within the point's own ball, whose rows beyond it the
+        walk skips (ROW_PRUNE). With a k-NN radius of K > k points the k nearest lie within
+        it, so the graph is that of the largest radius but for invalid normals.
 
     Squared distances are those of the device precision, compared as float32 (with
     ``precision='double'`` rounded to float32 first, so near ties go to the smaller input
@@ -194,7 +199,9 @@ def knn_graph(cloud, radius, normals, k=10):
     t0 = time.perf_counter()
     nrm, nvalid = _valid_normals(normals, cloud.n)
     cols = upload_sorted(cloud, nrm)
-    prg = build(cloud.device, "knn.cl", knn_defines(cloud))
+    per_point = point_r2 is not None
+    prg = build(cloud.device, "knn.cl", dict(knn_defines(cloud), POINT_RADIUS=int(per_point),
+                                             ROW_PRUNE=int(per_point)))
     q = cloud.device.queue
     nbr = device_buffer(cloud.device, 4 * cloud.n * k)
     wgt = device_buffer(cloud.device, 4 * cloud.n * k)
@@ -202,7 +209,8 @@ def knn_graph(cloud, radius, normals, k=10):
     t1 = time.perf_counter()
     launch(cloud.device, prg.knn_graph, cloud.n, cloud.x, cloud.y, cloud.z, *cols,
            cloud.cell_of, cloud.ranges, cloud.order, np.uint32(cloud.n), cloud.ball(r),
-           np.uint32(k), nbr, wgt, **({"limit": CPU_GROUP} if cloud.device.info.kind == "cpu"
+           np.uint32(k), nbr, wgt, point_r2 if per_point else cloud.x,
+           **({"limit": CPU_GROUP} if cloud.device.info.kind == "cpu"
                                        else {}))
     q.finish()
     t2 = time.perf_counter()

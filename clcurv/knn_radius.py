@@ -23,9 +23,12 @@ points set c), e exceeds 1e-3 of the smallest radii: a RuntimeWarning says so, a
 balls may then take a few more points than k and their constants a radius that much
 larger (precision='double' makes e ~4e-15 c).
 
-Cost: the operators walk cells as large as the largest radius, so with a radius that varies
-3x across the cloud the densest parts walk ~10x the candidates of a fixed-radius call at
-their own radius (one grid for the whole cloud).
+Cost: the operators walk cells as large as the largest radius (one grid for the whole
+cloud), skipping the rows of cells beyond each point's own ball (ROW_PRUNE), and so does
+the MST orientation's graph (its k < K nearest lie in the point's ball): on the Kinect
+scene of the shared data (241k points, radii varying ~5x) MLS2 with k=30 and MST
+orientation took 4.2 s without the pruning, 1.8 s with it. Within a row the walk still
+covers three cells of the largest radius.
 
 Documented behaviour:
 

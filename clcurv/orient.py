@@ -427,18 +427,19 @@ def flip_by_propagation(points, normals, k=10, radius=None):
     return flip
 
 
-def flip_on_device(cloud, normals, radius, k=10):
+def flip_on_device(cloud, normals, radius, k=10, point_r2=None):
     """Flip mask of :func:`flip_by_propagation` with stages 1 and 3 on the device of
     ``cloud`` (a :class:`~clcurv.cloud.DeviceCloud`): the same graph (``k`` nearest
     neighbours within ``radius``), its minimum spanning forest and parities
     (:mod:`clcurv.forest`), then :func:`orient_components` on the host. Invalid normals get
     False. Stage times go to ``cloud.timings`` (orient_graph, orient_forest,
-    orient_signs)."""
+    orient_signs). ``point_r2``: each point's own ball for the graph
+    (:func:`clcurv.graph.knn_graph`)."""
     import time
     from . import forest, graph as knn
     n = _as_vectors(normals, "normals")
     t0 = time.perf_counter()
-    graph = knn.knn_graph(cloud, radius, n, k)
+    graph = knn.knn_graph(cloud, radius, n, k, point_r2)
     t1 = time.perf_counter()
     fo = forest.spanning_forest(cloud, graph, edges=False)
     t2 = time.perf_counter()

@@ -17,6 +17,7 @@
  */
 #include "common.h"
 #include "neighbors.h"
+#include "radius.h"
 #include "orient.h"
 
 #define VSTOREV CAT(vstore, VW)
@@ -153,7 +154,7 @@ __kernel void knn_graph(__global const REAL *X, __global const REAL *Y, __global
                         __global const REAL *NZ, __global const uint *cell_of,
                         __global const uint2 *ranges, __global const uint *order,
                         const uint n, const REAL2 ball, const uint k,
-                        __global uint *nbr, __global float *wgt)
+                        __global uint *nbr, __global float *wgt, __global const REAL *W)
 {
     const uint g = get_global_id(0);
     if (g >= n) return;
@@ -166,7 +167,9 @@ __kernel void knn_graph(__global const REAL *X, __global const REAL *Y, __global
         const REAL3 p = (REAL3)(XA[g], Y[g], Z[g]);
         const REAL3 ng = (REAL3)(NX[g], NY[g], NZ[g]);
         const uint og = order[g];
-        const REAL s = (REAL)NBIN / ball.x;
+        /* the point's ball: the graph's radius, or with POINT_RADIUS its own (radius.h) */
+        const REAL2 bl = POINT_BALL(W, g, ball);
+        const REAL s = (REAL)NBIN / bl.x;
         REALV dx, dy, dz;
         UINTV lo = 0, hi = 0;              /* 4-bit counts of bins 0 .. 7, 8 .. 15 */
         UINTV rowor[9];                    /* per row, the bins its lanes met */
@@ -174,10 +177,10 @@ __kernel void knn_graph(__global const REAL *X, __global const REAL *Y, __global
             rowor[r] = 0;
         uint16 tot = 0;
         uint nch = 0;
-        NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, ball, i, end, pr)
+        NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, bl, i, end, pr)
             IREALV m = lane_offsets(XA, Y, Z, i, end, pr, &dx, &dy, &dz);
             const REALV d2 = sqdist(dx, dy, dz);
-            m &= ~isnan(VLOADV(0, NX + i)) & isless(d2, (REALV)ball.x);
+            m &= ~isnan(VLOADV(0, NX + i)) & isless(d2, (REALV)bl.x);
             const UINTV bn = bin_of(d2, s);
             const UINTV live = CAT(as_uint, VW)(CONVERT_INTV(m));
             const UINTV one = ((UINTV)1 << ((bn & (UINTV)7) << 2)) & live;
@@ -216,11 +219,11 @@ __kernel void knn_graph(__global const REAL *X, __global const REAL *Y, __global
             uint da[VW], ia[VW];
             IREAL ma[VW];
             uint nc = 0;
-            NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, ball, i, end, pr)
+            NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, bl, i, end, pr)
                 if (!(need >> (nb_z * 3 + nb_y) & 1)) break;    /* to the next row */
                 IREALV m = lane_offsets(XA, Y, Z, i, end, pr, &dx, &dy, &dz);
                 const REALV d2 = sqdist(dx, dy, dz);
-                m &= ~isnan(VLOADV(0, NX + i)) & isless(d2, (REALV)ball.x)
+                m &= ~isnan(VLOADV(0, NX + i)) & isless(d2, (REALV)bl.x)
                      & CONVERT_IREALV(bin_of(d2, s) <= (UINTV)bsel)
                      & ((IREALV)(IREAL)(g - i) != LANES);
                 if (any_lane(m)) {
@@ -273,10 +276,10 @@ __kernel void knn_graph(__global const REAL *X, __global const REAL *Y, __global
             REAL da[VW];
             float wa[VW];
             IREAL ma[VW];
-            NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, ball, i, end, pr)
+            NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, bl, i, end, pr)
                 IREALV m = lane_offsets(XA, Y, Z, i, end, pr, &dx, &dy, &dz);
                 const REALV d2 = sqdist(dx, dy, dz);
-                m &= ~isnan(VLOADV(0, NX + i)) & isless(d2, (REALV)ball.x);
+                m &= ~isnan(VLOADV(0, NX + i)) & isless(d2, (REALV)bl.x);
                 if (!any_lane(m)) continue;
                 VSTOREV(d2, 0, da);
                 VSTOREV(m, 0, ma);

@@ -106,8 +106,9 @@ def calls(points, precision, device):
         ("project", lambda: clcurv.project(points, R, projections=1, orient=None, **common)),
         ("variation+radii", lambda: clcurv.curvature(points, [R / 2, R], method="variation",
                                                      orient=None, **common)),
-        ("mls2+knn_radius", lambda: clcurv.curvature(points, method="mls2", k=k, orient=None,
-                                                     **common)),
+        # MST orientation: knn.cl's graph on each point's own ball (POINT_RADIUS, pruned rows)
+        ("mls2+knn_radius+graph", lambda: clcurv.curvature(points, method="mls2", k=k,
+                                                           orient="mst", **common)),
         ("features", lambda: clcurv.features(points, R, features=FEATURES, **common)),
         ("variation+features+pruned_rows", lambda: _small_radius(points, common)),
         ("features+knn_radius", lambda: clcurv.features(points, k=k, features=FEATURES,

@@ -358,3 +358,17 @@ def test_a_far_point_does_not_coarsen_the_first_cell(device):
         assert f.status[7] == TOO_FEW and np.isnan(f.radius[7])
         np.testing.assert_allclose(f.radius[keep], truth[keep], rtol=1e-6)
         assert (f.status[keep] == OK).all()
+
+
+def test_orientation_graph_walks_each_points_own_ball(sphere, device):
+    """With a k-NN radius of K points the orientation graph (k < K nearest) walks each
+    point's own ball (rows beyond it skipped) instead of the grid's largest radius: with
+    every normal valid, the same lists and weights bit for bit."""
+    from clcurv.graph import knn_graph
+    got = knn_radii(sphere, 30, device=device)
+    normals = sphere / np.linalg.norm(sphere, axis=1)[:, None]
+    r = got.cloud.cell
+    a = knn_graph(got.cloud, r, normals, 10)
+    b = knn_graph(got.cloud, r, normals, 10, point_r2=got.r2_sorted)
+    np.testing.assert_array_equal(a.neighbors(), b.neighbors())
+    np.testing.assert_array_equal(a.weights(), b.weights())
