@@ -372,3 +372,24 @@ def test_orientation_graph_walks_each_points_own_ball(sphere, device):
     b = knn_graph(got.cloud, r, normals, 10, point_r2=got.r2_sorted)
     np.testing.assert_array_equal(a.neighbors(), b.neighbors())
     np.testing.assert_array_equal(a.weights(), b.weights())
+
+
+def test_pruned_rows_change_no_bit_with_per_point_radii(device, monkeypatch):
+    """The walks of a k-NN radius skip the rows beyond each point's own ball (ROW_PRUNE):
+    the same outputs bit for bit as walking every row of the largest radius's cells, on a
+    cloud whose radii vary 10x."""
+    import importlib
+    pts = sphere_10x(20000, seed=5)
+    calls = (lambda: clcurv.features(pts, k=20, features="all", device=device),
+             lambda: clcurv.curvature(pts, method="mls2", k=20, orient=None, device=device),
+             lambda: clcurv.curvature(pts, method="2dcov1", k=20, device=device))
+    pruned = [c() for c in calls]
+    # features.run_features imports it from clcurv.driver at each call
+    monkeypatch.setattr(importlib.import_module("clcurv.driver"), "row_prune",
+                        lambda cloud, r, per_point=False: 0)
+    for a, c in zip(pruned, calls):
+        b = c()
+        arrays = (a.values, b.values) if hasattr(a, "values") else (a.arrays(), b.arrays())
+        for key, v in arrays[0].items():
+            assert np.array_equal(v, arrays[1][key], equal_nan=True), key
+        assert np.array_equal(a.count, b.count)
