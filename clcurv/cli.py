@@ -66,9 +66,6 @@ def features_cmd(args, out=print):
     from .tiled_job import tile_session
     from .tiling import TilingError
     inputs = args.input if len(args.input) > 1 else args.input[0]
-    if len(args.input) == 1:
-        io.check_output(args.output)        # before reading and computing
-        io.check_not_input(args.output, args.input[0])
     if (args.radius is None) == (args.k is None):
         raise UsageError("give --radius R[,R2,...] or --k K")
     try:

@@ -181,8 +181,9 @@ def features_file(src, dst, radius=None, features=DEFAULT_FEATURES, *, k=None, d
             raise TilingError("k (a k-NN radius) needs the whole cloud in memory: it does "
                               "not run in tiles (a tile size, workers, a scheduler or several "
                               "input files); give a radius to run in tiles")
-        return _in_memory(src, io.check_output(dst), None, names, k, ddof, False, device,
-                          precision)
+        dst = io.check_output(dst)
+        io.check_not_input(dst, src)
+        return _in_memory(src, dst, None, names, k, ddof, False, device, precision)
     if radius is None:
         raise ValueError("features_file needs radius= (a number or a list) or k=")
     radii, _ = _radii(radius)
@@ -197,6 +198,7 @@ def features_file(src, dst, radius=None, features=DEFAULT_FEATURES, *, k=None, d
         dst = tiled.catalog_outputs(source, dst)
     else:
         dst = io.check_output(dst)
+        io.check_not_input(dst, src)
         source = _streamed(src) if not forced else stream.open_source(src)
         if source is None:          # a format the tiles do not read: the in-memory reader
             return _in_memory(src, dst, radii, names, None, ddof, optimal, device, precision)
