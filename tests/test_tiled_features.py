@@ -128,3 +128,38 @@ def test_a_real_aerial_scan_tiles_exactly(tmp_path):
     s = clcurv.features_file(AUTZEN, b, [4.0, 6.0, 9.0], "all", tile=100.0)
     assert s["tiles"] >= 50
     _assert_same(a, b)
+
+
+def test_a_catalog_of_files_equals_one_file(scene, tmp_path):
+    """Two LAS/LAZ files side by side run as one cloud (`clcurv features a.las b.laz -o
+    dir/`): each output holds its file's points with the features, bit for bit those of
+    the single file made of the two in the same order."""
+    d, path, pts = scene
+    full = laspy.read(str(path))
+    west = pts[:, 0] < np.median(pts[:, 0])
+    order = np.argsort(~west, kind="stable")
+    whole = tmp_path / "whole.las"
+    las = laspy.LasData(full.header)
+    las.points = full.points[order]
+    las.write(str(whole))
+    parts = []
+    for name, keep in (("west.las", west), ("east.laz", ~west)):
+        sub = laspy.LasData(full.header)
+        sub.points = full.points[keep]
+        sub.write(str(tmp_path / name))
+        parts.append(tmp_path / name)
+    outdir = tmp_path / "out"
+    outdir.mkdir()
+    clcurv.features_file(whole, tmp_path / "ref.las", RADII, memory="64GiB")
+    r = run_cli("features", *parts, "-o", outdir, "--radius", ",".join(map(str, RADII)),
+                "--tile-size", "6", "-q")
+    assert r.code == 0, r.stderr
+    ref = _dims(tmp_path / "ref.las")[1]
+    start = 0
+    for p in parts:
+        out = _dims(outdir / p.name)[1]
+        m = len(out["X"])
+        for name, a in out.items():
+            assert np.array_equal(a, ref[name][start:start + m], equal_nan=True), (p, name)
+        start += m
+    assert start == len(pts)
