@@ -290,3 +290,17 @@ def test_ascii_ply_vertices_cut_at_the_end_are_corrupt(tmp_path):
     p.write_bytes(whole[:-5].encode())
     with pytest.raises(cio.CorruptFileError, match="ends inside its last line"):
         cio.read(p)
+
+
+def test_ascii_pcd_cut_inside_its_last_line_is_corrupt(tmp_path):
+    """An ascii PCD cut inside its last row read a shortened last number (0.01566753 as
+    0.015): CorruptFileError; the whole file reads."""
+    whole = ("# .PCD v0.7\nVERSION 0.7\nFIELDS x y z curvature\nSIZE 4 4 4 4\nTYPE F F F F\n"
+             "COUNT 1 1 1 1\nWIDTH 2\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 2\nDATA ascii\n"
+             "0 0 0 0.5\n1 0 0 0.01566753\n")
+    p = tmp_path / "c.pcd"
+    p.write_bytes(whole.encode())
+    assert cio.read(p).attributes["curvature"][-1] == np.float32(0.01566753)
+    p.write_bytes(whole[:-6].encode())
+    with pytest.raises(cio.CorruptFileError, match="ends inside its last line"):
+        cio.read(p)
