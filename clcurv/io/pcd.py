@@ -150,8 +150,8 @@ def _ascii_columns(raw, pos, h, specs, dtype, path):
     if npts and end and not end.endswith((b"\n", b"\r")):
         # a file cut inside its last row read a shortened last number (0.01566753 as 0.015)
         raise CorruptFileError(f"{path}: the ascii PCD data ends inside its last line "
-                               "(truncated?): the last point may be cut short; if the file is whole, end "
-                               "it with a newline")
+                               "(truncated?): the last point may be cut short; if "
+                               "the file is whole, end it with a newline")
     return {n: _ascii_packed_color(rows[n]) if n in packed else _native(rows[n])
             for n, _, _ in specs}
 

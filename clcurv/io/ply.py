@@ -152,8 +152,8 @@ def _check_ascii_lines(path, raw, start, n, later):
                                "(truncated?)")
     if not later and n and end and not end.endswith((b"\n", b"\r")):
         raise CorruptFileError(f"{path}: the ascii PLY data ends inside its last line "
-                               "(truncated?): the last vertex may be cut short; if the file is whole, end "
-                               "it with a newline")
+                               "(truncated?): the last vertex may be cut short; if "
+                               "the file is whole, end it with a newline")
 
 
 def _vertex_columns(raw, path):
