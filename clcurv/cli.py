@@ -129,11 +129,7 @@ def demo_cmd(args, out=print):
 def _compute_parser(sub):
     c = sub.add_parser("compute", help="compute an operator on a point cloud file",
                        allow_abbrev=False)
-    c.add_argument("input", nargs="+", help="a point cloud file; several LAS/LAZ (or NPY) "
-                   "files are one cloud (a catalog), run in tiles, one output per input in "
-                   "the folder -o")
-    c.add_argument("-o", "--output", required=True, help=".ply, .las/.laz, .npz, .csv, .txt "
-                   "(a folder for several inputs)")
+    _file_arguments(c)
     c.add_argument("--method", default="mls2", choices=METHODS)
     c.add_argument("--radius", default="auto", help="ball radius in the file's unit, or 'auto' "
                    "(about 30 neighbours)")
@@ -168,6 +164,15 @@ def _compute_parser(sub):
                    help="do not use normals stored in the input file")
     _tile_options(c)
     c.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+
+
+def _file_arguments(c):
+    """input (one file, or several as one cloud) and -o: the file commands' arguments."""
+    c.add_argument("input", nargs="+", help="a point cloud file; several LAS/LAZ (or NPY) "
+                   "files are one cloud (a catalog), run in tiles, one output per input in "
+                   "the folder -o")
+    c.add_argument("-o", "--output", required=True, help=".ply, .las/.laz, .npz, .csv, .txt "
+                   "(a folder for several inputs)")
 
 
 def _tile_options(c):
@@ -208,11 +213,7 @@ def build_parser():
     r.add_argument("-o", "--output", required=True)
     f = sub.add_parser("features", help="covariance features (planarity, linearity, ...)",
                        allow_abbrev=False)
-    f.add_argument("input", nargs="+", help="a point cloud file; several LAS/LAZ (or NPY) "
-                   "files are one cloud (a catalog), run in tiles, one output per input in "
-                   "the folder -o")
-    f.add_argument("-o", "--output", required=True, help=".ply, .las/.laz, .npz, .csv, .txt "
-                   "(a folder for several inputs)")
+    _file_arguments(f)
     f.add_argument("--radius", default=None, help="ball radius in the file's unit, or several "
                    "separated by commas (one neighbour walk; fields named <feature>_r<radius>)")
     f.add_argument("--k", type=int, default=None, help="per-point radius: the distance to "

@@ -36,20 +36,25 @@ def _scene(n=30_000, seed=3):
     return pts[perm], kind[perm]
 
 
+def write_scene(pts, kind, path):
+    """A LAS/LAZ file of the scene's points (on the LAS grid of SCALE) and classes."""
+    hdr = laspy.LasHeader(point_format=3, version="1.2")
+    hdr.scales = [SCALE] * 3
+    hdr.offsets = np.floor(pts.min(axis=0))
+    las = laspy.LasData(hdr)
+    las.x, las.y, las.z = pts.T
+    las.classification = kind
+    las.write(str(path))
+    return path
+
+
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     d = tmp_path_factory.mktemp("tiled")
     pts, kind = _scene()
     paths = {}
     for ext in ("las", "laz"):
-        hdr = laspy.LasHeader(point_format=3, version="1.2")
-        hdr.scales = [SCALE] * 3
-        hdr.offsets = np.floor(pts.min(axis=0))
-        las = laspy.LasData(hdr)
-        las.x, las.y, las.z = pts.T
-        las.classification = kind
-        paths[ext] = d / f"scene.{ext}"
-        las.write(str(paths[ext]))
+        paths[ext] = write_scene(pts, kind, d / f"scene.{ext}")
     back = laspy.read(str(paths["las"]))
     assert np.array_equal(np.column_stack([back.x, back.y, back.z]), pts)   # exact grid
     return d, paths, pts

@@ -13,7 +13,7 @@ from clcurv import tiled_features
 from clcurv.features import canonical_names
 from clcurv.tiling import TILE_BYTES_PER_POINT
 from tests.hostile import run_cli
-from tests.test_tiled import AUTZEN, SCALE, _assert_same, _dims, _scene
+from tests.test_tiled import AUTZEN, _assert_same, _dims, _scene, write_scene
 
 laspy = pytest.importorskip("laspy")
 
@@ -24,15 +24,7 @@ RADII = [0.6, 1.0, 1.4]             # the scene's terrain: ~11 to ~60 neighbours
 def scene(tmp_path_factory):
     d = tmp_path_factory.mktemp("tiled_features")
     pts, kind = _scene(20_000, seed=5)
-    hdr = laspy.LasHeader(point_format=3, version="1.2")
-    hdr.scales = [SCALE] * 3
-    hdr.offsets = np.floor(pts.min(axis=0))
-    las = laspy.LasData(hdr)
-    las.x, las.y, las.z = pts.T
-    las.classification = kind
-    path = d / "scene.laz"
-    las.write(str(path))
-    return d, path, pts
+    return d, write_scene(pts, kind, d / "scene.laz"), pts
 
 
 CASES = {
