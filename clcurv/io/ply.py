@@ -122,12 +122,13 @@ def _binary_vertices(raw, start, n, props, fmt, path):
     return _struct_columns(np.frombuffer(raw, dtype=dtype, count=n, offset=start))
 
 
-def _ascii_vertices(raw, start, n, props, path):
-    """One vertex per line."""
+def _ascii_vertices(raw, start, n, props, path, later=0):
+    """One vertex per line (``later``: the rows of the elements after the vertices)."""
     dtype = np.dtype([(p[2], _TYPES[p[1]]) for p in props])
     # each value takes a digit and a separator: bound the rows before loadtxt allocates them
     _check_claim(path, f"{n} vertices of {len(props)} values", 2 * n * len(props) - 1,
                  len(raw) - start, exact=False)
+    _check_ascii_lines(path, raw, start, n, later)
     with _quiet():  # loadtxt warns on an empty body
         v = np.loadtxt(io.StringIO(raw[start:].decode("ascii", errors="replace")),
                        dtype=dtype, ndmin=1, max_rows=n, comments=None)
@@ -174,8 +175,8 @@ def _vertex_columns(raw, path):
     if simple and fmt != "ascii":
         return _binary_vertices(raw, start, n, props, fmt, path), header
     if simple:
-        _check_ascii_lines(path, raw, start, n, sum(e[1] for e in elements[1:]))
-        return _ascii_vertices(raw, start, n, props, path), header
+        return _ascii_vertices(raw, start, n, props, path,
+                               sum(e[1] for e in elements[1:])), header
     _check_elements(path, fmt, elements, len(raw) - start)
     with _quiet():  # plyfile warns on empty ascii elements
         ply = plyfile.PlyData.read(io.BytesIO(_ascii_header(raw, start)))
