@@ -296,7 +296,9 @@ def _summary(job, cloud, done, device, times, normals_written):
         if k in ranged:
             yield f"  {k:<20} {_range(v)}"
     names = (["nx ny nz"] if normals_written else []) + list(done.fields)
-    yield f"wrote {job.output}: {', '.join(names)}"
+    kept = io.kept_attributes(job.output, cloud, done.fields)
+    more = f"; kept from the input: {', '.join(kept)}" if kept else ""
+    yield f"wrote {job.output}: {', '.join(names)}{more}"
 
 
 def run(job, out=print):

@@ -14,7 +14,10 @@ Rules common to every format
   ``normal_x, normal_y, normal_z`` (case-insensitive), when all three are present.
 * Every other per-point value becomes an entry of ``Cloud.attributes`` (name -> array whose
   first dimension is N; a PCD field with ``COUNT > 1`` gives an ``(N, COUNT)`` array).
-* :func:`write` never reorders, adds or removes points.
+* :func:`write` never reorders, adds or removes points. With ``like=`` (the Cloud the points
+  came from) it keeps what the output format can of the input: a LAS/LAZ input's header and
+  dimensions in LAS/LAZ, the attributes (colours, intensity, ...) in PLY, NPZ and text
+  (:mod:`clcurv.io.carry`), the normals when none are given.
 
 Errors on reading are subclasses of :class:`ReadError`, and their messages start with the
 file name: :class:`MissingFileError` (also a ``FileNotFoundError``),
@@ -53,9 +56,10 @@ import errno
 import os
 import secrets
 import stat
+import warnings
 from pathlib import Path
 
-from . import las, npy, pcd, ply, text
+from . import carry, las, npy, pcd, ply, text
 from ._common import (Cloud, CorruptFileError, MissingDependencyError, MissingFileError,
                       ReadError, UnknownFormatError, WriteError, _check_fields,
                       _check_normals, _check_points)
@@ -101,6 +105,8 @@ def _by_extension(kind):
 
 _READERS = _by_extension("read")
 _WRITERS = _by_extension("write")
+#: extension written -> what it keeps of like='s attributes (Format.carries)
+_CARRIES = {ext: fmt.carries for fmt in FORMATS for ext in fmt.writes}
 #: Extensions understood by :func:`read` (lower case) and what each one means.
 READ_FORMATS = {ext: description for ext, (description, _) in _READERS.items()}
 #: Extensions understood by :func:`write`.
@@ -176,12 +182,17 @@ def write(path, points, fields=None, normals=None, like=None):
     normals : (N, 3) array_like, optional
         Unit normals.
     like : Cloud, optional
-        Only for LAS/LAZ output: a Cloud read from a LAS/LAZ file with the same number of
-        points. Its header (version, point format, scales, offsets, VLRs) and its attributes
-        (classification, intensity, GPS time, extra bytes...) are kept. A Cloud read from
-        another format is ignored (a fresh header scaled to the extent,
-        :func:`clcurv.io.las.scale_for_extent`); anything that is not a Cloud raises
-        WriteError. Ignored for the other output formats.
+        The Cloud (from :func:`read`) that the points come from, with the same number of
+        points: what the output keeps of it. LAS/LAZ output from a LAS/LAZ ``like``: its
+        header (version, point format, scales, offsets, VLRs) and its attributes
+        (classification, intensity, GPS time, extra bytes...); from another format's
+        ``like``: nothing (a fresh header scaled to the extent,
+        :func:`clcurv.io.las.scale_for_extent`). PLY, NPZ and text output: ``like``'s
+        attributes (colours, intensity, ...), whatever format it was read from, between
+        the normals and the fields (:mod:`clcurv.io.carry` says how: dtypes, names, a
+        field replacing an attribute of its name). Every format: ``like``'s normals when
+        ``normals`` is None. Anything that is not a Cloud, or a Cloud of another size,
+        raises WriteError.
 
     Returns
     -------
@@ -217,9 +228,30 @@ def write(path, points, fields=None, normals=None, like=None):
     pts = _check_points(path, points)
     normals = _check_normals(path, normals, len(pts))
     fields = _check_fields(path, fields, len(pts))
+    kind = _CARRIES[path.suffix.lower()]
+    carried = {}
+    if kind is not None:
+        carried, normals = carry.from_like(path, like, len(pts), fields, normals, kind)
+        normals = _check_normals(path, normals, len(pts))
     with atomic_output(path) as tmp:
-        _WRITERS[path.suffix.lower()][1](tmp, pts, fields, normals, like)
+        _WRITERS[path.suffix.lower()][1](tmp, pts, fields, normals, like, carried)
     return path
+
+
+def kept_attributes(path, like, fields=()):
+    """The names of ``like``'s attributes that :func:`write` to ``path`` with ``like=like``
+    and the computed ``fields`` (names) keeps (for summaries): LAS/LAZ from a LAS/LAZ
+    ``like`` every dimension, from another format none; the other formats those
+    :mod:`clcurv.io.carry` carries."""
+    if like is None:
+        return []
+    kind = _CARRIES.get(Path(path).suffix.lower())
+    if kind is None:
+        return list(like.attributes) if like.format in ("las", "laz") else []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")        # write() warns for what it leaves out
+        plan = carry.plan(path, carry.specs_of(like.attributes), list(fields), kind)
+    return list(dict.fromkeys(c.src for c in plan))
 
 
 # --------------------------------------------------------------------------- output paths

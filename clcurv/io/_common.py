@@ -47,14 +47,21 @@ class Format:
     writes : dict of str -> str
         Extensions written -> description; empty for a read-only format.
     write : callable or None
-        ``write(path, points, fields, normals, like)`` with checked arguments: points
-        ``(N, 3)`` float64, fields from :func:`_check_fields`, normals ``(N, 3)`` or None.
+        ``write(path, points, fields, normals, like, carried)`` with checked arguments:
+        points ``(N, 3)`` float64, fields from :func:`_check_fields`, normals ``(N, 3)`` or
+        None, ``carried`` the input's attributes to keep (:mod:`clcurv.io.carry`: name ->
+        array in the dtype to write, written between the normals and the fields).
+    carries : str or None
+        The :func:`clcurv.io.carry.plan` kind of the output ('ply', 'text', 'npz'): what it
+        keeps of ``like``'s attributes; None when the writer keeps them itself from
+        ``like`` (LAS: its header and dimensions), ``carried`` then empty.
     """
 
     reads: dict
     read: Callable
     writes: dict = field(default_factory=dict)
     write: Callable | None = None
+    carries: str | None = None
 
 
 # --------------------------------------------------------------------------- errors
@@ -186,38 +193,48 @@ def _find(names, wanted):
     return lower.index(wanted) if wanted in lower else None
 
 
-def _stack(columns, names, triple):
-    """The (N, 3) float64 stack of the columns named ``triple`` and the names used, or
-    (None, None) when one of the three is missing."""
-    idx = [_find(names, c) for c in triple]
-    if None in idx:
-        return None, None
-    used = [names[i] for i in idx]
-    return np.column_stack([np.asarray(columns[n], dtype=np.float64) for n in used]), used
+def split_names(names, xyz=True):
+    """(the x, y, z names or None, the normal triple's names or None, the attributes' names)
+    of a file's named columns ``names`` by the rules of :func:`_split_named` (x y z and a
+    normal triple, exact names first, then case-insensitive)."""
+    names = list(names)
+    used = set()
+    pos = None
+    if xyz:
+        idx = [_find(names, c) for c in "xyz"]
+        if None not in idx:
+            pos = [names[i] for i in idx]
+            used.update(pos)
+    nrm = None
+    for triple in _NORMAL_NAMES:
+        idx = [_find(names, c) for c in triple]
+        if None not in idx:
+            nrm = [names[i] for i in idx]
+            used.update(nrm)
+            break
+    return pos, nrm, [n for n in names if n not in used]
 
 
 def _split_named(path, fmt, columns, header=None, points=None):
     """Split named per-point columns into points, normals and attributes.
 
     ``columns`` maps names to arrays of first dimension N; x, y, z are required unless
-    ``points`` is given.
+    ``points`` is given (:func:`split_names` says which columns are which).
     """
-    names = list(columns)
-    used = set()
+    pos, nrm, rest = split_names(columns, xyz=points is None)
     if points is None:
-        points, xyz = _stack(columns, names, "xyz")
-        if points is None:
-            raise CorruptFileError(f"{path}: columns {names} have no x, y and z; expected "
-                                   "columns named x, y and z")
-        used.update(xyz)
-    normals = None
-    for triple in _NORMAL_NAMES:
-        normals, nxyz = _stack(columns, names, triple)
-        if normals is not None:
-            used.update(nxyz)
-            break
-    attributes = {n: columns[n] for n in names if n not in used}
+        if pos is None:
+            raise CorruptFileError(f"{path}: columns {list(columns)} have no x, y and z; "
+                                   "expected columns named x, y and z")
+        points = _float_stack(columns, pos)
+    normals = None if nrm is None else _float_stack(columns, nrm)
+    attributes = {n: columns[n] for n in rest}
     return _finish(path, fmt, points, normals, attributes, header)
+
+
+def _float_stack(columns, names):
+    """The (N, 3) float64 stack of the three columns ``names``."""
+    return np.column_stack([np.asarray(columns[n], dtype=np.float64) for n in names])
 
 
 def _looks_like_normals(a):

@@ -402,10 +402,11 @@ def _target_header(laspy, path, pts, like):
     if like is not None and not isinstance(like, Cloud):
         raise WriteError(f"{path}: like= must be a Cloud (from clcurv.io.read), got "
                          f"{type(like).__name__}")
-    if like is None or not isinstance(like.header, laspy.LasHeader):
-        return _fresh_header(laspy, path, pts), {}, None  # like= from PLY, PCD...: ignored
-    if len(like.points) != n:
+    if like is not None and len(like.points) != n:
         raise WriteError(f"{path}: like= has {len(like.points)} points but {n} are given")
+    if like is None or not isinstance(like.header, laspy.LasHeader):
+        # like= from PLY, PCD...: a fresh header, its normals only
+        return _fresh_header(laspy, path, pts), {}, None if like is None else like.normals
     return copy.deepcopy(like.header), dict(like.attributes), like.normals
 
 
@@ -485,11 +486,12 @@ def _store(laspy, path, las, header, values):
                          f"{header.point_format.id}: {exc}") from exc
 
 
-def write(path, pts, fields, normals, like):
+def write(path, pts, fields, normals, like, carried):
     laspy = _import_laspy(path, _is_laz(path))
     if not np.isfinite(pts).all():
         raise WriteError(f"{path}: LAS cannot store NaN/Inf coordinates "
                          f"({int((~np.isfinite(pts).all(axis=1)).sum())} rows)")
+    del carried                     # LAS keeps what like= has itself (Format.carries None)
     header, keep, like_normals = _target_header(laspy, path, pts, like)
     normals = like_normals if normals is None else normals
     ints = _scaled_ints(path, pts, header)

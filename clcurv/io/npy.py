@@ -14,8 +14,9 @@ Reading
 
 Writing
 -------
-NPZ only (uncompressed ``np.savez``): ``points`` (float64), ``normals`` and each field by
-name, dtypes unchanged; fields may not be named ``points`` or ``normals``.
+NPZ only (uncompressed ``np.savez``): ``points`` (float64), ``normals``, the input's
+attributes (``like=``, :mod:`clcurv.io.carry`) and each field by name, dtypes unchanged;
+fields may not be named ``points`` or ``normals``.
 """
 from __future__ import annotations
 
@@ -122,13 +123,14 @@ def read(path):
 
 # --------------------------------------------------------------------------- write
 
-def write(path, pts, fields, normals, like):
+def write(path, pts, fields, normals, like, carried):
     clash = {"points", "normals"} & set(fields)
     if clash:
         raise WriteError(f"{path}: field names {sorted(clash)} are reserved in NPZ")
     arrays = {"points": pts}
     if normals is not None:
         arrays["normals"] = np.asarray(normals)
+    arrays.update(carried)              # the input's attributes (clcurv.io.carry)
     arrays.update(fields)
     with open(path, "wb") as f:
         np.savez(f, **arrays)
@@ -136,4 +138,4 @@ def write(path, pts, fields, normals, like):
 
 FORMAT = Format(reads={".npy": "NumPy array (N, >=3)",
                        ".npz": "NumPy archive (points, normals, ...)"},
-                read=read, writes={".npz": "NumPy archive"}, write=write)
+                read=read, writes={".npz": "NumPy archive"}, write=write, carries="npz")

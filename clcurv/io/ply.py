@@ -17,9 +17,11 @@ Writing
 -------
 Binary little-endian, vertex element only, comment ``written by clcurv``: ``x y z`` as
 ``double`` (float32 would lose the digits of georeferenced coordinates), ``nx ny nz`` as
-``float``, then each field as a ``float`` property, or an integer property of the same type
-for integer fields (int64/uint64 as int32/uint32 when in range, bool as uchar). NaN is
-written as NaN. CloudCompare and MeshLab show the extra properties as scalar fields.
+``float``, then the input's attributes (``like=``: colours, intensity... in their own
+types, :mod:`clcurv.io.carry`), then each field as a ``float`` property, or an integer
+property of the same type for integer fields (int64/uint64 as int32/uint32 when in range,
+bool as uchar). NaN is written as NaN. CloudCompare and MeshLab show the extra properties
+as scalar fields.
 """
 from __future__ import annotations
 
@@ -190,23 +192,26 @@ def read(path):
 
 # --------------------------------------------------------------------------- write
 
-def _vertex_dtype(path, fields, with_normals):
+def _vertex_dtype(path, fields, with_normals, carried=None):
+    """The vertex record: x y z double, nx ny nz float, the carried attributes in their
+    dtype (clcurv.io.carry), the fields (float, or their integer type)."""
     spec = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
     if with_normals:
         spec += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
+    spec += [(name, np.dtype(a.dtype).newbyteorder("<")) for name, a in (carried or {}).items()]
     for name, a in fields.items():
         dt = np.dtype("<f4") if a.dtype.kind == "f" else _int_as(path, name, a, _INTS)
         spec.append((name, dt.newbyteorder("<")))
     return spec
 
 
-def write(path, pts, fields, normals, like):
+def write(path, pts, fields, normals, like, carried):
     import plyfile
-    rec = np.empty(len(pts), dtype=_vertex_dtype(path, fields, normals is not None))
+    rec = np.empty(len(pts), dtype=_vertex_dtype(path, fields, normals is not None, carried))
     rec["x"], rec["y"], rec["z"] = pts.T
     if normals is not None:
         rec["nx"], rec["ny"], rec["nz"] = np.asarray(normals, dtype=np.float64).T
-    for name, a in fields.items():
+    for name, a in {**carried, **fields}.items():
         rec[name] = a
     el = plyfile.PlyElement.describe(rec, "vertex")
     plyfile.PlyData([el], text=False, byte_order="<", comments=["written by clcurv"]
@@ -214,4 +219,5 @@ def write(path, pts, fields, normals, like):
 
 
 FORMAT = Format(reads={".ply": "PLY (ascii or binary; the vertex element of a mesh)"},
-                read=read, writes={".ply": "binary little-endian PLY"}, write=write)
+                read=read, writes={".ply": "binary little-endian PLY"}, write=write,
+                carries="ply")

@@ -26,7 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ._common import CorruptFileError, UnknownFormatError, _looks_like_normals
+from ._common import (CorruptFileError, UnknownFormatError, _looks_like_normals, _native,
+                      split_names)
+from .carry import specs_of as carry_specs
 
 #: formats a tiled run reads and writes
 STREAM_READS = (".las", ".laz", ".npy", ".ply")
@@ -94,15 +96,26 @@ class LasSource:
         self.n = self.layout.count
         with self.laspy.open(str(path)) as f:
             self.header = f.header
-        names = set(self.header.point_format.dimension_names)
-        self.has_normals = {"nx", "ny", "nz"} <= names
+        dims = [n for n in self.header.point_format.dimension_names if n not in "XYZ"]
+        _, self.nrm, self.attributes = split_names(dims, xyz=False)   # as clcurv.io.read
+        self.has_normals = self.nrm is not None
+
+    def attribute_specs(self):
+        """{name: (dtype, trailing shape)} of the attributes clcurv.io.read gives (one point
+        decoded: scaled extra bytes are float64 there)."""
+        if not self.n:
+            return {}
+        for _, _, _, attrs in self.chunks(1, attributes=True):
+            return carry_specs(attrs)
 
     def bounds_hint(self):
         """The header's (mins, maxs): a hint only, never trusted for correctness."""
         lo, hi = np.asarray(self.header.mins, float), np.asarray(self.header.maxs, float)
         return (lo, hi) if np.isfinite(lo).all() and np.isfinite(hi).all() else None
 
-    def chunks(self, size):
+    def chunks(self, size, attributes=False):
+        """(start, xyz, normals or None) of each ``size`` points; with ``attributes``
+        (start, xyz, normals, {name: values} of the attributes, as clcurv.io.read has them)."""
         start = 0
         try:
             with self.laspy.open(str(self.path)) as f:
@@ -115,8 +128,12 @@ class LasSource:
                     nrm = None
                     if self.has_normals:
                         nrm = np.column_stack([np.asarray(rec[k], np.float64)
-                                               for k in ("nx", "ny", "nz")])
-                    yield start, xyz, nrm
+                                               for k in self.nrm])
+                    if attributes:
+                        yield start, xyz, nrm, {k: _native(np.asarray(rec[k]))
+                                                for k in self.attributes}
+                    else:
+                        yield start, xyz, nrm
                     start += m
                     if start > self.n:
                         break
@@ -170,7 +187,19 @@ class NpySource:
             a = np.fromfile(f, self.array.dtype, count=m * self.array.shape[1])
         return a.reshape(m, self.array.shape[1]).astype(np.float64, copy=False)
 
-    def chunks(self, size):
+    def _attribute_columns(self):
+        """The columns clcurv.io.read makes attributes: col3, col4, ... (col6 ... after
+        normals)."""
+        return range(6 if self.has_normals else 3, self.array.shape[1])
+
+    def attribute_specs(self):
+        """{name: (dtype, trailing shape)} of the attributes clcurv.io.read gives (float64,
+        as the whole array there)."""
+        return {f"col{j}": (np.dtype(np.float64), ()) for j in self._attribute_columns()}
+
+    def chunks(self, size, attributes=False):
+        """(start, xyz, normals or None) of each ``size`` points; with ``attributes``
+        (start, xyz, normals, {name: values} of the attributes, as clcurv.io.read has them)."""
         for s in range(0, self.n, size):
             block = self._rows(s, min(size, self.n - s))
             xyz = np.ascontiguousarray(block[:, :3])
@@ -181,7 +210,11 @@ class NpySource:
                     f"({int(bad.sum())} in rows {s}..{s + len(xyz) - 1}); a tiled run needs "
                     "finite coordinates: drop those rows first")
             nrm = np.ascontiguousarray(block[:, 3:6]) if self.has_normals else None
-            yield s, xyz, nrm
+            if attributes:
+                yield s, xyz, nrm, {f"col{j}": np.ascontiguousarray(block[:, j])
+                                    for j in self._attribute_columns()}
+            else:
+                yield s, xyz, nrm
 
 
 class PlySource:
@@ -190,7 +223,6 @@ class PlySource:
 
     def __init__(self, path):
         from . import ply
-        from ._common import _NORMAL_NAMES
         self.path, self.format = path, "ply"
         with open(path, "rb") as f:
             head = f.read(1 << 20)
@@ -208,18 +240,21 @@ class PlySource:
         from ._common import _check_claim
         _check_claim(path, f"{self.n} vertices of {self.dtype.itemsize} bytes",
                      self.n * self.dtype.itemsize, path.stat().st_size - start)
-        lower = {name.lower(): name for name in self.dtype.names}
-        if not all(k in lower for k in "xyz"):
+        self.xyz, self.nrm, self.attributes = split_names(self.dtype.names)  # as io.read
+        if self.xyz is None:
             raise CorruptFileError(f"{path}: the vertex element has no x, y and z")
-        self.xyz = [lower[k] for k in "xyz"]
-        self.nrm = next(([lower[k] for k in t] for t in _NORMAL_NAMES
-                         if all(k in lower for k in t)), None)
         self.has_normals = self.nrm is not None
+
+    def attribute_specs(self):
+        """{name: (dtype, trailing shape)} of the attributes clcurv.io.read gives."""
+        return {k: (self.dtype[k].newbyteorder("="), ()) for k in self.attributes}
 
     def bounds_hint(self):
         return None
 
-    def chunks(self, size):
+    def chunks(self, size, attributes=False):
+        """(start, xyz, normals or None) of each ``size`` points; with ``attributes``
+        (start, xyz, normals, {name: values} of the attributes, as clcurv.io.read has them)."""
         with open(self.path, "rb") as f:
             for s in range(0, self.n, size):
                 f.seek(self.offset + s * self.dtype.itemsize)
@@ -232,7 +267,10 @@ class PlySource:
                         "coordinate; a tiled run needs finite coordinates: drop those rows")
                 nrm = (np.column_stack([rec[k].astype(np.float64) for k in self.nrm])
                        if self.has_normals else None)
-                yield s, xyz, nrm
+                if attributes:
+                    yield s, xyz, nrm, {k: _native(rec[k]) for k in self.attributes}
+                else:
+                    yield s, xyz, nrm
 
 
 # --------------------------------------------------------------------------- writing
@@ -294,28 +332,57 @@ def _copy_records(src, dst):
         dst[name] = src[name]
 
 
+def _carried(path, src, names, kind):
+    """(the carried-attribute plan of ``src`` in a ``kind`` output with fields ``names``,
+    whether the source's normals are written as the input's): what clcurv.io.write does
+    with like= in memory (clcurv.io.carry), so that both outputs are the same."""
+    from . import carry
+    fields = [k for k in names if k != "normals"]
+    plan = carry.plan(path, src.attribute_specs(), fields, kind)
+    return plan, "normals" not in names and src.has_normals
+
+
+def _chunk_rows(src, names, rows, chunk, plan, own_normals, path):
+    """(start, xyz, normals to write or None, carried columns, records) of each chunk."""
+    from . import carry
+    for start, xyz, nrm, attrs in src.chunks(chunk, attributes=True):
+        rec = rows(start, start + len(xyz))
+        normals = rec["normals"] if "normals" in names else nrm if own_normals else None
+        yield start, xyz, normals, carry.columns(path, plan, attrs), rec
+
+
 def write_npz(path, src, names, rows, n, specs, chunk=1_000_000):
-    """Write an NPZ (``points``, ``normals``, then the fields, as :mod:`clcurv.io.npy`
-    writes) from the points of ``src`` and the records ``rows(start, stop)``, in one pass
-    over the points: each member goes first to a raw file beside ``path``, then into the
-    (uncompressed, ZIP64) archive."""
+    """Write an NPZ (``points``, ``normals``, the input's attributes, then the fields, as
+    :mod:`clcurv.io.npy` writes) from the points of ``src`` and the records
+    ``rows(start, stop)``, in one pass over the points: each member goes first to a raw
+    file beside ``path``, then into the (uncompressed, ZIP64) archive."""
     import zipfile
     folder = Path(path).parent
-    order = ["points"] + [k for k in names if k == "normals"] + \
-        [k for k in names if k != "normals"]
+    plan, own_normals = _carried(path, src, names, "npz")
+    fields = [k for k in names if k != "normals"]
+    with_normals = "normals" in names or own_normals
+    order = ["points"] + (["normals"] if with_normals else []) + [c.name for c in plan] + fields
     shapes = {"points": ((n, 3), np.dtype(np.float64))}
-    for name in names:
+    if with_normals:
+        dt = specs["normals"][1] if "normals" in names else np.float64
+        shapes["normals"] = ((n, 3), np.dtype(dt))
+    attr_specs = src.attribute_specs()
+    for c in plan:
+        shapes[c.name] = ((n,) + tuple(attr_specs[c.src][1]), c.dtype)
+    for name in fields:
         width, dtype = specs[name]
         shapes[name] = ((n,) if width is None else (n, width), np.dtype(dtype))
     raws = {k: folder / f".{Path(path).name}.{k}.raw" for k in order}
     try:
         files = {k: open(p, "wb") for k, p in raws.items()}
         try:
-            for start, xyz, _ in src.chunks(chunk):
+            for _, xyz, normals, carried, rec in _chunk_rows(src, names, rows, chunk, plan,
+                                                            own_normals, path):
                 files["points"].write(np.ascontiguousarray(xyz).tobytes())
-                rec = rows(start, start + len(xyz))
+                cols = {**carried, **({"normals": normals} if with_normals else {}),
+                        **{k: rec[k] for k in fields}}
                 for k in order[1:]:
-                    files[k].write(np.ascontiguousarray(rec[k], shapes[k][1]).tobytes())
+                    files[k].write(np.ascontiguousarray(cols[k], shapes[k][1]).tobytes())
         finally:
             for f in files.values():
                 f.close()
@@ -337,25 +404,31 @@ def write_npz(path, src, names, rows, n, specs, chunk=1_000_000):
 
 
 def write_ply(path, src, names, rows, n, specs, chunk=1_000_000):
-    """Write a binary PLY as clcurv.io.ply writes it (x y z double, nx ny nz float, then
-    the fields) from the points of ``src`` and the records ``rows(start, stop)``, chunk by
-    chunk: the header from plyfile for the same vertex layout, the rows after it."""
+    """Write a binary PLY as clcurv.io.ply writes it (x y z double, nx ny nz float, the
+    input's attributes, then the fields) from the points of ``src`` and the records
+    ``rows(start, stop)``, chunk by chunk: the header from plyfile for the same vertex
+    layout, the rows after it."""
     import plyfile
     from . import ply
+    plan, own_normals = _carried(path, src, names, "ply")
     fields = {k: np.empty(0, np.dtype(specs[k][1])) for k in names if k != "normals"}
-    dtype = np.dtype(ply._vertex_dtype(path, fields, "normals" in names))
+    carried = {c.name: np.empty(0, c.dtype) for c in plan}
+    with_normals = "normals" in names or own_normals
+    dtype = np.dtype(ply._vertex_dtype(path, fields, with_normals, carried))
     el = plyfile.PlyElement.describe(np.empty(0, dtype), "vertex")
     header = plyfile.PlyData([el], text=False, byte_order="<",
                              comments=["written by clcurv"]).header
     header = header.replace("element vertex 0", f"element vertex {n}")
     with open(path, "wb") as f:
         f.write((header + "\n").encode("ascii"))
-        for start, xyz, _ in src.chunks(chunk):
-            rec = rows(start, start + len(xyz))
+        for _, xyz, normals, cols, rec in _chunk_rows(src, names, rows, chunk, plan,
+                                                      own_normals, path):
             out = np.empty(len(xyz), dtype)
             out["x"], out["y"], out["z"] = xyz.T
-            if "normals" in names:
-                out["nx"], out["ny"], out["nz"] = rec["normals"].T
+            if with_normals:
+                out["nx"], out["ny"], out["nz"] = np.asarray(normals).T
+            for k, a in cols.items():
+                out[k] = a
             for k in fields:
                 out[k] = rec[k]
             out.tofile(f)

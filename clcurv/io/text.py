@@ -15,9 +15,11 @@ normals; otherwise columns 3, 4, ... are attributes ``col3``, ``col4``, ...
 
 Writing
 -------
-A header line ``x,y,z[,nx,ny,nz][,fields...]`` (space-separated for .txt/.xyz), then points
+A header line ``x,y,z[,nx,ny,nz][,attributes...][,fields...]`` (space-separated for
+.txt/.xyz; the attributes are the input's, ``like=``, :mod:`clcurv.io.carry`), then points
 with ``%.17g`` (float64 round-trips exactly), normals and float fields with ``%.9g`` (exact
-for float32), integer fields with ``%d``; NaN as ``nan``. Lines end with ``\\n``.
+for float32), float64 attributes with ``%.17g``, integers with ``%d``; NaN as ``nan``.
+Lines end with ``\\n``.
 """
 from __future__ import annotations
 
@@ -95,7 +97,7 @@ def read(path):
 
 # --------------------------------------------------------------------------- write
 
-def _columns(pts, fields, normals):
+def _columns(pts, fields, normals, carried):
     """(names, columns, printf formats) in file order."""
     names = ["x", "y", "z"]
     cols, fmts = [pts[:, 0], pts[:, 1], pts[:, 2]], ["%.17g"] * 3
@@ -104,6 +106,11 @@ def _columns(pts, fields, normals):
         names += ["nx", "ny", "nz"]
         cols += [nrm[:, 0], nrm[:, 1], nrm[:, 2]]
         fmts += ["%.9g"] * 3
+    for name, a in carried.items():     # the input's attributes, float64 to the last digit
+        names.append(name)
+        cols.append(a)
+        fmts.append(("%.17g" if a.dtype.itemsize == 8 else "%.9g") if a.dtype.kind == "f"
+                    else "%d")
     for name, a in fields.items():
         names.append(name)
         cols.append(a)
@@ -111,9 +118,9 @@ def _columns(pts, fields, normals):
     return names, cols, fmts
 
 
-def write(path, pts, fields, normals, like):
+def write(path, pts, fields, normals, like, carried):
     delim = "," if path.suffix.lower() == ".csv" else " "
-    names, cols, fmts = _columns(pts, fields, normals)
+    names, cols, fmts = _columns(pts, fields, normals, carried)
     rec = np.empty(len(pts), dtype=[(f"f{i}", c.dtype) for i, c in enumerate(cols)])
     for i, c in enumerate(cols):
         rec[f"f{i}"] = c
@@ -129,4 +136,4 @@ FORMAT = Format(
     writes={".csv": "comma-separated text with a header line",
             ".txt": "space-separated text with a header line",
             ".xyz": "space-separated text with a header line"},
-    write=write)
+    write=write, carries="text")
