@@ -230,3 +230,38 @@ def test_cli_compute_keeps_colours_and_says_so(tmp_path):
     for c in ("red", "green", "blue", "quality", "label"):
         np.testing.assert_array_equal(back.attributes[c], rec[c])
     assert np.isfinite(back.attributes["mean_curvature"]).mean() > 0.95
+
+
+def test_las_output_from_another_format(tmp_path):
+    """PLY in, LAS out: a fresh header of point format 7 whose RGB holds the 8-bit colours
+    times 257, the other attributes as extra bytes in their types (names mended to LAS's 32
+    characters, one named like a LAS dimension suffixed _input), the file's normals."""
+    rec = _colored_ply(tmp_path / "in.ply", normals=True)
+    src = cio.read(tmp_path / "in.ply")
+    src.attributes["intensity"] = np.linspace(0, 1, N).astype(np.float32)   # PCL's float
+    src.attributes["a name longer than thirty-two characters"] = np.arange(N, dtype=np.int64)
+    cio.write(tmp_path / "o.las", src.points, {"k": np.ones(N)}, like=src)
+    las = laspy.read(str(tmp_path / "o.las"))
+    assert las.header.point_format.id == 7
+    for c in ("red", "green", "blue"):
+        np.testing.assert_array_equal(las[c], rec[c].astype(np.uint16) * 257)
+    assert list(las.point_format.extra_dimension_names) == [
+        "quality", "label", "intensity_input", "a_name_longer_than_thirty-two_ch", "nx", "ny",
+        "nz", "k"]
+    np.testing.assert_array_equal(las["quality"], rec["quality"])              # float64 kept
+    np.testing.assert_array_equal(las["label"], rec["label"])
+    np.testing.assert_array_equal(las["intensity_input"], src.attributes["intensity"])
+    np.testing.assert_array_equal(las.intensity, 0)
+    assert las["a_name_longer_than_thirty-two_ch"].dtype == np.int64
+    np.testing.assert_allclose(np.column_stack([las["nx"], las["ny"], las["nz"]]),
+                               src.normals, atol=1e-7)
+    assert cio.kept_attributes(tmp_path / "o.las", src, ["k"]) == [
+        "red", "green", "blue", "quality", "label", "intensity",
+        "a name longer than thirty-two characters"]
+    # without a colour triple: point format 6; float colours stay extra bytes
+    plain = Cloud(src.points, None, {"red": np.ones(N), "green": np.ones(N),
+                                     "blue": np.ones(N)})
+    cio.write(tmp_path / "p.las", src.points, like=plain)
+    las = laspy.read(str(tmp_path / "p.las"))
+    assert las.header.point_format.id == 6
+    assert list(las.point_format.extra_dimension_names) == ["red", "green", "blue"]

@@ -186,8 +186,10 @@ def write(path, points, fields=None, normals=None, like=None):
         points: what the output keeps of it. LAS/LAZ output from a LAS/LAZ ``like``: its
         header (version, point format, scales, offsets, VLRs) and its attributes
         (classification, intensity, GPS time, extra bytes...); from another format's
-        ``like``: nothing (a fresh header scaled to the extent,
-        :func:`clcurv.io.las.scale_for_extent`). PLY, NPZ and text output: ``like``'s
+        ``like``: a fresh header scaled to the extent
+        (:func:`clcurv.io.las.scale_for_extent`), ``like``'s attributes as extra bytes and
+        its 8/16-bit red, green, blue as LAS RGB (:func:`clcurv.io.las.carried_plan`).
+        PLY, NPZ and text output: ``like``'s
         attributes (colours, intensity, ...), whatever format it was read from, between
         the normals and the fields (:mod:`clcurv.io.carry` says how: dtypes, names, a
         field replacing an attribute of its name). Every format: ``like``'s normals when
@@ -246,10 +248,13 @@ def kept_attributes(path, like, fields=()):
     if like is None:
         return []
     kind = _CARRIES.get(Path(path).suffix.lower())
-    if kind is None:
-        return list(like.attributes) if like.format in ("las", "laz") else []
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")        # write() warns for what it leaves out
+        if kind is None:                       # LAS/LAZ
+            if like.format in ("las", "laz"):
+                return list(like.attributes)
+            _, rgb, plan = las.carried_plan(path, like, fields)
+            return (rgb or []) + list(dict.fromkeys(c.src for c in plan))
         plan = carry.plan(path, carry.specs_of(like.attributes), list(fields), kind)
     return list(dict.fromkeys(c.src for c in plan))
 

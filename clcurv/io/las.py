@@ -31,9 +31,14 @@ Writing
 With ``like`` (a Cloud read from a LAS/LAZ file with the same number of points): its header
 (version, point format, scales, offsets, VLRs) is kept, so a point read from that file is
 written back to the same integer; its attributes (classification, intensity, GPS time,
-extra bytes...) are copied, and its normals when none are given. A ``like`` Cloud read from
-another format (PLY, PCD, NPY...) is ignored; anything else than a Cloud is a WriteError.
-Without a LAS ``like``, a fresh header: LAS 1.4, point format 6, offsets = the per-axis
+extra bytes...) are copied, and its normals when none are given. From a ``like`` Cloud read
+from another format (PLY, PCD, text, NPY...): a fresh header, its normals when none are
+given, its attributes as extra bytes in their own types (:func:`carried_plan`,
+:mod:`clcurv.io.carry`: names mended to 32 characters, one named like a dimension of the
+point format suffixed ``_input``), and an 8- or 16-bit ``red, green, blue`` triple as the
+RGB of point format 7 (8-bit values times 257, LAS colours being 16-bit). Anything else
+than a Cloud (or one of another size) is a WriteError.
+Without a LAS ``like``, a fresh header: LAS 1.4, point format 6 (7 with RGB), offsets = the per-axis
 minimum and one scale on all axes, :func:`scale_for_extent` of the largest extent (the
 finest power of ten that keeps the integers within 2**30, half the int32 range), so
 coordinates are kept within half that scale (0.5e-9 to 5e-9 times the extent; 0.001 when
@@ -379,9 +384,10 @@ def scale_for_extent(extent):
     return 10.0**k
 
 
-def _fresh_header(laspy, path, pts):
-    """LAS 1.4, point format 6, one scale for all axes from the extent, offsets = minimum."""
-    header = laspy.LasHeader(point_format=6, version="1.4")
+def _fresh_header(laspy, path, pts, point_format=6):
+    """LAS 1.4, point format 6 (7: with RGB), one scale for all axes from the extent,
+    offsets = minimum."""
+    header = laspy.LasHeader(point_format=point_format, version="1.4")
     if not len(pts):
         header.scales, header.offsets = np.full(3, _FRESH_DEFAULT_SCALE), np.zeros(3)
         return header
@@ -396,18 +402,57 @@ def _fresh_header(laspy, path, pts):
     return header
 
 
-def _target_header(laspy, path, pts, like):
-    """(header, attributes to copy, normals to use when none are given) for the output."""
-    n = len(pts)
-    if like is not None and not isinstance(like, Cloud):
-        raise WriteError(f"{path}: like= must be a Cloud (from clcurv.io.read), got "
-                         f"{type(like).__name__}")
-    if like is not None and len(like.points) != n:
-        raise WriteError(f"{path}: like= has {len(like.points)} points but {n} are given")
-    if like is None or not isinstance(like.header, laspy.LasHeader):
-        # like= from PLY, PCD...: a fresh header, its normals only
-        return _fresh_header(laspy, path, pts), {}, None if like is None else like.normals
-    return copy.deepcopy(like.header), dict(like.attributes), like.normals
+#: 8-bit colours become LAS's 16-bit ones times 257 (0 -> 0, 255 -> 65535)
+_RGB = ("red", "green", "blue")
+
+
+def _rgb(attributes):
+    """The names of an integer red, green, blue triple of 8- or 16-bit unsigned values in
+    ``attributes`` (case-insensitive), or None."""
+    from ._common import _find
+    names = list(attributes)
+    idx = [_find(names, c) for c in _RGB]
+    if None in idx:
+        return None
+    found = [names[i] for i in idx]
+    ok = all(np.asarray(attributes[k]).dtype in (np.dtype("u1"), np.dtype("u2"))
+             and np.ndim(attributes[k]) == 1 for k in found)
+    return found if ok else None
+
+
+def carried_plan(path, like, fields):
+    """For a LAS/LAZ output from ``like`` read from another format (PLY, PCD, text...): (the
+    point format, the RGB names or None, the :func:`clcurv.io.carry.plan` of the other
+    attributes as extra bytes). An 8- or 16-bit red, green, blue triple fills the RGB of
+    point format 7 (8-bit values times 257); an attribute named like a dimension of the
+    point format takes the suffix ``_input``."""
+    from . import carry
+    import laspy
+    rgb = _rgb(like.attributes)
+    fmt = 7 if rgb else 6
+    rest = {k: v for k, v in like.attributes.items() if not rgb or k not in rgb}
+    reserved = laspy.PointFormat(fmt).dimension_names
+    return fmt, rgb, carry.plan(path, carry.specs_of(rest), list(fields), "las", reserved)
+
+
+def _target_header(laspy, path, pts, like, fields):
+    """(header, attributes to copy, their extra-bytes dtypes, normals to use when none are
+    given) for the output."""
+    from . import carry
+    carry.check_like(path, like, len(pts))
+    if like is None:
+        return _fresh_header(laspy, path, pts), {}, {}, None
+    if not isinstance(like.header, laspy.LasHeader):
+        # like= from PLY, PCD...: a fresh header, its attributes as extra bytes (and RGB)
+        fmt, rgb, plan = carried_plan(path, like, fields)
+        keep = carry.columns(path, plan, like.attributes)
+        dtypes = {c.name: c.dtype for c in plan}
+        if rgb:
+            for dim, k in zip(_RGB, rgb):
+                v = np.asarray(like.attributes[k])
+                keep[dim] = v.astype(np.uint16) * np.uint16(257) if v.dtype == np.uint8 else v
+        return _fresh_header(laspy, path, pts, fmt), keep, dtypes, like.normals
+    return copy.deepcopy(like.header), dict(like.attributes), {}, like.normals
 
 
 def _scaled_ints(path, pts, header):
@@ -433,8 +478,9 @@ def check_extra_count(path, count):
                          "write fewer fields (radii, features), or NPZ or PLY")
 
 
-def _extra_dims(laspy, path, columns, header):
-    """ExtraBytesParams for the columns that are not dimensions of the header already."""
+def _extra_dims(laspy, path, columns, header, dtypes=None):
+    """ExtraBytesParams for the columns that are not dimensions of the header already
+    (float32 or the integer type of a field, ``dtypes[name]`` when given)."""
     existing = set(header.point_format.dimension_names)
     check_extra_count(path, len(list(header.point_format.extra_dimension_names))
                       + sum(1 for name in columns if name not in existing))
@@ -445,8 +491,12 @@ def _extra_dims(laspy, path, columns, header):
         if len(name) > 32:
             raise WriteError(f"{path}: LAS extra-bytes names have at most 32 characters: "
                              f"{name!r}")
-        dt = np.dtype("f4") if a.dtype.kind == "f" else _int_as(path, name, a, _INTS)
-        new.append(laspy.ExtraBytesParams(name=name, type=dt, description="clcurv"))
+        if dtypes and name in dtypes:
+            dt, what = dtypes[name], "the input's"
+        else:
+            dt = np.dtype("f4") if a.dtype.kind == "f" else _int_as(path, name, a, _INTS)
+            what = "clcurv"
+        new.append(laspy.ExtraBytesParams(name=name, type=dt, description=what))
     return new
 
 
@@ -492,14 +542,16 @@ def write(path, pts, fields, normals, like, carried):
         raise WriteError(f"{path}: LAS cannot store NaN/Inf coordinates "
                          f"({int((~np.isfinite(pts).all(axis=1)).sum())} rows)")
     del carried                     # LAS keeps what like= has itself (Format.carries None)
-    header, keep, like_normals = _target_header(laspy, path, pts, like)
+    header, keep, dtypes, like_normals = _target_header(laspy, path, pts, like, fields)
     normals = like_normals if normals is None else normals
     ints = _scaled_ints(path, pts, header)
     columns = dict(fields)
     if normals is not None:
         nrm = np.asarray(normals, dtype=np.float32)
         columns = {"nx": nrm[:, 0], "ny": nrm[:, 1], "nz": nrm[:, 2], **columns}
-    new = _extra_dims(laspy, path, columns, header)
+    if dtypes:                      # carried from a non-LAS like: extra bytes, first
+        columns = {**{k: keep[k] for k in dtypes}, **columns}
+    new = _extra_dims(laspy, path, columns, header, dtypes)
     las = laspy.LasData(header, points=laspy.ScaleAwarePointRecord.zeros(len(pts),
                                                                           header=header))
     if new:
