@@ -70,9 +70,9 @@ inline uint cov_ball(__global const REAL *X, __global const REAL *Y, __global co
         const REALV w = chunk_weights(W, i, dx, dy, dz, m, (REAL)0);
 #if COV_METHOD == 1
         const REALV s = dx * nrm.x + dy * nrm.y + dz * nrm.z;
-        const REALV fa = s * (dx * t1.x + dy * t1.y + dz * t1.z);
-        const REALV fb = s * (dx * t2.x + dy * t2.y + dz * t2.z);
-        const REALV fd = 0;
+        const REALV fa0 = s * (dx * t1.x + dy * t1.y + dz * t1.z);
+        const REALV fb0 = s * (dx * t2.x + dy * t2.y + dz * t2.z);
+        const REALV fd0 = 0;
 #else
         /* align each neighbour's normal with p's: q := -q where <q, n> < 0 (= 0 or NaN: kept) */
         const REALV qx0 = VLOADV(0, NX + i), qy0 = VLOADV(0, NY + i), qz0 = VLOADV(0, NZ + i);
@@ -86,14 +86,11 @@ inline uint cov_ball(__global const REAL *X, __global const REAL *Y, __global co
 #else
         const REALV fa0 = qx - nrm.x, fb0 = qy - nrm.y, fd0 = qz - nrm.z;
 #endif
-#if DENSITY || GAUSSIAN
-        /* lanes outside the ball have w = 0, but a NaN normal there must not leak */
+#endif
+        /* zero outside the ball: a NaN normal there must not leak (w = 0 would not stop
+         * it), and with uniform weights the sums are then plain adds and multiply-adds */
         const REALV fa = select((REALV)0, fa0, m), fb = select((REALV)0, fb0, m);
         const REALV fd = select((REALV)0, fd0, m);
-#else
-        const REALV fa = fa0, fb = fb0, fd = fd0;      /* masked updates: never read */
-#endif
-#endif
 #if DENSITY || GAUSSIAN
         sc += select((REALV)0, (REALV)1, m);
         const REALV wa = w * fa, wb = w * fb;
@@ -102,13 +99,14 @@ inline uint cov_ball(__global const REAL *X, __global const REAL *Y, __global co
         const REALV wd = w * fd;
         sd += wd; sad += wa * fd; sbd += wb * fd; sdd += wd * fd;
 #endif
-#else                                   /* uniform weights: masked updates (weights.h) */
+#else                                   /* uniform weights: zeroed values (weights.h) */
         (void)w;
-        MASKED_ADD(sw, m, (REAL)1) MASKED_ADD(sa, m, fa) MASKED_ADD(sb, m, fb)
-        MASKED_ADD(saa, m, fa * fa) MASKED_ADD(sab, m, fa * fb) MASKED_ADD(sbb, m, fb * fb)
+        MASKED_ADD(sw, m, (REAL)1)
+        sa += fa; sb += fb;
+        saa = mad(fa, fa, saa); sab = mad(fa, fb, sab); sbb = mad(fb, fb, sbb);
 #if COV_METHOD == 3
-        MASKED_ADD(sd, m, fd) MASKED_ADD(sad, m, fa * fd) MASKED_ADD(sbd, m, fb * fd)
-        MASKED_ADD(sdd, m, fd * fd)
+        sd += fd;
+        sad = mad(fa, fd, sad); sbd = mad(fb, fd, sbd); sdd = mad(fd, fd, sdd);
 #endif
 #endif
     NEIGHBOR_CHUNKS_END

@@ -78,14 +78,17 @@ typedef struct {
         syy += wy_ * (dy); syz += wy_ * (dz); szz += wz_ * (dz);                           \
     }
 #else
-/* Uniform weights: each sum a masked update of the ball's lanes (weights.h: MASKED_ADD) */
+/* Uniform weights: the offsets zeroed outside the ball (3 selects: a masked lane's values,
+ * whatever they are, are never read), then plain adds and multiply-adds of the zeroed
+ * offsets, e = m ? d : 0, s += e, s2 = mad(e_i, e_j, s2): a masked lane adds +0 exactly. */
 #define PCA_ACCUMULATE(w, m, dx, dy, dz, sc, sw, sx, sy, sz, sxx, sxy, sxz, syy, syz, szz) \
     {                                                                                      \
-        MASKED_ADD(sw, m, (REAL)1) MASKED_ADD(sx, m, dx) MASKED_ADD(sy, m, dy)             \
-        MASKED_ADD(sz, m, dz) MASKED_ADD(sxx, m, (dx) * (dx))                              \
-        MASKED_ADD(sxy, m, (dx) * (dy)) MASKED_ADD(sxz, m, (dx) * (dz))                    \
-        MASKED_ADD(syy, m, (dy) * (dy)) MASKED_ADD(syz, m, (dy) * (dz))                    \
-        MASKED_ADD(szz, m, (dz) * (dz))                                                    \
+        const REALV ex_ = select((REALV)0, dx, m), ey_ = select((REALV)0, dy, m);          \
+        const REALV ez_ = select((REALV)0, dz, m);                                         \
+        MASKED_ADD(sw, m, (REAL)1)                                                         \
+        sx += ex_; sy += ey_; sz += ez_;                                                   \
+        sxx = mad(ex_, ex_, sxx); sxy = mad(ex_, ey_, sxy); sxz = mad(ex_, ez_, sxz);      \
+        syy = mad(ey_, ey_, syy); syz = mad(ey_, ez_, syz); szz = mad(ez_, ez_, szz);      \
     }
 #endif
 
