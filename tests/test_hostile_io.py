@@ -10,12 +10,15 @@ import io
 import resource
 import struct
 import zipfile
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from clcurv import io as cio
 from hostile import assert_clean_failure, run_cli
+
+DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
 
 #: address space the reader may add to the test process (the crafted files are < 1 KB)
 CAP_BYTES = 2 << 30
@@ -277,6 +280,51 @@ def test_ascii_ply_cut_before_its_last_rows_is_corrupt(tmp_path, cut, what):
     p.write_bytes(_ASCII_MESH[:cut].encode())
     with pytest.raises(cio.CorruptFileError, match=what):
         cio.read(p)
+
+
+def _binary_mesh(faces):
+    """A binary little-endian PLY of 4 vertices, the faces given (lists of indices), and a
+    1-row scalar element after them."""
+    verts = np.arange(12, dtype="<f4").tobytes()
+    rows = b"".join(bytes([len(f)]) + np.array(f, "<i4").tobytes() for f in faces)
+    cam = np.array([1.5, 2.5], "<f8").tobytes()
+    return ply_bytes("binary_little_endian", [("vertex", 4, XYZ), ("face", len(faces), FACES),
+                                              ("camera", 1, ["double a", "double b"])],
+                     verts + rows + cam)
+
+
+@pytest.mark.parametrize("faces", [[[0, 1, 2], [1, 2, 3], [0, 2, 3]],
+                                   [[0, 1, 2, 3], [1, 2, 3]]],      # mixed: read by plyfile
+                         ids=["triangles", "mixed"])
+@pytest.mark.parametrize("cut", [0, 5, 16, 40])
+def test_binary_ply_cut_after_its_vertices_is_corrupt(tmp_path, faces, cut):
+    """A binary PLY cut inside its faces, or inside an element after them, read as whole
+    (its vertices were there): CorruptFileError; the whole file reads."""
+    whole = _binary_mesh(faces)
+    p = tmp_path / "m.ply"
+    p.write_bytes(whole)
+    np.testing.assert_array_equal(cio.read(p).points.ravel(), np.arange(12))
+    if cut:
+        p.write_bytes(whole[:-cut])
+        with pytest.raises(cio.CorruptFileError, match="face|camera|after the vertices"):
+            cio.read(p)
+
+
+def test_real_binary_mesh_cut_inside_its_strips(tmp_path):
+    """The Igea scan (binary, one triangle-strip row of ~270k indices after its vertices):
+    whole it reads, cut by 1 kB it is CorruptFileError, in memory and for a tiled run."""
+    src = DATA / "igea_cyberware.ply"
+    if not src.exists():
+        pytest.skip(f"{src} not present (../shared/data)")
+    raw = src.read_bytes()
+    assert len(cio.read(src).points) == 134345
+    cut = tmp_path / "igea_cut.ply"
+    cut.write_bytes(raw[:-1000])
+    with pytest.raises(cio.CorruptFileError, match="tristrips"):
+        cio.read(cut)
+    from clcurv.io.stream import open_source
+    with pytest.raises(cio.CorruptFileError, match="tristrips"):
+        open_source(cut)
 
 
 def test_ascii_ply_vertices_cut_at_the_end_are_corrupt(tmp_path):

@@ -3,7 +3,9 @@
 Reading
 -------
 Only the ``vertex`` element is read; other elements (faces, range grids, triangle strips)
-are skipped and list properties of the vertex are ignored. ``x y z`` are the points,
+are skipped and list properties of the vertex are ignored, but their rows must be in the
+file: a file cut anywhere is a CorruptFileError, never a cloud read as whole (binary rows
+after the vertices are measured, :func:`_check_binary_rest`). ``x y z`` are the points,
 ``nx ny nz`` or ``normal_x normal_y normal_z`` (case-insensitive) the normals, every other
 scalar property an attribute in its file dtype. ``Cloud.header`` is a dict: ``format``,
 ``elements`` (name -> count), ``comments`` and ``obj_info``.
@@ -116,12 +118,71 @@ def _preamble_values(preamble, keyword):
             for ln in preamble if ln.split()[0] == keyword]
 
 
-def _binary_vertices(raw, start, n, props, fmt, path):
+def _binary_vertices(raw, start, n, props, fmt, path, later=()):
+    """The vertex rows of a binary PLY whose first element is the vertex element with
+    scalar properties; ``later``: the elements after it ([name, count, header lines]), whose
+    rows must be in the file too (:func:`_check_binary_rest`)."""
     order = "<" if fmt == "binary_little_endian" else ">"
     dtype = np.dtype([(p[2], order + _TYPES[p[1]]) for p in props])
     _check_claim(path, f"{n} vertices of {dtype.itemsize} bytes", n * dtype.itemsize,
                  len(raw) - start)
+    _check_binary_rest(path, raw, start, start + n * dtype.itemsize, later, order)
     return _struct_columns(np.frombuffer(raw, dtype=dtype, count=n, offset=start))
+
+
+def _check_binary_rest(path, raw, start, at, elements, order, whole=True):
+    """CorruptFileError unless the binary rows of ``elements`` fit in ``raw`` from byte
+    ``at``: a file cut inside its faces read as whole before. A row of scalars has a fixed
+    size; a row with one list (faces: ``list uchar int vertex_indices``) is measured when
+    every row has the list length of the first (triangles, quads), else the rows are read
+    by plyfile (which fails on a cut file), slower but exact; with ``whole`` false (the
+    tiled source, which does not hold the file in memory) those rows are not checked.
+    Bytes after the last row are allowed."""
+    for name, count, block in elements:
+        props = [ln.split() for ln in block[1:]]
+        lists = [i for i, p in enumerate(props) if p[1:2] == ["list"]]
+        if not count:
+            continue
+        if any(len(p) != (5 if p[1:2] == ["list"] else 3) for p in props) or len(lists) > 1 \
+                or any(t not in _TYPES for p in props for t in
+                       (p[2:4] if p[1:2] == ["list"] else p[1:2])):
+            return _check_by_plyfile(path, raw, start) if whole else None
+        sizes = [np.dtype(_TYPES[p[1]]).itemsize for p in props if p[1:2] != ["list"]]
+        exact = True
+        if not lists:
+            need = count * sum(sizes)
+        else:
+            i = lists[0]
+            head = sum(np.dtype(_TYPES[p[1]]).itemsize for p in props[:i])
+            ctype = np.dtype(order + _TYPES[props[i][2]])
+            item = np.dtype(_TYPES[props[i][3]]).itemsize
+            exact = at + head + ctype.itemsize <= len(raw)
+            if not exact:
+                need = head + ctype.itemsize         # not even the first length is there
+            else:
+                first = int(np.frombuffer(raw, ctype, 1, at + head)[0])
+                if first < 0:                       # a signed length: not a PLY row
+                    return _check_by_plyfile(path, raw, start) if whole else None
+                row = sum(sizes) + ctype.itemsize + first * item
+                have = min(count, (len(raw) - at - head - ctype.itemsize) // row + 1)
+                lens = np.array(np.ndarray((have,), ctype, raw, at + head, (row,)))  # copy
+                if not (lens == first).all():
+                    return _check_by_plyfile(path, raw, start) if whole else None
+                need = count * row
+        _check_claim(path, f"elements {name} {count} (after the vertices)", need,
+                     len(raw) - at, exact=exact)
+        at += need
+
+
+def _check_by_plyfile(path, raw, start):
+    """Read the whole file with plyfile, which raises on rows missing from it."""
+    import plyfile
+    try:
+        with _quiet():
+            plyfile.PlyData.read(io.BytesIO(_ascii_header(raw, start)))
+    except Exception as exc:  # noqa: BLE001 - plyfile's errors for a short file vary
+        raise CorruptFileError(f"{path}: the rows after the vertices cannot be read "
+                               f"(truncated?): {type(exc).__name__}: {exc}") from exc
 
 
 def _ascii_vertices(raw, start, n, props, path, later=0):
@@ -175,7 +236,7 @@ def _vertex_columns(raw, path):
     simple = elements[0][0] == "vertex" and all(
         len(p) == 3 and p[1] in _TYPES for p in props)
     if simple and fmt != "ascii":
-        return _binary_vertices(raw, start, n, props, fmt, path), header
+        return _binary_vertices(raw, start, n, props, fmt, path, elements[1:]), header
     if simple:
         return _ascii_vertices(raw, start, n, props, path,
                                sum(e[1] for e in elements[1:])), header

@@ -240,6 +240,11 @@ class PlySource:
         from ._common import _check_claim
         _check_claim(path, f"{self.n} vertices of {self.dtype.itemsize} bytes",
                      self.n * self.dtype.itemsize, path.stat().st_size - start)
+        if len(elements) > 1:               # the rows after the vertices, as io.read checks
+            import mmap
+            with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as m:
+                ply._check_binary_rest(path, m, start, start + self.n * self.dtype.itemsize,
+                                       elements[1:], order, whole=False)
         self.xyz, self.nrm, self.attributes = split_names(self.dtype.names)  # as io.read
         if self.xyz is None:
             raise CorruptFileError(f"{path}: the vertex element has no x, y and z")
