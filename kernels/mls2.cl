@@ -95,22 +95,21 @@ inline uchar mls2_system(__global const REAL *X, __global const REAL *Y, __globa
     NEIGHBOR_CHUNKS_BEGIN(ranges, cell, p, ball, i, end, pr)
         const IREALV m = chunk_offsets(X, Y, Z, i, end, pr, ball, &dx, &dy, &dz);
         const REALV w = chunk_weights(W, i, dx, dy, dz, m, ih2);
-        const REALV x = dx * u1.x + dy * u1.y + dz * u1.z;
-        const REALV y = dx * u2.x + dy * u2.y + dz * u2.z;
-        const REALV h = dx * v0.x + dy * v0.y + dz * v0.z - cv0;
+        /* zeroed outside the ball (weights.h): every term below is then 0 there */
+        const REALV x = select((REALV)0, dx * u1.x + dy * u1.y + dz * u1.z, m);
+        const REALV y = select((REALV)0, dx * u2.x + dy * u2.y + dz * u2.z, m);
+        const REALV h = select((REALV)0, dx * v0.x + dy * v0.y + dz * v0.z - cv0, m);
         const REALV xx = x * x, xy = x * y, yy = y * y;
 #if DENSITY || GAUSSIAN
         const REALV wxx = w * xx, wxy = w * xy, wyy = w * yy;
-        s30 += wxx * x; s21 += wxx * y; s12 += wxy * y; s03 += wyy * y;
-        s40 += wxx * xx; s31 += wxx * xy; s22 += wxx * yy; s13 += wxy * yy; s04 += wyy * yy;
-        hxx += wxx * h; hxy += wxy * h; hyy += wyy * h;
 #else
-        (void)w;                                    /* uniform: masked updates (weights.h) */
-        MASKED_ADD(s30, m, xx * x) MASKED_ADD(s21, m, xx * y) MASKED_ADD(s12, m, xy * y)
-        MASKED_ADD(s03, m, yy * y) MASKED_ADD(s40, m, xx * xx) MASKED_ADD(s31, m, xx * xy)
-        MASKED_ADD(s22, m, xx * yy) MASKED_ADD(s13, m, xy * yy) MASKED_ADD(s04, m, yy * yy)
-        MASKED_ADD(hxx, m, xx * h) MASKED_ADD(hxy, m, xy * h) MASKED_ADD(hyy, m, yy * h)
+        (void)w;                                    /* uniform: the terms themselves */
+        const REALV wxx = xx, wxy = xy, wyy = yy;
 #endif
+        s30 = mad(wxx, x, s30); s21 = mad(wxx, y, s21); s12 = mad(wxy, y, s12);
+        s03 = mad(wyy, y, s03); s40 = mad(wxx, xx, s40); s31 = mad(wxx, xy, s31);
+        s22 = mad(wxx, yy, s22); s13 = mad(wxy, yy, s13); s04 = mad(wyy, yy, s04);
+        hxx = mad(wxx, h, hxx); hxy = mad(wxy, h, hxy); hyy = mad(wyy, h, hyy);
     NEIGHBOR_CHUNKS_END
     const REAL sw = (REAL)1 / pb->iw[k];
     const REAL c0 = pb->c[0][k], c1 = pb->c[1][k], c2 = pb->c[2][k];
