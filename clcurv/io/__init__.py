@@ -243,7 +243,8 @@ def write(path, points, fields=None, normals=None, like=None):
 def kept_attributes(path, like, fields=()):
     """The names of ``like``'s attributes that :func:`write` to ``path`` with ``like=like``
     and the computed ``fields`` (names) keeps (for summaries): LAS/LAZ from a LAS/LAZ
-    ``like`` every dimension, from another format none; the other formats those
+    ``like`` every dimension, from another format its colours and the attributes it takes
+    as extra bytes (:func:`clcurv.io.las.carried_plan`); the other formats those
     :mod:`clcurv.io.carry` carries."""
     if like is None:
         return []

@@ -96,7 +96,8 @@ class LasSource:
         self.n = self.layout.count
         with self.laspy.open(str(path)) as f:
             self.header = f.header
-        dims = [n for n in self.header.point_format.dimension_names if n not in "XYZ"]
+        dims = [n for n in self.header.point_format.dimension_names
+                if n not in ("X", "Y", "Z")]
         _, self.nrm, self.attributes = split_names(dims, xyz=False)   # as clcurv.io.read
         self.has_normals = self.nrm is not None
 
