@@ -72,6 +72,9 @@ class FeatureParams:
     precision: str
     scale_space: int = 0
     kind = "features"
+    #: the features never read the file's normals (a PLY or LAS input with normals crashed
+    #: the tiled run on this missing attribute)
+    ignore_normals = True
 
     @property
     def radius(self):

@@ -265,3 +265,20 @@ def test_las_output_from_another_format(tmp_path):
     las = laspy.read(str(tmp_path / "p.las"))
     assert las.header.point_format.id == 6
     assert list(las.point_format.extra_dimension_names) == ["red", "green", "blue"]
+
+
+def test_tiled_features_of_a_ply_with_normals(tmp_path):
+    """clcurv.features_file in tiles on a PLY with normals and colours (the tiled run read
+    FeatureParams.ignore_normals, which did not exist: AttributeError): byte for byte the
+    in-memory output, colours and the file's normals kept."""
+    rec = _colored_ply(tmp_path / "in.ply", n=20_000, normals=True)
+    clcurv.features_file(tmp_path / "in.ply", tmp_path / "mem.ply", [0.15, 0.3],
+                         memory="64GiB")
+    s = clcurv.features_file(tmp_path / "in.ply", tmp_path / "til.ply", [0.15, 0.3],
+                             tile=1.5, memory="64GiB")
+    assert s["tiled"] and s["tiles"] > 1
+    assert (tmp_path / "mem.ply").read_bytes() == (tmp_path / "til.ply").read_bytes()
+    back = cio.read(tmp_path / "til.ply")
+    np.testing.assert_array_equal(back.attributes["blue"], rec["blue"])
+    np.testing.assert_array_equal(back.normals[:, 2], rec["nz"])
+    assert np.isfinite(back.attributes["planarity_r0.3"]).mean() > 0.99
