@@ -198,21 +198,17 @@ def split_names(names, xyz=True):
     of a file's named columns ``names`` by the rules of :func:`_split_named` (x y z and a
     normal triple, exact names first, then case-insensitive)."""
     names = list(names)
-    used = set()
-    pos = None
-    if xyz:
-        idx = [_find(names, c) for c in "xyz"]
-        if None not in idx:
-            pos = [names[i] for i in idx]
-            used.update(pos)
-    nrm = None
-    for triple in _NORMAL_NAMES:
-        idx = [_find(names, c) for c in triple]
-        if None not in idx:
-            nrm = [names[i] for i in idx]
-            used.update(nrm)
-            break
+    pos = find_triple(names, "xyz") if xyz else None
+    nrm = next(filter(None, (find_triple(names, t) for t in _NORMAL_NAMES)), None)
+    used = set(pos or ()) | set(nrm or ())
     return pos, nrm, [n for n in names if n not in used]
+
+
+def find_triple(names, wanted):
+    """The names of ``names`` matching the three ``wanted`` (:func:`_find`: exact, then
+    case-insensitive), or None when one is missing."""
+    idx = [_find(names, c) for c in wanted]
+    return None if None in idx else [names[i] for i in idx]
 
 
 def _split_named(path, fmt, columns, header=None, points=None):

@@ -409,12 +409,10 @@ _RGB = ("red", "green", "blue")
 def _rgb(attributes):
     """The names of an integer red, green, blue triple of 8- or 16-bit unsigned values in
     ``attributes`` (case-insensitive), or None."""
-    from ._common import _find
-    names = list(attributes)
-    idx = [_find(names, c) for c in _RGB]
-    if None in idx:
+    from ._common import find_triple
+    found = find_triple(list(attributes), _RGB)
+    if found is None:
         return None
-    found = [names[i] for i in idx]
     ok = all(np.asarray(attributes[k]).dtype in (np.dtype("u1"), np.dtype("u2"))
              and np.ndim(attributes[k]) == 1 for k in found)
     return found if ok else None

@@ -340,12 +340,14 @@ def _copy_records(src, dst):
 
 def _carried(path, src, names, kind):
     """(the carried-attribute plan of ``src`` in a ``kind`` output with fields ``names``,
-    whether the source's normals are written as the input's): what clcurv.io.write does
-    with like= in memory (clcurv.io.carry), so that both outputs are the same."""
+    whether the source's normals are written as the input's, the source's attribute specs):
+    what clcurv.io.write does with like= in memory (clcurv.io.carry), so that both outputs
+    are the same."""
     from . import carry
     fields = [k for k in names if k != "normals"]
-    plan = carry.plan(path, src.attribute_specs(), fields, kind)
-    return plan, "normals" not in names and src.has_normals
+    specs = src.attribute_specs()             # a LAS source decodes a point for them
+    plan = carry.plan(path, specs, fields, kind)
+    return plan, "normals" not in names and src.has_normals, specs
 
 
 def _chunk_rows(src, names, rows, chunk, plan, own_normals, path):
@@ -364,7 +366,7 @@ def write_npz(path, src, names, rows, n, specs, chunk=1_000_000):
     file beside ``path``, then into the (uncompressed, ZIP64) archive."""
     import zipfile
     folder = Path(path).parent
-    plan, own_normals = _carried(path, src, names, "npz")
+    plan, own_normals, attr_specs = _carried(path, src, names, "npz")
     fields = [k for k in names if k != "normals"]
     with_normals = "normals" in names or own_normals
     order = ["points"] + (["normals"] if with_normals else []) + [c.name for c in plan] + fields
@@ -372,7 +374,6 @@ def write_npz(path, src, names, rows, n, specs, chunk=1_000_000):
     if with_normals:
         dt = specs["normals"][1] if "normals" in names else np.float64
         shapes["normals"] = ((n, 3), np.dtype(dt))
-    attr_specs = src.attribute_specs()
     for c in plan:
         shapes[c.name] = ((n,) + tuple(attr_specs[c.src][1]), c.dtype)
     for name in fields:
@@ -416,7 +417,7 @@ def write_ply(path, src, names, rows, n, specs, chunk=1_000_000):
     layout, the rows after it."""
     import plyfile
     from . import ply
-    plan, own_normals = _carried(path, src, names, "ply")
+    plan, own_normals, _ = _carried(path, src, names, "ply")
     fields = {k: np.empty(0, np.dtype(specs[k][1])) for k in names if k != "normals"}
     carried = {c.name: np.empty(0, c.dtype) for c in plan}
     with_normals = "normals" in names or own_normals
