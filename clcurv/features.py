@@ -422,14 +422,16 @@ def _split_layout(used):
 
 def program_defines(group, nr, point_radius=False, row_prune=0):
     """Build options of features.cl for one record layout ``group`` and ``nr`` radii
-    (``row_prune``: clcurv.driver.row_prune of the walk's largest radius)."""
-    from .constants import record_selector
-    cols = {f"COL_{n.upper()}": record_selector(c if FEATURES[n].width == 1
-                                                else slice(c, c + FEATURES[n].width))
-            for n, c in group.items()}
-    return dict(cols, NR=nr, REFINE_L0=1, MIN_COUNT=MIN_COUNT_PCA, DENSITY=0, GAUSSIAN=0,
-                REF_NORMALS=0, POINT_RADIUS=int(point_radius), ROW_PRUNE=int(row_prune),
-                COL_COUNT=record_selector(_COLUMNS), COL_STATUS=record_selector(_COLUMNS + 1))
+    (``row_prune``: clcurv.driver.row_prune of the walk's largest radius): each feature's
+    first record column (CIX_<FEATURE>), count's and status's, and REC_USED the mask of
+    the columns written (kernels/lanes_records.h)."""
+    cols = {f"CIX_{n.upper()}": c for n, c in group.items()}
+    used = (1 << _COLUMNS) | (1 << (_COLUMNS + 1))
+    for n, c in group.items():
+        used |= ((1 << FEATURES[n].width) - 1) << c
+    return dict(cols, CIX_COUNT=_COLUMNS, CIX_STATUS=_COLUMNS + 1, REC_USED=hex(used), NR=nr,
+                REFINE_L0=1, MIN_COUNT=MIN_COUNT_PCA, DENSITY=0, GAUSSIAN=0, REF_NORMALS=0,
+                POINT_RADIUS=int(point_radius), ROW_PRUNE=int(row_prune))
 
 
 def run_features(cloud, radii, names, ddof=0, point_r2=None):

@@ -44,12 +44,13 @@ __kernel void cell_normals(__global const REAL *X, __global const REAL *Y,
         REALV sx = 0, sy = 0, sz = 0, sxx = 0, sxy = 0, sxz = 0, syy = 0, syz = 0, szz = 0;
         for (uint i = a; i < b; i += VW) {
             const IREALV live = LANES < (IREALV)((IREAL)(b - i));
-            const REALV dx = VLOADV(0, XA + i) - o.x, dy = VLOADV(0, Y + i) - o.y;
-            const REALV dz = VLOADV(0, Z + i) - o.z;
-            MASKED_ADD(sx, live, dx) MASKED_ADD(sy, live, dy) MASKED_ADD(sz, live, dz)
-            MASKED_ADD(sxx, live, dx * dx) MASKED_ADD(sxy, live, dx * dy)
-            MASKED_ADD(sxz, live, dx * dz) MASKED_ADD(syy, live, dy * dy)
-            MASKED_ADD(syz, live, dy * dz) MASKED_ADD(szz, live, dz * dz)
+            /* the offsets zeroed past the range (3 selects), then plain sums (pca.h) */
+            const REALV dx = select((REALV)0, VLOADV(0, XA + i) - o.x, live);
+            const REALV dy = select((REALV)0, VLOADV(0, Y + i) - o.y, live);
+            const REALV dz = select((REALV)0, VLOADV(0, Z + i) - o.z, live);
+            sx += dx; sy += dy; sz += dz;
+            sxx = mad(dx, dx, sxx); sxy = mad(dx, dy, sxy); sxz = mad(dx, dz, sxz);
+            syy = mad(dy, dy, syy); syz = mad(dy, dz, syz); szz = mad(dz, dz, szz);
         }
         const REAL inv = (REAL)1 / (REAL)max(b - a, 1u);
         const REAL3 m = (REAL3)(hsum(sx), hsum(sy), hsum(sz)) * inv;

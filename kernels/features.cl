@@ -29,7 +29,8 @@
  * Build options: NR (1..4) radii, their r^2 in r2s (x, y, z, w), or with POINT_RADIUS
  * (NR = 1) each point's own r^2 in W (radius.h); the records of radius j go to out (j = 0),
  * out1, out2, out3 (one record per point, REC_INDEX); REFINE_L0, DENSITY, MIN_COUNT,
- * COL_COUNT, COL_STATUS and one COL_<FEATURE> per feature wanted (clcurv/features.py).
+ * and the records' columns: CIX_COUNT, CIX_STATUS, one CIX_<FEATURE> (its first column) per
+ * feature wanted and REC_USED their mask (clcurv/features.py, lanes_records.h).
  */
 #include "common.h"
 #include "neighbors.h"
@@ -37,9 +38,11 @@
 #include "pca.h"
 #include "radius.h"
 #include "ln.h"
+#include "cbrt.h"
+#include "lanes_records.h"
 
 #if !defined(NR) || NR < 1 || NR > 4 || !defined(REFINE_L0) || !defined(MIN_COUNT) \
-    || !defined(COL_COUNT) || !defined(COL_STATUS)
+    || !defined(CIX_COUNT) || !defined(CIX_STATUS) || !defined(REC_USED)
 #error "features.cl needs NR (1..4), REFINE_L0, MIN_COUNT and its record columns (clcurv/features.py)"
 #endif
 
@@ -217,13 +220,14 @@ inline REALV xlogx(REALV x)
     return select((REALV)0, x * ln_pos(x), isgreater(x, (REALV)0));
 }
 
-#define VSTORE_FEATURE(name, expr) REAL name[VW]; VSTOREV((expr), 0, name);
+/* record column c of the lanes: the feature's value where the status is OK, NaN elsewhere */
+#define FEATURE_COLUMN(c, expr) col[c] = select((REALV)(NAN), (expr), ok);
 
 /* One work-item per VW consecutive sorted points (global size >= ceil(n / VW)): the sums of
  * the NR balls of each point in one walk, the VW x NR eigen decompositions in the vector
  * lanes, the lambda0 refinement per point, then for each radius the features of the VW
  * points at once in the vector lanes (log, cbrt, divisions: a scalar evaluation per point
- * cost more than the walks) and the records point by point. */
+ * cost more than the walks) and their records from those columns (lanes_records.h). */
 __kernel void features(OPERATOR_ARGS, const REAL4 r2s, __global REAL *out1,
                        __global REAL *out2, __global REAL *out3)
 {
@@ -278,113 +282,86 @@ __kernel void features(OPERATOR_ARGS, const REAL4 r2s, __global REAL *out1,
         const REALV sum = L3 + L2 + L1, i1 = (REAL)1 / L1, isum = (REAL)1 / sum;
         (void)sum; (void)i1; (void)isum; (void)e1x; (void)e1y; (void)e1z; (void)e3x;
         (void)e3y;
-#ifdef COL_EIGENVALUE_SUM
-        VSTORE_FEATURE(f_sum, sum)
+        uchar stv[VW];
+        uint cntv[VW];
+        for (uint k = 0; k < VW; ++k) {
+            stv[k] = st[j][k];
+            cntv[k] = pb[j].count[k];
+        }
+        const REALV stf = CAT(convert_, REALV)(CAT(vload, VW)(0, stv));
+        const IREALV ok = (stf == (REALV)ST_OK);
+        REALV col[16];
+        for (int c = 0; c < 14; ++c) col[c] = (REALV)(NAN);
+        col[CIX_COUNT] = LANES_COUNT(cntv);
+        col[CIX_STATUS] = stf;
+#ifdef CIX_EIGENVALUE_SUM
+        FEATURE_COLUMN(CIX_EIGENVALUE_SUM, sum)
 #endif
-#ifdef COL_OMNIVARIANCE
+#ifdef CIX_OMNIVARIANCE
         /* one cube root: of the ratios' product, which cannot overflow */
-        VSTORE_FEATURE(f_omni, L1 * cbrt((L2 * i1) * (L3 * i1)))
+        FEATURE_COLUMN(CIX_OMNIVARIANCE, L1 * cbrt_pos((L2 * i1) * (L3 * i1)))
 #endif
-#ifdef COL_EIGENENTROPY
-        VSTORE_FEATURE(f_ent, -(xlogx(L1) + xlogx(L2) + xlogx(L3)))
+#ifdef CIX_EIGENENTROPY
+        FEATURE_COLUMN(CIX_EIGENENTROPY, -(xlogx(L1) + xlogx(L2) + xlogx(L3)))
 #endif
-#ifdef COL_ANISOTROPY
-        VSTORE_FEATURE(f_aniso, (L1 - L3) * i1)
+#ifdef CIX_ANISOTROPY
+        FEATURE_COLUMN(CIX_ANISOTROPY, (L1 - L3) * i1)
 #endif
-#ifdef COL_PLANARITY
-        VSTORE_FEATURE(f_plan, (L2 - L3) * i1)
+#ifdef CIX_PLANARITY
+        FEATURE_COLUMN(CIX_PLANARITY, (L2 - L3) * i1)
 #endif
-#ifdef COL_LINEARITY
-        VSTORE_FEATURE(f_lin, (L1 - L2) * i1)
+#ifdef CIX_LINEARITY
+        FEATURE_COLUMN(CIX_LINEARITY, (L1 - L2) * i1)
 #endif
-#ifdef COL_PCA1
-        VSTORE_FEATURE(f_pca1, L1 * isum)
+#ifdef CIX_PCA1
+        FEATURE_COLUMN(CIX_PCA1, L1 * isum)
 #endif
-#ifdef COL_PCA2
-        VSTORE_FEATURE(f_pca2, L2 * isum)
+#ifdef CIX_PCA2
+        FEATURE_COLUMN(CIX_PCA2, L2 * isum)
 #endif
-#ifdef COL_SURFACE_VARIATION
-        VSTORE_FEATURE(f_sv, L3 / sum)        /* bit for bit the variation of moments.cl */
+#ifdef CIX_SURFACE_VARIATION
+        FEATURE_COLUMN(CIX_SURFACE_VARIATION, L3 / sum)  /* bit for bit the variation of moments.cl */
 #endif
-#ifdef COL_SPHERICITY
-        VSTORE_FEATURE(f_sph, L3 * i1)
+#ifdef CIX_SPHERICITY
+        FEATURE_COLUMN(CIX_SPHERICITY, L3 * i1)
 #endif
-#ifdef COL_VERTICALITY
-        VSTORE_FEATURE(f_vert, 1 - fabs(e3z))
+#ifdef CIX_VERTICALITY
+        FEATURE_COLUMN(CIX_VERTICALITY, 1 - fabs(e3z))
 #endif
-#ifdef COL_GUINARD_VERTICALITY
-        /* e2 = e3 x e1 / |.|; u = L1 |e1| + L2 |e2| + L3 |e3|; |u_z| / |u| */
-        REALV e2x = e3y * e1z - e3z * e1y, e2y = e3z * e1x - e3x * e1z;
-        REALV e2z = e3x * e1y - e3y * e1x;
-        const REALV ie2 = rsqrt(e2x * e2x + e2y * e2y + e2z * e2z);
-        e2x *= ie2; e2y *= ie2; e2z *= ie2;
-        const REALV ux = L1 * fabs(e1x) + L2 * fabs(e2x) + L3 * fabs(e3x);
-        const REALV uy = L1 * fabs(e1y) + L2 * fabs(e2y) + L3 * fabs(e3y);
-        const REALV uz = L1 * fabs(e1z) + L2 * fabs(e2z) + L3 * fabs(e3z);
-        VSTORE_FEATURE(f_gv, uz * rsqrt(ux * ux + uy * uy + uz * uz))
+#ifdef CIX_GUINARD_VERTICALITY
+        {
+            /* e2 = e3 x e1 / |.|; u = L1 |e1| + L2 |e2| + L3 |e3|; |u_z| / |u| */
+            REALV e2x = e3y * e1z - e3z * e1y, e2y = e3z * e1x - e3x * e1z;
+            REALV e2z = e3x * e1y - e3y * e1x;
+            const REALV ie2 = rsqrt(e2x * e2x + e2y * e2y + e2z * e2z);
+            e2x *= ie2; e2y *= ie2; e2z *= ie2;
+            const REALV ux = L1 * fabs(e1x) + L2 * fabs(e2x) + L3 * fabs(e3x);
+            const REALV uy = L1 * fabs(e1y) + L2 * fabs(e2y) + L3 * fabs(e3y);
+            const REALV uz = L1 * fabs(e1z) + L2 * fabs(e2z) + L3 * fabs(e3z);
+            FEATURE_COLUMN(CIX_GUINARD_VERTICALITY, uz * rsqrt(ux * ux + uy * uy + uz * uz))
+        }
 #endif
-#ifdef COL_DENSITY
-        const REALV r2v = VLOADV(0, rr);
-        VSTORE_FEATURE(f_dens, VLOADV(0, cnt) / (FOUR_THIRDS_PI * r2v * sqrt(r2v)))
+#ifdef CIX_EIGENVALUE1
+        FEATURE_COLUMN(CIX_EIGENVALUE1, L1)
+#endif
+#ifdef CIX_EIGENVALUE2
+        FEATURE_COLUMN(CIX_EIGENVALUE2, L2)
+#endif
+#ifdef CIX_EIGENVALUE3
+        FEATURE_COLUMN(CIX_EIGENVALUE3, L3)
+#endif
+#ifdef CIX_DENSITY
+        {
+            const REALV r2v = VLOADV(0, rr);
+            FEATURE_COLUMN(CIX_DENSITY, VLOADV(0, cnt) / (FOUR_THIRDS_PI * r2v * sqrt(r2v)))
+        }
+#endif
+#ifdef CIX_NORMALS
+        FEATURE_COLUMN(CIX_NORMALS, e3x)
+        FEATURE_COLUMN(CIX_NORMALS + 1, e3y)
+        FEATURE_COLUMN(CIX_NORMALS + 2, e3z)
 #endif
         __global REAL *o = j == 0 ? out : j == 1 ? out1 : j == 2 ? out2 : out3;
-        for (uint k = 0; k < kn; ++k) {
-            REAL16 rec = (REAL16)(NAN);
-            if (st[j][k] == ST_OK) {
-#ifdef COL_EIGENVALUE_SUM
-                rec.COL_EIGENVALUE_SUM = f_sum[k];
-#endif
-#ifdef COL_OMNIVARIANCE
-                rec.COL_OMNIVARIANCE = f_omni[k];
-#endif
-#ifdef COL_EIGENENTROPY
-                rec.COL_EIGENENTROPY = f_ent[k];
-#endif
-#ifdef COL_ANISOTROPY
-                rec.COL_ANISOTROPY = f_aniso[k];
-#endif
-#ifdef COL_PLANARITY
-                rec.COL_PLANARITY = f_plan[k];
-#endif
-#ifdef COL_LINEARITY
-                rec.COL_LINEARITY = f_lin[k];
-#endif
-#ifdef COL_PCA1
-                rec.COL_PCA1 = f_pca1[k];
-#endif
-#ifdef COL_PCA2
-                rec.COL_PCA2 = f_pca2[k];
-#endif
-#ifdef COL_SURFACE_VARIATION
-                rec.COL_SURFACE_VARIATION = f_sv[k];
-#endif
-#ifdef COL_SPHERICITY
-                rec.COL_SPHERICITY = f_sph[k];
-#endif
-#ifdef COL_VERTICALITY
-                rec.COL_VERTICALITY = f_vert[k];
-#endif
-#ifdef COL_GUINARD_VERTICALITY
-                rec.COL_GUINARD_VERTICALITY = f_gv[k];
-#endif
-#ifdef COL_EIGENVALUE1
-                rec.COL_EIGENVALUE1 = pb[j].l2[k] * s[k];
-#endif
-#ifdef COL_EIGENVALUE2
-                rec.COL_EIGENVALUE2 = pb[j].l1[k] * s[k];
-#endif
-#ifdef COL_EIGENVALUE3
-                rec.COL_EIGENVALUE3 = l0[j][k] * s[k];
-#endif
-#ifdef COL_DENSITY
-                rec.COL_DENSITY = f_dens[k];
-#endif
-#ifdef COL_NORMALS
-                rec.COL_NORMALS = (REAL3)(pb[j].v0x[k], pb[j].v0y[k], pb[j].v0z[k]);
-#endif
-            }
-            REC_COUNT_STATUS(rec, pb[j].count[k], st[j][k]);
-            REC_STORE(rec, REC_INDEX(g0 + k), o);
-        }
+        REC_STORE_LANES(col, kn, g0, o, REC_USED)
     }
 }

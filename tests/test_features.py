@@ -152,6 +152,19 @@ def test_against_reference_float64(device):
     _check_reference(synthetic_scene(2)[::2], 0.12, device, "double", 1e-9)
 
 
+@pytest.mark.parametrize("precision,tol", [("float", 2e-5), ("double", 1e-9)])
+def test_against_reference_at_the_gpu_vector_width(device, monkeypatch, precision, tol):
+    # GPUs build the kernels with VW = 4 (clcurv.program.precision_defines), whose records
+    # are assembled lane by lane (kernels/lanes_records.h), not transposed as at VW = 8
+    import clcurv.cloud
+    if precision == "double" and not device.info.fp64:
+        pytest.skip("the device has no float64")
+    real = clcurv.cloud.precision_defines
+    monkeypatch.setattr(clcurv.cloud, "precision_defines",
+                        lambda dev, prec: dict(real(dev, prec), VW=4))
+    _check_reference(synthetic_scene(3)[::2], 0.12, device, precision, tol)
+
+
 def test_same_eigenvalues_as_moments(device):
     """features.cl shares the moments kernel's PCA (pca.h): the eigenvalues and the
     surface variation's l0 are those of curvature(method='variation'), bit for bit."""
