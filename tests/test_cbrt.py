@@ -1,23 +1,11 @@
 """kernels/cbrt.h (cbrt_pos: the omnivariance's cube root, division-free in float) against
-numpy's long double cbrt (numpy's float64 cbrt is itself up to 3 ulp off), on every
-device: float within 1 ulp of the exact result on zero,
-normal and subnormal floats across the whole exponent range, and the builtin cbrt in
-double."""
+numpy's long double cbrt (its float64 cbrt is itself up to 3 ulp off), on every device:
+float within 1 ulp of the exact result on zero, normal and subnormal floats across the
+whole exponent range, and the builtin cbrt in double."""
 import numpy as np
-import pyopencl as cl
 import pytest
 
-from test_eig3 import build_program, cl_env  # noqa: F401  (the fixture)
-
-SOURCE = r"""
-#include "cbrt.h"
-__kernel void cbrt_test(__global const REAL *x, __global REAL *out, const uint n)
-{
-    const uint i = get_global_id(0) * VW;
-    if (i >= n) return;
-    CAT(vstore, VW)(cbrt_pos(VLOADV(0, x + i)), 0, out + i);
-}
-"""
+from test_eig3 import cl_env, lane_function  # noqa: F401  (the fixture)
 
 #: float: ours, measured 0.95 ulp at most on PoCL, 0.75 on Intel (whose mad is a fused
 #: multiply-add); double: the builtin cbrt, which OpenCL allows 2 ulp (0.54 measured)
@@ -46,19 +34,8 @@ def test_cbrt_pos_within_an_ulp(cl_env, precision):
     if precision == "double" and np.finfo(np.longdouble).nmant <= 52:
         pytest.skip("numpy's longdouble is float64 here: no exact reference for double")
     dtype = np.float64 if precision == "double" else np.float32
-    vw = 8
-    prg = build_program(ctx, precision, SOURCE, vw)
     x = _inputs(dtype)
-    n = len(x)
-    pad = np.ones(-(-n // vw) * vw, dtype)
-    pad[:n] = x
-    mf = cl.mem_flags
-    xb = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=pad)
-    ob = cl.Buffer(ctx, mf.WRITE_ONLY, pad.nbytes)
-    prg.cbrt_test(queue, (len(pad) // vw,), None, xb, ob, np.uint32(len(pad)))
-    out = np.empty_like(pad)
-    cl.enqueue_copy(queue, out, ob)
-    got = out[:n].astype(np.longdouble)
+    got = lane_function(ctx, queue, precision, "cbrt.h", "cbrt_pos", x).astype(np.longdouble)
     want = np.cbrt(x.astype(np.longdouble))            # x86: 64-bit mantissa
     zero = x == 0
     assert (got[zero] == 0).all()

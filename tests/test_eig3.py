@@ -77,6 +77,31 @@ def build_program(ctx, precision, source=None, vw=8):
     return cl.Program(ctx, source or SOURCE).build(options=options)
 
 
+def lane_function(ctx, queue, precision, header, fn, x, vw=8):
+    """``fn`` of ``header`` (a REALV -> REALV function of the kernels) on the values ``x``,
+    VW lanes at a time on the device of ``queue``: its results, in ``x``'s dtype."""
+    source = f"""
+#include "{header}"
+__kernel void lane_test(__global const REAL *x, __global REAL *out, const uint n)
+{{
+    const uint i = get_global_id(0) * VW;
+    if (i >= n) return;
+    CAT(vstore, VW)({fn}(VLOADV(0, x + i)), 0, out + i);
+}}
+"""
+    prg = build_program(ctx, precision, source, vw)
+    n = len(x)
+    pad = np.ones(-(-n // vw) * vw, x.dtype)
+    pad[:n] = x
+    mf = cl.mem_flags
+    xb = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=pad)
+    ob = cl.Buffer(ctx, mf.WRITE_ONLY, pad.nbytes)
+    prg.lane_test(queue, (len(pad) // vw,), None, xb, ob, np.uint32(len(pad)))
+    out = np.empty_like(pad)
+    cl.enqueue_copy(queue, out, ob)
+    return out[:n]
+
+
 class Eig3:
     """Runs eig3_sym on a stack of symmetric matrices in one precision; ``vw`` matrices per
     work-item (``source`` holding an eig3_test kernel of that shape)."""

@@ -3,20 +3,9 @@ numpy's float64 log, on every device: float within 1 ulp of the exact result, on
 normal and subnormal floats across the whole exponent range (and near 1, where ln -> 0 and
 its relative accuracy matters), and the builtin log in double."""
 import numpy as np
-import pyopencl as cl
 import pytest
 
-from test_eig3 import build_program, cl_env  # noqa: F401  (the fixture)
-
-SOURCE = r"""
-#include "ln.h"
-__kernel void ln_test(__global const REAL *x, __global REAL *out, const uint n)
-{
-    const uint i = get_global_id(0) * VW;
-    if (i >= n) return;
-    CAT(vstore, VW)(ln_pos(VLOADV(0, x + i)), 0, out + i);
-}
-"""
+from test_eig3 import cl_env, lane_function  # noqa: F401  (the fixture)
 
 #: float: ours, measured 0.78 ulp at most on PoCL and Intel; double: the builtin log, which
 #: OpenCL allows 3 ulp
@@ -44,19 +33,8 @@ def test_ln_pos_within_an_ulp(cl_env, precision):
     if precision == "double" and "cl_khr_fp64" not in device.extensions:
         pytest.skip("the device has no float64")
     dtype = np.float64 if precision == "double" else np.float32
-    vw = 8
-    prg = build_program(ctx, precision, SOURCE, vw)
     x = _inputs(dtype)
-    n = len(x)
-    pad = np.ones(-(-n // vw) * vw, dtype)
-    pad[:n] = x
-    mf = cl.mem_flags
-    xb = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=pad)
-    ob = cl.Buffer(ctx, mf.WRITE_ONLY, pad.nbytes)
-    prg.ln_test(queue, (len(pad) // vw,), None, xb, ob, np.uint32(len(pad)))
-    out = np.empty_like(pad)
-    cl.enqueue_copy(queue, out, ob)
-    got = out[:n].astype(np.float64)
+    got = lane_function(ctx, queue, precision, "ln.h", "ln_pos", x).astype(np.float64)
     want = np.log(x.astype(np.float64))
     # the error in units of the spacing of floats at the exact result (ulp of |ln x|; for
     # ln x = 0 exactly, x = 1, the result must be 0)
