@@ -50,7 +50,14 @@ class Kernel:
     def build_defines(self):
         """The kernel's build options: its defines, MIN_COUNT and the record columns."""
         cols = {f"COL_{k.upper()}": record_selector(v) for k, v in self.layout.items()}
-        return dict(self.defines, MIN_COUNT=self.min_count, **cols)
+        # the columns' numbers and the mask of those written, for the kernels that store
+        # records from column vectors (kernels/lanes_records.h)
+        cix, used = {}, 0
+        for k, v in self.layout.items():
+            first, width = (v, 1) if isinstance(v, int) else (v.start, v.stop - v.start)
+            cix[f"CIX_{k.upper()}"] = first
+            used |= ((1 << width) - 1) << first
+        return dict(self.defines, MIN_COUNT=self.min_count, **cols, **cix, REC_USED=hex(used))
 
     def width(self, name):
         v = self.layout[name]

@@ -26,7 +26,8 @@
  * Outputs per point (one record, input order): count, status, eigenvalues (descending; 2
  * or 3), the curvature magnitudes k1 >= k2 >= 0 (1/length) and the unit tangent directions
  * dir1, dir2 (dir2 = n x dir1). A NaN normal anywhere in the ball gives status DEGENERATE.
- * Build options: COV_METHOD, DENSITY, POINT_RADIUS (radius.h), MIN_COUNT and the record columns COL_EIGENVALUES (2,
+ * Build options: COV_METHOD, DENSITY, POINT_RADIUS (radius.h), MIN_COUNT and the record columns
+ * (their first column numbers CIX_<FIELD> and their mask REC_USED, lanes_records.h) COL_EIGENVALUES (2,
  * or 3 for 3dcov), COL_K1, COL_K2, COL_DIR1 (3), COL_DIR2 (3), COL_COUNT, COL_STATUS
  * (clcurv/operators.py).
  */
@@ -36,6 +37,7 @@
 #include "frame.h"
 #include "eig3.h"
 #include "radius.h"
+#include "lanes_records.h"
 
 #if !defined(COV_METHOD) || !defined(MIN_COUNT) || !defined(COL_EIGENVALUES) \
     || !defined(COL_K1) || !defined(COL_K2) || !defined(COL_DIR1) || !defined(COL_DIR2) \
@@ -43,17 +45,18 @@
 #error "covariances.cl needs COV_METHOD, MIN_COUNT and its record columns (clcurv/operators.py)"
 #endif
 
-/* |k1| >= |k2| from 2dcov1's count-normalised eigenvalues (Theorem 1), keeping the root
- * m+ of m = (k1 + k2)^2 (the k1 k2 >= 0 solution whenever one exists), as
+/* |k1| >= |k2| from 2dcov1's count-normalised eigenvalues (Theorem 1) in the VW lanes,
+ * keeping the root m+ of m = (k1 + k2)^2 (the k1 k2 >= 0 solution whenever one exists), as
  * reference.invert_theorem1 documents. */
-inline REAL2 invert_theorem1(REAL l1, REAL l2, REAL r)
+inline void invert_theorem1_v(REALV l1, REALV l2, REALV r, REALV *k1, REALV *k2)
 {
     /* u = l1 / c with c = r^6 / 256, as two factors: 256 / r^6 itself overflows float32
        for r < 2^-19 and r^6 for r > 2^21, where l1 (~ k^2 r^6) is still representable */
-    const REAL r2 = r * r, a = (REAL)16 / r2, b = (REAL)16 / (r2 * r2);
-    const REAL u = l1 * a * b, v = l2 * a * b, S = u + v;
-    const REAL m = (S + sqrt(fmax((REAL)8 * u * v - S * S, (REAL)0))) / (REAL)8;
-    return (REAL2)(sqrt(fmax(u - m, (REAL)0) * (REAL)0.25), sqrt(fmax(v - m, (REAL)0) * (REAL)0.25));
+    const REALV r2 = r * r, a = (REAL)16 / r2, b = (REAL)16 / (r2 * r2);
+    const REALV u = l1 * a * b, v = l2 * a * b, S = u + v;
+    const REALV m = (S + sqrt(fmax((REAL)8 * u * v - S * S, (REALV)0))) / (REAL)8;
+    *k1 = sqrt(fmax(u - m, (REALV)0) * (REAL)0.25);
+    *k2 = sqrt(fmax(v - m, (REALV)0) * (REAL)0.25);
 }
 
 /* Weighted covariance c = aa ab ad bb bd dd (the 2D methods use aa ab bb) of the features
@@ -123,55 +126,16 @@ inline uint cov_ball(__global const REAL *X, __global const REAL *Y, __global co
 #endif
 }
 
-/* Eigenvalues (descending), magnitudes, directions and the record of one point. lam3/e3 are
- * the 3dcov eigen decomposition (largest eigenvalue's vector e3), unused otherwise. */
-inline void cov_finish(uint count, int finite, REAL a, REAL b, REAL c, REAL3 nrm, REAL3 t1,
-                       REAL3 t2, REAL r, REAL3 lam3, REAL3 e3, size_t j, __global REAL *out)
-{
-#if COV_METHOD == 3
-    REAL3 lam = fmax(lam3, (REAL3)0);
-    const REAL3 tang = e3 - dot(e3, nrm) * nrm;           /* largest, on the tangent plane */
-    REAL3 e1 = length(tang) > (REAL)1e-3 ? normalize(tang) : t1;
-    REAL2 k = (REAL)2 / r * sqrt(lam.xy);
-#else
-    REAL l1, l2;
-    REAL2 ev;
-    eig2_sym(a, b, c, &l1, &l2, &ev);
-    REAL3 lam = fmax((REAL3)(l1, l2, 0), (REAL3)0);
-    REAL3 e1 = ev.x * t1 + ev.y * t2;
-#if COV_METHOD == 1
-    REAL2 k = invert_theorem1(lam.x, lam.y, r);
-#else
-    REAL2 k = (REAL)2 / r * sqrt(lam.xy);
-#endif
-#endif
-    /* a NaN normal in the ball makes the sums NaN (fmax above would hide it in lam) */
-    finite = finite && isfinite(nrm.x) && isfinite(nrm.y) && isfinite(nrm.z) && isfinite(e1.x);
-    uchar st = ST_OK;
-    if (count < MIN_COUNT) st = ST_TOO_FEW;
-    else if (!finite) st = ST_DEGENERATE;
-    /* record: eigenvalues (descending; 2, or 3 for 3dcov) | k1 k2 | dir1 | dir2 | count |
-       status */
-    REAL16 rec = (REAL16)(NAN);
-    if (st == ST_OK) {
-#if COV_METHOD == 3
-        rec.COL_EIGENVALUES = lam;
-#else
-        rec.COL_EIGENVALUES = lam.xy;
-#endif
-        rec.COL_K1 = k.x;
-        rec.COL_K2 = k.y;
-        rec.COL_DIR1 = e1;
-        rec.COL_DIR2 = cross(nrm, e1);
-    }
-    REC_COUNT_STATUS(rec, count, st);
-    REC_STORE(rec, j, out);
-}
-
 #define VSTOREV CAT(vstore, VW)
 
-/* One work-item per VW consecutive sorted points (global size >= ceil(n / VW)); 3dcov's VW
- * eigen decompositions run at once in the vector lanes (eig3_sym_v). */
+/* record column c of the lanes: the value where the status is OK, NaN elsewhere */
+#define COV_COLUMN(c, expr) col[c] = select((REALV)(NAN), (expr), ok);
+
+/* One work-item per VW consecutive sorted points (global size >= ceil(n / VW)): the sums
+ * point by point, then in the vector lanes the eigen decompositions (3dcov: eig3_sym_v;
+ * the 2D methods: eig2_sym_v), the magnitudes, directions and status, and the records from
+ * their columns (lanes_records.h; evaluated point by point, this part took ~10 ms of the
+ * 1M-point 3dcov kernel, ~15 of 2dcov2's, on a 2-core AVX2 CPU). */
 __kernel void covariance(OPERATOR_ARGS)
 {
     const REAL r = par.x;
@@ -181,14 +145,21 @@ __kernel void covariance(OPERATOR_ARGS)
     uint cnt[VW];
     int fin[VW];
     REAL cs[6][VW];
+    REAL fr[9][VW];                                 /* n, t1, t2 of each lane */
+    REAL rad[VW];
     for (uint k = 0; k < VW; ++k) {
         REAL c[6] = {1, 0, 0, 1, 0, 1};              /* unused lane: the identity */
+        REAL3 nrm = (REAL3)(0, 0, 1), t1, t2;
         cnt[k] = 0;
+        rad[k] = 1;
         if (k < kn) {
             const uint g = g0 + k;
-            const REAL3 nrm = (REAL3)(NX[g], NY[g], NZ[g]);
-            REAL3 t1, t2;
-            tangent_frame(nrm, &t1, &t2);
+            nrm = (REAL3)(NX[g], NY[g], NZ[g]);
+            rad[k] = BALL_R(W, g, r);
+        }
+        tangent_frame(nrm, &t1, &t2);
+        if (k < kn) {
+            const uint g = g0 + k;
             const uint co = cell_of[g];
             __global const REAL *XA = x_rows(X, co, n);
             cnt[k] = cov_ball(XA, Y, Z, NX, NY, NZ, W, ranges, co & CELL_MASK,
@@ -201,28 +172,76 @@ __kernel void covariance(OPERATOR_ARGS)
             cs[e][k] = isfinite(c[e]) ? c[e] : (REAL)0;
         }
         fin[k] = f;
+        fr[0][k] = nrm.x; fr[1][k] = nrm.y; fr[2][k] = nrm.z;
+        fr[3][k] = t1.x; fr[4][k] = t1.y; fr[5][k] = t1.z;
+        fr[6][k] = t2.x; fr[7][k] = t2.y; fr[8][k] = t2.z;
     }
-    REAL l0[VW], l1[VW], l2[VW], ex[VW], ey[VW], ez[VW];
+    const REALV nx = VLOADV(0, fr[0]), ny = VLOADV(0, fr[1]), nz = VLOADV(0, fr[2]);
+    const REALV t1x = VLOADV(0, fr[3]), t1y = VLOADV(0, fr[4]), t1z = VLOADV(0, fr[5]);
+    const REALV R = VLOADV(0, rad);
+    REALV lam0, lam1, k1, k2, e1x, e1y, e1z;
 #if COV_METHOD == 3
     REALV w0, w1, w2;
-    eig3_v3_v e0, e1, e2;
+    eig3_v3_v v0, v1, v2;
     eig3_sym_v(VLOADV(0, cs[0]), VLOADV(0, cs[1]), VLOADV(0, cs[2]),
                VLOADV(0, cs[3]), VLOADV(0, cs[4]), VLOADV(0, cs[5]),
-               &w0, &w1, &w2, &e0, &e1, &e2);
-    VSTOREV(w0, 0, l0); VSTOREV(w1, 0, l1); VSTOREV(w2, 0, l2);
-    VSTOREV(e2.x, 0, ex); VSTOREV(e2.y, 0, ey); VSTOREV(e2.z, 0, ez);
+               &w0, &w1, &w2, &v0, &v1, &v2);
+    lam0 = fmax(w2, (REALV)0);                      /* descending */
+    lam1 = fmax(w1, (REALV)0);
+    const REALV lam2 = fmax(w0, (REALV)0);
+    /* dir1: the largest eigenvalue's vector on the tangent plane (t1 where it has none) */
+    const REALV d = v2.x * nx + v2.y * ny + v2.z * nz;
+    const REALV tx = v2.x - d * nx, ty = v2.y - d * ny, tz = v2.z - d * nz;
+    const REALV tl = sqrt(tx * tx + ty * ty + tz * tz);
+    const IREALV tang = isgreater(tl, (REALV)1e-3);
+    e1x = select(t1x, tx / tl, tang);
+    e1y = select(t1y, ty / tl, tang);
+    e1z = select(t1z, tz / tl, tang);
+    k1 = (REAL)2 / R * sqrt(lam0);
+    k2 = (REAL)2 / R * sqrt(lam1);
+#else
+    const REALV t2x = VLOADV(0, fr[6]), t2y = VLOADV(0, fr[7]), t2z = VLOADV(0, fr[8]);
+    REALV l1, l2, ea, eb;
+    eig2_sym_v(VLOADV(0, cs[0]), VLOADV(0, cs[1]), VLOADV(0, cs[3]), &l1, &l2, &ea, &eb);
+    lam0 = fmax(l1, (REALV)0);
+    lam1 = fmax(l2, (REALV)0);
+    e1x = ea * t1x + eb * t2x;
+    e1y = ea * t1y + eb * t2y;
+    e1z = ea * t1z + eb * t2z;
+#if COV_METHOD == 1
+    invert_theorem1_v(lam0, lam1, R, &k1, &k2);
+#else
+    k1 = (REAL)2 / R * sqrt(lam0);
+    k2 = (REAL)2 / R * sqrt(lam1);
 #endif
-    for (uint k = 0; k < kn; ++k) {
-        const uint g = g0 + k;
-        const REAL3 nrm = (REAL3)(NX[g], NY[g], NZ[g]);
-        REAL3 t1, t2;
-        tangent_frame(nrm, &t1, &t2);
-        REAL3 lam3 = (REAL3)(0), e3 = t1;
+#endif
+    /* status: too few neighbours; a NaN normal anywhere in the ball (the sums are then
+       NaN: fmax would hide it in the eigenvalues) or at p */
+    int fl[VW];
+    for (uint k = 0; k < VW; ++k) fl[k] = fin[k];
+    const IREALV finite = (CAT(convert_, IREALV)(CAT(vload, VW)(0, fl)) != (IREALV)0)
+                          & isfinite(nx) & isfinite(ny) & isfinite(nz) & isfinite(e1x);
+    const IREALV few = CAT(convert_, IREALV)(CAT(vload, VW)(0, cnt) < (CAT(uint, VW))MIN_COUNT);
+    const REALV stf = select(select((REALV)ST_OK, (REALV)ST_DEGENERATE, !finite),
+                             (REALV)ST_TOO_FEW, few);
+    const IREALV ok = stf == (REALV)ST_OK;
+    /* record: eigenvalues (descending; 2, or 3 for 3dcov) | k1 k2 | dir1 | dir2 | count |
+       status */
+    REALV col[16];
+    COV_COLUMN(CIX_EIGENVALUES, lam0)
+    COV_COLUMN(CIX_EIGENVALUES + 1, lam1)
 #if COV_METHOD == 3
-        lam3 = (REAL3)(l2[k], l1[k], l0[k]);                             /* descending */
-        e3 = (REAL3)(ex[k], ey[k], ez[k]);
+    COV_COLUMN(CIX_EIGENVALUES + 2, lam2)
 #endif
-        cov_finish(cnt[k], fin[k], cs[0][k], cs[1][k], cs[3][k], nrm, t1, t2, BALL_R(W, g, r),
-                   lam3, e3, REC_INDEX(g), out);
-    }
+    COV_COLUMN(CIX_K1, k1)
+    COV_COLUMN(CIX_K2, k2)
+    COV_COLUMN(CIX_DIR1, e1x)
+    COV_COLUMN(CIX_DIR1 + 1, e1y)
+    COV_COLUMN(CIX_DIR1 + 2, e1z)
+    COV_COLUMN(CIX_DIR2, ny * e1z - nz * e1y)                      /* n x dir1 */
+    COV_COLUMN(CIX_DIR2 + 1, nz * e1x - nx * e1z)
+    COV_COLUMN(CIX_DIR2 + 2, nx * e1y - ny * e1x)
+    col[CIX_COUNT] = LANES_COUNT(cnt);
+    col[CIX_STATUS] = stf;
+    REC_STORE_LANES(col, kn, g0, out, REC_USED)
 }

@@ -16,22 +16,28 @@ inline void tangent_frame(REAL3 n, REAL3 *t1, REAL3 *t2)
     *t2 = cross(n, *t1);
 }
 
-/* Eigen decomposition of [[a, b], [b, c]]: l1 >= l2 and the unit eigenvector (c1, s1) of
- * l1 (the one of l2 is (-s1, c1)). Exact for diagonal input, no division by zero. */
-inline void eig2_sym(REAL a, REAL b, REAL c, REAL *l1, REAL *l2, REAL2 *e1)
+/* Eigen decompositions of the VW matrices [[a, b], [b, c]] of the lanes: l1 >= l2 and the
+ * unit eigenvector (e1x, e1y) of l1 (the one of l2 is (-e1y, e1x)). Exact for diagonal
+ * input, no division by zero; entries as small as 2dcov1's (~ r^6 k^2) are scaled before
+ * they are squared, so nothing underflows (no library hypot or length: slow on PoCL). */
+inline void eig2_sym_v(REALV a, REALV b, REALV c, REALV *l1, REALV *l2, REALV *e1x,
+                       REALV *e1y)
 {
-    const REAL h = (REAL)0.5 * (a - c);
-    /* hypot without the library call (slow on PoCL): scaled so that tiny entries (2dcov1's
-       are ~ r^6 k^2) cannot underflow when squared */
-    const REAL big = fmax(fabs(h), fabs(b));
-    const REAL ib = big > 0 ? (REAL)1 / big : (REAL)0;
-    const REAL rad = big * sqrt((h * ib) * (h * ib) + (b * ib) * (b * ib));
-    const REAL m = (REAL)0.5 * (a + c);
+    const REALV h = (REAL)0.5 * (a - c);
+    const REALV big = fmax(fabs(h), fabs(b));
+    const REALV ib = select((REALV)0, (REAL)1 / big, isgreater(big, (REALV)0));
+    const REALV rad = big * sqrt((h * ib) * (h * ib) + (b * ib) * (b * ib));
+    const REALV m = (REAL)0.5 * (a + c);
     *l1 = m + rad;
     *l2 = m - rad;
     /* eigenvector of l1: (h + rad, b) or (b, rad - h), the better conditioned one */
-    REAL2 v = (h >= 0) ? (REAL2)(h + rad, b) : (REAL2)(b, rad - h);
-    const REAL nv = length(v);
-    *e1 = nv > 0 ? v / nv : (REAL2)(1, 0);
+    const IREALV pos = isgreaterequal(h, (REALV)0);
+    const REALV vx = select(b, h + rad, pos), vy = select(rad - h, b, pos);
+    const REALV vm = fmax(fabs(vx), fabs(vy));
+    const IREALV any = isgreater(vm, (REALV)0);
+    const REALV iv = select((REALV)0, (REAL)1 / vm, any);
+    const REALV nv = vm * sqrt((vx * iv) * (vx * iv) + (vy * iv) * (vy * iv));
+    *e1x = select((REALV)1, vx / nv, any);
+    *e1y = select((REALV)0, vy / nv, any);
 }
 #endif
