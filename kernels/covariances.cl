@@ -26,10 +26,10 @@
  * Outputs per point (one record, input order): count, status, eigenvalues (descending; 2
  * or 3), the curvature magnitudes k1 >= k2 >= 0 (1/length) and the unit tangent directions
  * dir1, dir2 (dir2 = n x dir1). A NaN normal anywhere in the ball gives status DEGENERATE.
- * Build options: COV_METHOD, DENSITY, POINT_RADIUS (radius.h), MIN_COUNT and the record columns
- * (their first column numbers CIX_<FIELD> and their mask REC_USED, lanes_records.h) COL_EIGENVALUES (2,
- * or 3 for 3dcov), COL_K1, COL_K2, COL_DIR1 (3), COL_DIR2 (3), COL_COUNT, COL_STATUS
- * (clcurv/operators.py).
+ * Build options: COV_METHOD, DENSITY, POINT_RADIUS (radius.h), MIN_COUNT and the record
+ * columns COL_EIGENVALUES (2, or 3 for 3dcov), COL_K1, COL_K2, COL_DIR1 (3), COL_DIR2 (3),
+ * COL_COUNT, COL_STATUS, with their first columns' numbers CIX_<FIELD> and their mask
+ * REC_USED (lanes_records.h; clcurv/operators.py).
  */
 #include "common.h"
 #include "neighbors.h"
@@ -217,9 +217,7 @@ __kernel void covariance(OPERATOR_ARGS)
 #endif
     /* status: too few neighbours; a NaN normal anywhere in the ball (the sums are then
        NaN: fmax would hide it in the eigenvalues) or at p */
-    int fl[VW];
-    for (uint k = 0; k < VW; ++k) fl[k] = fin[k];
-    const IREALV finite = (CAT(convert_, IREALV)(CAT(vload, VW)(0, fl)) != (IREALV)0)
+    const IREALV finite = (CAT(convert_, IREALV)(CAT(vload, VW)(0, fin)) != (IREALV)0)
                           & isfinite(nx) & isfinite(ny) & isfinite(nz) & isfinite(e1x);
     const IREALV few = CAT(convert_, IREALV)(CAT(vload, VW)(0, cnt) < (CAT(uint, VW))MIN_COUNT);
     const REALV stf = select(select((REALV)ST_OK, (REALV)ST_DEGENERATE, !finite),
