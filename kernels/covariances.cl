@@ -126,7 +126,6 @@ inline uint cov_ball(__global const REAL *X, __global const REAL *Y, __global co
 #endif
 }
 
-#define VSTOREV CAT(vstore, VW)
 
 /* record column c of the lanes: the value where the status is OK, NaN elsewhere */
 #define COV_COLUMN(c, expr) col[c] = select((REALV)(NAN), (expr), ok);

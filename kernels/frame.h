@@ -1,5 +1,5 @@
 /* frame.h -- small geometric helpers shared by the normal-based and MLS kernels:
- * a deterministic tangent frame and a closed-form symmetric 2x2 eigen solver. */
+ * a deterministic tangent frame and a closed-form symmetric 2x2 eigen solver (VW lanes). */
 #ifndef CLCURV_FRAME_H
 #define CLCURV_FRAME_H
 #include "common.h"
