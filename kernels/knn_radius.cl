@@ -8,9 +8,12 @@
  * smallest is then selected from the kept values by two packed histograms (bins of d^2,
  * then sub-bins of the bin that holds the K-th: one vector add per kept vector each, the
  * counts of a lane packed in the nibbles of a uint) and a vector minimum within the
- * sub-bin. It is exact unless a lane held more than KNN_LEVELS candidates and dropped some
- * in or below that bin (its largest kept value lies there): such a point (dense spots, many
- * duplicates) takes the counting path instead, which narrows an interval of d^2 by
+ * sub-bin. Every value below m, the smallest of the largest kept values of the lanes that
+ * held more than KNN_LEVELS candidates (and dropped the rest), is kept, so a value found at
+ * most m is exact (its ties counted at least once). Otherwise (a lane held more than
+ * KNN_LEVELS of the K nearest: dense spots, many duplicates; ~0.5% of the points at K = 30
+ * on the first cell of a uniform sphere, where the test by bins of before sent ~2%) the
+ * point takes the counting path instead, which narrows an interval of d^2 by
  * counting walks until it holds at most KNN_CAP candidates, gathers them and picks the
  * rank (an interval that cannot be narrowed, many equal distances, gives its upper end).
  * (A walk gathering every candidate lane by lane into a buffer cost ~5x this one on PoCL:
@@ -215,6 +218,10 @@ inline REAL kth_of_levels(IREALV a[KNN_LEVELS], IREALV lanes, REAL c2, uint need
 {
     const REAL s = ((REAL)PB - (REAL)0.5) / c2, s2 = s * (REAL)PB;
     if (!(s2 < (REAL)INFINITY)) return (REAL)NAN;             /* a cell below ~1e-19 */
+    /* every value below m, the smallest of the largest kept values of the lanes that
+       dropped some (INF: none dropped), is kept */
+    const IREAL m = min_lane(select((IREALV)INF_BITS, a[KNN_LEVELS - 1],
+                                    lanes < (IREALV)(-KNN_LEVELS)));
     UINTV f[KNN_LEVELS];
     for (int t = 0; t < KNN_LEVELS; ++t)
         f[t] = CONVERT_UINTV(fmin(AS_REALV(a[t]) * s, (REALV)PB));
@@ -222,9 +229,7 @@ inline REAL kth_of_levels(IREALV a[KNN_LEVELS], IREALV lanes, REAL c2, uint need
     const uint b = first_field(packed_prefix(f), need, &below);
     /* a lane that dropped values dropped only values >= its largest kept one: the counts
        of the bins below that one's are exact */
-    const IREALV lost = (lanes < (IREALV)(-KNN_LEVELS))
-                      & MASK_IREALV(f[KNN_LEVELS - 1] <= (UINTV)b);
-    if (b == PB || any_lane(lost)) return (REAL)NAN;
+    if (b == PB) return (REAL)NAN;
     need -= below;
     const UINTV lo = (UINTV)(PB * b);
     for (int t = 0; t < KNN_LEVELS; ++t) {
@@ -251,7 +256,7 @@ inline REAL kth_of_levels(IREALV a[KNN_LEVELS], IREALV lanes, REAL c2, uint need
         if (need <= c) break;
         need -= c;
     }
-    return AS_REAL(x);
+    return x <= m ? AS_REAL(x) : (REAL)NAN;
 }
 
 __kernel void kth_distance(__global const REAL *X, __global const REAL *Y,
