@@ -227,9 +227,7 @@ inline REAL kth_of_levels(IREALV a[KNN_LEVELS], IREALV lanes, REAL c2, uint need
         f[t] = CONVERT_UINTV(fmin(AS_REALV(a[t]) * s, (REALV)PB));
     uint below;
     const uint b = first_field(packed_prefix(f), need, &below);
-    /* a lane that dropped values dropped only values >= its largest kept one: the counts
-       of the bins below that one's are exact */
-    if (b == PB) return (REAL)NAN;
+    if (b == PB) return (REAL)NAN;        /* fewer kept values than need: lanes dropped some */
     need -= below;
     const UINTV lo = (UINTV)(PB * b);
     for (int t = 0; t < KNN_LEVELS; ++t) {
