@@ -44,7 +44,10 @@ def test_radii_against_kdtree(sphere, device, k):
 def test_both_kernel_paths_select_the_same_distance(sphere, device, k):
     """knn_radius.cl's one-walk selection (the smallest d^2 kept per lane) and its counting
     path (forced by keeping one value per lane) give the same k-th distances, bit for bit,
-    and those of the k-d tree (within float32 rounding of the offsets)."""
+    and those of the k-d tree (within float32 rounding of the offsets). With 4 values kept
+    per lane most lanes drop some: the selection must take the k-th from the kept values
+    only when it is at most the smallest largest kept value of those lanes (every value
+    below that one is kept), and send the other points down the counting path."""
     from scipy.spatial import cKDTree
     from clcurv.cloud import DeviceCloud
     from clcurv.knn_radius import kth_squared
@@ -56,6 +59,7 @@ def test_both_kernel_paths_select_the_same_distance(sphere, device, k):
     ok = np.isfinite(fast)
     assert ok.mean() > 0.9
     np.testing.assert_array_equal(fast, slow)
+    np.testing.assert_array_equal(fast, kth_squared(cloud, k, levels=4))
     np.testing.assert_allclose(np.sqrt(fast[ok]), ref[ok], rtol=4e-6)
     assert (ref[~ok] >= 0.999 * cloud.cell).all()     # unresolved: k-th beyond the cell
 
