@@ -91,19 +91,23 @@ def auto_radius_tiled(src, k=30, regions=16, sample=5000, seed=0, budget=None):
 
 @contextmanager
 def tile_session(quiet, scheduler=None):
-    """(progress, client) of a tiled CLI run: a tqdm bar of the tiles on stderr (None when
-    ``quiet``) and a Dask client of ``scheduler`` (None without); both closed at the end."""
+    """(progress, client) of a tiled CLI run: a tqdm bar of the tiles on stderr, made at
+    the first tile's report (none when ``quiet``, and none for a run that turns out to fit
+    in memory, which reports no tile) and a Dask client of ``scheduler`` (None without);
+    both closed at the end."""
     client = None
     if scheduler:
         from .cluster import _import
         client = _import().Client(scheduler)
-    bar = None
-    if not quiet:
-        from tqdm import tqdm
-        bar = tqdm(desc="tiles", unit="tile", file=sys.stderr, leave=True)
+    bars = []
     started = [None]
 
     def progress(done, total, points):
+        if not quiet and not bars:
+            from tqdm import tqdm
+            bars.append(tqdm(desc="tiles", unit="tile", total=total, file=sys.stderr,
+                             leave=True))
+        bar = bars[0] if bars else None
         if bar is not None:
             if bar.total != total:
                 bar.reset(total=total)
@@ -115,7 +119,7 @@ def tile_session(quiet, scheduler=None):
     try:
         yield progress, client
     finally:
-        if bar is not None:
+        for bar in bars:
             bar.close()
         if client is not None:
             client.close()

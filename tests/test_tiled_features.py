@@ -100,6 +100,19 @@ def test_cli_tiles_equal_the_cli_in_memory(scene, tmp_path):
     assert not (tmp_path / "x.xyz").exists()
 
 
+def test_progress_bar_only_for_a_tiled_run(scene, tmp_path):
+    """Without -q a tiled run draws a bar of its tiles on stderr, up to all of them; a run
+    in memory draws none (it drew an empty "tiles: 0tile" bar before)."""
+    _, path, _ = scene
+    mem = run_cli("features", path, "-o", tmp_path / "mem.laz", "--radius", "1")
+    til = run_cli("features", path, "-o", tmp_path / "til.laz", "--radius", "1",
+                  "--tile-size", "6")
+    assert mem.code == 0 and til.code == 0, (mem.stderr, til.stderr)
+    assert "tiles:" not in mem.stderr and "tile/s" not in mem.stderr, mem.stderr
+    n = int(til.stdout.split(" in ")[-1].split(" tile")[0])
+    assert n > 1 and f"tiles: 100%" in til.stderr and f"{n}/{n}" in til.stderr, til.stderr
+
+
 def test_dask_workers_equal_one_process(scene, tmp_path):
     pytest.importorskip("distributed")
     _, path, _ = scene
