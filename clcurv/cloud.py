@@ -37,6 +37,10 @@ DEVICE_MEMORY = None
 HEADROOM = 0.9
 #: Fewest points of a chunk: a budget that leaves room for fewer is refused.
 MIN_CHUNK = 1024
+#: Bytes of one row of a cell's 27-cell block (kernels/grid.cl: the index range of the row's
+#: points, a uint2), 9 rows per occupied cell, after a header of 8 bytes; as many again for
+#: the rows' middle cells once a pruned walk needs them (:meth:`DeviceCloud.with_middles`).
+RANGE_BYTES = 8
 
 
 class DeviceMemoryError(MemoryError):
@@ -171,7 +175,8 @@ class DeviceCloud:
         keys = up(sentinel_keys(g.keys))
         # kept: the anchor normals (clcurv.anchor) read the cells' starts too
         self.cell_start = cell_start = up(g.cell_start)
-        self.ranges = device_buffer(self.device, max(g.ncells, 1) * 9 * 8)
+        self.ranges = device_buffer(self.device, 8 + max(g.ncells, 1) * 9 * RANGE_BYTES)
+        self.middles = False                # the rows' middle cells: with_middles
         q.finish()
         t2 = time.perf_counter()
         self.timings["upload"] = t2 - t1
@@ -184,12 +189,41 @@ class DeviceCloud:
                np.uint32(0), np.uint32(self.n), self.x, self.y, self.z)
         per, items = np.uint32(CELLS_PER_ITEM), -(-g.ncells // CELLS_PER_ITEM)
         launch(self.device, prg.cell_ranges, items, keys, np.uint32(g.ncells), cell_start,
-               np.int64(nx), np.int64(ny), np.int64(nz), per, self.ranges)
+               np.int64(nx), np.int64(ny), np.int64(nz), per, np.uint32(0), self.ranges)
         launch(self.device, prg.expand_x, items, keys, np.uint32(g.ncells), cell_start,
                np.int64(nx), per, np.uint32(self.n), self.real(self.cell), self.x,
                self.cell_of)
         q.finish()
         self.timings["cell_ranges"] = time.perf_counter() - t3
+
+    def with_middles(self):
+        """The cloud's ranges with the middle cell of every row (kernels/grid.cl), made on
+        the first call: a walk with ROW_PRUNE then also leaves out a row's first or last cell
+        beyond its ball (kernels/neighbors.h); without them it prunes whole rows only. The
+        callers that build a pruned walk call this first (clcurv.driver.row_prune's users,
+        clcurv.graph); 72 more bytes per occupied cell on the device."""
+        if self.middles:
+            return self.ranges
+        import pyopencl as cl
+        g = self.grid
+        cells = max(g.ncells, 1)
+        rows = 9 * RANGE_BYTES * cells
+        self._require("the grid's rows and their middle cells", 8 + 2 * rows + 8 * cells, 0,
+                      0, 8 + 2 * rows)
+        mf = cl.mem_flags
+        use = mf.USE_HOST_PTR if self.device.info.kind == "cpu" else mf.COPY_HOST_PTR
+        keys = cl.Buffer(self.device.context, mf.READ_ONLY | use,
+                         hostbuf=sentinel_keys(g.keys))
+        ranges = device_buffer(self.device, 8 + 2 * rows)
+        nx, ny, nz = g.dims
+        prg = build(self.device, "grid.cl", self.defines)
+        launch(self.device, prg.cell_ranges, -(-g.ncells // CELLS_PER_ITEM), keys,
+               np.uint32(g.ncells), self.cell_start, np.int64(nx), np.int64(ny),
+               np.int64(nz), np.uint32(CELLS_PER_ITEM), np.uint32(1), ranges)
+        self.device.queue.finish()
+        self.ranges, self.middles = ranges, True
+        self.device_bytes += rows
+        return ranges
 
     def _check_memory(self):
         """Refuse a cloud whose coordinates and grid, with the binning's temporaries and the
@@ -198,7 +232,8 @@ class DeviceCloud:
         cells = max(g.ncells, 1)
         # x (3 copies), y, z | cell_of, order | 9 ranges and the start per cell, and once an
         # operator needs them the cells' anchor normals (clcurv.anchor)
-        self.device_bytes = 5 * (self.n + PAD) * item + 8 * self.n + (76 + 3 * item) * cells
+        self.device_bytes = (5 * (self.n + PAD) * item + 8 * self.n
+                             + (9 * RANGE_BYTES + 4 + 3 * item) * cells)
         # the keys, and the input-order rows gathered to x, y, z (__init__)
         temporary = 8 * cells + 3 * self.n * item
         # and the smallest chunk of the widest operator: a record and as many split fields
@@ -215,8 +250,10 @@ class DeviceCloud:
         lim = device_limits(self.device)
         item = np.dtype(self.dtype).itemsize
         held = self.device_bytes + reserve * (self.n + PAD) + grows
-        # the largest whole-cloud buffer: x's 3 copies or the ranges (9 uint2 per cell)
-        widest_pp = max(3 * item, 72 * max(self.grid.ncells, 1) / self.n)
+        # the largest whole-cloud buffer: x's 3 copies or the ranges (9 uint2 per cell, 18
+        # with the middle cells)
+        widest_pp = max(3 * item, (2 if getattr(self, "middles", False) else 1) * 9
+                        * RANGE_BYTES * max(self.grid.ncells, 1) / self.n)
         widest = widest_pp * (self.n + PAD)
         if held + fixed <= lim.budget and widest <= lim.max_alloc \
                 and chunk_alloc <= lim.max_alloc:

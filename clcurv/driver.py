@@ -103,6 +103,7 @@ def run_kernel(kernel, cloud, radius, *, normals=None, weights="uniform", h=None
     keep = set(kernel.layout) if fields is None else set(fields) | {"count", "status"}
     layout = {k: v for k, v in kernel.layout.items() if k in keep}
     item = np.dtype(cloud.dtype).itemsize
+    ranges = cloud.with_middles() if opts["ROW_PRUNE"] else cloud.ranges
     what = [w for w, on in (("the reference normals", normals is not None),
                             ("the density weights", weights == "density")) if on]
     plan = cloud.plan(f"kernel_{kernel.name}", record_bytes(cloud, layout),
@@ -128,7 +129,7 @@ def run_kernel(kernel, cloud, radius, *, normals=None, weights="uniform", h=None
     for first, stop in plan.ranges():
         t0 = time.perf_counter()
         launch(cloud.device, getattr(prg, kernel.entry), batches(stop - first, opts), cloud.x,
-               cloud.y, cloud.z, nx, ny, nz, wbuf, anchors, cloud.cell_of, cloud.ranges,
+               cloud.y, cloud.z, nx, ny, nz, wbuf, anchors, cloud.cell_of, ranges,
                cloud.order,
                np.uint32(cloud.n), cloud.ball(r), _par(cloud, r, h), np.uint32(first),
                np.uint32(stop), np.uint32(chunked), rec)

@@ -464,6 +464,7 @@ def run_features(cloud, radii, names, ddof=0, point_r2=None):
                 group, nr, point_r2 is not None,
                 row_prune(cloud, max(walk), point_r2 is not None)))
             prg = build(cloud.device, "features.cl", opts)
+            ranges = cloud.with_middles() if opts["ROW_PRUNE"] else cloud.ranges
             t_build += time.perf_counter() - t0
             plan = cloud.plan("kernel_features", nr * record_bytes(cloud, layout),
                               widest=RECORD_WIDTH * np.dtype(cloud.dtype).itemsize,
@@ -479,7 +480,7 @@ def run_features(cloud, radii, names, ddof=0, point_r2=None):
                 t0 = time.perf_counter()
                 launch(cloud.device, prg.features, batches(stop - first, opts), cloud.x,
                        cloud.y, cloud.z, cloud.x, cloud.x, cloud.x, wbuf, anchors, cloud.cell_of,
-                       cloud.ranges, cloud.order, np.uint32(cloud.n),
+                       ranges, cloud.order, np.uint32(cloud.n),
                        cloud.ball(max(walk)), par, np.uint32(first), np.uint32(stop),
                        np.uint32(chunked), recs[0], make4(*r2), recs[1], recs[2], recs[3])
                 cloud.device.queue.finish()

@@ -203,12 +203,13 @@ def knn_graph(cloud, radius, normals, k=10, point_r2=None):
     prg = build(cloud.device, "knn.cl", dict(knn_defines(cloud), POINT_RADIUS=int(per_point),
                                              ROW_PRUNE=int(per_point)))
     q = cloud.device.queue
+    ranges = cloud.with_middles() if per_point else cloud.ranges
     nbr = device_buffer(cloud.device, 4 * cloud.n * k)
     wgt = device_buffer(cloud.device, 4 * cloud.n * k)
     q.finish()
     t1 = time.perf_counter()
     launch(cloud.device, prg.knn_graph, cloud.n, cloud.x, cloud.y, cloud.z, *cols,
-           cloud.cell_of, cloud.ranges, cloud.order, np.uint32(cloud.n), cloud.ball(r),
+           cloud.cell_of, ranges, cloud.order, np.uint32(cloud.n), cloud.ball(r),
            np.uint32(k), nbr, wgt, point_r2 if per_point else cloud.x,
            **({"limit": CPU_GROUP} if cloud.device.info.kind == "cpu"
                                        else {}))

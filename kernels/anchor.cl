@@ -15,7 +15,7 @@
 #define VSTOREV CAT(vstore, VW)
 
 /* fewest points of a cell whose anchor is computed from its own points; a cell with fewer
- * uses the points of its row of three cells along x (ranges[9 c + 4], neighbors.h) */
+ * uses the points of its row of three cells along x (ranges[ROW_INDEX(c, 4)], neighbors.h) */
 #define ANCHOR_MIN_POINTS 6u
 
 __kernel void cell_normals(__global const REAL *X, __global const REAL *Y,
@@ -32,7 +32,7 @@ __kernel void cell_normals(__global const REAL *X, __global const REAL *Y,
         const uint cell = min(c0 + k, ncells - 1);
         uint a = cell_start[cell], b = cell_start[cell + 1];
         if (b - a < ANCHOR_MIN_POINTS) {            /* few points: the row of 3 cells */
-            const uint2 row = ranges[(size_t)cell * 9 + 4];
+            const uint2 row = ranges[ROW_INDEX(cell, 4)];
             a = row.x; b = row.y;
         }
         /* the x copy of the cell's rows (neighbors.h): continuous over the row of 3 cells */

@@ -4,7 +4,8 @@
  * ranges, one per row j of three cells (cx - 1 .. cx + 1, cy + dy, cz + dz) with
  * (dz, dy) = (j / 3 - 1, j % 3 - 1) (grid.cl:cell_ranges; an empty row is (0, 0)). The walk
  * visits the rows in order (with ROW_PRUNE, skipping those whose slab lies beyond the
- * radius in y and z: row_gap2) and each range VW points at a time; the arrays are padded so a
+ * radius in y and z: row_gap2, and the whole chunks of a row's first or last cell beyond it
+ * in x: row_first, row_stop) and each range VW points at a time; the arrays are padded so a
  * vector load may read past the end. Lanes past the range end or outside the open ball
  * |q - p| < r are masked out. The order is fixed, so results are bit-reproducible.
  *
@@ -72,15 +73,52 @@ inline REAL row_gap2(REAL3 p, REAL2 ball, int nb_y, int nb_z)
     return ey * ey + ez * ez;
 }
 
+/* Where the rows of cell c and their middle cells lie in the cloud's ranges (grid.cl): a
+ * header (ncells, middles), the 9 rows of every cell, then (when middles) the 9 middles of
+ * every cell */
+#define ROW_INDEX(c, j) (1 + (size_t)(c) * 9 + (j))
+#define MIDDLE_INDEX(ranges, c, j) (1 + (size_t)(ranges)[0].x * 9 + (size_t)(c) * 9 + (j))
+
+/* The first index of the walk of a row (its points [r.x, r.y), its middle cell's [m.x,
+ * m.y); without middles m = r, which trims nothing): r.x, or with ROW_PRUNE, when the
+ * row's first cell lies beyond the ball (gap2: its slab's squared distance), r.x plus the
+ * whole chunks of VW points before the middle cell (their lanes all lie in that first
+ * cell, beyond the ball: skipping them changes no sum, and the chunks that follow keep
+ * their lanes); and the index the walk stops at: r.y, the middle cell's end when the last
+ * cell lies beyond the ball, r.x for a row beyond it (all of whose lanes would fail the
+ * ball test as well). */
+inline uint row_first(uint2 r, uint2 m, REAL gap2, REAL r2)
+{
+    return ROW_PRUNE && !(gap2 < r2) ? r.x + (m.x - r.x) / VW * VW : r.x;
+}
+
+inline uint row_stop(uint2 r, uint2 m, REAL gyz, REAL gap2, REAL r2)
+{
+    return !ROW_PRUNE ? r.y : !(gyz < r2) ? r.x : gap2 < r2 ? r.y : m.y;
+}
+
+/* The squared distances from p (x relative to its row's 3-cell block, its own cell the
+ * middle one) to the slabs of the cells before and after its own along x, less the slack
+ * of row_gap2. */
+inline REAL2 x_gaps2(REAL3 p, REAL2 ball)
+{
+    const REAL s = ROW_SLACK * ball.y;
+    const REAL2 e = fmax((REAL2)(p.x - ball.y - s, 2 * ball.y - p.x - s), (REAL2)0);
+    return e * e;
+}
+
 #define NEIGHBOR_CHUNKS_BEGIN(ranges, cell, p, ball, i, end, pr)         \
     for (int nb_z = 0; nb_z < 3; ++nb_z)                                  \
     for (int nb_y = 0; nb_y < 3; ++nb_y) {                                \
-        const uint2 nb_se = (ranges)[(size_t)(cell) * 9 + nb_z * 3 + nb_y]; \
-        const uint end = !ROW_PRUNE || row_gap2(p, ball, nb_y, nb_z) < (ball).x \
-                         ? nb_se.y : nb_se.x;                             \
+        const uint2 nb_r = (ranges)[ROW_INDEX(cell, nb_z * 3 + nb_y)];    \
+        const uint2 nb_m = ROW_PRUNE && (ranges)[0].y                     \
+                           ? (ranges)[MIDDLE_INDEX(ranges, cell, nb_z * 3 + nb_y)] : nb_r; \
+        const REAL nb_gyz = ROW_PRUNE ? row_gap2(p, ball, nb_y, nb_z) : (REAL)0; \
+        const REAL2 nb_gx = ROW_PRUNE ? x_gaps2(p, ball) : (REAL2)(0);     \
+        const uint end = row_stop(nb_r, nb_m, nb_gyz, nb_gyz + nb_gx.y, (ball).x); \
         const REAL3 pr = (REAL3)((p).x, (p).y + (REAL)(1 - nb_y) * (ball).y, \
                                  (p).z + (REAL)(1 - nb_z) * (ball).y);    \
-        for (uint i = nb_se.x; i < end; i += VW) {
+        for (uint i = row_first(nb_r, nb_m, nb_gyz + nb_gx.x, (ball).x); i < end; i += VW) {
 #define NEIGHBOR_CHUNKS_END }}
 
 /* |q - p|^2 of a chunk's offsets: the one expression of every ball test (chunk_offsets,

@@ -86,9 +86,18 @@ def test_cell_ranges_brute_force(name, device):
     pts, cell = clouds()[name]
     c = DeviceCloud(pts, cell, device=device)
     g = c.grid
-    got = np.empty((g.ncells, 9, 2), np.uint32)
-    cl.enqueue_copy(c.device.queue, got, c.ranges)
+    head = np.empty(2, np.uint32)
+    cl.enqueue_copy(c.device.queue, head, c.ranges)
     c.device.queue.finish()
+    assert tuple(head) == (g.ncells, 0) and not c.middles    # rows only, until a pruned walk
+    rows_only = c.ranges
+    flat = np.empty(2 + g.ncells * 36, np.uint32)      # header, the rows, their middles
+    cl.enqueue_copy(c.device.queue, flat, c.with_middles())
+    c.device.queue.finish()
+    assert tuple(flat[:2]) == (g.ncells, 1) and c.middles and c.ranges is not rows_only
+    assert c.with_middles() is c.ranges                  # made once
+    rows = flat[2:2 + 18 * g.ncells].reshape(g.ncells, 9, 2)
+    mids = flat[2 + 18 * g.ncells:].reshape(g.ncells, 9, 2)
     nx, ny, nz = g.dims
     ix = g.keys % nx
     iy = (g.keys // nx) % ny
@@ -99,13 +108,19 @@ def test_cell_ranges_brute_force(name, device):
             for dy in (-1, 0, 1):
                 y, z = iy[ci] + dy, iz[ci] + dz
                 if not (0 <= y < ny and 0 <= z < nz):
-                    want.append((0, 0))
+                    want.append((0, 0, 0, 0))
                     continue
                 row = (z * ny + y) * nx
                 a = np.searchsorted(g.keys, row + max(ix[ci] - 1, 0))
                 b = np.searchsorted(g.keys, row + min(ix[ci] + 1, nx - 1) + 1)
-                want.append((g.cell_start[a], g.cell_start[b]) if b > a else (0, 0))
-        assert np.array_equal(got[ci], np.array(want, np.uint32)), ci
+                # the middle cell (ix, y, z): its points, or none where it begins
+                m0 = np.searchsorted(g.keys, row + ix[ci])
+                m1 = np.searchsorted(g.keys, row + ix[ci] + 1)
+                want.append((g.cell_start[a], g.cell_start[m0], g.cell_start[m1], g.cell_start[b])
+                            if b > a else (0, 0, 0, 0))
+        want = np.array(want, np.uint32)
+        assert np.array_equal(rows[ci], want[:, [0, 3]]), ci
+        assert np.array_equal(mids[ci], want[:, [1, 2]]), ci
 
 
 @pytest.mark.parametrize("name", list(clouds()))

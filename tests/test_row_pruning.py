@@ -1,8 +1,11 @@
 """Row pruning of the neighbour walk (kernels/neighbors.h, ROW_PRUNE; the host turns it on
-for radii below clcurv.driver.PRUNE_BELOW cells): the rows of the 27-cell block whose slab
-lies beyond the ball's radius in y and z are skipped. No lane of such a row can pass the
-walk's strict ball test (row_gap2 keeps a slack of a few ulps of the cell), so every sum,
-and so every output, is the same bit for bit as the full walk of all 9 rows: checked with
+for radii below clcurv.driver.PRUNE_BELOW cells and for per-point radii): the rows of the
+27-cell block whose slab lies beyond the ball's radius in y and z are skipped, and of a row
+whose first (last) cell lies beyond it in x as well the whole chunks of that first cell
+(the last cell) are left out, from the rows' middle cells (grid.cl, DeviceCloud.with_middles).
+No lane so skipped can pass the walk's strict ball test (row_gap2 and x_gaps2 keep a slack
+of a few ulps of the cell), and the chunks walked keep their lanes, so every sum, and so
+every output, is the same bit for bit as the full walk of all 9 rows: checked with
 pruning forced on and off for every operator kernel, both weightings, a radius equal to the
 cell and one well below it (where most rows are pruned), float and double, and for the
 features kernel at three radii in one walk."""
