@@ -143,6 +143,7 @@ class DeviceCloud:
         self.n = len(points)
         self.timings = {}
         self.plans = {}
+        self.middles = False                # the rows' middle cells: with_middles
         if self.n == 0:
             raise ValueError("DeviceCloud needs at least one point")
         t0 = time.perf_counter()
@@ -176,7 +177,6 @@ class DeviceCloud:
         # kept: the anchor normals (clcurv.anchor) read the cells' starts too
         self.cell_start = cell_start = up(g.cell_start)
         self.ranges = device_buffer(self.device, 8 + max(g.ncells, 1) * 9 * RANGE_BYTES)
-        self.middles = False                # the rows' middle cells: with_middles
         q.finish()
         t2 = time.perf_counter()
         self.timings["upload"] = t2 - t1
@@ -252,8 +252,8 @@ class DeviceCloud:
         held = self.device_bytes + reserve * (self.n + PAD) + grows
         # the largest whole-cloud buffer: x's 3 copies or the ranges (9 uint2 per cell, 18
         # with the middle cells)
-        widest_pp = max(3 * item, (2 if getattr(self, "middles", False) else 1) * 9
-                        * RANGE_BYTES * max(self.grid.ncells, 1) / self.n)
+        widest_pp = max(3 * item, (2 if self.middles else 1) * 9 * RANGE_BYTES
+                        * max(self.grid.ncells, 1) / self.n)
         widest = widest_pp * (self.n + PAD)
         if held + fixed <= lim.budget and widest <= lim.max_alloc \
                 and chunk_alloc <= lim.max_alloc:
