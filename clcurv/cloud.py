@@ -188,8 +188,7 @@ class DeviceCloud:
         launch(self.device, gather, self.n + PAD, rel, self.order, np.uint32(self.n),
                np.uint32(0), np.uint32(self.n), self.x, self.y, self.z)
         per, items = np.uint32(CELLS_PER_ITEM), -(-g.ncells // CELLS_PER_ITEM)
-        launch(self.device, prg.cell_ranges, items, keys, np.uint32(g.ncells), cell_start,
-               np.int64(nx), np.int64(ny), np.int64(nz), per, np.uint32(0), self.ranges)
+        self._cell_ranges(keys, False, self.ranges)
         launch(self.device, prg.expand_x, items, keys, np.uint32(g.ncells), cell_start,
                np.int64(nx), per, np.uint32(self.n), self.real(self.cell), self.x,
                self.cell_of)
@@ -215,15 +214,21 @@ class DeviceCloud:
         keys = cl.Buffer(self.device.context, mf.READ_ONLY | use,
                          hostbuf=sentinel_keys(g.keys))
         ranges = device_buffer(self.device, 8 + 2 * rows)
-        nx, ny, nz = g.dims
-        prg = build(self.device, "grid.cl", self.defines)
-        launch(self.device, prg.cell_ranges, -(-g.ncells // CELLS_PER_ITEM), keys,
-               np.uint32(g.ncells), self.cell_start, np.int64(nx), np.int64(ny),
-               np.int64(nz), np.uint32(CELLS_PER_ITEM), np.uint32(1), ranges)
+        self._cell_ranges(keys, True, ranges)
         self.device.queue.finish()
         self.ranges, self.middles = ranges, True
         self.device_bytes += rows
         return ranges
+
+    def _cell_ranges(self, keys, middles, out):
+        """Enqueue grid.cl:cell_ranges: the rows of every cell (and with ``middles`` their
+        middle cells) into ``out``; ``keys``: the occupied cells' keys on the device."""
+        g = self.grid
+        nx, ny, nz = g.dims
+        launch(self.device, build(self.device, "grid.cl", self.defines).cell_ranges,
+               -(-g.ncells // CELLS_PER_ITEM), keys, np.uint32(g.ncells), self.cell_start,
+               np.int64(nx), np.int64(ny), np.int64(nz), np.uint32(CELLS_PER_ITEM),
+               np.uint32(middles), out)
 
     def _check_memory(self):
         """Refuse a cloud whose coordinates and grid, with the binning's temporaries and the

@@ -104,7 +104,7 @@ __kernel void cell_ranges(__global const long *keys, const uint ncells,
         }
         const long x0 = max(ix - 1, 0L), x1 = min(ix + 1, nx - 1);
         __global uint2 *out = ranges + ROW_INDEX(c, 0);
-        __global uint2 *mid = ranges + 1 + (size_t)ncells * 9 + (size_t)c * 9;
+        __global uint2 *mid = ranges + MIDDLE_AT(ncells, c, 0);   /* the header: not yet */
         for (int j = 0; j < 9; ++j) {
             const long y = iy + j % 3 - 1, z = iz + j / 3 - 1;
             uint4 range = (uint4)(0, 0, 0, 0);

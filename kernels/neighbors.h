@@ -77,7 +77,8 @@ inline REAL row_gap2(REAL3 p, REAL2 ball, int nb_y, int nb_z)
  * header (ncells, middles), the 9 rows of every cell, then (when middles) the 9 middles of
  * every cell */
 #define ROW_INDEX(c, j) (1 + (size_t)(c) * 9 + (j))
-#define MIDDLE_INDEX(ranges, c, j) (1 + (size_t)(ranges)[0].x * 9 + (size_t)(c) * 9 + (j))
+#define MIDDLE_AT(ncells, c, j) (1 + (size_t)(ncells) * 9 + (size_t)(c) * 9 + (j))
+#define MIDDLE_INDEX(ranges, c, j) MIDDLE_AT((ranges)[0].x, c, j)
 
 /* The first index of the walk of a row (its points [r.x, r.y), its middle cell's [m.x,
  * m.y); without middles m = r, which trims nothing): r.x, or with ROW_PRUNE, when the
