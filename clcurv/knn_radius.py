@@ -4,16 +4,21 @@ nearest point (the point itself the first), found on the device with the grid
 
 How: the cloud is binned at a cell c (a first guess from the bounding box, assuming a
 surface, :data:`FIRST_CELL`); the kernel finds the k-th smallest squared distance among
-the candidates within c of each point in one walk (each vector lane keeps its smallest
-d^2; dense spots take a counting path with more walks, same result);
-a point with fewer than k candidates within c is unresolved, and the cloud
-is binned again at 1.5c (:data:`GROWTH`; binned on a worker thread beside the first
-level, :func:`_bin_ahead`) for the unresolved points only (up to
+the candidates within each point's reach in one walk (each vector lane keeps its
+smallest d^2, :func:`merge_network`; dense spots take a counting path with more walks,
+same result). The reach is c, or at the first level (when the next is binned ahead) the
+largest ball around the point inside its 27 cells, c plus its distance to its own cell's
+nearest face (:func:`reach`: c to 1.5c, ~1.125c on average; on a 1M-point uniform sphere
+it leaves 1.8% of the points for the next level instead of 8.6%). A point with fewer
+than k candidates within its reach is unresolved, and the cloud is binned again at 1.5c
+(:data:`GROWTH`; binned on a worker thread beside the first level, :func:`_bin_ahead`)
+for the unresolved points only (up to
 :data:`ISOLATION` times the 90th percentile of the k-NN radii: points still unresolved are
 isolated); the distances found go from one binning's order to the next's on the device
 (gather.cl, :func:`_permute`). The
-operators then run on one cloud whose cell is the largest radius (the last level's, or
-binned again at the largest radius when that cell is much larger), every point's ball of
+operators then run on one cloud whose cell is the largest radius (the last level's, the
+one binned ahead when the first level's reach resolved every point but some beyond its
+cell, or binned again at the largest radius when that cell is much larger), every point's ball of
 squared radius r^2 = (d_k + e)^2 (1 + :data:`MARGIN`), e the float round-off of a distance
 on a grid of the largest cell c (:data:`ROUND_OFF` eps c, ~2e-6 c in float), so that their
 strict ball test holds the k points on any grid (ties, and distances within ~1e-6 of d_k
@@ -86,6 +91,9 @@ ROUND_OFF = 16
 #: (a tiny k-th distance at small k) do not warn
 ROUND_OFF_WARN = 1e-3
 ROUND_OFF_SHARE = 1e-3
+#: the extended reach of knn_radius.cl (reach2) is below the cell plus the distance to the
+#: nearest face of the own cell by this many device epsilons of the cell
+REACH_SLACK = 64
 #: the first cell is this many times the k-NN radius estimated for a surface at the cloud's
 #: mean density (:func:`_first_cell`): ~1.16x the median k-NN radius of a uniform sphere,
 #: where ~5% of the points (k = 30) need the next level. (1.6, ~1.5x the median radius,
@@ -190,26 +198,89 @@ def knn_levels(k, vw):
     return 15
 
 
-def kth_squared(cloud, k, known=None, levels=None):
+#: candidate chunks knn_radius.cl sorts together and merges into the kept values at once
+#: (:func:`merge_network`): at 8 levels 9.5 min/max per chunk, against 15 inserting each
+#: chunk alone
+KNN_BATCH = 2
+
+
+def _odd_even_merge(a, b):
+    """Comparators (i, j) of Batcher's odd-even merge of the sorted positions ``a`` and
+    ``b`` (any sizes; Knuth 5.3.4): after them the positions ``a + b`` hold the values
+    sorted."""
+    if not a or not b:
+        return []
+    if len(a) == 1 and len(b) == 1:
+        return [(a[0], b[0])]
+    out = _odd_even_merge(a[0::2], b[0::2]) + _odd_even_merge(a[1::2], b[1::2])
+    seq = a + b
+    out += [(seq[i], seq[i + 1]) for i in range(1, len(seq) - 1, 2)]
+    return out
+
+
+def _sorting_network(pos):
+    """Comparators sorting the positions ``pos`` (odd-even merge sort)."""
+    if len(pos) <= 1:
+        return []
+    h = len(pos) // 2
+    return (_sorting_network(pos[:h]) + _sorting_network(pos[h:])
+            + _odd_even_merge(pos[:h], pos[h:]))
+
+
+def merge_comparators(levels, batch):
+    """The comparators that keep, sorted, the ``levels`` smallest of ``levels`` sorted
+    values (positions 0 .. levels - 1) and ``batch`` new ones (positions levels ..): the
+    batch sorted, then merged, and every comparator pruned whose outputs no kept position
+    needs. Each is (i, j, kind), kind "ce" (min to i, max to j), "lo" (only the min, to i)
+    or "hi" (only the max, to j)."""
+    net = (_sorting_network(list(range(levels, levels + batch)))
+           + _odd_even_merge(list(range(levels)), list(range(levels, levels + batch))))
+    live, out = set(range(levels)), []
+    for i, j in reversed(net):
+        kind = ("ce" if i in live and j in live else "lo" if i in live
+                else "hi" if j in live else None)
+        if kind is not None:
+            out.append((i, j, kind))
+            live |= {i, j}
+    return out[::-1]
+
+
+def merge_network(levels, batch):
+    """knn_radius.cl's KNN_MERGE for :func:`merge_comparators`: the kept values a[], the
+    batch b[] (one build option, no spaces)."""
+    def name(i):
+        return f"a[{i}]" if i < levels else f"b[{i - levels}]"
+    return "".join(f"KNN_{kind.upper()}({name(i)},{name(j)})"
+                   for i, j, kind in merge_comparators(levels, batch))
+
+
+def kth_squared(cloud, k, known=None, levels=None, extend=False):
     """The squared distance to the k-th nearest point within the cloud's cell (device
-    values as float64, input order; +inf where fewer than k points lie within it). Points
-    with a finite ``known`` value (input order) keep it and are not walked. ``levels``
-    overrides the d^2 values the kernel keeps per vector lane (KNN_LEVELS; tests: 1 sends
-    nearly every point down the kernel's counting path, which must give the same values)."""
+    values as float64, input order; +inf where fewer than k points lie within it), or with
+    ``extend`` within each point's reach (:func:`reach`). Points with a finite ``known``
+    value (input order) keep it and are not walked. ``levels`` overrides the d^2 values the
+    kernel keeps per vector lane (KNN_LEVELS; tests: 1 sends nearly every point down the
+    kernel's counting path, which must give the same values)."""
     order = cloud.grid.order
     prev = None if known is None else known[order].astype(cloud.dtype)
     res = np.empty(cloud.n)
-    res[order] = _kth_sorted(cloud, k, prev, levels)
+    res[order] = _kth_fetch(cloud, _kth_launch(cloud, k, prev, levels, extend))
     return res
 
 
-def _kth_sorted(cloud, k, prev=None, levels=None):
-    """:func:`kth_squared` in the cloud's sorted order and device precision; ``prev``
-    (sorted order) as ``known`` there, None for none."""
-    return _kth_fetch(cloud, _kth_launch(cloud, k, prev, levels))
+def reach(cloud):
+    """Each point's extended reach in a walk of ``cloud`` (input order, float64, a bound
+    slightly below knn_radius.cl:reach2's): the cell plus the point's distance to the
+    nearest face of its own cell, less REACH_SLACK epsilons of the cell. Every point within
+    it lies in the 27 cells of the point's walk."""
+    g = cloud.grid
+    eps = float(np.finfo(cloud.dtype).eps)
+    rel = g.rel.astype(np.float64)                 # input order, within the own cell
+    face = np.minimum(rel, g.cell - rel).min(axis=1).clip(0, None)
+    return g.cell + face - (REACH_SLACK + 4) * eps * g.cell
 
 
-def _kth_launch(cloud, k, prev=None, levels=None):
+def _kth_launch(cloud, k, prev=None, levels=None, extend=False):
     """Enqueue and flush knn_radius.cl on ``cloud`` (see :func:`_kth_sorted`; ``prev`` a host
     array or a device buffer); returns the output buffer for :func:`_kth_fetch`. The device
     works while the host goes on."""
@@ -228,7 +299,7 @@ def _kth_launch(cloud, k, prev=None, levels=None):
     out = device_buffer(cloud.device, nbytes)
     launch(cloud.device, prg.kth_distance, cloud.n, cloud.x, cloud.y, cloud.z,
            cloud.cell_of, cloud.ranges, np.uint32(cloud.n), cloud.ball(cloud.cell), prev_buf,
-           out)
+           out, np.uint32(bool(extend)))
     q.flush()
     return out
 
@@ -239,9 +310,17 @@ def _program(cloud, k, levels=None):
     from .graph import knn_defines
     from .program import build
     opts = knn_defines(cloud)
-    opts.update(KNN_K=int(k), KNN_LEVELS=int(knn_levels(k, int(opts["VW"]))
-                                              if levels is None else levels))
+    lv = int(knn_levels(k, int(opts["VW"])) if levels is None else levels)
+    opts.update(program_defines(k, lv))
     return build(cloud.device, "knn_radius.cl", opts)
+
+
+def program_defines(k, levels, batch=None):
+    """knn_radius.cl's own build options for ``k`` and ``levels`` kept per lane (``batch``:
+    :data:`KNN_BATCH` unless given)."""
+    batch = KNN_BATCH if batch is None else batch
+    return dict(KNN_K=int(k), KNN_LEVELS=int(levels), KNN_BATCH=int(batch),
+                KNN_MERGE=merge_network(int(levels), int(batch)))
 
 
 def _kth_fetch(cloud, out):
@@ -277,14 +356,20 @@ def knn_radii(points, k, *, device=None, precision="float"):
         if spec is not None and spec[0] <= c:
             spec = None
         t2 = time.perf_counter()
-        out = _kth_launch(cloud, k, None if d2_in is None else _permute(cloud, d2_in, False))
+        # the first level reaches up to 1.5 c (reach), its next level binned ahead at 1.5 c
+        extend = not levels and spec is not None
+        out = _kth_launch(cloud, k, None if d2_in is None else _permute(cloud, d2_in, False),
+                          extend=extend)
         d2 = _kth_fetch(cloud, out)                                 # sorted order
         stages["binning"] += t2 - t1
         stages["kth"] += time.perf_counter() - t2
+        if not levels:
+            stages["kth_first"] = stages["kth"]
         levels.append(c)
         ok = np.isfinite(d2)
         if cap is None:
-            cap = _isolation_cap(d2, int(np.count_nonzero(ok)))
+            cap = _isolation_cap(d2, int(np.count_nonzero(ok)),
+                                 _reach_floor(c, cloud.dtype) if extend else math.inf)
         if ok.all() or c > diag or (cap is not None and c >= cap) \
                 or len(levels) >= _MAX_LEVELS:
             break
@@ -292,6 +377,14 @@ def knn_radii(points, k, *, device=None, precision="float"):
         if spec is not None and spec[0] != c:
             spec = _drop(spec)
         d2_in = _permute(cloud, out, True)
+    if extend and ok.any() and float(d2[ok].max()) >= c * c * (1 - 2.0 ** -10):
+        # radii beyond the first cell, found within the reach: the operators' cloud is the
+        # one binned ahead at 1.5 c, whose walks hold those balls
+        t1 = time.perf_counter()
+        cloud, c, out, d2 = _to_level(cloud, spec, device, out, d2)
+        ok = np.isfinite(d2)
+        levels.append(c)
+        stages["binning"] += time.perf_counter() - t1
     spec = _drop(spec)
     # the last level's results: out (device) and d2 (host), its cloud's sorted order
     if ok.all() and (cap is None or not np.sqrt(float(d2.max())) > cap):
@@ -382,14 +475,37 @@ def _drop(spec):
     return None
 
 
-def _isolation_cap(d2, resolved):
+def _reach_floor(c, dtype):
+    """The radius below which every point of a walk with extended reach (knn_radius.cl:
+    reach2, on cells ``c``) is resolved."""
+    return c * (1 - (REACH_SLACK + 4) * float(np.finfo(dtype).eps))
+
+
+def _to_level(cloud, spec, device, out, d2):
+    """(cloud, cell, out, d2) moved to the level binned ahead (``spec``): its DeviceCloud,
+    and the k-th d^2 of ``cloud``'s sorted order (``out`` on the device, ``d2`` on the
+    host) in its sorted order."""
+    from .cloud import DeviceCloud
+    wide = DeviceCloud(None, None, binned=spec[1].result(), device=device)
+    moved = _permute(wide, _permute(cloud, out, True), False)
+    # done before the caller lets go of ``cloud``: a CPU device reads its host arrays in
+    # place (its order, USE_HOST_PTR), which go with it
+    cloud.device.queue.finish()
+    d2_in = np.empty(cloud.n, d2.dtype)
+    d2_in[cloud.grid.order] = d2
+    return wide, spec[0], moved, d2_in[wide.grid.order]
+
+
+def _isolation_cap(d2, resolved, below=math.inf):
     """ISOLATION times the 90th percentile of the k-NN radii of all the points
     (numpy.quantile's linear interpolation over the n radii), or None while it is unknown.
     ``d2``: the n squared radii found so far, ``resolved`` of them finite, +inf the others.
-    An unresolved point's radius exceeds every resolved one (it lies beyond the cell that
-    resolved them), so the percentile's two order statistics are among the resolved radii
-    once more than ~90% of the points are resolved (taking the percentile of the resolved
-    radii alone instead, as before, understated it: on the Autzen tile at k = 30, 96%
+    An unresolved point's radius exceeds every resolved one when each level walks its cell
+    (it lies beyond the cell that resolved them); with an extended reach (the first level),
+    only the radii below ``below``, a bound of every point's reach, are all resolved. So the
+    percentile's two order statistics are the resolved radii's once more than ~90% of the
+    points are resolved and both lie below ``below`` (None otherwise; taking the
+    percentile of the resolved radii alone instead, as before, understated it: on the Autzen tile at k = 30, 96%
     resolved, 8.65 against 9.57 ft, and 149 points were made isolated instead of 91). By
     one numpy.partition at one index and the minimum above it (1.3 ms on 1M float32, where
     numpy.quantile takes 8-12; no copy of the values)."""
@@ -402,6 +518,8 @@ def _isolation_cap(d2, resolved):
     part = np.partition(d2, i)
     a = math.sqrt(float(part[i]))
     b = math.sqrt(float(part[i + 1:].min())) if frac > 0 else a
+    if not b < below:
+        return None
     return ISOLATION * (a + (b - a) * frac)
 
 

@@ -367,7 +367,7 @@ def program_variants(precision_defines):
     for group in layouts(tuple(FEATURES)):               # clcurv.features: every column
         out.append(("features.cl", dict(base, **program_defines(group, 4))))
         out.append(("features.cl", dict(base, **program_defines(group, 1, True))))
-    from .knn_radius import knn_levels
+    from .knn_radius import knn_levels, program_defines as knn_program_defines
     out.append(("knn_radius.cl",
-                dict(base, KNN_K=30, KNN_LEVELS=knn_levels(30, int(base["VW"])))))
+                dict(base, **knn_program_defines(30, knn_levels(30, int(base["VW"]))))))
     return out
