@@ -95,8 +95,9 @@ ROUND_OFF_SHARE = 1e-3
 #: nearest face of the own cell by this many device epsilons of the cell
 REACH_SLACK = 64
 #: the first cell is this many times the k-NN radius estimated for a surface at the cloud's
-#: mean density (:func:`_first_cell`): ~1.16x the median k-NN radius of a uniform sphere,
-#: where ~5% of the points (k = 30) need the next level. (1.6, ~1.5x the median radius,
+#: mean density (:func:`_first_cell`): ~1.13x the median k-NN radius of a 1M-point uniform
+#: sphere, where 1.8% of the points (k = 30; 8.6% within the cell alone) need the next
+#: level; 1.2 (4.6%) was no faster with the reach (2026-12-03). (1.6, ~1.5x the median radius,
 #: still left 2 of 1M sphere points for the next level and its larger walk made the whole
 #: pass slower, 767 vs 693 ms: the walk grows with the cell's area.)
 FIRST_CELL = 1.25
