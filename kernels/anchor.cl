@@ -49,8 +49,8 @@ __kernel void cell_normals(__global const REAL *X, __global const REAL *Y,
             const REALV dy = select((REALV)0, VLOADV(0, Y + i) - o.y, live);
             const REALV dz = select((REALV)0, VLOADV(0, Z + i) - o.z, live);
             sx += dx; sy += dy; sz += dz;
-            sxx = mad(dx, dx, sxx); sxy = mad(dx, dy, sxy); sxz = mad(dx, dz, sxz);
-            syy = mad(dy, dy, syy); syz = mad(dy, dz, syz); szz = mad(dz, dz, szz);
+            sxx += dx * dx; sxy += dx * dy; sxz += dx * dz;          /* fused: pca.h */
+            syy += dy * dy; syz += dy * dz; szz += dz * dz;
         }
         const REAL inv = (REAL)1 / (REAL)max(b - a, 1u);
         const REAL3 m = (REAL3)(hsum(sx), hsum(sy), hsum(sz)) * inv;

@@ -76,9 +76,12 @@
 #define REC_STORE(rec, j, out) vstore16((rec), (j), (out))
 #endif
 
-/* acc += x in the lanes of the mask m only: acc = m ? acc + x : acc (weights.h: the sums of
- * a ball with uniform weights; anchor.cl: the points of a cell). */
-#define MASKED_ADD(acc, m, x) acc = select(acc, acc + (x), m);
+/* acc + 1 in the lanes of the mask m (its lanes all ones or zero), + 0 elsewhere (the count
+ * of a ball's points with uniform weights, pca.h and covariances.cl): the sums of
+ * acc = m ? acc + 1 : acc in two operations (an and, an add) instead of three (the
+ * constant's broadcast, an add, a blend). */
+#define MASKED_COUNT(acc, m) \
+    acc += CAT(as_, REALV)((m) & CAT(as_, IREALV)((REALV)1));
 
 /* The arguments of every operator kernel, in the order clcurv/driver.py passes them: the
  * sorted coordinates (neighbors.h), the sorted reference normals NX, NY, NZ (unused by the

@@ -104,12 +104,12 @@ inline uint cov_ball(__global const REAL *X, __global const REAL *Y, __global co
 #endif
 #else                                   /* uniform weights: zeroed values (weights.h) */
         (void)w;
-        MASKED_ADD(sw, m, (REAL)1)
+        MASKED_COUNT(sw, m)
         sa += fa; sb += fb;
-        saa = mad(fa, fa, saa); sab = mad(fa, fb, sab); sbb = mad(fb, fb, sbb);
+        saa += fa * fa; sab += fa * fb; sbb += fb * fb;          /* fused: pca.h */
 #if COV_METHOD == 3
         sd += fd;
-        sad = mad(fa, fd, sad); sbd = mad(fb, fd, sbd); sdd = mad(fd, fd, sdd);
+        sad += fa * fd; sbd += fb * fd; sdd += fd * fd;
 #endif
 #endif
     NEIGHBOR_CHUNKS_END

@@ -67,14 +67,15 @@ inline IREALV ball_mask(IREALV m, REALV dx, REALV dy, REALV dz, REAL r2)
 /* chunks of candidates kept before each ball's sums run over them (features_pca) */
 #define FEATURES_BUF 16
 /* Each ball's sums over the kept chunks 0 .. nb - 1: lanes of the largest ball with
- * d^2 < r2[j] (ball_mask's test on the kept d^2), in the order of the walk. */
+ * d^2 < r2[j] (ball_mask's test on the kept d^2, +inf outside the largest ball, so that the
+ * one test is the mask), in the order of the walk. */
 #define FEATURES_FLUSH(nb)                                                                \
     for (int j = 0; j < NR; ++j) {                                                        \
         REALV c1 = sc[j], w1 = sw[j], x1 = sx[j], y1 = sy[j], z1 = sz[j];                 \
         REALV xx1 = sxx[j], xy1 = sxy[j], xz1 = sxz[j], yy1 = syy[j], yz1 = syz[j];       \
         REALV zz1 = szz[j];                                                               \
         for (uint t = 0; t < (nb); ++t) {                                                 \
-            const IREALV m = bm[t] & isless(bd[t], (REALV)r2[j]);                         \
+            const IREALV m = isless(bd[t], (REALV)r2[j]);                                 \
             const REALV w = select((REALV)0, (REALV)1, m);                                \
             PCA_ACCUMULATE(w, m, bx[t], by[t], bz[t], c1, w1, x1, y1, z1, xx1, xy1, xz1,  \
                            yy1, yz1, zz1)                                                 \
@@ -87,22 +88,27 @@ inline IREALV ball_mask(IREALV m, REALV dx, REALV dy, REALV dz, REAL r2)
 #if NR > 1
 /* The walk of features_pca for NR balls, offsets in the anchor frame of axis AX (a
  * constant: PCA_BY_AXIS): the chunks with a lane in the largest ball are kept (offsets in
- * the anchor frame, d^2 as ball_mask computes it, the mask) FEATURES_BUF at a time, and each
- * ball's sums then run over them with only that ball's accumulators live (with every
- * ball's at once, 10 vectors each, the registers spilled: three balls cost 245 ms at 1M
- * points against 222 for three single-radius walks; kept chunks, 214). The same lanes,
- * additions and order as a single-radius walk (pca_ball): bit-identical sums. */
+ * the anchor frame, d^2 as ball_mask computes it, +inf outside that ball) FEATURES_BUF at
+ * a time, and each ball's sums then run over them with only that ball's accumulators live
+ * (with every ball's at once, 10 vectors each, the registers spilled: three balls cost
+ * 245 ms at 1M points against 222 for three single-radius walks; kept chunks, 214). The
+ * same lanes, additions and order as a single-radius walk (pca_ball): bit-identical sums.
+ * Each ball's loop over the kept chunks is bound by its sums' chain of dependent adds
+ * (one per accumulator and chunk, ~4 cycles on the EPYC), not by its instructions: with
+ * them cut from 30 to 20 a chunk (fused products, MASKED_COUNT, the mask in d^2) the
+ * three radii's kernel went only ~300 -> ~289 ms. Summing the largest ball as the walk
+ * goes (its accumulators live through the walk) made it slower (2.4 -> 2.6x a
+ * single-radius kernel on the same cloud). */
 #define FEATURES_WALK(AX)                                                                 \
     {                                                                                     \
         REALV bx[FEATURES_BUF], by[FEATURES_BUF], bz[FEATURES_BUF], bd[FEATURES_BUF];     \
-        IREALV bm[FEATURES_BUF];                                                          \
         uint nb = 0;                                                                      \
         NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, ball, i, end, pr)                \
             const IREALV mmax = chunk_offsets(XA, Y, Z, i, end, pr, bmax, &dx, &dy, &dz); \
             if (any_lane(mmax)) {         /* else no ball gets anything from the chunk */ \
                 FEATURES_FRAME(AX)                                                        \
-                bx[nb] = ex; by[nb] = ey; bz[nb] = ez; bm[nb] = mmax;                     \
-                bd[nb] = offsets_d2(dx, dy, dz);              /* as ball_mask's */        \
+                bx[nb] = ex; by[nb] = ey; bz[nb] = ez;                                    \
+                bd[nb] = select((REALV)INFINITY, offsets_d2(dx, dy, dz), mmax); /* ball_mask */ \
                 if (++nb == FEATURES_BUF) {                                               \
                     FEATURES_FLUSH(nb)                                                    \
                     nb = 0;                                                               \

@@ -106,10 +106,11 @@ inline uchar mls2_system(__global const REAL *X, __global const REAL *Y, __globa
         (void)w;                                    /* uniform: the terms themselves */
         const REALV wxx = xx, wxy = xy, wyy = yy;
 #endif
-        s30 = mad(wxx, x, s30); s21 = mad(wxx, y, s21); s12 = mad(wxy, y, s12);
-        s03 = mad(wyy, y, s03); s40 = mad(wxx, xx, s40); s31 = mad(wxx, xy, s31);
-        s22 = mad(wxx, yy, s22); s13 = mad(wxy, yy, s13); s04 = mad(wyy, yy, s04);
-        hxx = mad(wxx, h, hxx); hxy = mad(wxy, h, hxy); hyy = mad(wyy, h, hyy);
+        /* a * b + c, fused where the device has an FMA (pca.h: PoCL's mad is not) */
+        s30 += wxx * x; s21 += wxx * y; s12 += wxy * y;
+        s03 += wyy * y; s40 += wxx * xx; s31 += wxx * xy;
+        s22 += wxx * yy; s13 += wxy * yy; s04 += wyy * yy;
+        hxx += wxx * h; hxy += wxy * h; hyy += wyy * h;
     NEIGHBOR_CHUNKS_END
     const REAL sw = (REAL)1 / pb->iw[k];
     const REAL c0 = pb->c[0][k], c1 = pb->c[1][k], c2 = pb->c[2][k];
