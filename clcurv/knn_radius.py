@@ -272,13 +272,13 @@ def kth_squared(cloud, k, known=None, levels=None, extend=False):
 def reach(cloud):
     """Each point's extended reach in a walk of ``cloud`` (input order, float64, a bound
     slightly below knn_radius.cl:reach2's): the cell plus the point's distance to the
-    nearest face of its own cell, less REACH_SLACK epsilons of the cell. Every point within
-    it lies in the 27 cells of the point's walk."""
+    nearest face of its own cell, less REACH_SLACK epsilons of the cell, and at least the
+    cell. Every point within it lies in the 27 cells of the point's walk."""
     g = cloud.grid
     eps = float(np.finfo(cloud.dtype).eps)
     rel = g.rel.astype(np.float64)                 # input order, within the own cell
     face = np.minimum(rel, g.cell - rel).min(axis=1).clip(0, None)
-    return g.cell + face - (REACH_SLACK + 4) * eps * g.cell
+    return np.maximum(g.cell + face - (REACH_SLACK + 4) * eps * g.cell, g.cell)
 
 
 def _kth_launch(cloud, k, prev=None, levels=None, extend=False):
@@ -370,7 +370,7 @@ def knn_radii(points, k, *, device=None, precision="float"):
         ok = np.isfinite(d2)
         if cap is None:
             cap = _isolation_cap(d2, int(np.count_nonzero(ok)),
-                                 _reach_floor(c, cloud.dtype) if extend else math.inf)
+                                 c if extend else math.inf)
         if ok.all() or c > diag or (cap is not None and c >= cap) \
                 or len(levels) >= _MAX_LEVELS:
             break
@@ -476,12 +476,6 @@ def _drop(spec):
     return None
 
 
-def _reach_floor(c, dtype):
-    """The radius below which every point of a walk with extended reach (knn_radius.cl:
-    reach2, on cells ``c``) is resolved."""
-    return c * (1 - (REACH_SLACK + 4) * float(np.finfo(dtype).eps))
-
-
 def _to_level(cloud, spec, device, out, d2):
     """(cloud, cell, out, d2) moved to the level binned ahead (``spec``): its DeviceCloud,
     and the k-th d^2 of ``cloud``'s sorted order (``out`` on the device, ``d2`` on the
@@ -503,7 +497,7 @@ def _isolation_cap(d2, resolved, below=math.inf):
     ``d2``: the n squared radii found so far, ``resolved`` of them finite, +inf the others.
     An unresolved point's radius exceeds every resolved one when each level walks its cell
     (it lies beyond the cell that resolved them); with an extended reach (the first level),
-    only the radii below ``below``, a bound of every point's reach, are all resolved. So the
+    only the radii below ``below``, the cell (the smallest reach), are all resolved. So the
     percentile's two order statistics are the resolved radii's once more than ~90% of the
     points are resolved and both lie below ``below`` (None otherwise; taking the
     percentile of the resolved radii alone instead, as before, understated it: on the Autzen tile at k = 30, 96%

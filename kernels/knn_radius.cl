@@ -276,8 +276,8 @@ inline REAL kth_of_levels(IREALV a[KNN_LEVELS], IREALV lanes, REAL c2, uint need
  * neighbors.h): the cell c, or with extend the radius of the largest ball around p inside
  * its block of 27 cells, c plus p's distance to the nearest face of its own cell (c to
  * 1.5 c, ~1.125 c on average), less KNN_REACH_SLACK epsilons of c for the coordinates'
- * round-off (clcurv/knn_radius.py:REACH_SLACK): every point within it is a candidate of
- * the walk, so a K-th found within it is exact. On a 1M-point uniform sphere at the first cell (K = 30) the points left for
+ * round-off (clcurv/knn_radius.py:REACH_SLACK), and never below c: every point within it
+ * is a candidate of the walk, so a K-th found within it is exact. On a 1M-point uniform sphere at the first cell (K = 30) the points left for
  * the next level went from 8.6% to 1.8%. As r^2. */
 #if REAL_IS_DOUBLE
 #define KNN_REACH_SLACK (64 * DBL_EPSILON)
@@ -290,7 +290,7 @@ inline REAL reach2(REAL3 p, REAL2 cball, uint extend)
     const REAL face = fmin(fmin(fmin(p.x - c, 2 * c - p.x), fmin(p.y, c - p.y)),
                            fmin(p.z, c - p.z));
     const REAL r = c + fmax(face, (REAL)0) - KNN_REACH_SLACK * c;
-    return extend ? r * r : cball.x;
+    return extend ? fmax(r * r, cball.x) : cball.x;
 }
 
 __kernel void kth_distance(__global const REAL *X, __global const REAL *Y,
