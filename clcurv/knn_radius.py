@@ -18,8 +18,8 @@ isolated); the distances found go from one binning's order to the next's on the 
 (gather.cl, :func:`_permute`). The
 operators then run on one cloud whose cell is the largest radius (the last level's, the
 one binned ahead when the first level's reach resolved every point but some beyond its
-cell, or binned again at the largest radius when that cell is much larger), every point's ball of
-squared radius r^2 = (d_k + e)^2 (1 + :data:`MARGIN`), e the float round-off of a distance
+cell, or binned again at the largest radius when that cell is much larger), every
+point's ball of squared radius r^2 = (d_k + e)^2 (1 + :data:`MARGIN`), e the float round-off of a distance
 on a grid of the largest cell c (:data:`ROUND_OFF` eps c, ~2e-6 c in float), so that their
 strict ball test holds the k points on any grid (ties, and distances within ~1e-6 of d_k
 or within e of it, enter too). The constants (2 / r, ...) take the ball's radius, d_k + e
@@ -97,8 +97,8 @@ REACH_SLACK = 64
 #: the first cell is this many times the k-NN radius estimated for a surface at the cloud's
 #: mean density (:func:`_first_cell`): ~1.13x the median k-NN radius of a 1M-point uniform
 #: sphere, where 1.8% of the points (k = 30; 8.6% within the cell alone) need the next
-#: level; 1.2 (4.6%) was no faster with the reach (2026-12-03). (1.6, ~1.5x the median radius,
-#: still left 2 of 1M sphere points for the next level and its larger walk made the whole
+#: level; 1.15 and 1.2 (10% and 4.6%) were no faster with the reach (2026-12-03). (1.6,
+#: ~1.5x the median radius, still left 2 of 1M sphere points for the next level and its larger walk made the whole
 #: pass slower, 767 vs 693 ms: the walk grows with the cell's area.)
 FIRST_CELL = 1.25
 #: the cell grows by this factor from one binning to the next (the last cell is then within
@@ -200,8 +200,9 @@ def knn_levels(k, vw):
 
 
 #: candidate chunks knn_radius.cl sorts together and merges into the kept values at once
-#: (:func:`merge_network`): at 8 levels 9.5 min/max per chunk, against 15 inserting each
-#: chunk alone
+#: (:func:`merge_network`): at 8 levels 12 min/max per chunk, against 15 inserting each
+#: chunk alone (3, 4 and 8 need fewer, 10.3, 9.5 and 8.8, but were slower on the EPYC: the
+#: kept values and the batch no longer fit the registers)
 KNN_BATCH = 2
 
 
@@ -282,8 +283,8 @@ def reach(cloud):
 
 
 def _kth_launch(cloud, k, prev=None, levels=None, extend=False):
-    """Enqueue and flush knn_radius.cl on ``cloud`` (see :func:`_kth_sorted`; ``prev`` a host
-    array or a device buffer); returns the output buffer for :func:`_kth_fetch`. The device
+    """Enqueue and flush knn_radius.cl on ``cloud`` (see :func:`kth_squared`, in the cloud's
+    sorted order; ``prev`` a host array or a device buffer); returns the output buffer for :func:`_kth_fetch`. The device
     works while the host goes on."""
     import pyopencl as cl
     from .program import launch
@@ -500,8 +501,9 @@ def _isolation_cap(d2, resolved, below=math.inf):
     only the radii below ``below``, the cell (the smallest reach), are all resolved. So the
     percentile's two order statistics are the resolved radii's once more than ~90% of the
     points are resolved and both lie below ``below`` (None otherwise; taking the
-    percentile of the resolved radii alone instead, as before, understated it: on the Autzen tile at k = 30, 96%
-    resolved, 8.65 against 9.57 ft, and 149 points were made isolated instead of 91). By
+    percentile of the resolved radii alone instead, as before, understated it: on the
+    Autzen tile at k = 30, 96% resolved, 8.65 against 9.57 ft, and 149 points were made
+    isolated instead of 91). By
     one numpy.partition at one index and the minimum above it (1.3 ms on 1M float32, where
     numpy.quantile takes 8-12; no copy of the values)."""
     n = len(d2)

@@ -108,7 +108,7 @@ inline IREALV ball_mask(IREALV m, REALV dx, REALV dy, REALV dz, REAL r2)
             if (any_lane(mmax)) {         /* else no ball gets anything from the chunk */ \
                 FEATURES_FRAME(AX)                                                        \
                 bx[nb] = ex; by[nb] = ey; bz[nb] = ez;                                    \
-                bd[nb] = select((REALV)INFINITY, offsets_d2(dx, dy, dz), mmax); /* ball_mask */ \
+                bd[nb] = select((REALV)INFINITY, offsets_d2(dx, dy, dz), mmax);           \
                 if (++nb == FEATURES_BUF) {                                               \
                     FEATURES_FLUSH(nb)                                                    \
                     nb = 0;                                                               \

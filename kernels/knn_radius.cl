@@ -55,7 +55,7 @@
  * KNN_MERGE, the host's comparator network (clcurv/knn_radius.py:merge_network): the batch
  * sorted, then an odd-even merge pruned to the KNN_LEVELS smallest, which it leaves
  * sorted. The same values kept as inserting each chunk alone (the KNN_LEVELS smallest of
- * each lane), in fewer operations: 38 min/max per 4 chunks at 8 levels against 60. */
+ * each lane), in fewer operations: 24 min/max per 2 chunks at 8 levels against 30. */
 #if !defined(KNN_BATCH) || KNN_BATCH < 1 || !defined(KNN_MERGE)
 #error "knn_radius.cl needs KNN_BATCH and KNN_MERGE (clcurv/knn_radius.py:program_defines)"
 #endif
@@ -277,8 +277,9 @@ inline REAL kth_of_levels(IREALV a[KNN_LEVELS], IREALV lanes, REAL c2, uint need
  * its block of 27 cells, c plus p's distance to the nearest face of its own cell (c to
  * 1.5 c, ~1.125 c on average), less KNN_REACH_SLACK epsilons of c for the coordinates'
  * round-off (clcurv/knn_radius.py:REACH_SLACK), and never below c: every point within it
- * is a candidate of the walk, so a K-th found within it is exact. On a 1M-point uniform sphere at the first cell (K = 30) the points left for
- * the next level went from 8.6% to 1.8%. As r^2. */
+ * is a candidate of the walk, so a K-th found within it is exact. On a 1M-point uniform
+ * sphere at the first cell (K = 30) the points left for the next level went from 8.6% to
+ * 1.8%. As r^2. */
 #if REAL_IS_DOUBLE
 #define KNN_REACH_SLACK (64 * DBL_EPSILON)
 #else
