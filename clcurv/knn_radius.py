@@ -92,7 +92,8 @@ ROUND_OFF = 16
 ROUND_OFF_WARN = 1e-3
 ROUND_OFF_SHARE = 1e-3
 #: the extended reach of knn_radius.cl (reach2) is below the cell plus the distance to the
-#: nearest face of the own cell by this many device epsilons of the cell
+#: nearest face of the own cell by this many device epsilons of the cell (its build option
+#: KNN_REACH_SLACK, :func:`program_defines`)
 REACH_SLACK = 64
 #: the first cell is this many times the k-NN radius estimated for a surface at the cloud's
 #: mean density (:func:`_first_cell`): ~1.13x the median k-NN radius of a 1M-point uniform
@@ -322,7 +323,7 @@ def program_defines(k, levels, batch=None):
     :data:`KNN_BATCH` unless given)."""
     batch = KNN_BATCH if batch is None else batch
     return dict(KNN_K=int(k), KNN_LEVELS=int(levels), KNN_BATCH=int(batch),
-                KNN_MERGE=merge_network(int(levels), int(batch)))
+                KNN_MERGE=merge_network(int(levels), int(batch)), KNN_REACH_SLACK=REACH_SLACK)
 
 
 def _kth_fetch(cloud, out):

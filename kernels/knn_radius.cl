@@ -276,21 +276,25 @@ inline REAL kth_of_levels(IREALV a[KNN_LEVELS], IREALV lanes, REAL c2, uint need
  * neighbors.h): the cell c, or with extend the radius of the largest ball around p inside
  * its block of 27 cells, c plus p's distance to the nearest face of its own cell (c to
  * 1.5 c, ~1.125 c on average), less KNN_REACH_SLACK epsilons of c for the coordinates'
- * round-off (clcurv/knn_radius.py:REACH_SLACK), and never below c: every point within it
+ * round-off (KNN_REACH_SLACK, the host's clcurv/knn_radius.py:REACH_SLACK), and never
+ * below c: every point within it
  * is a candidate of the walk, so a K-th found within it is exact. On a 1M-point uniform
  * sphere at the first cell (K = 30) the points left for the next level went from 8.6% to
  * 1.8%. As r^2. */
+#ifndef KNN_REACH_SLACK
+#error "knn_radius.cl needs KNN_REACH_SLACK (clcurv/knn_radius.py:program_defines)"
+#endif
 #if REAL_IS_DOUBLE
-#define KNN_REACH_SLACK (64 * DBL_EPSILON)
+#define REACH_EPS DBL_EPSILON
 #else
-#define KNN_REACH_SLACK (64 * FLT_EPSILON)
+#define REACH_EPS FLT_EPSILON
 #endif
 inline REAL reach2(REAL3 p, REAL2 cball, uint extend)
 {
     const REAL c = cball.y;
     const REAL face = fmin(fmin(fmin(p.x - c, 2 * c - p.x), fmin(p.y, c - p.y)),
                            fmin(p.z, c - p.z));
-    const REAL r = c + fmax(face, (REAL)0) - KNN_REACH_SLACK * c;
+    const REAL r = c + fmax(face, (REAL)0) - KNN_REACH_SLACK * REACH_EPS * c;
     return extend ? fmax(r * r, cball.x) : cball.x;
 }
 
