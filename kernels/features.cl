@@ -87,32 +87,30 @@ inline IREALV ball_mask(IREALV m, REALV dx, REALV dy, REALV dz, REAL r2)
 
 #if NR > 1
 /* The walk of features_pca for NR balls, offsets in the anchor frame of axis AX (a
- * constant: PCA_BY_AXIS): the chunks with a lane in the largest ball are kept (offsets in
- * the anchor frame, d^2 as ball_mask computes it, +inf outside that ball) FEATURES_BUF at
- * a time, and each ball's sums then run over them with only that ball's accumulators live
- * (with every ball's at once, 10 vectors each, the registers spilled: three balls cost
- * 245 ms at 1M points against 222 for three single-radius walks; kept chunks, 214). The
- * same lanes, additions and order as a single-radius walk (pca_ball): bit-identical sums.
- * Each ball's loop over the kept chunks is bound by its sums' chain of dependent adds
- * (one per accumulator and chunk, ~4 cycles on the EPYC), not by its instructions: with
- * them cut from 30 to 20 a chunk (fused products, MASKED_COUNT, the mask in d^2) the
- * three radii's kernel went only ~300 -> ~289 ms. Summing the largest ball as the walk
- * goes (its accumulators live through the walk) made it slower (2.4 -> 2.6x a
- * single-radius kernel on the same cloud). */
+ * constant: PCA_BY_AXIS): every chunk of candidates is kept (offsets in the anchor frame,
+ * d^2 as ball_mask computes it, +inf outside the largest ball) FEATURES_BUF at a time, and
+ * each ball's sums then run over them with only that ball's accumulators live (with every
+ * ball's at once, 10 vectors each, the registers spilled: three balls cost 245 ms at 1M
+ * points against 222 for three single-radius walks; kept chunks, 214). The same lanes,
+ * additions and order as a single-radius walk (pca_ball, which sums every chunk too):
+ * bit-identical sums. Keeping only the chunks with a lane in the largest ball, by a test
+ * per chunk (any_lane, or a branch-free count of the kept chunks), cost far more than the
+ * sums it saved: on the EPYC one ball so buffered took 159 ms against 104 when every chunk
+ * is kept, and three balls 251 against 217 (the test's lane reduction, and the store index
+ * that depends on it, on the walk's critical path). Summing the largest ball as the walk
+ * goes (its accumulators live through the walk) was slower too (217 -> 294 ms). */
 #define FEATURES_WALK(AX)                                                                 \
     {                                                                                     \
         REALV bx[FEATURES_BUF], by[FEATURES_BUF], bz[FEATURES_BUF], bd[FEATURES_BUF];     \
         uint nb = 0;                                                                      \
         NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, ball, i, end, pr)                \
             const IREALV mmax = chunk_offsets(XA, Y, Z, i, end, pr, bmax, &dx, &dy, &dz); \
-            if (any_lane(mmax)) {         /* else no ball gets anything from the chunk */ \
-                FEATURES_FRAME(AX)                                                        \
-                bx[nb] = ex; by[nb] = ey; bz[nb] = ez;                                    \
-                bd[nb] = select((REALV)INFINITY, offsets_d2(dx, dy, dz), mmax);           \
-                if (++nb == FEATURES_BUF) {                                               \
-                    FEATURES_FLUSH(nb)                                                    \
-                    nb = 0;                                                               \
-                }                                                                         \
+            FEATURES_FRAME(AX)                                                            \
+            bx[nb] = ex; by[nb] = ey; bz[nb] = ez;                                        \
+            bd[nb] = select((REALV)INFINITY, offsets_d2(dx, dy, dz), mmax);               \
+            if (++nb == FEATURES_BUF) {                                                   \
+                FEATURES_FLUSH(nb)                                                        \
+                nb = 0;                                                                   \
             }                                                                             \
         NEIGHBOR_CHUNKS_END                                                               \
         FEATURES_FLUSH(nb)                                                                \
