@@ -183,11 +183,12 @@ def test_counting_path_with_a_full_gather(sphere, device, k):
     np.testing.assert_allclose(np.sqrt(fast[ok]), ref[ok], rtol=4e-6)
 
 
-@pytest.mark.parametrize("k", [5, 9, 30, 100])
+@pytest.mark.parametrize("k", [5, 9, 30, 100, 128, 130])
 def test_selection_with_equal_distances(device, k):
     """A lattice (every distance repeated 4 to 8 times) with each point twice: the kernel's
     selection among equal d^2 (its sub-bin rounds take more than one minimum), its counting
-    path and a k-d tree give the same k-th distance."""
+    path and a k-d tree give the same k-th distance. k = 128 and 130: either side of the
+    bound of first_field's packed comparison (KNN_K <= 128; above it a loop)."""
     from scipy.spatial import cKDTree
     from clcurv.cloud import DeviceCloud
     from clcurv.knn_radius import kth_squared
