@@ -241,32 +241,42 @@ __kernel void features(OPERATOR_ARGS, const REAL4 r2s, __global REAL *out1,
     for (int j = 0; j < NR; ++j) r2[j] = all_r2[j];
     pca_batch_t pb[NR];
     features_pca(X, Y, Z, W, CN, cell_of, ranges, n, g0, kn, ball, r2, pb);
-    uchar st[NR][VW];
+    /* the balls' status (the VW lanes at once) and lambda0 */
     REAL l0[NR][VW];
-    for (uint k = 0; k < VW; ++k) {
-        REAL l0k[NR];
-        uchar stk[NR];
-        int walk = 0;                       /* does a ball of the point take the second walk? */
-        for (int j = 0; j < NR; ++j) {
-            stk[j] = k < kn ? pca_status(&pb[j], k, MIN_COUNT) : ST_TOO_FEW;
+    REALV stv[NR];
+    IREALV again = 0;                       /* lanes with a ball for the second walk */
+    for (int j = 0; j < NR; ++j) {
+        stv[j] = pca_status_v(&pb[j], kn, MIN_COUNT);
 #if PCA_ANCHOR
-            l0k[j] = pb[j].l0a[k];          /* anchored (pca.h), NaN: the second walk */
+        const REALV l0v = VLOADV(0, pb[j].l0a);   /* anchored (pca.h), NaN: the second walk */
 #else
-            l0k[j] = pb[j].l0[k];
+        const REALV l0v = VLOADV(0, pb[j].l0);
 #endif
-            walk |= stk[j] == ST_OK && isnan(l0k[j]);
-        }
+        VSTOREV(l0v, 0, l0[j]);
+        again |= isequal(stv[j], (REALV)ST_OK) & isnan(l0v);
+    }
 #if REFINE_L0
-        /* the call only when needed: its set-up for every point cost ~2 ms of the 1M-point
-           kernel (86 ms), where ~0.1% of the points walk again */
-        if (walk)
+    /* the second walk only for the points that need it (~0.1% on a smooth surface): its
+       set-up for every point cost ~2 ms of the 1M-point kernel (86 ms), and the status
+       point by point ~2.5 ms more (scalar tests and branches) */
+    if (any_lane(again)) {
+        IREAL ag[VW];
+        REAL stl[NR][VW];
+        CAT(vstore, VW)(again, 0, ag);
+        for (int j = 0; j < NR; ++j) VSTOREV(stv[j], 0, stl[j]);
+        for (uint k = 0; k < kn; ++k) {
+            if (!ag[k]) continue;
+            REAL l0k[NR];
+            uchar stk[NR];
+            for (int j = 0; j < NR; ++j) {
+                stk[j] = (uchar)stl[j][k];
+                l0k[j] = l0[j][k];
+            }
             features_refine(X, Y, Z, W, cell_of, ranges, n, g0 + k, k, ball, r2, pb, stk, l0k);
-#endif
-        for (int j = 0; j < NR; ++j) {
-            st[j][k] = stk[j];
-            l0[j][k] = l0k[j];
+            for (int j = 0; j < NR; ++j) l0[j][k] = l0k[j];
         }
     }
+#endif
     for (int j = 0; j < NR; ++j) {
         /* the VW lanes' eigenvalues (descending, scaled by n / (n - ddof)), e1, e3 */
         REAL s[VW], rr[VW], cnt[VW];
@@ -287,7 +297,7 @@ __kernel void features(OPERATOR_ARGS, const REAL4 r2s, __global REAL *out1,
         const REALV sum = L3 + L2 + L1, i1 = (REAL)1 / L1, isum = (REAL)1 / sum;
         (void)sum; (void)i1; (void)isum; (void)e1x; (void)e1y; (void)e1z; (void)e3x;
         (void)e3y;
-        const REALV stf = CAT(convert_, REALV)(CAT(vload, VW)(0, st[j]));
+        const REALV stf = stv[j];
         const IREALV ok = (stf == (REALV)ST_OK);
         REALV col[16];                      /* the record columns (lanes_records.h) */
         col[CIX_COUNT] = LANES_COUNT(pb[j].count);

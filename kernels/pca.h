@@ -370,4 +370,16 @@ inline uchar pca_status(const pca_batch_t *b, uint k, uint min_count)
     if (!(b->l2[k] > 0) || b->l1[k] <= DEGENERATE_RATIO * b->l2[k]) return ST_DEGENERATE;
     return ST_OK;
 }
+
+/* pca_status of the VW lanes at once, as REALV (lanes k >= kn: ST_TOO_FEW): the same
+ * tests, without a branch per lane. */
+inline REALV pca_status_v(const pca_batch_t *b, uint kn, uint min_count)
+{
+    const REALV l2 = VLOADV(0, b->l2), l1 = VLOADV(0, b->l1);
+    const IREALV few = CAT(convert_, IREALV)(CAT(vload, VW)(0, b->count)
+                                               < (CAT(uint, VW))min_count)
+                       | (LANES >= (IREALV)(IREAL)kn);
+    const IREALV degen = ~isgreater(l2, (REALV)0) | islessequal(l1, DEGENERATE_RATIO * l2);
+    return select(select((REALV)ST_OK, (REALV)ST_DEGENERATE, degen), (REALV)ST_TOO_FEW, few);
+}
 #endif
