@@ -279,14 +279,9 @@ __kernel void features(OPERATOR_ARGS, const REAL4 r2s, __global REAL *out1,
 #endif
     for (int j = 0; j < NR; ++j) {
         /* the VW lanes' eigenvalues (descending, scaled by n / (n - ddof)), e1, e3 */
-        REAL s[VW], rr[VW], cnt[VW];
-        for (uint k = 0; k < VW; ++k) {
-            const uint c = pb[j].count[k];
-            s[k] = c > ddof ? (REAL)c / (REAL)(c - ddof) : (REAL)1;
-            rr[k] = k < kn ? BALL_R2(W, g0 + k, r2[j]) : (REAL)1;
-            cnt[k] = (REAL)c;
-        }
-        const REALV sv = VLOADV(0, s);
+        const REALV cnt = CAT(convert_, REALV)(CAT(vload, VW)(0, pb[j].count));
+        const REALV sv = select((REALV)1, cnt / (cnt - (REAL)ddof),
+                                isgreater(cnt, (REALV)(REAL)ddof));
         const REALV L1 = VLOADV(0, pb[j].l2) * sv, L2 = VLOADV(0, pb[j].l1) * sv;
         const REALV L3 = VLOADV(0, l0[j]) * sv;
         const REALV e1x = VLOADV(0, pb[j].v2x), e1y = VLOADV(0, pb[j].v2y);
@@ -360,8 +355,10 @@ __kernel void features(OPERATOR_ARGS, const REAL4 r2s, __global REAL *out1,
 #endif
 #ifdef CIX_DENSITY
         {
+            REAL rr[VW];
+            for (uint k = 0; k < VW; ++k) rr[k] = k < kn ? BALL_R2(W, g0 + k, r2[j]) : (REAL)1;
             const REALV r2v = VLOADV(0, rr);
-            FEATURE_COLUMN(CIX_DENSITY, VLOADV(0, cnt) / (FOUR_THIRDS_PI * r2v * sqrt(r2v)))
+            FEATURE_COLUMN(CIX_DENSITY, cnt / (FOUR_THIRDS_PI * r2v * sqrt(r2v)))
         }
 #endif
 #ifdef CIX_NORMALS
