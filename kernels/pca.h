@@ -363,11 +363,15 @@ inline REAL pca_refine_l0(__global const REAL *X, __global const REAL *Y,
     return hsum(s0) * iw;
 }
 
+/* A covariance of rank < 2 (l1 <= l2 ascending): no largest eigenvalue, or a middle one at
+ * most DEGENERATE_RATIO of it. Scalars (0/1) or vectors (lane masks) alike. */
+#define PCA_IS_DEGENERATE(l1, l2) (!((l2) > 0) || (l1) <= DEGENERATE_RATIO * (l2))
+
 /* Status of lane k: too few neighbours (< min_count) or a covariance of rank < 2. */
 inline uchar pca_status(const pca_batch_t *b, uint k, uint min_count)
 {
     if (b->count[k] < min_count) return ST_TOO_FEW;
-    if (!(b->l2[k] > 0) || b->l1[k] <= DEGENERATE_RATIO * b->l2[k]) return ST_DEGENERATE;
+    if (PCA_IS_DEGENERATE(b->l1[k], b->l2[k])) return ST_DEGENERATE;
     return ST_OK;
 }
 
@@ -379,7 +383,7 @@ inline REALV pca_status_v(const pca_batch_t *b, uint kn, uint min_count)
     const IREALV few = CAT(convert_, IREALV)(CAT(vload, VW)(0, b->count)
                                                < (CAT(uint, VW))min_count)
                        | (LANES >= (IREALV)(IREAL)kn);
-    const IREALV degen = ~isgreater(l2, (REALV)0) | islessequal(l1, DEGENERATE_RATIO * l2);
+    const IREALV degen = PCA_IS_DEGENERATE(l1, l2);
     return select(select((REALV)ST_OK, (REALV)ST_DEGENERATE, degen), (REALV)ST_TOO_FEW, few);
 }
 #endif
