@@ -19,14 +19,14 @@ isolated); the distances found go from one binning's order to the next's on the 
 operators then run on one cloud whose cell is the largest radius (the last level's, the
 one binned ahead when the first level's reach resolved every point but some beyond its
 cell, or binned again at the largest radius when that cell is much larger), every
-point's ball of squared radius r^2 = (d_k + e)^2 (1 + :data:`MARGIN`), e the float round-off of a distance
-on a grid of the largest cell c (:data:`ROUND_OFF` eps c, ~2e-6 c in float), so that their
-strict ball test holds the k points on any grid (ties, and distances within ~1e-6 of d_k
-or within e of it, enter too). The constants (2 / r, ...) take the ball's radius, d_k + e
-to ~1e-6. Where the radius varies more than ~500x across a cloud (float; the sparsest
-points set c), e exceeds 1e-3 of the smallest radii: a RuntimeWarning says so, as their
-balls may then take a few more points than k and their constants a radius that much
-larger (precision='double' makes e ~4e-15 c).
+point's ball of squared radius r^2 = (d_k + e)^2 (1 + :data:`MARGIN`), e the float
+round-off of a distance on a grid of the largest cell c (:data:`ROUND_OFF` eps c, ~2e-6 c
+in float), so that their strict ball test holds the k points on any grid (ties, and
+distances within ~1e-6 of d_k or within e of it, enter too). The constants (2 / r, ...)
+take the ball's radius, d_k + e to ~1e-6. Where the radius varies more than ~500x across a
+cloud (float; the sparsest points set c), e exceeds 1e-3 of the smallest radii: a
+RuntimeWarning says so, as their balls may then take a few more points than k and their
+constants a radius that much larger (precision='double' makes e ~4e-15 c).
 
 Cost: the operators walk cells as large as the largest radius (one grid for the whole
 cloud), skipping the rows of cells beyond each point's own ball (ROW_PRUNE) and the whole
@@ -99,8 +99,9 @@ REACH_SLACK = 64
 #: mean density (:func:`_first_cell`): ~1.13x the median k-NN radius of a 1M-point uniform
 #: sphere, where 1.8% of the points (k = 30; 8.6% within the cell alone) need the next
 #: level; 1.15 and 1.2 (10% and 4.6%) were no faster with the reach (2026-12-03). (1.6,
-#: ~1.5x the median radius, still left 2 of 1M sphere points for the next level and its larger walk made the whole
-#: pass slower, 767 vs 693 ms: the walk grows with the cell's area.)
+#: ~1.5x the median radius, still left 2 of 1M sphere points for the next level and its
+#: larger walk made the whole pass slower, 767 vs 693 ms: the walk grows with the cell's
+#: area.)
 FIRST_CELL = 1.25
 #: the cell grows by this factor from one binning to the next (the last cell is then within
 #: this factor of the largest radius: the operators walk it)
@@ -284,9 +285,9 @@ def reach(cloud):
 
 
 def _kth_launch(cloud, k, prev=None, levels=None, extend=False):
-    """Enqueue and flush knn_radius.cl on ``cloud`` (see :func:`kth_squared`, in the cloud's
-    sorted order; ``prev`` a host array or a device buffer); returns the output buffer for :func:`_kth_fetch`. The device
-    works while the host goes on."""
+    """Enqueue and flush knn_radius.cl on ``cloud`` (see :func:`kth_squared`, in the
+    cloud's sorted order; ``prev`` a host array or a device buffer); returns the output
+    buffer for :func:`_kth_fetch`. The device works while the host goes on."""
     import pyopencl as cl
     from .program import launch
     prg = _program(cloud, k, levels)
