@@ -2,17 +2,31 @@
 nearest point (the point itself the first), found on the device with the grid
 (``kernels/knn_radius.cl``), so that every ball holds k points however the density varies.
 
-How: the cloud is binned at a cell c (a first guess from the bounding box, assuming a
-surface, :data:`FIRST_CELL`); the kernel finds the k-th smallest squared distance among
-the candidates within each point's reach in one walk (each vector lane keeps its
-smallest d^2, :func:`merge_network`; dense spots take a counting path with more walks,
-same result). The reach is c, or at the first level (when the next is binned ahead) the
-largest ball around the point inside its 27 cells, c plus its distance to its own cell's
-nearest face (:func:`reach`: c to 1.5c, ~1.125c on average; on a 1M-point uniform sphere
-it leaves 1.8% of the points for the next level instead of 8.6%). A point with fewer
-than k candidates within its reach is unresolved, and the cloud is binned again at 1.5c
-(:data:`GROWTH`; binned on a worker thread beside the first level, :func:`_bin_ahead`)
-for the unresolved points only (up to
+How: a first cell c is guessed from the bounding box, assuming a surface
+(:data:`FIRST_CELL`), and the kernel finds the k-th smallest squared distance among the
+candidates within each point's reach in one walk of the cloud binned at a cell (each
+vector lane keeps its smallest d^2, :func:`merge_network`; dense spots take a counting
+path with more walks, same result). Two paths, by the density (:func:`_tight`, a k-d tree
+on a 4000-point subsample, ~2 ms):
+
+- a *tight* cloud, whose median point's k-NN radius is near the mean-density one (a
+  uniform sphere, the scans of objects and the aerial tile of the shared data), is binned
+  once, at GROWTH c: its largest radii lie near 1.3c (1.32c on a 1M-point uniform sphere),
+  so that grid serves the k-NN pass and the operators that follow. Its first walk reaches
+  :data:`FIRST_REACH` of that cell (fewer lanes then hold more candidates than they keep),
+  the points left walk the whole cell again on the same grid (4 of 1M on the sphere).
+  Against binning at c and again at GROWTH c, one binning and its upload less (~60 ms at
+  1M) for a walk ~15 ms longer.
+- otherwise (a depth image, whose sparse background makes the mean-density cell ~2x the
+  median point's radius: the dense points would walk 2.25x the candidates) the cloud is
+  binned at c, and the next level at GROWTH c on a worker thread beside it
+  (:func:`_bin_ahead`). The first level's reach is each point's largest ball inside its 27
+  cells, c plus its distance to its own cell's nearest face (:func:`reach`: c to 1.5c,
+  ~1.125c on average; on a 1M-point uniform sphere it leaves 1.8% of the points for the
+  next level instead of 8.6%).
+
+A point with fewer than k candidates within its level's reach is unresolved, and the
+cloud is binned again at GROWTH (1.5) times the cell for the unresolved points only (up to
 :data:`ISOLATION` times the 90th percentile of the k-NN radii: points still unresolved are
 isolated); the distances found go from one binning's order to the next's on the device
 (gather.cl, :func:`_permute`). The
@@ -103,6 +117,20 @@ REACH_SLACK = 64
 #: larger walk made the whole pass slower, 767 vs 693 ms: the walk grows with the cell's
 #: area.)
 FIRST_CELL = 1.25
+#: a cloud whose first cell is at most this many times the estimated median k-NN radius
+#: (:func:`_tight`) is binned once, at GROWTH times the first cell, its first walk reaching
+#: FIRST_REACH of it: c / median 1.11-1.31 on the uniform sphere, the bunny scans, Igea,
+#: Autzen and a sphere whose density varies 10x; 1.9-2.1 on the Kinect scene (the tree:
+#: TIGHT_SAMPLE points of the subsample, TIGHT_QUERIES of them queried for their TIGHT_K-th)
+TIGHT = 1.5
+TIGHT_SAMPLE = 4000
+TIGHT_QUERIES = 500
+TIGHT_K = 8
+#: the first walk of a cloud binned once (tight) reaches this fraction of its cell, the
+#: points left then walking the whole cell on the same grid: on the 1M sphere 4 points are
+#: left and both walks take ~98 ms (0.8: 128 left, ~98 ms; 0.9: ~103 ms), against ~108
+#: reaching the whole cell at once (where more lanes hold more candidates than they keep)
+FIRST_REACH = 0.85
 #: the cell grows by this factor from one binning to the next (the last cell is then within
 #: this factor of the largest radius: the operators walk it)
 GROWTH = 1.5
@@ -143,10 +171,17 @@ def check_k(k, n):
 
 
 def _first_cell(pts, k, lo, hi, sample=20000):
-    """A first cell size: the radius holding ~1.6 k points at the cloud's mean density as a
-    surface, its area estimated from the cells of size s that a subsample of ``sample``
-    points occupies (s large enough for ~20 subsample points per cell of a plane; a surface
-    crosses ~1.5 cells per s^2 of its area on average)."""
+    """(c, tight): a first cell size c, the radius holding ~1.6 k points at the cloud's mean
+    density as a surface, its area estimated from the cells of size s that a subsample of
+    ``sample`` points occupies (s large enough for ~20 subsample points per cell of a
+    plane; a surface crosses ~1.5 cells per s^2 of its area on average); ``tight`` when
+    that mean density is also about the median point's (:func:`_tight`)."""
+    c, sub = _mean_density_cell(pts, k, lo, hi, sample)
+    return c, _tight(sub, k, len(pts), c)
+
+
+def _mean_density_cell(pts, k, lo, hi, sample):
+    """(c, the subsample) of :func:`_first_cell`."""
     n = len(pts)
     # a contiguous copy: the strided rows cost a cache miss each in every pass below
     sub = np.array(pts[::max(n // sample, 1)], dtype=np.float64)
@@ -166,18 +201,36 @@ def _first_cell(pts, k, lo, hi, sample=20000):
             sub = sub[inside[:, 0] & inside[:, 1] & inside[:, 2]]
     ext = np.sort(hi - lo)[::-1]
     if not ext[0] > 0:
-        return 1.0                                 # all coincident: any cell holds them
+        return 1.0, sub                            # all coincident: any cell holds them
     if not ext[1] > 0:
-        return 1.5 * ext[0] * k / n                # collinear
+        return 1.5 * ext[0] * k / n, sub           # collinear
     s = np.sqrt(20.0 * ext[0] * ext[1] / len(sub))
     if not ext[0] / s < 2.0 ** 40:                 # a needle: the bounding-box guess
-        return float(1.5 * np.sqrt(k * ext[0] * ext[1] / (np.pi * n)))
+        return float(1.5 * np.sqrt(k * ext[0] * ext[1] / (np.pi * n))), sub
     cells = np.floor((sub - lo) / s).astype(np.int64)
     dims = cells.max(axis=0) + 1                   # < 2^21 per axis: sample ~ 2e4 points
     occupied = len(np.unique((cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]))
     area = max(occupied * s * s / 1.5, 1e-300)
-    return float(FIRST_CELL * np.sqrt(k * area / (np.pi * n)))
+    return float(FIRST_CELL * np.sqrt(k * area / (np.pi * n))), sub
 
+
+
+def _tight(sub, k, n, c):
+    """Whether the first cell ``c`` is at most :data:`TIGHT` times the median point's k-NN
+    radius, estimated from the subsample ``sub`` of the ``n`` points: its distances to their
+    TIGHT_K-th nearest within up to TIGHT_SAMPLE of its points (a k-d tree; ~2 ms), scaled
+    to k of n points as on a surface. Then the cloud's radii cluster near the mean-density
+    one, and :func:`knn_radii` bins it once, at GROWTH c (see there). Not tight where most
+    points are much denser than the mean (a depth image's sparse background inflates the
+    area: the Kinect scene of the shared data, 1.9x), or many coincide."""
+    from scipy.spatial import cKDTree
+    t = sub[::max(len(sub) // TIGHT_SAMPLE, 1)]
+    if len(t) <= 4 * TIGHT_K:
+        return False
+    q = t[::max(len(t) // TIGHT_QUERIES, 1)]
+    d = cKDTree(t).query(q, TIGHT_K + 1)[0][:, TIGHT_K]
+    med = float(np.median(d)) * math.sqrt(k * len(t) / (TIGHT_K * n))
+    return bool(c <= TIGHT * med)
 
 #: the share of points allowed to take knn_radius.cl's counting path (see knn_levels)
 OVERFLOW_RATE = 0.12
@@ -258,17 +311,19 @@ def merge_network(levels, batch):
                    for i, j, kind in merge_comparators(levels, batch))
 
 
-def kth_squared(cloud, k, known=None, levels=None, extend=False):
+def kth_squared(cloud, k, known=None, levels=None, extend=False, reach=None):
     """The squared distance to the k-th nearest point within the cloud's cell (device
     values as float64, input order; +inf where fewer than k points lie within it), or with
     ``extend`` within each point's reach (:func:`reach`). Points with a finite ``known``
     value (input order) keep it and are not walked. ``levels`` overrides the d^2 values the
     kernel keeps per vector lane (KNN_LEVELS; tests: 1 sends nearly every point down the
-    kernel's counting path, which must give the same values)."""
+    kernel's counting path, which must give the same values). ``reach`` (at most the cell;
+    not with ``extend``) narrows the walk's ball: +inf where fewer than k points lie within
+    it."""
     order = cloud.grid.order
     prev = None if known is None else known[order].astype(cloud.dtype)
     res = np.empty(cloud.n)
-    res[order] = _kth_fetch(cloud, _kth_launch(cloud, k, prev, levels, extend))
+    res[order] = _kth_fetch(cloud, _kth_launch(cloud, k, prev, levels, extend, reach))
     return res
 
 
@@ -284,10 +339,11 @@ def reach(cloud):
     return np.maximum(g.cell + face - (REACH_SLACK + 4) * eps * g.cell, g.cell)
 
 
-def _kth_launch(cloud, k, prev=None, levels=None, extend=False):
+def _kth_launch(cloud, k, prev=None, levels=None, extend=False, reach=None):
     """Enqueue and flush knn_radius.cl on ``cloud`` (see :func:`kth_squared`, in the
-    cloud's sorted order; ``prev`` a host array or a device buffer); returns the output
-    buffer for :func:`_kth_fetch`. The device works while the host goes on."""
+    cloud's sorted order; ``prev`` a host array or a device buffer; ``reach`` the walk's
+    radius, at most the cell, which it is by default); returns the output buffer for
+    :func:`_kth_fetch`. The device works while the host goes on."""
     import pyopencl as cl
     from .program import launch
     prg = _program(cloud, k, levels)
@@ -302,7 +358,8 @@ def _kth_launch(cloud, k, prev=None, levels=None, extend=False):
         prev_buf = prev                             # a device buffer (sorted order)
     out = device_buffer(cloud.device, nbytes)
     launch(cloud.device, prg.kth_distance, cloud.n, cloud.x, cloud.y, cloud.z,
-           cloud.cell_of, cloud.ranges, np.uint32(cloud.n), cloud.ball(cloud.cell), prev_buf,
+           cloud.cell_of, cloud.ranges, np.uint32(cloud.n),
+           cloud.ball(cloud.cell if reach is None else min(float(reach), cloud.cell)), prev_buf,
            out, np.uint32(bool(extend)))
     q.flush()
     return out
@@ -344,13 +401,15 @@ def knn_radii(points, k, *, device=None, precision="float"):
     lo, hi = box = bounding_box(pts)
     check_finite_box(pts, lo, hi)
     diag = float(np.linalg.norm(hi - lo))
-    c = _first_cell(pts, k, lo, hi)
+    c, tight = _first_cell(pts, k, lo, hi)
+    if tight:
+        c *= GROWTH                  # one binning, the operators' too (see the module notes)
     cap = None
     levels = []
     d2_in = None            # device: the k-th d^2 found so far, input order (inf: not yet)
     spec = None
     stages = {"first_cell": time.perf_counter() - t0, "binning": 0.0, "kth": 0.0}
-    if GROWTH * c <= diag:
+    if not tight and GROWTH * c <= diag:
         spec = _bin_ahead(pts, GROWTH * c, precision, box)
     while True:
         t1 = time.perf_counter()
@@ -362,9 +421,17 @@ def knn_radii(points, k, *, device=None, precision="float"):
         t2 = time.perf_counter()
         # the first level reaches up to 1.5 c (reach), its next level binned ahead at 1.5 c
         extend = not levels and spec is not None
-        out = _kth_launch(cloud, k, None if d2_in is None else _permute(cloud, d2_in, False),
-                          extend=extend)
-        d2 = _kth_fetch(cloud, out)                                 # sorted order
+        prev = None if d2_in is None else _permute(cloud, d2_in, False)
+        if tight and not levels:
+            # the first walk within FIRST_REACH c, then the points left within c
+            out = _kth_launch(cloud, k, prev, reach=FIRST_REACH * c)
+            d2 = _kth_fetch(cloud, out)
+            if not np.isfinite(d2).all():
+                out = _kth_launch(cloud, k, out)
+                d2 = _kth_fetch(cloud, out)
+        else:
+            out = _kth_launch(cloud, k, prev, extend=extend)
+            d2 = _kth_fetch(cloud, out)                             # sorted order
         stages["binning"] += t2 - t1
         stages["kth"] += time.perf_counter() - t2
         if not levels:
@@ -372,8 +439,10 @@ def knn_radii(points, k, *, device=None, precision="float"):
         levels.append(c)
         ok = np.isfinite(d2)
         if cap is None:
-            cap = _isolation_cap(d2, int(np.count_nonzero(ok)),
-                                 c if extend else math.inf)
+            resolved = int(np.count_nonzero(ok))
+            # every point resolved and none isolated whatever the percentile: no cap needed
+            cap = math.inf if resolved == len(d2) and _none_isolated(d2) else \
+                _isolation_cap(d2, resolved, c if extend else math.inf)
         if ok.all() or c > diag or (cap is not None and c >= cap) \
                 or len(levels) >= _MAX_LEVELS:
             break
@@ -522,6 +591,18 @@ def _isolation_cap(d2, resolved, below=math.inf):
     return ISOLATION * (a + (b - a) * frac)
 
 
+def _none_isolated(d2):
+    """Whether the n finite squared radii ``d2`` are at most the isolation cap whatever its
+    exact value (:func:`_isolation_cap`): when at most i = floor(0.9 (n - 1)) of them lie
+    below (max / ISOLATION)^2 (widened by 2^-20 for the float32 compare), the percentile's
+    lower order statistic is at least the largest radius over ISOLATION. A count (~1 ms at
+    1M) where the percentile's partition takes ~8."""
+    n = len(d2)
+    i = int(np.floor((n - 1) * 0.9))
+    limit = float(d2.max()) / ISOLATION ** 2 * (1 + 2.0 ** -20)
+    return int(np.count_nonzero(d2 < limit)) <= i
+
+
 def _slack(cell, dtype):
     """The absolute widening of every radius on grids of cells at most ``cell``: ROUND_OFF
     epsilons of ``dtype`` times the cell, in ``dtype``."""
@@ -540,7 +621,11 @@ def _margin(d2, dtype, slack):
 def _warn_round_off(cell, slack, radius):
     """RuntimeWarning when the grid's round-off ``slack`` (:func:`_slack` of ``cell``)
     exceeds ROUND_OFF_WARN of some positive ``radius`` (zeros: coincident points)."""
-    # positive radii below slack / ROUND_OFF_WARN (NaN, isolated, compares False)
+    # positive radii below slack / ROUND_OFF_WARN (NaN, isolated, compares False); first
+    # a bound by one compare (zeros counted too, the limit widened), the usual answer
+    if not np.count_nonzero(radius < float(slack) / ROUND_OFF_WARN * (1 + 2.0 ** -20)) \
+            > ROUND_OFF_SHARE * len(radius):
+        return
     few = int(np.count_nonzero((radius > 0) & (radius * ROUND_OFF_WARN < float(slack))))
     if not few > ROUND_OFF_SHARE * len(radius):
         return

@@ -2,9 +2,10 @@
  * itself the first), on the grid of a DeviceCloud: the k-NN radius (clcurv/knn_radius.py).
  *
  * One work-item per sorted point; the same fixed-order walk over the 27 cells as the
- * operators (neighbors.h), the candidates within the cloud's cell c (open ball d^2 < c^2),
- * or with extend within the point's reach (reach2: up to 1.5 c, the largest ball inside
- * its 27 cells). One walk, vector operations only, keeps lane by lane the KNN_LEVELS
+ * operators (neighbors.h), the candidates within the reach the host passes (open ball
+ * d^2 < cball.x: the cloud's cell c squared, or less, FIRST_REACH c for a tight cloud's
+ * first walk, clcurv/knn_radius.py), or with extend within the point's reach (reach2: up
+ * to 1.5 c, the largest ball inside its 27 cells). One walk, vector operations only, keeps lane by lane the KNN_LEVELS
  * smallest d^2 of the lane (chunks merged KNN_BATCH at a time by a min/max network over
  * the KNN_LEVELS vectors, KNN_MERGE) and the lane's count. The K-th
  * smallest is then selected from the kept values by two packed histograms (bins of d^2,
@@ -24,8 +25,8 @@
  * Points whose prev[g] is finite (found at a smaller cell, sorted order of this cloud) are
  * copied, not walked again.
  * Output d2k[g] (sorted order): the K-th smallest d^2, or +INFINITY when fewer than K
- * points lie within the walk's reach (reach2: c, or with extend up to 1.5 c; the host then
- * bins at a larger cell). ball_r2 turns the last
+ * points lie within the walk's reach (reach2: the host's, at most c, or with extend up to
+ * 1.5 c; the host then walks the cell or bins at a larger one). ball_r2 turns the last
  * binning's d2k into the operators' per-point r^2.
  * Build options: KNN_K (1 .. clcurv.knn_radius.MAX_K); KNN_LEVELS (1 .. 15) the levels kept
  * per lane (clcurv/knn_radius.py:knn_levels; tests: 1 sends nearly every point down the
@@ -285,7 +286,7 @@ inline REAL kth_of_levels(IREALV a[KNN_LEVELS], IREALV lanes, REAL c2, uint need
 }
 
 /* The reach of the walk of p (x relative to its 3-cell block, y and z to its cell, see
- * neighbors.h): the cell c, or with extend the radius of the largest ball around p inside
+ * neighbors.h): the host's, cball.x (c^2, or less), or with extend (cball.x = c^2) the radius of the largest ball around p inside
  * its block of 27 cells, c plus p's distance to the nearest face of its own cell (c to
  * 1.5 c, ~1.125 c on average), less KNN_REACH_SLACK epsilons of c for the coordinates'
  * round-off (KNN_REACH_SLACK, the host's clcurv/knn_radius.py:REACH_SLACK), and never

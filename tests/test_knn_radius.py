@@ -11,6 +11,8 @@ from clcurv.constants import DEGENERATE, OK, TOO_FEW
 from clcurv.knn_radius import knn_radii
 from clcurv.reference_features import knn_radii as ref_knn_radii
 
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"      # when present
+
 
 def sphere_10x(n, R=1.0, seed=0):
     """A sphere whose point density grows 10x from the north pole (z = R) to the south pole
@@ -145,16 +147,18 @@ def test_extended_reach_resolves_more_points_exactly(device):
 
 
 def test_radii_found_beyond_the_first_cell_take_the_next_cells(device, monkeypatch):
-    """A first cell just below the largest k-NN radius of a uniform sphere: the first
-    level's reach resolves every point, some beyond its cell, so the operators run on the
-    cloud binned ahead at 1.5x that cell (no second walk): radii as the k-d tree's, every
-    one within the operators' cell, each ball holding its k points."""
+    """A first cell just below the largest k-NN radius of a uniform sphere, on the path of
+    clouds that are not tight (TIGHT = 0 makes this one so): the first level's reach
+    resolves every point, some beyond its cell, so the operators run on the cloud binned
+    ahead at 1.5x that cell (no second walk): radii as the k-d tree's, every one within the
+    operators' cell, each ball holding its k points."""
     import clcurv.knn_radius as kr
     from scipy.spatial import cKDTree
     from clcurv.cloud import DeviceCloud
     pts = uniform_sphere(20000)
     ref = cKDTree(pts).query(pts, 30)[0][:, -1]
     monkeypatch.setattr(kr, "FIRST_CELL", 1.5)
+    monkeypatch.setattr(kr, "TIGHT", 0.0)
     got = knn_radii(pts, 30, device=device)
     first = got.levels[0]
     assert first < ref.max() and (ref < kr.reach(DeviceCloud(pts, first, device=device))).all()
@@ -162,6 +166,75 @@ def test_radii_found_beyond_the_first_cell_take_the_next_cells(device, monkeypat
     np.testing.assert_allclose(got.radius, ref, rtol=4e-6)
     res = clcurv.features(pts, k=30, features=("eigenvalue_sum",), device=device)
     assert (res.count >= 30).all() and (res.count == 30).mean() > 0.999     # ties enter
+
+
+@pytest.mark.parametrize("levels", [None, 1])
+def test_a_narrower_reach_resolves_what_lies_within_it(device, levels):
+    """A reach of ~0.65 of the cell (the first walk of a tight cloud, FIRST_REACH): every k-th
+    distance below the reach is the full walk's, bit for bit, the others +inf, whose k-th
+    neighbour lies at or beyond the reach by the k-d tree; a second walk at the whole cell
+    from those values (known) gives the full walk's. Also on the counting path
+    (levels = 1)."""
+    from scipy.spatial import cKDTree
+    from clcurv.cloud import DeviceCloud
+    from clcurv.knn_radius import kth_squared
+    pts = uniform_sphere(20000)
+    ref = cKDTree(pts).query(pts, 30)[0][:, -1]
+    cloud = DeviceCloud(pts, 1.2 * ref.max(), device=device)
+    full = kth_squared(cloud, 30, levels=levels)
+    assert np.isfinite(full).all()
+    rho = 1.05 * np.median(ref)                    # ~0.65 of the cell
+    part = kth_squared(cloud, 30, levels=levels, reach=rho)
+    inside = full < np.float32(rho * rho)          # the walk's open ball, in float
+    assert 0.4 < inside.mean() < 0.8
+    np.testing.assert_array_equal(part[inside], full[inside])
+    assert np.isinf(part[~inside]).all() and (ref[~inside] >= 0.999999 * rho).all()
+    np.testing.assert_array_equal(kth_squared(cloud, 30, known=part, levels=levels), full)
+
+
+@pytest.mark.parametrize("first_reach", [None, 0.6])
+def test_a_tight_cloud_is_binned_once(device, monkeypatch, first_reach):
+    """A uniform sphere is tight (its median k-NN radius near the mean-density one): it is
+    binned once, at GROWTH times the first cell, the operators' cloud too; its radii are
+    one full walk's of that cloud, bit for bit (the first walk within FIRST_REACH of the
+    cell, then the points left: most of them with FIRST_REACH = 0.6), and the k-d tree's;
+    each ball holds its k points."""
+    import clcurv.knn_radius as kr
+    from clcurv.grid import bounding_box
+    from clcurv.knn_radius import kth_squared
+    if first_reach is not None:
+        monkeypatch.setattr(kr, "FIRST_REACH", first_reach)
+    pts = uniform_sphere(20000)
+    c, tight = kr._first_cell(pts, 30, *bounding_box(pts))
+    assert tight
+    got = knn_radii(pts, 30, device=device)
+    assert got.levels == [kr.GROWTH * c] and got.cloud.cell == np.float32(kr.GROWTH * c)
+    np.testing.assert_array_equal(got.radius, np.sqrt(kth_squared(got.cloud, 30)))
+    np.testing.assert_allclose(got.radius, ref_knn_radii(pts, 30), rtol=4e-6)
+    res = clcurv.features(got.cloud, k=30, features=("eigenvalue_sum",), device=device)
+    assert (res.count >= 30).all() and (res.count == 30).mean() > 0.999
+
+
+def test_tightness_of_the_density():
+    """_tight: a uniform sphere and a plane are tight; a dense patch within a sparse plane
+    10x its area holding a quarter of the points (a depth image's near object and far
+    background: the mean-density cell ~2.5x the median point's radius) is not; nor is the
+    Kinect scene of the shared data (c / median 1.9, when present)."""
+    import clcurv.knn_radius as kr
+    from clcurv.grid import bounding_box
+    rng = np.random.default_rng(5)
+
+    def tight(p):
+        return kr._first_cell(p, 30, *bounding_box(p))[1]
+
+    plane = np.c_[rng.random((50000, 2)), np.zeros(50000)]
+    patch = np.c_[0.3 * rng.random((37500, 2)), np.zeros(37500)]
+    far = np.c_[rng.random((12500, 2)) * 3.0 + 0.3, np.full(12500, 0.0)]
+    assert tight(uniform_sphere(50000)) and tight(plane)
+    assert not tight(np.concatenate([patch, far]))
+    kinect = DATA / "pcl_milk_cartoon_all_small_clorox.finite.xyz"
+    if kinect.exists():
+        assert not tight(np.loadtxt(kinect))
 
 
 @pytest.mark.parametrize("k", [27, 30, 64, 100])
@@ -365,6 +438,35 @@ def test_isolation_cap_is_the_percentile_of_all_radii():
                 assert abs(got - want) <= 4e-7 * want, (n, resolved, got, want)
 
 
+def test_none_isolated_implies_the_cap_holds_every_radius():
+    """_none_isolated, the count that spares the percentile's partition: whenever it says
+    so, the largest radius is within the exact cap (_isolation_cap); on the boundary (n >=
+    10: a tenth of the radii at the largest, the rest just above or below it / ISOLATION) it
+    says so exactly when the cap holds the largest radius with room; and it does not
+    when one radius is far out."""
+    from clcurv.knn_radius import ISOLATION, _isolation_cap, _none_isolated
+    rng = np.random.default_rng(2)
+    said = 0
+    for n in (1, 2, 10, 11, 1000, 30001):
+        for spread in (1.5, 3.9, 4.1, 8.0, 100.0):
+            r = rng.uniform(1.0, spread, n)
+            d2 = (r * r).astype(np.float32)
+            if _none_isolated(d2):
+                said += 1
+                assert np.sqrt(float(d2.max())) <= _isolation_cap(d2, n)
+        top = 4.0
+        for f in (1 - 1e-3, 1 + 1e-3) if n >= 10 else ():
+            r = np.full(n, top / ISOLATION * f)
+            r[:max(n // 10, 1)] = top
+            d2 = (r * r).astype(np.float32)
+            holds = np.sqrt(float(d2.max())) <= _isolation_cap(d2, n)
+            assert _none_isolated(d2) == (holds and f > 1), (n, f)
+        d2 = np.ones(n, np.float32)
+        d2[0] = 1e4
+        assert not _none_isolated(d2) or n < 10
+    assert said >= 12
+
+
 def _isolation_cases():
     """A ground plane whose density falls as a power of the distance from the origin (a long
     tail of k-NN radii, like the sparse edges of an aerial tile), and the Autzen tile."""
@@ -372,7 +474,7 @@ def _isolation_cases():
     rho = rng.pareto(1.2, 30000) + 1.0
     ang = rng.uniform(0, 2 * np.pi, 30000)
     yield np.c_[rho * np.cos(ang), rho * np.sin(ang), np.zeros(30000)]
-    autzen = Path(__file__).resolve().parents[2] / "shared" / "data" / "laspy_autzen_trim.laz"
+    autzen = DATA / "laspy_autzen_trim.laz"
     if autzen.exists():
         yield clcurv.io.read(autzen).points
 
