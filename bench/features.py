@@ -229,10 +229,13 @@ def report(res):
               f"download {sp['features_download']:.0f} ms; normals kernel "
               f"{sp['normals_kernel']:.0f} ms, download {sp['normals_download']:.0f} ms"]
     st = res["knn_stages"]
+    binnings = ("one binning: a tight cloud, clcurv.knn_radius._tight"
+                if len(res["knn_levels"]) == 1 else
+                "a level binned ahead on a worker thread where the cloud is not tight")
     lines += [f"k-NN radius cells binned: {', '.join(f'{c:.4g}' for c in res['knn_levels'])}"
               f"; stages of one run: first cell {st['first_cell'] * 1e3:.0f} ms, binning "
-              f"{st['binning'] * 1e3:.0f} ms (the second level's on a worker thread beside the "
-              f"first level), k-th distance {st['kth'] * 1e3:.0f} ms",
+              f"{st['binning'] * 1e3:.0f} ms ({binnings}), k-th distance "
+              f"{st['kth'] * 1e3:.0f} ms",
               "", "| peer, same cloud, same run | time | M pts/s |", "|---|---:|---:|"]
     feat = res["rows"]["features_vs_normals"]["a_seconds"]
     lines.append(f"| clcurv.features (12 features) | {feat:.2f} s | {mpts(n, feat):.2f} |")
