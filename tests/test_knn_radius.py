@@ -215,6 +215,21 @@ def test_a_tight_cloud_is_binned_once(device, monkeypatch, first_reach):
     assert (res.count >= 30).all() and (res.count == 30).mean() > 0.999
 
 
+def test_double_precision_radii(device):
+    """precision='double' (devices with fp64): the k-NN radii of a tight cloud (binned once)
+    and of an uneven one (a dense patch in a sparse plane: levels) are the k-d tree's to
+    float64 round-off."""
+    if not device.info.fp64:
+        pytest.skip("the device has no float64")
+    rng = np.random.default_rng(4)
+    patch = np.c_[0.3 * rng.random((7500, 2)), np.zeros(7500)]
+    far = np.c_[rng.random((2500, 2)) * 3.0 + 0.3, np.zeros(2500)]
+    for pts, once in ((uniform_sphere(10000), True), (np.concatenate([patch, far]), False)):
+        got = knn_radii(pts, 30, device=device, precision="double")
+        assert (len(got.levels) == 1) == once
+        np.testing.assert_allclose(got.radius, ref_knn_radii(pts, 30), rtol=1e-12)
+
+
 def test_tightness_of_the_density():
     """_tight: a uniform sphere and a plane are tight; a dense patch within a sparse plane
     10x its area holding a quarter of the points (a depth image's near object and far
