@@ -222,7 +222,7 @@ def _tight(sub, k, n, c):
     to k of n points as on a surface. Then the cloud's radii cluster near the mean-density
     one, and :func:`knn_radii` bins it once, at GROWTH c (see there). Not tight where most
     points are much denser than the mean (a depth image's sparse background inflates the
-    area: the Kinect scene of the shared data, 1.9x), or many coincide."""
+    area: the Kinect scene of the shared data, 1.9x)."""
     from scipy.spatial import cKDTree
     t = sub[::max(len(sub) // TIGHT_SAMPLE, 1)]
     if len(t) <= 4 * TIGHT_K:
