@@ -214,7 +214,6 @@ def _mean_density_cell(pts, k, lo, hi, sample):
     return float(FIRST_CELL * np.sqrt(k * area / (np.pi * n))), sub
 
 
-
 def _tight(sub, k, n, c):
     """Whether the first cell ``c`` is at most :data:`TIGHT` times the median point's k-NN
     radius, estimated from the subsample ``sub`` of the ``n`` points: its distances to their
@@ -231,6 +230,7 @@ def _tight(sub, k, n, c):
     d = cKDTree(t).query(q, TIGHT_K + 1)[0][:, TIGHT_K]
     med = float(np.median(d)) * math.sqrt(k * len(t) / (TIGHT_K * n))
     return bool(c <= TIGHT * med)
+
 
 #: the share of points allowed to take knn_radius.cl's counting path (see knn_levels)
 OVERFLOW_RATE = 0.12

@@ -5,10 +5,10 @@
  * operators (neighbors.h), the candidates within the reach the host passes (open ball
  * d^2 < cball.x: the cloud's cell c squared, or less, FIRST_REACH c for a tight cloud's
  * first walk, clcurv/knn_radius.py), or with extend within the point's reach (reach2: up
- * to 1.5 c, the largest ball inside its 27 cells). One walk, vector operations only, keeps lane by lane the KNN_LEVELS
- * smallest d^2 of the lane (chunks merged KNN_BATCH at a time by a min/max network over
- * the KNN_LEVELS vectors, KNN_MERGE) and the lane's count. The K-th
- * smallest is then selected from the kept values by two packed histograms (bins of d^2,
+ * to 1.5 c, the largest ball inside its 27 cells). One walk, vector operations only,
+ * keeps lane by lane the KNN_LEVELS smallest d^2 of the lane (chunks merged KNN_BATCH at a
+ * time by a min/max network over the KNN_LEVELS vectors, KNN_MERGE) and the lane's count.
+ * The K-th smallest is then selected from the kept values by two packed histograms (bins of d^2,
  * then sub-bins of the bin that holds the K-th: one vector add per kept vector each, the
  * counts of a lane packed in the nibbles of a uint) and a vector minimum within the
  * sub-bin. Every value below m, the smallest of the largest kept values of the lanes that
@@ -286,14 +286,14 @@ inline REAL kth_of_levels(IREALV a[KNN_LEVELS], IREALV lanes, REAL c2, uint need
 }
 
 /* The reach of the walk of p (x relative to its 3-cell block, y and z to its cell, see
- * neighbors.h): the host's, cball.x (c^2, or less), or with extend (cball.x = c^2) the radius of the largest ball around p inside
- * its block of 27 cells, c plus p's distance to the nearest face of its own cell (c to
- * 1.5 c, ~1.125 c on average), less KNN_REACH_SLACK epsilons of c for the coordinates'
- * round-off (KNN_REACH_SLACK, the host's clcurv/knn_radius.py:REACH_SLACK), and never
- * below c: every point within it
- * is a candidate of the walk, so a K-th found within it is exact. On a 1M-point uniform
- * sphere at the first cell (K = 30) the points left for the next level went from 8.6% to
- * 1.8%. As r^2. */
+ * neighbors.h): the host's, cball.x (c^2, or less), or with extend (cball.x = c^2) the
+ * radius of the largest ball around p inside its block of 27 cells, c plus p's distance
+ * to the nearest face of its own cell (c to 1.5 c, ~1.125 c on average), less
+ * KNN_REACH_SLACK epsilons of c for the coordinates' round-off (KNN_REACH_SLACK, the
+ * host's clcurv/knn_radius.py:REACH_SLACK), and never below c: every point within it is a
+ * candidate of the walk, so a K-th found within it is exact. On a 1M-point uniform sphere
+ * at the first cell (K = 30) the points left for the next level went from 8.6% to 1.8%.
+ * As r^2. */
 #ifndef KNN_REACH_SLACK
 #error "knn_radius.cl needs KNN_REACH_SLACK (clcurv/knn_radius.py:program_defines)"
 #endif
