@@ -63,6 +63,34 @@ def test_sort_cells_packed_and_fallback(fits):
     assert np.array_equal(np.repeat(keys, np.diff(start)), key[want])
 
 
+@pytest.mark.parametrize("top", [40, 2 ** 16 - 1, 2 ** 16, 2 ** 32 - 1, 2 ** 32, 2 ** 60])
+def test_stable_order_is_the_stable_argsort(top):
+    """_stable_order: by one or two radix passes on 16-bit digits (keys below 2^16, 2^32),
+    else numpy's stable argsort: the stable argsort of the keys, ties in input order, on
+    keys crowding both ends of the range; empty input too."""
+    rng = np.random.default_rng(7)
+    key = np.concatenate([rng.integers(0, 50, 3000), rng.integers(max(top - 50, 0), top + 1, 3000),
+                          rng.integers(0, top + 1, 3000)])
+    key = key[rng.permutation(len(key))]
+    assert np.array_equal(G._stable_order(key), np.argsort(key, kind="stable"))
+    assert len(G._stable_order(np.empty(0, np.int64))) == 0
+
+
+def test_radix_and_packed_binnings_are_the_same(monkeypatch):
+    """bin_points sorts the keys by radix passes (up to RADIX_POINTS points, keys below
+    2^32) or packs the point index below them: the same grid either way."""
+    rng = np.random.default_rng(8)
+    pts = rng.normal(size=(3 * G.MIN_PARALLEL, 3))
+    pts /= np.linalg.norm(pts, axis=1)[:, None]
+    got = []
+    for points in (G.RADIX_POINTS, 0):
+        monkeypatch.setattr(G, "RADIX_POINTS", points)
+        got.append(G.bin_points(pts, 0.05))
+    a, b = got
+    for name in ("order", "keys", "cell_start", "rel"):
+        assert np.array_equal(getattr(a, name), getattr(b, name)), name
+
+
 def test_sort_distinct_in_parts_matches_sort():
     """_sort_distinct: a selection, then parts sorted on threads, sorts as np.sort."""
     rng = np.random.default_rng(4)
