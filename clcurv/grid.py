@@ -268,10 +268,11 @@ def _stable_order(key):
     16-bit integers by radix, in linear time: ~7 ms a pass at 1M points, where the argsort
     of the int64 keys takes ~115 ms and the in-place sort of the packed keys ~35 on two
     cores, tests/test_grid_layout.py); beyond, numpy's stable argsort."""
-    if len(key) == 0 or int(key.max()) >= 1 << 32:
+    top = int(key.max()) if len(key) else 0
+    if top >= 1 << 32:
         return np.argsort(key, kind="stable")
     order = np.argsort((key & 0xFFFF).astype(np.uint16), kind="stable")
-    if int(key.max()) >= 1 << 16:
+    if top >= 1 << 16:
         high = (key >> 16).astype(np.uint16)[order]
         order = order[np.argsort(high, kind="stable")]
     return order
