@@ -35,6 +35,18 @@
 #define REALV CAT(REAL, VW)     /* VW lanes of REAL */
 #define IREALV CAT(IREAL, VW)   /* VW lanes of comparison masks */
 #define VLOADV CAT(vload, VW)
+/* twice VW lanes (VW <= 8): two batches of VW points at once (eig3.h: eig3_sym_g_w) */
+#if VW == 2
+#define VW2 4
+#elif VW == 4
+#define VW2 8
+#elif VW == 8
+#define VW2 16
+#endif
+#ifdef VW2
+#define REALW CAT(REAL, VW2)
+#define IREALW CAT(IREAL, VW2)
+#endif
 
 /* Per-point output records: RECORD_WIDTH REALs per point, written with one vector store at
  * the point's input index (or its place in a chunk, REC_INDEX): one cache line per point in

@@ -1,14 +1,18 @@
 /* eig3.h -- closed-form eigen decomposition of a symmetric 3x3 matrix (float or double).
  *
- * Two entry points, the same algorithm and the same operations:
+ * Entry points, the same algorithm and the same operations:
  *   eig3_sym    one matrix (REAL entries, REAL3 results);
  *   eig3_sym_v  VW matrices at once, one per lane of REALV (see common.h), results as
  *               eig3_v3_v structs of three REALV. It has no branches at all (every special
  *               case is a select), so it runs at the full SIMD width of a CPU: a scalar
  *               eig3_sym is a long chain of dependent divisions and square roots, about
- *               300 ns per call on one core; eight matrices at once cost little more than one.
- * The algorithm body below is written once, for a generic type EIG3_T (REAL or REALV), and
- * instantiated twice by including this file again (EIG3_GENERIC_PASS).
+ *               300 ns per call on one core; eight matrices at once cost little more than one;
+ *   eig3_sym_g_w  (VW <= 8) 2 VW matrices at once, in REALW (common.h: VW2 lanes), for
+ *               two batches of points: the chain still leaves VW lanes mostly idle (on the
+ *               Zen 4 EPYC, 10.6 ms per 1M matrices at 8 lanes, 6.8 at 16). Every width
+ *               gives the same bits (tests/test_eig3_vector.py).
+ * The algorithm body below is written once, for a generic type EIG3_T (REAL, REALV or
+ * REALW), and instantiated by including this file again (EIG3_GENERIC_PASS).
  *
  * Method (no iterations, no data-dependent loops):
  *   1. Scale A by a power of two (exact) so that its max-abs entry lies in [1, 2).
@@ -77,6 +81,18 @@
 #define EIG3_AS_R(b) CAT(as_, REALV)(b)
 #define EIG3_FN(name) name##_v
 #include "eig3.h"                           /* undefines the EIG3_ parameters */
+
+/* ---- pair instantiation: eig3_sym_g_w on REALW (2 VW matrices: two batches at once) ---- */
+#if VW <= 8
+#define EIG3_T REALW
+#define EIG3_I IREALW
+#define EIG3_SEL(a, b, c) select((EIG3_T)(a), (EIG3_T)(b), (c))
+#define EIG3_SELI(a, b, c) select((EIG3_I)(a), (EIG3_I)(b), (c))
+#define EIG3_AS_I(x) CAT(as_, IREALW)(x)
+#define EIG3_AS_R(b) CAT(as_, REALW)(b)
+#define EIG3_FN(name) name##_w
+#include "eig3.h"                           /* undefines the EIG3_ parameters */
+#endif
 #undef EIG3_GENERIC_PASS
 
 /* Eigen decomposition of the symmetric matrix [[a00,a01,a02],[a01,a11,a12],[a02,a12,a22]].

@@ -10,8 +10,8 @@
  * as a single-radius walk: every radius's record is bit-identical to a call at that radius
  * alone on the same cloud. lambda0 is anchored as in moments.cl (pca.h: PCA_ANCHOR, the
  * same sums per ball); the balls whose anchor is missing or too far share one second walk.
- * The features of the VW points of a work-item are evaluated at once in the
- * vector lanes.
+ * The balls' eigen solves run two at a time (pca.h: pca_decompose_pair), the features of
+ * the VW points of a work-item at once in the vector lanes.
  *
  * Eigenvalues: l1 >= l2 >= l3 of the count-normalised covariance sum (q - o)(q - o)^T / n,
  * times n / (n - ddof) (ddof = par.z: 1 gives the sample covariance of jakteristics).
@@ -172,12 +172,19 @@ inline void features_pca(__global const REAL *X, __global const REAL *Y, __globa
         }
 #endif
     }
-    for (int j = 0; j < NR; ++j) {
-        pca_decompose(&pb[j]);
-#if PCA_ANCHOR
-        pca_anchor_l0(&pb[j]);
+#ifdef VW2
+    /* the balls' eigen solves two at a time, in VW2 lanes: the solve is a chain of dependent
+       operations that VW lanes leave mostly idle (tests/test_eig3_vector.py: the same
+       results at every width); three balls' kernel ~5 ms faster at 1M points */
+    int j0 = 0;
+    for (; j0 + 1 < NR; j0 += 2) pca_decompose_pair(&pb[j0], &pb[j0 + 1]);
+    for (; j0 < NR; ++j0) pca_decompose(&pb[j0]);
+#else
+    for (int j = 0; j < NR; ++j) pca_decompose(&pb[j]);
 #endif
-    }
+#if PCA_ANCHOR
+    for (int j = 0; j < NR; ++j) pca_anchor_l0(&pb[j]);
+#endif
 }
 
 /* lambda0 of the balls of sorted point g (lane k) whose status is OK and whose anchored

@@ -16,6 +16,8 @@
  *              cloud's axes; lanes whose anchor is too far from v0 (or missing) are marked
  *              for the second pass;
  *   pca_ball_framed  pca_ball in the anchor frame (PCA_FRAME; one walk per axis);
+ *   pca_decompose_pair  pca_decompose of two batches at once, in VW2 = 2 VW lanes (VW <= 8;
+ *              the several balls of features.cl);
  *   PCA_SHEAR, PCA_ACCUMULATE, pca_store_sums, pca_decompose, PCA_REFINE_ACCUMULATE
  *              their steps, which the multi-radius walk of features.cl uses too
  *              (bit-identical sums).
@@ -241,6 +243,36 @@ inline void pca_decompose(pca_batch_t *b)
     VSTOREV(e0.x, 0, b->v0x); VSTOREV(e0.y, 0, b->v0y); VSTOREV(e0.z, 0, b->v0z);
     VSTOREV(e2.x, 0, b->v2x); VSTOREV(e2.y, 0, b->v2y); VSTOREV(e2.z, 0, b->v2z);
 }
+
+#ifdef VW2
+/* pca_decompose of two batches a, b at once, their lanes side by side (REALW: VW2 lanes),
+ * the same operations lane by lane (bit-identical results) */
+#define PAIR_LD(f) ((REALW)(VLOADV(0, a->f), VLOADV(0, b->f)))
+#define PAIR_ST(v, f) { const REALW v_ = (v); VSTOREV(v_.lo, 0, a->f); VSTOREV(v_.hi, 0, b->f); }
+inline void pca_decompose_pair(pca_batch_t *a, pca_batch_t *b)
+{
+    REALW w0, w1, w2;
+    eig3_v3_w e0, e1, e2;
+    const REALW c0 = PAIR_LD(c[0]), c1 = PAIR_LD(c[1]), c3 = PAIR_LD(c[3]);
+#if PCA_ANCHOR
+    const REALW s1 = PAIR_LD(fs[0]), s2 = PAIR_LD(fs[1]);
+    const REALW m31 = PAIR_LD(c[2]) - s1 * c0 - s2 * c1;
+    const REALW m32 = PAIR_LD(c[4]) - s1 * c1 - s2 * c3;
+    const REALW m33 = PAIR_LD(c[5]) - s1 * PAIR_LD(c[2]) - s2 * PAIR_LD(c[4]);
+    eig3_sym_g_w(c0, c1, m31, c3, m32, m33 - s1 * m31 - s2 * m32, &w0, &w1, &w2, &e0, &e1, &e2);
+#else
+    eig3_sym_g_w(c0, c1, PAIR_LD(c[2]), c3, PAIR_LD(c[4]), PAIR_LD(c[5]),
+                 &w0, &w1, &w2, &e0, &e1, &e2);
+#endif
+    PAIR_ST(fmax(w0, (REALW)0), l0)
+    PAIR_ST(fmax(w1, (REALW)0), l1)
+    PAIR_ST(fmax(w2, (REALW)0), l2)
+    PAIR_ST(e0.x, v0x) PAIR_ST(e0.y, v0y) PAIR_ST(e0.z, v0z)
+    PAIR_ST(e2.x, v2x) PAIR_ST(e2.y, v2y) PAIR_ST(e2.z, v2z)
+}
+#undef PAIR_LD
+#undef PAIR_ST
+#endif
 
 #if PCA_ANCHOR
 /* (x, y, z) from the frame's axes (t1, t2, ax) of every lane (PCA_FRAME), in place */

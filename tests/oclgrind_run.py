@@ -110,6 +110,9 @@ def calls(points, precision, device):
         ("mls2+knn_radius+graph", lambda: clcurv.curvature(points, method="mls2", k=k,
                                                            orient="mst", **common)),
         ("features", lambda: clcurv.features(points, R, features=FEATURES, **common)),
+        # three balls: two eigen solves paired in twice the lanes, one alone
+        ("features+three_radii", lambda: clcurv.features(points, [R / 3, R / 2, R],
+                                                         features=FEATURES, **common)),
         ("variation+features+pruned_rows", lambda: _small_radius(points, common)),
         ("features+knn_radius", lambda: clcurv.features(points, k=k, features=FEATURES,
                                                         **common)),

@@ -89,3 +89,19 @@ def test_vector_matches_scalar(eig3v, cl_env):  # noqa: F811
     eps = eig3v.eps
     assert np.abs(w - ws).max() <= 8 * eps * np.abs(ws).max()
     assert (1 - np.abs(np.einsum("ni,ni->n", V[:, :, 0], Vs[:, :, 0]))).max() <= 64 * eps
+
+
+@pytest.mark.parametrize("precision", ["float", "double"])
+def test_widths_bit_identical(precision, cl_env):  # noqa: F811
+    """The same matrices give the same bits at every vector width: features.cl decomposes
+    two balls at once in twice the lanes (pca.h: pca_decompose_pair) and promises results
+    bit-identical to a single-radius call, which decomposes VW at a time."""
+    device, ctx, queue = cl_env
+    if precision == "double" and "cl_khr_fp64" not in device.extensions:
+        pytest.skip(f"{device.name} has no cl_khr_fp64")
+    rng = np.random.default_rng(6)
+    A = np.concatenate([covariances(rng, 1000), special_matrices(rng), random_symmetric(rng, 300)])
+    out = {vw: Eig3(ctx, queue, precision, SOURCE_V, vw)(A) for vw in (4, 8, 16)}
+    for vw in (4, 16):
+        for a, b in zip(out[vw][1:], out[8][1:]):
+            assert np.array_equal(a, b), f"vw={vw} differs from vw=8"
