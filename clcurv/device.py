@@ -62,6 +62,7 @@ class DeviceInfo:
     compute_units: int
     simulator: bool = False   # a simulator or emulator: never the default
     library: str | None = None  # the ICD library it came from (None where unknown)
+    native_float_width: int = 1  # CL_DEVICE_NATIVE_VECTOR_WIDTH_FLOAT (16: 512-bit vectors)
 
     def __str__(self):
         sim = ", simulator" if self.simulator else ""
@@ -155,7 +156,8 @@ def _info(index, platform, dev) -> DeviceInfo:
         global_mem=dev.global_mem_size, max_alloc=dev.max_mem_alloc_size,
         local_mem=dev.local_mem_size, max_work_group=dev.max_work_group_size,
         compute_units=dev.max_compute_units, simulator=_is_simulator(platform, dev),
-        library=_platform_library(platform))
+        library=_platform_library(platform),
+        native_float_width=int(dev.native_vector_width_float))
 
 
 # ------------------------------------------------------------------------ ICD files

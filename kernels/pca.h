@@ -86,6 +86,27 @@ typedef struct {
  * products are written a * b + c, not mad(a, b, c): the compiler fuses the expression
  * where the device has an FMA (one instruction), where PoCL 3.1's mad is a multiply and
  * an add (the flush loop of features.cl's three radii: 30 -> 24 instructions a chunk). */
+#if !defined(MASKED_SUMS)
+#error "pca.h needs MASKED_SUMS (0|1, clcurv/program.py: precision_defines)"
+#elif MASKED_SUMS
+/* MASKED_SUMS (the host's choice for CPU devices with 512-bit vectors, AVX-512): each sum
+ * updated only in the lanes of the mask, s = m ? s + d : s, s2 = m ? d_i d_j + s2 : s2, which
+ * AVX-512 does in one masked instruction per sum (10 a chunk against 14 above). The same
+ * values bit for bit: a lane outside the mask keeps s, where the form above adds +0 to it
+ * (tests/test_masked_sums.py). Where a select is an instruction of its own (AVX2: a blend)
+ * it costs 6 more a chunk: the moments kernel 20% slower under Intel's runtime built for
+ * AVX2, 8-10% faster under PoCL and Intel's runtime on the Zen 4 EPYC's AVX-512. */
+#define PCA_ACCUMULATE(w, m, dx, dy, dz, sc, sw, sx, sy, sz, sxx, sxy, sxz, syy, syz, szz) \
+    {                                                                                      \
+        const REALV dx_ = (dx), dy_ = (dy), dz_ = (dz);                                    \
+        sw = select(sw, sw + (REALV)1, m);                                                 \
+        sx = select(sx, sx + dx_, m); sy = select(sy, sy + dy_, m);                        \
+        sz = select(sz, sz + dz_, m);                                                      \
+        sxx = select(sxx, dx_ * dx_ + sxx, m); sxy = select(sxy, dx_ * dy_ + sxy, m);      \
+        sxz = select(sxz, dx_ * dz_ + sxz, m); syy = select(syy, dy_ * dy_ + syy, m);      \
+        syz = select(syz, dy_ * dz_ + syz, m); szz = select(szz, dz_ * dz_ + szz, m);      \
+    }
+#else
 #define PCA_ACCUMULATE(w, m, dx, dy, dz, sc, sw, sx, sy, sz, sxx, sxy, sxz, syy, syz, szz) \
     {                                                                                      \
         const REALV ex_ = select((REALV)0, dx, m), ey_ = select((REALV)0, dy, m);          \
@@ -95,6 +116,7 @@ typedef struct {
         sxx += ex_ * ex_; sxy += ex_ * ey_; sxz += ex_ * ez_;                              \
         syy += ey_ * ey_; syz += ey_ * ez_; szz += ez_ * ez_;                              \
     }
+#endif
 #endif
 
 /* The anchor frame (PCA_ANCHOR): a shear along the axis of the anchor a's largest

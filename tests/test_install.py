@@ -12,11 +12,11 @@ ROOT = Path(__file__).resolve().parent.parent
 CHECK = r"""
 import sys, pathlib, clcurv
 from clcurv.operators import program_variants
-from clcurv.program import kernels_dir, build
+from clcurv.program import kernels_dir, build, precision_defines
 kd = kernels_dir()
 assert str(kd).startswith(sys.argv[1]), f"kernels found at {kd}, not in the installed copy"
 dev = clcurv.get_device()
-variants = program_variants({"REAL_IS_DOUBLE": 0, "VW": 8})
+variants = program_variants(precision_defines(dev, "float"))
 names = sorted({name for name, _ in variants})
 for name, defines in variants:
     build(dev, name, defines)
