@@ -239,58 +239,52 @@ inline void pca_ball_framed(__global const REAL *X, __global const REAL *Y,
 
 #define VSTOREV CAT(vstore, VW)
 
+/* The body of pca_decompose on lanes of type T (eig3's vector struct V3, its solver EIG):
+ * LD(f) loads the lanes of field f of the batch(es), ST(v, f) stores them. With PCA_ANCHOR
+ * the covariance of the sheared offsets E (c, kept for pca_anchor_l0) is sheared back first:
+ * C = S^-1 E S^-T, S^-1 = I - e_3 (s1, s2, 0)^T, the covariance in the axes (t1, t2, ax) of
+ * each lane's frame; the eigenvectors stay in those axes (pca_anchor_l0 takes them back). */
+#if PCA_ANCHOR
+#define PCA_EIG(T, LD, EIG)                                                              \
+    const T s1 = LD(fs[0]), s2 = LD(fs[1]);                                              \
+    const T m31 = LD(c[2]) - s1 * c0 - s2 * c1;                  /* row 3 of S^-1 E */   \
+    const T m32 = LD(c[4]) - s1 * c1 - s2 * c3;                                          \
+    const T m33 = LD(c[5]) - s1 * LD(c[2]) - s2 * LD(c[4]);                              \
+    EIG(c0, c1, m31, c3, m32, m33 - s1 * m31 - s2 * m32, &w0, &w1, &w2, &e0, &e1, &e2);
+#else
+#define PCA_EIG(T, LD, EIG)                                                              \
+    EIG(c0, c1, LD(c[2]), c3, LD(c[4]), LD(c[5]), &w0, &w1, &w2, &e0, &e1, &e2);
+#endif
+#define PCA_DECOMPOSE(T, V3, EIG, LD, ST)                                                \
+    {                                                                                    \
+        T w0, w1, w2;                                                                    \
+        V3 e0, e1, e2;                                                                   \
+        const T c0 = LD(c[0]), c1 = LD(c[1]), c3 = LD(c[3]);                             \
+        PCA_EIG(T, LD, EIG)                                                              \
+        ST(fmax(w0, (T)0), l0) ST(fmax(w1, (T)0), l1) ST(fmax(w2, (T)0), l2)             \
+        ST(e0.x, v0x) ST(e0.y, v0y) ST(e0.z, v0z)                                        \
+        ST(e2.x, v2x) ST(e2.y, v2y) ST(e2.z, v2z)                                        \
+    }
+
 /* The VW covariances of b decomposed at once (eig3_sym_v): eigenvalues clamped at 0, the
- * eigenvectors of the smallest and the largest. With PCA_ANCHOR the covariance of the
- * sheared offsets E (b->c, kept for pca_anchor_l0) is sheared back first: C = S^-1 E S^-T,
- * S^-1 = I - e_3 (s1, s2, 0)^T, the covariance in the axes (t1, t2, ax) of each lane's
- * frame; the eigenvectors stay in those axes (pca_anchor_l0 takes them back). */
+ * eigenvectors of the smallest and the largest (PCA_DECOMPOSE). */
+#define ONE_LD(f) VLOADV(0, b->f)
+#define ONE_ST(v, f) VSTOREV((v), 0, b->f);
 inline void pca_decompose(pca_batch_t *b)
 {
-    REALV w0, w1, w2;
-    eig3_v3_v e0, e1, e2;
-    const REALV c0 = VLOADV(0, b->c[0]), c1 = VLOADV(0, b->c[1]), c3 = VLOADV(0, b->c[3]);
-#if PCA_ANCHOR
-    const REALV s1 = VLOADV(0, b->fs[0]), s2 = VLOADV(0, b->fs[1]);
-    const REALV m31 = VLOADV(0, b->c[2]) - s1 * c0 - s2 * c1;       /* row 3 of S^-1 E */
-    const REALV m32 = VLOADV(0, b->c[4]) - s1 * c1 - s2 * c3;
-    const REALV m33 = VLOADV(0, b->c[5]) - s1 * VLOADV(0, b->c[2]) - s2 * VLOADV(0, b->c[4]);
-    eig3_sym_v(c0, c1, m31, c3, m32, m33 - s1 * m31 - s2 * m32, &w0, &w1, &w2, &e0, &e1, &e2);
-#else
-    eig3_sym_v(c0, c1, VLOADV(0, b->c[2]), c3, VLOADV(0, b->c[4]), VLOADV(0, b->c[5]),
-               &w0, &w1, &w2, &e0, &e1, &e2);
-#endif
-    VSTOREV(fmax(w0, (REALV)0), 0, b->l0);
-    VSTOREV(fmax(w1, (REALV)0), 0, b->l1);
-    VSTOREV(fmax(w2, (REALV)0), 0, b->l2);
-    VSTOREV(e0.x, 0, b->v0x); VSTOREV(e0.y, 0, b->v0y); VSTOREV(e0.z, 0, b->v0z);
-    VSTOREV(e2.x, 0, b->v2x); VSTOREV(e2.y, 0, b->v2y); VSTOREV(e2.z, 0, b->v2z);
+    PCA_DECOMPOSE(REALV, eig3_v3_v, eig3_sym_v, ONE_LD, ONE_ST)
 }
+#undef ONE_LD
+#undef ONE_ST
 
 #ifdef VW2
-/* pca_decompose of two batches a, b at once, their lanes side by side (REALW: VW2 lanes),
- * the same operations lane by lane (bit-identical results) */
+/* pca_decompose of two batches a, b at once, their lanes side by side (REALW: VW2 lanes):
+ * the same operations lane by lane, the same results bit for bit (eig3.h) */
 #define PAIR_LD(f) ((REALW)(VLOADV(0, a->f), VLOADV(0, b->f)))
 #define PAIR_ST(v, f) { const REALW v_ = (v); VSTOREV(v_.lo, 0, a->f); VSTOREV(v_.hi, 0, b->f); }
 inline void pca_decompose_pair(pca_batch_t *a, pca_batch_t *b)
 {
-    REALW w0, w1, w2;
-    eig3_v3_w e0, e1, e2;
-    const REALW c0 = PAIR_LD(c[0]), c1 = PAIR_LD(c[1]), c3 = PAIR_LD(c[3]);
-#if PCA_ANCHOR
-    const REALW s1 = PAIR_LD(fs[0]), s2 = PAIR_LD(fs[1]);
-    const REALW m31 = PAIR_LD(c[2]) - s1 * c0 - s2 * c1;
-    const REALW m32 = PAIR_LD(c[4]) - s1 * c1 - s2 * c3;
-    const REALW m33 = PAIR_LD(c[5]) - s1 * PAIR_LD(c[2]) - s2 * PAIR_LD(c[4]);
-    eig3_sym_g_w(c0, c1, m31, c3, m32, m33 - s1 * m31 - s2 * m32, &w0, &w1, &w2, &e0, &e1, &e2);
-#else
-    eig3_sym_g_w(c0, c1, PAIR_LD(c[2]), c3, PAIR_LD(c[4]), PAIR_LD(c[5]),
-                 &w0, &w1, &w2, &e0, &e1, &e2);
-#endif
-    PAIR_ST(fmax(w0, (REALW)0), l0)
-    PAIR_ST(fmax(w1, (REALW)0), l1)
-    PAIR_ST(fmax(w2, (REALW)0), l2)
-    PAIR_ST(e0.x, v0x) PAIR_ST(e0.y, v0y) PAIR_ST(e0.z, v0z)
-    PAIR_ST(e2.x, v2x) PAIR_ST(e2.y, v2y) PAIR_ST(e2.z, v2z)
+    PCA_DECOMPOSE(REALW, eig3_v3_w, eig3_sym_g_w, PAIR_LD, PAIR_ST)
 }
 #undef PAIR_LD
 #undef PAIR_ST
