@@ -349,13 +349,15 @@ LEAD_NOTE = (
 
 
 def tuning_text(d):
-    """'VW 8, work-groups 128' (clcurv.program.tuning: chosen per device from queries)."""
+    """'VW 8, masked sums, work-groups 128' (clcurv.program.tuning: chosen per device from
+    queries)."""
     t = d.get("tuning")
     if not t:
         return "tuning not recorded"
     sizes = sorted(set(t["work_group"].values()))
     wg = f"{sizes[0]}" if len(sizes) == 1 else f"{sizes[0]}-{sizes[-1]}"
-    return f"VW {t['VW']}, work-groups {wg} (queried)"
+    sums = {1: ", masked sums", 0: ", zeroed sums"}.get(t.get("MASKED_SUMS"), "")
+    return f"VW {t['VW']}{sums}, work-groups {wg} (queried)"
 
 
 CROSS_NOTE = ("Every public call with its default arguments (the 'defaults' column of each "
