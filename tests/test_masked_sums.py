@@ -4,8 +4,8 @@ one masked instruction each on AVX-512) or the offsets zeroed outside the mask a
 to every lane (s += m ? d : 0). A lane outside the mask keeps s in the first, adds +0 to
 it in the second, so every sum, and so every output, is the same bit for bit: checked by
 forcing each form on every device, in float and double, for every operator and call that
-sums through pca.h (the moments, MLS2, the scale space, the anchor normals, the features
-at one radius, at three radii in one walk and at the k-NN radius)."""
+sums through pca.h (the moments, MLS2, the scale space, the features at one radius, at
+three radii in one walk and at the k-NN radius)."""
 import dataclasses
 
 import numpy as np
