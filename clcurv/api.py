@@ -2,6 +2,7 @@
 numpy out, input order preserved)."""
 from __future__ import annotations
 
+import contextvars
 import warnings
 
 import numpy as np
@@ -19,6 +20,11 @@ ORIENTS = ("auto", "mst", "viewpoint", "normals", "up", None)   # or a direction
 #: Hoppe's graph needs about 10; more only costs time and memory
 MAX_ORIENT_K = 32
 MLS_KERNELS = ("ball", "gaussian")
+
+
+#: PCA normals of several radii from one walk (:func:`_radius_list`): {"cloud", "raws":
+#: {radius: raw fields}}, taken by :meth:`_Run.pca_normals` in the calls at those radii
+_PCA_GIVEN = contextvars.ContextVar("clcurv_pca_given", default=None)
 
 
 class _Run:
@@ -73,6 +79,10 @@ class _Run:
         if self.cloud is None:
             from . import reference
             return reference.moments(self.points, self.radius, weights=weights)
+        given = _PCA_GIVEN.get()
+        if (given is not None and given["cloud"] is self.cloud and weights == "uniform"
+                and self.point_r2 is None and self.radius in given["raws"]):
+            return given["raws"][self.radius]
         from .driver import run_kernel
         return run_kernel(PCA, self.cloud, self.radius, weights=weights, fields=("normals",),
                           defines={"REFINE_L0": 0}, point_r2=self.point_r2)
@@ -475,10 +485,13 @@ MULTI_RADIUS_METHODS = ("variation", "2dcov1", "2dcov2", "3dcov")
 def _radius_list(op, points, radius, kw):
     """:func:`curvature` at every radius of a list: one result per radius, in the order
     given, each bit-identical to a call at that radius alone on the same DeviceCloud. The
-    cloud is binned once at the largest radius (unless a DeviceCloud is given); 'variation'
-    with its defaults (uniform weights, no normals, no orientation, no scale space) walks the
-    neighbours once for all the radii (the features kernel, which shares the moments
-    kernel's PCA); the covariance operators and the other cases run once per radius."""
+    cloud is binned once at the largest radius (unless a DeviceCloud is given). With uniform
+    weights, no normals given and no scale space, the PCA of every radius comes from one
+    neighbour walk (the features kernel, which shares the moments kernel's PCA): 'variation'
+    (with no orientation asked) is that walk's result; the covariance operators take their
+    PCA normals from it (built as the moments kernel's normals pass, so the same bits), then
+    orient them and run their covariance pass once per radius. Other cases run once per
+    radius."""
     from .features import _radii
     if op.name not in MULTI_RADIUS_METHODS:
         raise ValueError(f"a list of radii is for methods {', '.join(MULTI_RADIUS_METHODS)} "
@@ -488,12 +501,30 @@ def _radius_list(op, points, radius, kw):
     if kw["backend"] == "opencl" and cloud is None and len(as_points(points)):
         from .cloud import DeviceCloud
         cloud = DeviceCloud(points, max(radii), device=kw["device"], precision=kw["precision"])
-    plain = (op.name == "variation" and cloud is not None and kw["weights"] == "uniform"
-             and kw["normals"] is None and kw["viewpoint"] is None
-             and kw["orient"] in ("auto", None) and not kw["scale_space"])
-    if not plain:
+    one_walk = (cloud is not None and kw["weights"] == "uniform" and kw["normals"] is None
+                and not kw["scale_space"])
+    plain = (one_walk and op.name == "variation" and kw["viewpoint"] is None
+             and kw["orient"] in ("auto", None))
+    if plain:
+        return _variation_list(op, cloud, radii)
+    if not one_walk or op.name == "variation":
         return [curvature(points if cloud is None else cloud, r, method=op.name, **kw)
                 for r in radii]
+    from .features import run_features
+    for r in radii:
+        cloud.check_radius(r)
+    raws = {r: {"normals": v["normals"], "count": c, "status": s}
+            for r, (v, c, s) in zip(radii, run_features(cloud, radii, ("normals",),
+                                                        anchored=False))}
+    token = _PCA_GIVEN.set({"cloud": cloud, "raws": raws})
+    try:
+        return [curvature(cloud, r, method=op.name, **kw) for r in radii]
+    finally:
+        _PCA_GIVEN.reset(token)
+
+
+def _variation_list(op, cloud, radii):
+    """'variation' at every radius of a list from one walk of the features kernel."""
     from .features import run_features
     names = ("eigenvalue3", "eigenvalue2", "eigenvalue1", "surface_variation", "normals")
     out = []

@@ -420,27 +420,30 @@ def _split_layout(used):
     return dict(out, count=_COLUMNS, status=_COLUMNS + 1)
 
 
-def program_defines(group, nr, point_radius=False, row_prune=0):
+def program_defines(group, nr, point_radius=False, row_prune=0, anchored=True):
     """Build options of features.cl for one record layout ``group`` and ``nr`` radii
     (``row_prune``: clcurv.driver.row_prune of the walk's largest radius): each feature's
     first record column (CIX_<FEATURE>), count's and status's, and REC_USED the mask of
-    the columns written (kernels/lanes_records.h)."""
+    the columns written (kernels/lanes_records.h). ``anchored`` false builds the plain PCA
+    (REFINE_L0=0: no anchor frame, no lambda0 refinement), whose sums, eigenvectors and
+    status are those of the moments kernel built so (clcurv.api's PCA normals pass)."""
     cols = {f"CIX_{n.upper()}": c for n, c in group.items()}
     used = (1 << _COLUMNS) | (1 << (_COLUMNS + 1))
     for n, c in group.items():
         used |= ((1 << FEATURES[n].width) - 1) << c
     return dict(cols, CIX_COUNT=_COLUMNS, CIX_STATUS=_COLUMNS + 1, REC_USED=hex(used), NR=nr,
-                REFINE_L0=1, MIN_COUNT=MIN_COUNT_PCA, DENSITY=0, GAUSSIAN=0, REF_NORMALS=0,
-                POINT_RADIUS=int(point_radius), ROW_PRUNE=int(row_prune))
+                REFINE_L0=int(anchored), MIN_COUNT=MIN_COUNT_PCA, DENSITY=0, GAUSSIAN=0,
+                REF_NORMALS=0, POINT_RADIUS=int(point_radius), ROW_PRUNE=int(row_prune))
 
 
-def run_features(cloud, radii, names, ddof=0, point_r2=None):
+def run_features(cloud, radii, names, ddof=0, point_r2=None, anchored=True):
     """Run features.cl on ``cloud`` for ``radii`` (<= its cell), at most 4 radii per walk.
 
     ``point_r2`` (device buffer, sorted order): per-point squared radii (one radius, the
-    k-NN radius) instead of ``radii``. Returns, per radius, (values, count, status) in input
-    order: values float64 by canonical name. Stage times go to ``cloud.timings``
-    (build_features, kernel_features, download).
+    k-NN radius) instead of ``radii``; ``anchored`` false: the plain PCA of the moments
+    kernel's normals pass (:func:`program_defines`). Returns, per radius, (values, count,
+    status) in input order: values float64 by canonical name. Stage times go to
+    ``cloud.timings`` (build_features, kernel_features, download).
     """
     import pyopencl.cltypes as ct
     from .anchor import cell_normals
@@ -462,7 +465,7 @@ def run_features(cloud, radii, names, ddof=0, point_r2=None):
             t0 = time.perf_counter()
             opts = dict(cloud.defines, **program_defines(
                 group, nr, point_r2 is not None,
-                row_prune(cloud, max(walk), point_r2 is not None)))
+                row_prune(cloud, max(walk), point_r2 is not None), anchored))
             prg = build(cloud.device, "features.cl", opts)
             ranges = cloud.with_middles() if opts["ROW_PRUNE"] else cloud.ranges
             t_build += time.perf_counter() - t0

@@ -367,6 +367,9 @@ def program_variants(precision_defines):
     for group in layouts(tuple(FEATURES)):               # clcurv.features: every column
         out.append(("features.cl", dict(base, **program_defines(group, 4))))
         out.append(("features.cl", dict(base, **program_defines(group, 1, True))))
+    # the covariance operators' PCA normals of several radii (clcurv.api._radius_list)
+    out.append(("features.cl", dict(base, **program_defines(layouts(("normals",))[0], 4,
+                                                             anchored=False))))
     from .knn_radius import knn_levels, program_defines as knn_program_defines
     out.append(("knn_radius.cl",
                 dict(base, **knn_program_defines(30, knn_levels(30, int(base["VW"]))))))

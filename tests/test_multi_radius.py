@@ -57,7 +57,7 @@ def test_plain_calls_agree_to_round_off(torus, device):
                                rtol=1e-5)
 
 
-@pytest.mark.parametrize("method", ["variation", "2dcov1", "3dcov"])
+@pytest.mark.parametrize("method", ["variation", "2dcov1", "2dcov2", "3dcov"])
 def test_curvature_radius_list(torus, device, method):
     cloud = clcurv.DeviceCloud(torus, max(RADII), device=device)
     multi = clcurv.curvature(cloud, RADII, method=method)
@@ -76,3 +76,46 @@ def test_radius_list_refusals(torus, device):
         clcurv.features(torus[:1000], [0.1, 0.1], device=device)
     with pytest.raises(ValueError, match="radius"):
         clcurv.features(torus[:1000], [0.1, -1], device=device)
+
+
+@pytest.mark.parametrize("precision", ["float", "double"])
+def test_covariances_pca_of_every_radius_in_one_walk(torus, device, precision):
+    """The PCA normals the covariance operators take for a list of radii come from one walk
+    of the features kernel built as the moments kernel's normals pass (REFINE_L0=0): normals,
+    count and status identical, bit for bit, to that pass at each radius, on a cloud with
+    points of every status (an isolated point, too few; a collinear cluster, degenerate)."""
+    if precision == "double" and not device.info.fp64:
+        pytest.skip(f"{device.info.name} has no cl_khr_fp64")
+    from clcurv.api import _Run
+    from clcurv.features import run_features
+    line = np.column_stack([np.linspace(0, 0.05, 12), np.zeros(12), np.zeros(12)]) + [3, 0, 0]
+    pts = np.vstack([torus[:20000], [[5.0, 5.0, 5.0]], line])
+    cloud = clcurv.DeviceCloud(pts, max(RADII), device=device, precision=precision)
+    walk = run_features(cloud, RADII, ("normals",), anchored=False)
+    for r, (vals, count, status) in zip(RADII, walk):
+        one = _Run("opencl", pts, r, device, precision, cloud).pca_normals("uniform")
+        np.testing.assert_array_equal(vals["normals"], one["normals"], err_msg=str(r))
+        np.testing.assert_array_equal(count, one["count"])
+        np.testing.assert_array_equal(status, one["status"])
+        assert set(np.unique(status)) == {0, 1, 2}       # every status is exercised
+
+
+def test_covariances_walk_the_pca_once(torus, device, monkeypatch):
+    """curvature(method='2dcov1', radius=[3 radii]) runs no moments pass (the PCA of the
+    three radii is one features walk) and one covariance pass per radius; its results are
+    those of the single calls (test_curvature_radius_list)."""
+    import clcurv.driver as driver
+    from clcurv.operators import PCA
+    runs = []
+    real = driver.run_kernel
+
+    def spy(kernel, *args, **kw):
+        runs.append(kernel.name)
+        return real(kernel, *args, **kw)
+    monkeypatch.setattr(driver, "run_kernel", spy)
+    cloud = clcurv.DeviceCloud(torus, max(RADII), device=device)
+    clcurv.curvature(cloud, RADII, method="2dcov1", orient=None)
+    assert runs.count(PCA.name) == 0 and runs.count("2dcov1") == 3, runs
+    runs.clear()
+    clcurv.curvature(cloud, RADII[0], method="2dcov1", orient=None)
+    assert runs == [PCA.name, "2dcov1"]
