@@ -106,6 +106,9 @@ def calls(points, precision, device):
         ("project", lambda: clcurv.project(points, R, projections=1, orient=None, **common)),
         ("variation+radii", lambda: clcurv.curvature(points, [R / 2, R], method="variation",
                                                      orient=None, **common)),
+        # the PCA normals of a radius list in one features walk, built without the anchor
+        ("3dcov+radii", lambda: clcurv.curvature(points, [R / 3, R / 2, R], method="3dcov",
+                                                 orient=None, **common)),
         # MST orientation: knn.cl's graph on each point's own ball (POINT_RADIUS, pruned rows)
         ("mls2+knn_radius+graph", lambda: clcurv.curvature(points, method="mls2", k=k,
                                                            orient="mst", **common)),
