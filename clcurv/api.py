@@ -243,8 +243,10 @@ def curvature(points, radius=None, *, method="mls1", weights="uniform", normals=
         Ball radius, in the points' length unit (about 30 neighbours is a good start). A
         list of radii (methods 'variation', '2dcov1', '2dcov2', '3dcov') returns a list of
         results, one per radius, each bit-identical to a call at that radius alone on the
-        same DeviceCloud: the cloud is binned once at the largest radius and 'variation'
-        walks the neighbours once for all of them (see :func:`_radius_list`).
+        same DeviceCloud: the cloud is binned once at the largest radius, and the PCA of
+        every radius comes from one neighbour walk ('variation' is that walk; the
+        covariance operators take their normals from it, then run their own pass per
+        radius; see :func:`_radius_list`).
     method : str
         One of :data:`clcurv.METHODS` (the registry, :mod:`clcurv.operators`):
         'variation': surface variation l0/(l0+l1+l2) (Pauly et al.; Theorem 4 of Digne &
