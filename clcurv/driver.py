@@ -38,11 +38,16 @@ def device_counts(cloud, radius):
 
 
 #: The neighbour walk skips the rows of the 27-cell block beyond the radius
-#: (kernels/neighbors.h, ROW_PRUNE) when the radius is below this fraction of the cell: at
-#: r = cell / 2 that saves ~13% of the moments kernel, at r = cell / sqrt 2 ~5%, while at
-#: r = cell the test costs ~10% (only corner rows, rarely, can be skipped). 1M-point
-#: sphere, PoCL, interleaved runs; the sums are the same either way.
-PRUNE_BELOW = 0.8
+#: (kernels/neighbors.h, ROW_PRUNE) when the radius is below this fraction of the cell.
+#: The test costs more than the rows it skips save unless the ball is small against the
+#: cell: the moments kernel at 1M points (sphere, kernels on one cloud, pruned / full, ms,
+#: minima of 7 interleaved; Zen 4 EPYC, 2 cores) at 0.1, 0.2, 0.3, 0.5, 0.7 cell: PoCL
+#: 41.7/48.5, 48.9/49.7, 54.1/50.5, 59.8/49.7, 70.9/49.2; Intel's runtime 42.1/46.5,
+#: 49.4/47.8, 55.0/48.8, 60.8/48.2, 71.0/48.2; Intel's runtime built for AVX2 50.1/63.5,
+#: 57.0/64.8, 63.6/65.5, 71.5/64.9, 84.6/65.3 (end to end at 0.7 cell the features,
+#: 2dcov1 and MLS2 calls 20-33 ms faster unpruned). Per-point radii (a k-NN radius) prune
+#: always (about even there). The sums are the same either way (tests/test_row_pruning.py).
+PRUNE_BELOW = 0.25
 
 
 def row_prune(cloud, r, per_point=False):

@@ -74,10 +74,13 @@ def _finite(res):
 
 
 def _small_radius(points, common):
-    """Half the cell's radius on a DeviceCloud: the walks that skip rows (ROW_PRUNE)."""
+    """A fifth of the cell's radius on a DeviceCloud: the walks that skip rows (ROW_PRUNE,
+    below clcurv.driver.PRUNE_BELOW cells)."""
+    from clcurv.driver import PRUNE_BELOW
     cloud = clcurv.DeviceCloud(points, R, **common)
-    return [clcurv.curvature(cloud, R / 2, method="variation", orient=None),
-            clcurv.features(cloud, R / 2, features=FEATURES)]
+    assert R / 5 < PRUNE_BELOW * cloud.cell
+    return [clcurv.curvature(cloud, R / 5, method="variation", orient=None),
+            clcurv.features(cloud, R / 5, features=FEATURES)]
 
 
 def calls(points, precision, device):
