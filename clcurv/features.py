@@ -19,14 +19,22 @@ depend on ``ddof``; eigenvalue_sum, omnivariance, the eigenvalues and eigenentro
 The eigenvalues are **not** normalised by their sum in any feature below except where the
 formula says ``/ sum``: jakteristics 0.6 computes eigenentropy and omnivariance from the
 raw eigenvalues (its PCA1, PCA2 and surface_variation are the sum-normalised eigenvalues
-l_i / sum, which are the "normalised eigenvalues" here too). PDAL differs by its ``mode``:
-by default (``mode="SQRT"``) it takes the square roots sqrt(l_i) (standard deviations) in
-Linearity, Planarity, Scattering, Omnivariance, Eigenentropy, Anisotropy and Verticality,
-and the raw eigenvalues in Sum and SurfaceVariation; ``mode="Normalized"`` divides them by
-their sum; ``mode="Raw"`` uses them as they are. The PDAL spellings accepted here give
-PDAL's ``mode="Raw"`` values (for a sqrt-mode value take e.g. sqrt of ``sphericity`` for
-Scattering). PDAL's Density, (k + 1) / ((4 / 3) pi r^3) of its optimal neighbourhood,
-evaluates (4 / 3) in integers (= 1); ``density`` here is n / (4/3 pi r^3).
+l_i / sum, which are the "normalised eigenvalues" here too).
+
+PDAL (``filters.covariancefeatures``; 2.3.0 checked by tests/test_pdal.py) divides the
+covariance by n - 1 as jakteristics does: its EigenvalueSum, Omnivariance and
+Eigenentropy are ``ddof=1``'s. It differs by its ``mode``: by default (``mode="SQRT"``)
+it takes the square roots sqrt(l_i) (standard deviations) in Linearity, Planarity,
+Scattering, Omnivariance, Eigenentropy, Anisotropy and Verticality; ``mode="Normalized"``
+divides them by their sum; ``mode="Raw"`` uses them as they are. In every mode its
+EigenvalueSum is the raw sum, and its SurfaceVariation is the transformed l3 over the raw
+sum (sqrt(l3) / (l1 + l2 + l3) by default). The PDAL spellings accepted here give PDAL's
+``mode="Raw"`` values with ``ddof=1`` (for a sqrt-mode value take e.g. sqrt of
+``sphericity`` for Scattering). PDAL rounds the centred offsets to float32 before it sums
+their products, so its eigenvalues carry an absolute error of ~2^-24 l1 (on the Autzen
+tile its linearity of flat ground, where l1 ~ l2, is up to 1.1e-7 off). PDAL's Density, (k + 1) / ((4 / 3) pi r^3) of its optimal
+neighbourhood, evaluates (4 / 3) in integers (= 1) in some versions; ``density`` here is
+n / (4/3 pi r^3).
 
 Degenerate neighbourhoods follow clcurv's status policy: fewer than 3 points (status 1) or
 a covariance of rank < 2 (collinear or coincident points, status 2) give NaN in every
