@@ -35,9 +35,9 @@ import clcurv
 from clcurv.knn_radius import knn_radii
 
 from .contention import describe_threads, thread_check
-from .pdal_cli import pdal_command, pdal_version, time_covariance_features
 from .harness import (REPO, environment, log, make_clouds, mpts, paired, radius_for, run_python,
                       timed)
+from .pdal_cli import pdal_command, pdal_version, time_covariance_features
 
 TARGETS = {"features_vs_normals": 1.2, "three_radii_vs_separate": 0.6,
            "three_radii_same_cloud": None, "knn_vs_moments": 1.5}
