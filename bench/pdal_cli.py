@@ -93,22 +93,27 @@ def run_pipeline(cmd, stages, workdir):
     return seconds
 
 
-def _filter(las, radius, mode, threads):
+def _filter(las, radius, mode, threads, knn=None):
     opts = {"type": "filters.covariancefeatures", "feature_set": ",".join(PDAL_FEATURES),
-            "mode": mode, "threads": int(threads), "min_k": 3, "radius": float(radius)}
+            "mode": mode, "threads": int(threads), "min_k": 3}
+    if knn is None:
+        opts["radius"] = float(radius)
+    else:
+        opts["knn"] = int(knn)
     return [{"type": "readers.las", "filename": str(las)}, opts]
 
 
-def covariance_features(cmd, points, radius, mode="Raw", threads=2, workdir=None):
+def covariance_features(cmd, points, radius, mode="Raw", threads=2, workdir=None, knn=None):
     """PDAL's covariance features of ``points`` in balls of ``radius`` (its KD-tree radius
-    search, at least 3 points: min_k), ``mode`` 'Raw', 'SQRT' (PDAL's default) or
-    'Normalized'. Returns (coordinates PDAL read (N, 3), {feature: (N,) float64}) in the
-    input's order; a point with fewer than 3 neighbours keeps PDAL's 0 in every field."""
+    search, at least 3 points: min_k) or, with ``knn``, of each point's knn + 1 nearest
+    points (itself included), ``mode`` 'Raw', 'SQRT' (PDAL's default) or 'Normalized'.
+    Returns (coordinates PDAL read (N, 3), {feature: (N,) float64}) in the input's order; a
+    point with fewer than 3 neighbours keeps PDAL's 0 in every field."""
     with tempfile.TemporaryDirectory(dir=workdir) as tmp:
         las = Path(tmp) / "cloud.las"
         write_las(las, points)
         out = Path(tmp) / "features.csv"
-        run_pipeline(cmd, _filter(las, radius, mode, threads) + [
+        run_pipeline(cmd, _filter(las, radius, mode, threads, knn) + [
             {"type": "writers.text", "filename": str(out), "precision": 17}], tmp)
         with open(out, newline="") as f:
             header = next(csv.reader(f))

@@ -235,7 +235,8 @@ def features(points, radius=None, features=DEFAULT_FEATURES, *, k=None, ddof=0, 
     k : int, optional
         Adaptive radius: each point's ball radius is the distance to its k-th nearest point
         (the point itself the first), found on the device with the grid
-        (:mod:`clcurv.knn_radius`); the ball then holds k points (more on ties).
+        (:mod:`clcurv.knn_radius`); the ball then holds k points (more on ties). PDAL's
+        ``knn=k - 1`` (the point and its k - 1 nearest) is the same neighbourhood.
     ddof : {0, 1}
         The covariance is divided by n - ddof: 0 clcurv's count normalisation, 1 the sample
         covariance of jakteristics.

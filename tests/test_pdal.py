@@ -151,3 +151,28 @@ def test_other_modes(mode, device):
         err = np.abs(theirs[name][m] - want[m])
         bad = err > RTOL * np.abs(want[m]) + EPS_L
         assert not bad.any(), (mode, name, pdal_version(CMD), err[bad][:5], want[m][bad][:5])
+
+
+def test_knn_mode(device):
+    """clcurv's k nearest (the point itself the first) are PDAL's knn = k - 1 nearest plus
+    the point: ``features(P, k=30, ddof=1)`` against PDAL's ``knn=29`` in Raw mode, on a
+    sphere whose density varies 10x (random doubles: no ties at the k-th distance), with
+    the tolerances of test_raw_mode."""
+    if not device.info.fp64:
+        pytest.skip("the 1e-5 comparison runs the kernels in float64; no cl_khr_fp64 here")
+    pts = clcurv.shapes.sphere(20000, 1.0, noise=0.002, seed=7)["points"]
+    pts = pts[np.random.default_rng(7).random(len(pts)) < 0.1 + 0.9 * (pts[:, 2] + 1) / 2]
+    xyz, theirs = covariance_features(CMD, pts, None, mode="Raw", knn=29)
+    f = clcurv.features(xyz, k=30, features="all", ddof=1, device=device, precision="double")
+    assert (f.count == 30).mean() > 0.999
+    l1, _, l3 = _eigen(f)
+    base = (f.status == OK) & (f.count == 30)
+    for name, values in theirs.items():
+        ours = f[NAMES[name]]
+        m = base & np.isfinite(ours) & np.isfinite(values)
+        if name in L3:
+            m &= l3 > 1e-9 * l1
+        assert m.sum() > 0.9 * len(xyz), (name, int(m.sum()))
+        err = np.abs(ours[m] - values[m])
+        bad = err > RTOL * np.abs(values[m]) + _atol(name, f)[m]
+        assert not bad.any(), (name, int(bad.sum()), err[bad][:5], values[m][bad][:5])
