@@ -36,8 +36,8 @@ PDAL_FEATURES = ("Linearity", "Planarity", "Scattering", "Verticality", "Omnivar
 def pdal_command():
     """(argv prefix of the pdal command, None) or (None, why it is unavailable)."""
     spec = os.environ.get("CLCURV_PDAL")
-    cmd = shlex.split(spec) if spec else ([shutil.which("pdal")] if shutil.which("pdal")
-                                          else None)
+    found = shutil.which("pdal")
+    cmd = shlex.split(spec) if spec else ([found] if found else None)
     if not cmd:
         return None, ("no pdal command: PDAL is not on the PATH and CLCURV_PDAL is not set "
                       "(PDAL has no PyPI wheel; conda-forge, Homebrew or Ubuntu 22.04's "

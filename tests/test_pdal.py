@@ -79,6 +79,27 @@ def _atol(name, f):
     return np.full(len(l1), EPS_L)
 
 
+def _need_fp64(device):
+    if not device.info.fp64:
+        pytest.skip("the comparison runs the kernels in float64; no cl_khr_fp64 here")
+
+
+def _assert_raw_agrees(theirs, f, base, min_fraction):
+    """Every PDAL Raw-mode feature in ``theirs`` equals clcurv's (FeatureResult ``f``) to
+    RTOL plus _atol at the points of ``base`` where both are finite (the features through
+    l3 only where l3 > 1e-9 l1), and such points are more than ``min_fraction`` of all."""
+    l1, _, l3 = _eigen(f)
+    for name, values in theirs.items():
+        ours = f[NAMES[name]]
+        m = base & np.isfinite(ours) & np.isfinite(values)
+        if name in L3:
+            m &= l3 > 1e-9 * l1
+        assert m.sum() > min_fraction * len(f.count), (name, int(m.sum()))
+        err = np.abs(ours[m] - values[m])
+        bad = err > RTOL * np.abs(values[m]) + _atol(name, f)[m]
+        assert not bad.any(), (name, int(bad.sum()), err[bad][:5], values[m][bad][:5])
+
+
 @pytest.mark.parametrize("path, radius", _clouds())
 def test_raw_mode(path, radius, device):
     """PDAL's Raw-mode features = clcurv's under PDAL's spellings with ddof=1, to 1e-5
@@ -98,27 +119,16 @@ def test_raw_mode(path, radius, device):
     5. PDAL's offsets are rounded to float32 (EPS_L): every feature is compared to
        1e-5 relative plus that rounding propagated (_atol).
     """
-    if not device.info.fp64:
-        pytest.skip("the 1e-5 comparison runs the kernels in float64; no cl_khr_fp64 here")
+    _need_fp64(device)
     pts = synthetic_scene() if path is None else clcurv.io.read(path).points
     xyz, theirs = covariance_features(CMD, pts, radius, mode="Raw")
     # PDAL read the LAS coordinates (pts rounded to the file's scale) in the same order
     np.testing.assert_allclose(xyz, pts, rtol=0, atol=1e-6 * np.ptp(pts))
     assert set(theirs) >= set(NAMES) - {"EigenvalueSum"}
     f = clcurv.features(xyz, radius, "all", ddof=1, device=device, precision="double")
-    l1, _, l3 = _eigen(f)
     base = (f.status == OK) & _unambiguous(xyz, radius)
     assert base.mean() > 0.9
-    resolved = l3 > 1e-9 * l1
-    for name, values in theirs.items():
-        ours = f[NAMES[name]]
-        m = base & np.isfinite(ours) & np.isfinite(values)
-        if name in L3:
-            m &= resolved
-        assert m.sum() > 0.8 * len(xyz), (name, int(m.sum()))
-        err = np.abs(ours[m] - values[m])
-        bad = err > RTOL * np.abs(values[m]) + _atol(name, f)[m]
-        assert not bad.any(), (name, int(bad.sum()), err[bad][:5], values[m][bad][:5])
+    _assert_raw_agrees(theirs, f, base, 0.8)
 
 
 @pytest.mark.parametrize("mode", ["SQRT", "Normalized"])
@@ -127,8 +137,7 @@ def test_other_modes(mode, device):
     eigenvalues' square roots, Normalized divides them by their sum, in every feature but
     DemantkeVerticality and EigenvalueSum (the raw sum); SurfaceVariation divides the
     transformed l3 by the raw sum. Checked against formulas on clcurv's eigenvalues."""
-    if not device.info.fp64:
-        pytest.skip("the comparison runs the kernels in float64; no cl_khr_fp64 here")
+    _need_fp64(device)
     pts = synthetic_scene()
     xyz, theirs = covariance_features(CMD, pts, 0.125, mode=mode)
     f = clcurv.features(xyz, 0.125, "all", ddof=1, device=device, precision="double")
@@ -159,21 +168,10 @@ def test_knn_mode(device):
     the point: ``features(P, k=30, ddof=1)`` against PDAL's ``knn=29`` in Raw mode, on a
     sphere whose density varies 10x (random doubles: no ties at the k-th distance), with
     the tolerances of test_raw_mode."""
-    if not device.info.fp64:
-        pytest.skip("the 1e-5 comparison runs the kernels in float64; no cl_khr_fp64 here")
+    _need_fp64(device)
     pts = clcurv.shapes.sphere(20000, 1.0, noise=0.002, seed=7)["points"]
     pts = pts[np.random.default_rng(7).random(len(pts)) < 0.1 + 0.9 * (pts[:, 2] + 1) / 2]
     xyz, theirs = covariance_features(CMD, pts, None, mode="Raw", knn=29)
     f = clcurv.features(xyz, k=30, features="all", ddof=1, device=device, precision="double")
     assert (f.count == 30).mean() > 0.999
-    l1, _, l3 = _eigen(f)
-    base = (f.status == OK) & (f.count == 30)
-    for name, values in theirs.items():
-        ours = f[NAMES[name]]
-        m = base & np.isfinite(ours) & np.isfinite(values)
-        if name in L3:
-            m &= l3 > 1e-9 * l1
-        assert m.sum() > 0.9 * len(xyz), (name, int(m.sum()))
-        err = np.abs(ours[m] - values[m])
-        bad = err > RTOL * np.abs(values[m]) + _atol(name, f)[m]
-        assert not bad.any(), (name, int(bad.sum()), err[bad][:5], values[m][bad][:5])
+    _assert_raw_agrees(theirs, f, (f.status == OK) & (f.count == 30), 0.9)
