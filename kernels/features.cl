@@ -64,6 +64,11 @@ inline IREALV ball_mask(IREALV m, REALV dx, REALV dy, REALV dz, REAL r2)
 #if DENSITY || GAUSSIAN || POINT_RADIUS
 #error "features.cl: several radii take uniform weights and one radius for all points"
 #endif
+/* A ball's lanes among the kept chunks: d2 < r2 as integers, the same mask as isless bit
+ * for bit (the kept d2 are +0 or more, or +inf, never NaN, and r2 > 0 is finite: such floats
+ * order as their bits do), evaluated on the vector integer units instead of the FP pipes
+ * that bound the sums (three balls' kernel ~2 ms faster at 1M points on the Zen 4 EPYC) */
+#define BALL_LESS(d2, r2) (CAT(as_, IREALV)(d2) < (IREALV)CAT(as_, IREAL)(r2))
 /* chunks of candidates kept before each ball's sums run over them (features_pca) */
 #define FEATURES_BUF 16
 /* Each ball's sums over the kept chunks 0 .. nb - 1: lanes of the largest ball with
@@ -75,7 +80,7 @@ inline IREALV ball_mask(IREALV m, REALV dx, REALV dy, REALV dz, REAL r2)
         REALV xx1 = sxx[j], xy1 = sxy[j], xz1 = sxz[j], yy1 = syy[j], yz1 = syz[j];       \
         REALV zz1 = szz[j];                                                               \
         for (uint t = 0; t < (nb); ++t) {                                                 \
-            const IREALV m = isless(bd[t], (REALV)r2[j]);                                 \
+            const IREALV m = BALL_LESS(bd[t], r2[j]);                                     \
             const REALV w = select((REALV)0, (REALV)1, m);                                \
             PCA_ACCUMULATE(w, m, bx[t], by[t], bz[t], c1, w1, x1, y1, z1, xx1, xy1, xz1,  \
                            yy1, yz1, zz1)                                                 \
