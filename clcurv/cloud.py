@@ -398,10 +398,13 @@ def _fields(layout, n):
     return out + [("count", (n,), np.int64), ("status", (n,), np.uint8)]
 
 
-def _split_program(cloud, layout, real, host):
-    """records.cl built for ``layout``'s real fields ``real`` (``host``: SPLIT_HOST)."""
+def _split_program(cloud, layout, real, host, balls=0):
+    """records.cl built for ``layout``'s real fields ``real`` (``host``: SPLIT_HOST;
+    ``balls``: NB, the records of that many balls side by side)."""
     defines = dict(cloud.defines, NF=len(real), COL_COUNT=record_selector(layout["count"]),
                    COL_STATUS=record_selector(layout["status"]), SPLIT_HOST=int(host))
+    if balls:
+        defines["NB"] = int(balls)
     for k, (name, _, _) in enumerate(real):
         col = layout[name]
         a, b = (col, col + 1) if isinstance(col, int) else (col.start, col.stop)
@@ -458,6 +461,34 @@ def split_into_host(cloud, rec, layout, out):
         view, ev = cl.enqueue_map_buffer(q, bufs[name], cl.map_flags.READ, 0, shape, dtype)
         ev.wait()
         del view
+    q.finish()
+
+
+def split_balls_into_host(cloud, rec, layout, outs):
+    """:func:`split_into_host` for the records of ``len(outs)`` (2-4) balls side by side
+    per point in ``rec`` (features.cl: REC_BALLS), ball b's into the host arrays
+    ``outs[b]``: one pass over all the records (three strided passes, one per ball, cost
+    more than the side-by-side stores saved)."""
+    import pyopencl as cl
+    fields = _fields(layout, cloud.n)
+    real = fields[:-2]
+    prg = _split_program(cloud, layout, real, True, len(outs))
+    ctx, q = cloud.device.context, cloud.device.queue
+    flags = cl.mem_flags.WRITE_ONLY | cl.mem_flags.USE_HOST_PTR
+    bufs = [{name: cl.Buffer(ctx, flags, hostbuf=out[name]) for name, _, _ in fields}
+            for out in outs]
+    args = []
+    for b in range(4):
+        bb = bufs[min(b, len(bufs) - 1)]
+        r = [bb[name] for name, _, _ in real]
+        r += [r[0] if r else bb["count"]] * (6 - len(r))
+        args += r + [bb["count"], bb["status"]]
+    launch(cloud.device, prg.split_balls, cloud.n, rec, np.uint32(cloud.n), *args)
+    for bb in bufs:
+        for name, shape, dtype in fields:
+            view, ev = cl.enqueue_map_buffer(q, bb[name], cl.map_flags.READ, 0, shape, dtype)
+            ev.wait()
+            del view
     q.finish()
 
 

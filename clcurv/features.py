@@ -457,7 +457,8 @@ def run_features(cloud, radii, names, ddof=0, point_r2=None, anchored=True):
     import pyopencl.cltypes as ct
     from .anchor import cell_normals
     from .driver import row_prune
-    from .cloud import empty_fields, place_records, record_buffer, record_bytes
+    from .cloud import (empty_fields, place_records, record_buffer, record_bytes,
+                        split_balls_into_host, splits_into_host)
     from .program import batches, build, launch
     out = []
     groups = layouts(names)
@@ -471,19 +472,24 @@ def run_features(cloud, radii, names, ddof=0, point_r2=None, anchored=True):
         for group in groups:
             used = sum(FEATURES[n].width for n in group)
             layout = _split_layout(used)
+            plan = cloud.plan("kernel_features", nr * record_bytes(cloud, layout),
+                              widest=RECORD_WIDTH * np.dtype(cloud.dtype).itemsize,
+                              label="the coordinates, the grid")
+            chunked = plan.count > 1
+            # several radii on a CPU device: each point's records side by side (REC_BALLS)
+            side = nr if nr > 1 and not chunked and splits_into_host(cloud) else 0
             t0 = time.perf_counter()
-            opts = dict(cloud.defines, **program_defines(
+            opts = dict(cloud.defines, REC_BALLS=side, **program_defines(
                 group, nr, point_r2 is not None,
                 row_prune(cloud, max(walk), point_r2 is not None), anchored))
             prg = build(cloud.device, "features.cl", opts)
             ranges = cloud.with_middles() if opts["ROW_PRUNE"] else cloud.ranges
             t_build += time.perf_counter() - t0
-            plan = cloud.plan("kernel_features", nr * record_bytes(cloud, layout),
-                              widest=RECORD_WIDTH * np.dtype(cloud.dtype).itemsize,
-                              label="the coordinates, the grid")
-            chunked = plan.count > 1
-            recs = [record_buffer(cloud, plan.chunk) for _ in walk]
-            recs += [recs[0]] * (4 - nr)
+            if side:
+                recs = [record_buffer(cloud, plan.chunk * nr)] * 4
+            else:
+                recs = [record_buffer(cloud, plan.chunk) for _ in walk]
+                recs += [recs[0]] * (4 - nr)
             fields = [empty_fields(layout, cloud.n) for _ in walk]
             wbuf = point_r2 if point_r2 is not None else cloud.x
             anchors = cell_normals(cloud) if opts.get("REFINE_L0") else cloud.x
@@ -497,8 +503,11 @@ def run_features(cloud, radii, names, ddof=0, point_r2=None, anchored=True):
                        np.uint32(chunked), recs[0], make4(*r2), recs[1], recs[2], recs[3])
                 cloud.device.queue.finish()
                 t1 = time.perf_counter()
-                for j in range(nr):
-                    place_records(cloud, recs[j], layout, fields[j], first, stop, chunked)
+                if side:
+                    split_balls_into_host(cloud, recs[0], layout, fields)
+                else:
+                    for j in range(nr):
+                        place_records(cloud, recs[j], layout, fields[j], first, stop, chunked)
                 t_run, t_fetch = t_run + t1 - t0, t_fetch + time.perf_counter() - t1
             for j in range(nr):
                 vals = res[j][0]

@@ -35,17 +35,23 @@
     case 14: (rec).se = (v); break; default: (rec).sf = (v); break;                       \
     }
 
+/* the columns col into t[16][VW] (REC_STORE_LANES' first step) */
+#define REC_STAGE_LANES(col, t, used)                                                     \
+    _Pragma("unroll") for (int c_ = 0; c_ < 16; ++c_)                                     \
+        if (((used) >> c_) & 1) CAT(vstore, VW)((col)[c_], 0, (t)[c_]);
+/* the record of lane k from the staged columns t, stored at j of out */
+#define REC_EMIT(t, k, used, j, out)                                                      \
+    {                                                                                     \
+        REAL16 r_ = (REAL16)(NAN);                                                        \
+        _Pragma("unroll") for (int c_ = 0; c_ < 16; ++c_)                                 \
+            if (((used) >> c_) & 1) REC_SET(r_, c_, (t)[c_][k])                           \
+        REC_STORE(r_, (j), out);                                                          \
+    }
 #define REC_STORE_LANES(col, kn, g0, out, used)                                           \
     {                                                                                     \
         REAL t_[16][VW];                                                                  \
-        _Pragma("unroll") for (int c_ = 0; c_ < 16; ++c_)                                 \
-            if (((used) >> c_) & 1) CAT(vstore, VW)((col)[c_], 0, t_[c_]);                \
-        for (uint k_ = 0; k_ < (kn); ++k_) {                                              \
-            REAL16 r_ = (REAL16)(NAN);                                                    \
-            _Pragma("unroll") for (int c_ = 0; c_ < 16; ++c_)                             \
-                if (((used) >> c_) & 1) REC_SET(r_, c_, t_[c_][k_])                       \
-            REC_STORE(r_, REC_INDEX((g0) + k_), out);                                     \
-        }                                                                                 \
+        REC_STAGE_LANES(col, t_, used)                                                    \
+        for (uint k_ = 0; k_ < (kn); ++k_) REC_EMIT(t_, k_, used, REC_INDEX((g0) + k_), out) \
     }
 
 #endif

@@ -25,17 +25,12 @@
 #define SPLIT(k) \
     for (int c = 0; c < W##k; ++c) o##k[(size_t)j * W##k + c] = (OUT_REAL)v[S##k + c];
 
-/* The first n records to contiguous per-field arrays in the same order: every read and
- * write is sequential. */
-__kernel void split_records(__global const REAL *rec, const uint n,
-                            __global OUT_REAL *o0, __global OUT_REAL *o1,
-                            __global OUT_REAL *o2, __global OUT_REAL *o3,
-                            __global OUT_REAL *o4, __global OUT_REAL *o5,
-                            __global OUT_COUNT *count, __global uchar *status)
+/* Record r (of point j) into field k's array o<k>, count and status at j. */
+inline void split_one(const REAL16 r, const uint j, __global OUT_REAL *o0,
+                      __global OUT_REAL *o1, __global OUT_REAL *o2, __global OUT_REAL *o3,
+                      __global OUT_REAL *o4, __global OUT_REAL *o5, __global OUT_COUNT *count,
+                      __global uchar *status)
 {
-    const uint j = get_global_id(0);
-    if (j >= n) return;
-    const REAL16 r = vload16(j, rec);
     REAL v[RECORD_WIDTH];
     vstore16(r, 0, v);
 #if NF > 0
@@ -59,3 +54,42 @@ __kernel void split_records(__global const REAL *rec, const uint n,
     count[j] = (OUT_COUNT)REAL_AS_UINT(r.COL_COUNT);
     status[j] = (uchar)r.COL_STATUS;
 }
+
+/* The first n records to contiguous per-field arrays in the same order: every read and
+ * write is sequential. */
+__kernel void split_records(__global const REAL *rec, const uint n,
+                            __global OUT_REAL *o0, __global OUT_REAL *o1,
+                            __global OUT_REAL *o2, __global OUT_REAL *o3,
+                            __global OUT_REAL *o4, __global OUT_REAL *o5,
+                            __global OUT_COUNT *count, __global uchar *status)
+{
+    const uint j = get_global_id(0);
+    if (j >= n) return;
+    split_one(vload16(j, rec), j, o0, o1, o2, o3, o4, o5, count, status);
+}
+
+/* The same for the records of NB balls side by side per point (features.cl, REC_BALLS):
+ * record b of point j at j NB + b goes to ball b's arrays; one sequential read of them all. */
+#define BALL_OUTS(b)                                                                      \
+    __global OUT_REAL *o0_##b, __global OUT_REAL *o1_##b, __global OUT_REAL *o2_##b,      \
+    __global OUT_REAL *o3_##b, __global OUT_REAL *o4_##b, __global OUT_REAL *o5_##b,      \
+    __global OUT_COUNT *count_##b, __global uchar *status_##b
+#define BALL_SPLIT(b)                                                                     \
+    split_one(vload16((size_t)j * NB + (b), rec), j, o0_##b, o1_##b, o2_##b, o3_##b,      \
+              o4_##b, o5_##b, count_##b, status_##b);
+#ifdef NB
+__kernel void split_balls(__global const REAL *rec, const uint n, BALL_OUTS(0),
+                          BALL_OUTS(1), BALL_OUTS(2), BALL_OUTS(3))
+{
+    const uint j = get_global_id(0);
+    if (j >= n) return;
+    BALL_SPLIT(0)
+    BALL_SPLIT(1)
+#if NB > 2
+    BALL_SPLIT(2)
+#endif
+#if NB > 3
+    BALL_SPLIT(3)
+#endif
+}
+#endif
