@@ -353,8 +353,10 @@ def program_variants(precision_defines):
     split = dict(base, NF=6, COL_COUNT=layout["COL_COUNT"], COL_STATUS=layout["COL_STATUS"],
                  **{f"{a}{k}": 1 for k in range(6) for a in "SW"})
     out.append(("records.cl", dict(split, SPLIT_HOST=0)))
+    out.append(("records.cl", dict(split, SPLIT_HOST=0, NB=4)))   # features.cl's REC_BALLS
     if base.get("REAL_IS_DOUBLE"):      # the split into float64 host arrays needs fp64
         out.append(("records.cl", dict(split, SPLIT_HOST=1)))
+        out.append(("records.cl", dict(split, SPLIT_HOST=1, NB=4)))
     for k in {op.kernel.name: op.kernel for op in OPERATORS.values()}.values():
         gaussian = any("kernel" in op.options for op in OPERATORS.values() if op.kernel is k)
         out.append((k.file, dict(base, **k.build_defines(), DENSITY=1, GAUSSIAN=int(gaussian),
@@ -366,6 +368,8 @@ def program_variants(precision_defines):
     from .features import FEATURES, layouts, program_defines
     for group in layouts(tuple(FEATURES)):               # clcurv.features: every column
         out.append(("features.cl", dict(base, **program_defines(group, 4))))
+        out.append(("features.cl", dict(base, **program_defines(group, 4,
+                                                                side_by_side=True))))
         out.append(("features.cl", dict(base, **program_defines(group, 1, True))))
     # the covariance operators' PCA normals of several radii (clcurv.api._radius_list)
     out.append(("features.cl", dict(base, **program_defines(layouts(("normals",))[0], 4,

@@ -43,12 +43,9 @@
 #include "cbrt.h"
 #include "lanes_records.h"
 
-#ifndef REC_BALLS
-#define REC_BALLS 0
-#endif
 #if !defined(NR) || NR < 1 || NR > 4 || !defined(REFINE_L0) || !defined(MIN_COUNT) \
-    || !defined(CIX_COUNT) || !defined(CIX_STATUS) || !defined(REC_USED)
-#error "features.cl needs NR (1..4), REFINE_L0, MIN_COUNT and its record columns (clcurv/features.py)"
+    || !defined(CIX_COUNT) || !defined(CIX_STATUS) || !defined(REC_USED) || !defined(REC_BALLS)
+#error "features.cl needs NR (1..4), REFINE_L0, MIN_COUNT, REC_BALLS and its record columns (clcurv/features.py)"
 #endif
 
 #if REAL_IS_DOUBLE
