@@ -25,7 +25,7 @@ from .host_threads import host_pool
 from .host_memory import empty as host_empty
 from .memory import buffer as device_buffer, release_memory
 from .grid import CELLS_PER_ITEM, bin_points, check_pairs, sentinel_keys
-from .program import build, launch, precision_defines
+from .program import build, launch, local_size, precision_defines
 from .validate import as_points, as_radius, device_radius
 
 #: Use at most this many bytes of device memory (None: what the device reports). A knob for
@@ -398,13 +398,14 @@ def _fields(layout, n):
     return out + [("count", (n,), np.int64), ("status", (n,), np.uint8)]
 
 
-def _split_program(cloud, layout, real, host, balls=0):
+def _split_program(cloud, layout, real, host, balls=None):
     """records.cl built for ``layout``'s real fields ``real`` (``host``: SPLIT_HOST;
-    ``balls``: NB, the records of that many balls side by side)."""
+    ``balls``: (NB, REC_BALL, REC_BLOCK), ball REC_BALL's records among those of NB balls
+    in blocks of REC_BLOCK points: features.cl's REC_BALLS)."""
     defines = dict(cloud.defines, NF=len(real), COL_COUNT=record_selector(layout["count"]),
                    COL_STATUS=record_selector(layout["status"]), SPLIT_HOST=int(host))
     if balls:
-        defines["NB"] = int(balls)
+        defines.update(NB=int(balls[0]), REC_BALL=int(balls[1]), REC_BLOCK=int(balls[2]))
     for k, (name, _, _) in enumerate(real):
         col = layout[name]
         a, b = (col, col + 1) if isinstance(col, int) else (col.start, col.stop)
@@ -412,20 +413,31 @@ def _split_program(cloud, layout, real, host, balls=0):
     return build(cloud.device, "records.cl", defines)
 
 
-def split_records(cloud, rec, layout, n, mapped=None):
+def _split_launch(cloud, prg, n, balls, *args):
+    """split_records over ``n`` records: 1D, or with ``balls`` (NB, b, block) over
+    (block, blocks) work-items, so that x runs along one ball's block of records."""
+    if not balls:
+        return launch(cloud.device, prg.split_records, n, *args)
+    block = int(balls[2])
+    ls = min(local_size(cloud.device, prg.split_records), block)
+    return prg.split_records(cloud.device.queue, (-(-block // ls) * ls, -(-n // block)),
+                             (ls, 1), *args)
+
+
+def split_records(cloud, rec, layout, n, mapped=None, balls=None):
     """The fields of the first ``n`` records of ``rec`` as host arrays in the device's types
     (REAL, count uint32, status uint8), in the records' order: a list of (name, array). The
     device splits the records into contiguous per-field arrays first (records.cl), so the
     host only casts."""
     fields = _fields(layout, n)
     real = fields[:-2]
-    prg = _split_program(cloud, layout, real, False)
+    prg = _split_program(cloud, layout, real, False, balls)
     item = np.dtype(cloud.dtype).itemsize
     new = lambda nbytes: device_buffer(cloud.device, nbytes)
     outs = [new(int(np.prod(shape)) * item) for _, shape, _ in real]
     outs += [outs[0] if outs else rec] * (6 - len(outs))       # unused placeholders
     count, status = new(4 * n), new(n)
-    launch(cloud.device, prg.split_records, n, rec, np.uint32(n), *outs, count, status)
+    _split_launch(cloud, prg, n, balls, rec, np.uint32(n), *outs, count, status)
     host = [(name, _host_array(cloud, buf, shape, cloud.dtype, mapped))
             for (name, shape, _), buf in zip(real, outs)]
     return host + [("count", _host_array(cloud, count, (n,), np.uint32, mapped)),
@@ -439,7 +451,7 @@ def empty_fields(layout, n):
     return {name: host_empty(shape, dtype) for name, shape, dtype in _fields(layout, n)}
 
 
-def split_into_host(cloud, rec, layout, out):
+def split_into_host(cloud, rec, layout, out, balls=None):
     """Split the records of every point (``rec``, input order) straight into the host
     arrays ``out`` (:func:`empty_fields`: float64, count int64, status uint8), which the
     device writes in place (USE_HOST_PTR), casting as it goes: one pass instead of the split
@@ -449,46 +461,18 @@ def split_into_host(cloud, rec, layout, out):
     import pyopencl as cl
     fields = _fields(layout, cloud.n)
     real = fields[:-2]
-    prg = _split_program(cloud, layout, real, True)
+    prg = _split_program(cloud, layout, real, True, balls)
     ctx, q = cloud.device.context, cloud.device.queue
     flags = cl.mem_flags.WRITE_ONLY | cl.mem_flags.USE_HOST_PTR
     bufs = {name: cl.Buffer(ctx, flags, hostbuf=out[name]) for name, _, _ in fields}
     outs = [bufs[name] for name, _, _ in real]
     outs += [outs[0] if outs else bufs["count"]] * (6 - len(outs))   # unused placeholders
-    launch(cloud.device, prg.split_records, cloud.n, rec, np.uint32(cloud.n), *outs,
-           bufs["count"], bufs["status"])
+    _split_launch(cloud, prg, cloud.n, balls, rec, np.uint32(cloud.n), *outs,
+                  bufs["count"], bufs["status"])
     for name, shape, dtype in fields:       # the host's view is valid once mapped
         view, ev = cl.enqueue_map_buffer(q, bufs[name], cl.map_flags.READ, 0, shape, dtype)
         ev.wait()
         del view
-    q.finish()
-
-
-def split_balls_into_host(cloud, rec, layout, outs):
-    """:func:`split_into_host` for the records of ``len(outs)`` (2-4) balls side by side
-    per point in ``rec`` (features.cl: REC_BALLS), ball b's into the host arrays
-    ``outs[b]``: one pass over all the records (three strided passes, one per ball, cost
-    more than the side-by-side stores saved)."""
-    import pyopencl as cl
-    fields = _fields(layout, cloud.n)
-    real = fields[:-2]
-    prg = _split_program(cloud, layout, real, True, len(outs))
-    ctx, q = cloud.device.context, cloud.device.queue
-    flags = cl.mem_flags.WRITE_ONLY | cl.mem_flags.USE_HOST_PTR
-    bufs = [{name: cl.Buffer(ctx, flags, hostbuf=out[name]) for name, _, _ in fields}
-            for out in outs]
-    args = []
-    for b in range(4):
-        bb = bufs[min(b, len(bufs) - 1)]
-        r = [bb[name] for name, _, _ in real]
-        r += [r[0] if r else bb["count"]] * (6 - len(r))
-        args += r + [bb["count"], bb["status"]]
-    launch(cloud.device, prg.split_balls, cloud.n, rec, np.uint32(cloud.n), *args)
-    for bb in bufs:
-        for name, shape, dtype in fields:
-            view, ev = cl.enqueue_map_buffer(q, bb[name], cl.map_flags.READ, 0, shape, dtype)
-            ev.wait()
-            del view
     q.finish()
 
 
@@ -498,16 +482,17 @@ def splits_into_host(cloud):
     return cloud.device.info.kind == "cpu" and cloud.device.info.fp64
 
 
-def place_records(cloud, rec, layout, out, first, stop, chunked, mapped=None):
+def place_records(cloud, rec, layout, out, first, stop, chunked, mapped=None, balls=None):
     """Split the records of the sorted points [first, stop) in ``rec`` and write them to the
     host arrays ``out`` (:func:`empty_fields`) at their input indices: ``rec`` holds the
     records of every point at its input index (``chunked`` false, then first = 0 and stop =
     N), or those of the chunk at g - first (``chunked``: scattered by ``cloud.grid.order``).
     Whole-cloud records on a CPU device with fp64 go straight into ``out``
-    (:func:`split_into_host`) unless ``mapped`` chooses the other ways."""
+    (:func:`split_into_host`) unless ``mapped`` chooses the other ways. ``balls``: (NB, b,
+    block), ``rec`` holds NB balls' records, ball b's to split (features.cl: REC_BALLS)."""
     if not chunked and mapped is None and splits_into_host(cloud):
-        return split_into_host(cloud, rec, layout, out)
-    host = split_records(cloud, rec, layout, stop - first, mapped)
+        return split_into_host(cloud, rec, layout, out, balls)
+    host = split_records(cloud, rec, layout, stop - first, mapped, balls)
     at = cloud.grid.order[first:stop] if chunked else slice(first, stop)
 
     def put(h):

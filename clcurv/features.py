@@ -429,6 +429,13 @@ def _split_layout(used):
     return dict(out, count=_COLUMNS, status=_COLUMNS + 1)
 
 
+#: several radii on a CPU device: the balls' records in one buffer, in blocks of this many
+#: points (features.cl: REC_BALLS): a point's records of its balls lie close together, so
+#: that the kernel's scattered stores cost less, and each ball's block is long enough for
+#: the split to read it as one run
+REC_BLOCK = 128
+
+
 def program_defines(group, nr, point_radius=False, row_prune=0, anchored=True,
                     side_by_side=False):
     """Build options of features.cl for one record layout ``group`` and ``nr`` radii
@@ -446,7 +453,7 @@ def program_defines(group, nr, point_radius=False, row_prune=0, anchored=True,
     return dict(cols, CIX_COUNT=_COLUMNS, CIX_STATUS=_COLUMNS + 1, REC_USED=hex(used), NR=nr,
                 REFINE_L0=int(anchored), MIN_COUNT=MIN_COUNT_PCA, DENSITY=0, GAUSSIAN=0,
                 REF_NORMALS=0, POINT_RADIUS=int(point_radius), ROW_PRUNE=int(row_prune),
-                REC_BALLS=nr if side_by_side else 0)
+                REC_BALLS=nr if side_by_side else 0, REC_BLOCK=REC_BLOCK)
 
 
 def run_features(cloud, radii, names, ddof=0, point_r2=None, anchored=True):
@@ -462,7 +469,7 @@ def run_features(cloud, radii, names, ddof=0, point_r2=None, anchored=True):
     from .anchor import cell_normals
     from .driver import row_prune
     from .cloud import (empty_fields, place_records, record_buffer, record_bytes,
-                        split_balls_into_host, splits_into_host)
+                        splits_into_host)
     from .program import batches, build, launch
     out = []
     groups = layouts(names)
@@ -490,7 +497,8 @@ def run_features(cloud, radii, names, ddof=0, point_r2=None, anchored=True):
             ranges = cloud.with_middles() if opts["ROW_PRUNE"] else cloud.ranges
             t_build += time.perf_counter() - t0
             if side:
-                recs = [record_buffer(cloud, plan.chunk * nr)] * 4
+                blocks = -(-plan.chunk // REC_BLOCK)
+                recs = [record_buffer(cloud, blocks * REC_BLOCK * nr)] * 4
             else:
                 recs = [record_buffer(cloud, plan.chunk) for _ in walk]
                 recs += [recs[0]] * (4 - nr)
@@ -507,11 +515,9 @@ def run_features(cloud, radii, names, ddof=0, point_r2=None, anchored=True):
                        np.uint32(chunked), recs[0], make4(*r2), recs[1], recs[2], recs[3])
                 cloud.device.queue.finish()
                 t1 = time.perf_counter()
-                if side:
-                    split_balls_into_host(cloud, recs[0], layout, fields)
-                else:
-                    for j in range(nr):
-                        place_records(cloud, recs[j], layout, fields[j], first, stop, chunked)
+                for j in range(nr):
+                    place_records(cloud, recs[j], layout, fields[j], first, stop, chunked,
+                                  balls=(nr, j, REC_BLOCK) if side else None)
                 t_run, t_fetch = t_run + t1 - t0, t_fetch + time.perf_counter() - t1
             for j in range(nr):
                 vals = res[j][0]

@@ -353,10 +353,11 @@ def program_variants(precision_defines):
     split = dict(base, NF=6, COL_COUNT=layout["COL_COUNT"], COL_STATUS=layout["COL_STATUS"],
                  **{f"{a}{k}": 1 for k in range(6) for a in "SW"})
     out.append(("records.cl", dict(split, SPLIT_HOST=0)))
-    out.append(("records.cl", dict(split, SPLIT_HOST=0, NB=4)))   # features.cl's REC_BALLS
+    balls = dict(NB=4, REC_BALL=3, REC_BLOCK=128)     # features.cl's REC_BALLS
+    out.append(("records.cl", dict(split, SPLIT_HOST=0, **balls)))
     if base.get("REAL_IS_DOUBLE"):      # the split into float64 host arrays needs fp64
         out.append(("records.cl", dict(split, SPLIT_HOST=1)))
-        out.append(("records.cl", dict(split, SPLIT_HOST=1, NB=4)))
+        out.append(("records.cl", dict(split, SPLIT_HOST=1, **balls)))
     for k in {op.kernel.name: op.kernel for op in OPERATORS.values()}.values():
         gaussian = any("kernel" in op.options for op in OPERATORS.values() if op.kernel is k)
         out.append((k.file, dict(base, **k.build_defines(), DENSITY=1, GAUSSIAN=int(gaussian),

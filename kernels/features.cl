@@ -29,7 +29,8 @@
  * Build options: NR (1..4) radii, their r^2 in r2s (x, y, z, w), or with POINT_RADIUS
  * (NR = 1) each point's own r^2 in W (radius.h); the records of radius j go to out (j = 0),
  * out1, out2, out3 (one record per point, REC_INDEX), or with REC_BALLS (= NR) all to out,
- * the point's NR records side by side at REC_INDEX NR + j (records.cl: split_balls);
+ * in blocks of REC_BLOCK points, each block ball 0's records, then ball 1's... (records.cl:
+ * split_records with NB);
  * REFINE_L0, DENSITY, MIN_COUNT,
  * and the records' columns: CIX_COUNT, CIX_STATUS, one CIX_<FEATURE> (its first column) per
  * feature wanted and REC_USED their mask (clcurv/features.py, lanes_records.h).
@@ -44,8 +45,9 @@
 #include "lanes_records.h"
 
 #if !defined(NR) || NR < 1 || NR > 4 || !defined(REFINE_L0) || !defined(MIN_COUNT) \
-    || !defined(CIX_COUNT) || !defined(CIX_STATUS) || !defined(REC_USED) || !defined(REC_BALLS)
-#error "features.cl needs NR (1..4), REFINE_L0, MIN_COUNT, REC_BALLS and its record columns (clcurv/features.py)"
+    || !defined(CIX_COUNT) || !defined(CIX_STATUS) || !defined(REC_USED) || !defined(REC_BALLS) \
+    || !defined(REC_BLOCK)
+#error "features.cl needs NR (1..4), REFINE_L0, MIN_COUNT, REC_BALLS, REC_BLOCK and its record columns (clcurv/features.py)"
 #endif
 
 #if REAL_IS_DOUBLE
@@ -382,13 +384,16 @@ __kernel void features(OPERATOR_ARGS, const REAL4 r2s, __global REAL *out1,
 #endif
 #if REC_BALLS
         {
-            /* the NR records of a point side by side in out (REC_BALLS = NR), so that the
-               point's scattered stores go to one block of NR lines (three radii's kernel
-               5-20 ms faster on the EPYC, more when the memory is busy) */
+            /* the NR balls' records in out, in blocks of REC_BLOCK points, each block ball
+               0's records, then ball 1's...: a point's NR scattered lines land close
+               together (records.cl: split_records with NB) */
             REAL t_[16][VW];
             REC_STAGE_LANES(col, t_, REC_USED)
-            for (uint k = 0; k < kn; ++k)
-                REC_EMIT(t_, k, REC_USED, (size_t)REC_INDEX(g0 + k) * NR + j, out)
+            for (uint k = 0; k < kn; ++k) {
+                const uint i = REC_INDEX(g0 + k);
+                REC_EMIT(t_, k, REC_USED, (size_t)(i / REC_BLOCK) * (REC_BLOCK * NR)
+                                          + j * REC_BLOCK + i % REC_BLOCK, out)
+            }
         }
 #else
         __global REAL *o = j == 0 ? out : j == 1 ? out1 : j == 2 ? out2 : out3;

@@ -14,6 +14,9 @@
 #if !defined(NF) || !defined(COL_COUNT) || !defined(COL_STATUS)
 #error "records.cl needs NF, COL_COUNT and COL_STATUS (clcurv/cloud.py:fetch_records)"
 #endif
+/* With NB (the records of NB balls in one buffer, features.cl's REC_BALLS): ball
+ * REC_BALL's records, the buffer holding blocks of REC_BLOCK points, each block ball 0's
+ * REC_BLOCK records, then ball 1's... */
 #if defined(SPLIT_HOST) && SPLIT_HOST
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #define OUT_REAL double
@@ -63,33 +66,16 @@ __kernel void split_records(__global const REAL *rec, const uint n,
                             __global OUT_REAL *o4, __global OUT_REAL *o5,
                             __global OUT_COUNT *count, __global uchar *status)
 {
+#ifdef NB
+    /* work-items (x, block): x + block REC_BLOCK, x unit-stride in the records too */
+    const uint x = get_global_id(0), blk = get_global_id(1);
+    const uint j = blk * REC_BLOCK + x;
+    if (j >= n || x >= REC_BLOCK) return;
+    split_one(vload16((size_t)blk * (REC_BLOCK * NB) + REC_BALL * REC_BLOCK + x, rec), j, o0,
+              o1, o2, o3, o4, o5, count, status);
+#else
     const uint j = get_global_id(0);
     if (j >= n) return;
     split_one(vload16(j, rec), j, o0, o1, o2, o3, o4, o5, count, status);
-}
-
-/* The same for the records of NB balls side by side per point (features.cl, REC_BALLS):
- * record b of point j at j NB + b goes to ball b's arrays; one sequential read of them all. */
-#define BALL_OUTS(b)                                                                      \
-    __global OUT_REAL *o0_##b, __global OUT_REAL *o1_##b, __global OUT_REAL *o2_##b,      \
-    __global OUT_REAL *o3_##b, __global OUT_REAL *o4_##b, __global OUT_REAL *o5_##b,      \
-    __global OUT_COUNT *count_##b, __global uchar *status_##b
-#define BALL_SPLIT(b)                                                                     \
-    split_one(vload16((size_t)j * NB + (b), rec), j, o0_##b, o1_##b, o2_##b, o3_##b,      \
-              o4_##b, o5_##b, count_##b, status_##b);
-#ifdef NB
-__kernel void split_balls(__global const REAL *rec, const uint n, BALL_OUTS(0),
-                          BALL_OUTS(1), BALL_OUTS(2), BALL_OUTS(3))
-{
-    const uint j = get_global_id(0);
-    if (j >= n) return;
-    BALL_SPLIT(0)
-    BALL_SPLIT(1)
-#if NB > 2
-    BALL_SPLIT(2)
-#endif
-#if NB > 3
-    BALL_SPLIT(3)
 #endif
 }
-#endif
