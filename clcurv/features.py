@@ -437,15 +437,15 @@ REC_BLOCK = 128
 
 
 def program_defines(group, nr, point_radius=False, row_prune=0, anchored=True,
-                    side_by_side=False):
+                    one_buffer=False):
     """Build options of features.cl for one record layout ``group`` and ``nr`` radii
     (``row_prune``: clcurv.driver.row_prune of the walk's largest radius): each feature's
     first record column (CIX_<FEATURE>), count's and status's, and REC_USED the mask of
     the columns written (kernels/lanes_records.h). ``anchored`` false builds the plain PCA
     (REFINE_L0=0: no anchor frame, no lambda0 refinement), whose sums, eigenvectors and
     status are those of the moments kernel built so (clcurv.api's PCA normals pass).
-    ``side_by_side``: each point's ``nr`` records side by side in one buffer (REC_BALLS,
-    split by records.cl's split_balls), else one buffer per radius."""
+    ``one_buffer``: the ``nr`` radii's records in one buffer, in blocks of
+    :data:`REC_BLOCK` points (REC_BALLS), else one buffer per radius."""
     cols = {f"CIX_{n.upper()}": c for n, c in group.items()}
     used = (1 << _COLUMNS) | (1 << (_COLUMNS + 1))
     for n, c in group.items():
@@ -453,7 +453,7 @@ def program_defines(group, nr, point_radius=False, row_prune=0, anchored=True,
     return dict(cols, CIX_COUNT=_COLUMNS, CIX_STATUS=_COLUMNS + 1, REC_USED=hex(used), NR=nr,
                 REFINE_L0=int(anchored), MIN_COUNT=MIN_COUNT_PCA, DENSITY=0, GAUSSIAN=0,
                 REF_NORMALS=0, POINT_RADIUS=int(point_radius), ROW_PRUNE=int(row_prune),
-                REC_BALLS=nr if side_by_side else 0, REC_BLOCK=REC_BLOCK)
+                REC_BALLS=nr if one_buffer else 0, REC_BLOCK=REC_BLOCK)
 
 
 def run_features(cloud, radii, names, ddof=0, point_r2=None, anchored=True):
@@ -487,16 +487,16 @@ def run_features(cloud, radii, names, ddof=0, point_r2=None, anchored=True):
                               widest=RECORD_WIDTH * np.dtype(cloud.dtype).itemsize,
                               label="the coordinates, the grid")
             chunked = plan.count > 1
-            # several radii on a CPU device: each point's records side by side (REC_BALLS)
-            side = nr if nr > 1 and not chunked and splits_into_host(cloud) else 0
+            # several radii on a CPU device: their records in one buffer (REC_BLOCK)
+            one = nr > 1 and not chunked and splits_into_host(cloud)
             t0 = time.perf_counter()
             opts = dict(cloud.defines, **program_defines(
                 group, nr, point_r2 is not None,
-                row_prune(cloud, max(walk), point_r2 is not None), anchored, bool(side)))
+                row_prune(cloud, max(walk), point_r2 is not None), anchored, one))
             prg = build(cloud.device, "features.cl", opts)
             ranges = cloud.with_middles() if opts["ROW_PRUNE"] else cloud.ranges
             t_build += time.perf_counter() - t0
-            if side:
+            if one:
                 blocks = -(-plan.chunk // REC_BLOCK)
                 recs = [record_buffer(cloud, blocks * REC_BLOCK * nr)] * 4
             else:
@@ -517,7 +517,7 @@ def run_features(cloud, radii, names, ddof=0, point_r2=None, anchored=True):
                 t1 = time.perf_counter()
                 for j in range(nr):
                     place_records(cloud, recs[j], layout, fields[j], first, stop, chunked,
-                                  balls=(nr, j, REC_BLOCK) if side else None)
+                                  balls=(nr, j, REC_BLOCK) if one else None)
                 t_run, t_fetch = t_run + t1 - t0, t_fetch + time.perf_counter() - t1
             for j in range(nr):
                 vals = res[j][0]

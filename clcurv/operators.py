@@ -370,7 +370,7 @@ def program_variants(precision_defines):
     for group in layouts(tuple(FEATURES)):               # clcurv.features: every column
         out.append(("features.cl", dict(base, **program_defines(group, 4))))
         out.append(("features.cl", dict(base, **program_defines(group, 4,
-                                                                side_by_side=True))))
+                                                                one_buffer=True))))
         out.append(("features.cl", dict(base, **program_defines(group, 1, True))))
     # the covariance operators' PCA normals of several radii (clcurv.api._radius_list)
     out.append(("features.cl", dict(base, **program_defines(layouts(("normals",))[0], 4,

@@ -87,6 +87,11 @@
 #ifndef REC_STORE
 #define REC_STORE(rec, j, out) vstore16((rec), (j), (out))
 #endif
+/* Where the record of ball b of the point at x in block blk lies when the records of nb
+ * balls share one buffer in blocks of REC_BLOCK points, each block ball 0's REC_BLOCK
+ * records, then ball 1's, ... (features.cl's REC_BALLS, records.cl's split with NB) */
+#define REC_IN_BLOCKS(blk, x, b, nb) \
+    ((size_t)(blk) * (REC_BLOCK * (nb)) + (size_t)(b) * REC_BLOCK + (x))
 
 /* acc + 1 in the lanes of the mask m (its lanes all ones or zero), + 0 elsewhere (the count
  * of a ball's points with uniform weights, pca.h and covariances.cl): the sums of

@@ -29,8 +29,7 @@
  * Build options: NR (1..4) radii, their r^2 in r2s (x, y, z, w), or with POINT_RADIUS
  * (NR = 1) each point's own r^2 in W (radius.h); the records of radius j go to out (j = 0),
  * out1, out2, out3 (one record per point, REC_INDEX), or with REC_BALLS (= NR) all to out,
- * in blocks of REC_BLOCK points, each block ball 0's records, then ball 1's... (records.cl:
- * split_records with NB);
+ * in blocks of REC_BLOCK points (common.h: REC_IN_BLOCKS; records.cl's split with NB);
  * REFINE_L0, DENSITY, MIN_COUNT,
  * and the records' columns: CIX_COUNT, CIX_STATUS, one CIX_<FEATURE> (its first column) per
  * feature wanted and REC_USED their mask (clcurv/features.py, lanes_records.h).
@@ -384,15 +383,14 @@ __kernel void features(OPERATOR_ARGS, const REAL4 r2s, __global REAL *out1,
 #endif
 #if REC_BALLS
         {
-            /* the NR balls' records in out, in blocks of REC_BLOCK points, each block ball
-               0's records, then ball 1's...: a point's NR scattered lines land close
-               together (records.cl: split_records with NB) */
+            /* the NR balls' records in out, in blocks (common.h: REC_IN_BLOCKS): a point's
+               NR scattered lines land close together */
             REAL t_[16][VW];
             REC_STAGE_LANES(col, t_, REC_USED)
             for (uint k = 0; k < kn; ++k) {
                 const uint i = REC_INDEX(g0 + k);
-                REC_EMIT(t_, k, REC_USED, (size_t)(i / REC_BLOCK) * (REC_BLOCK * NR)
-                                          + j * REC_BLOCK + i % REC_BLOCK, out)
+                REC_EMIT(t_, k, REC_USED, REC_IN_BLOCKS(i / REC_BLOCK, i % REC_BLOCK, j, NR),
+                         out)
             }
         }
 #else

@@ -14,9 +14,8 @@
 #if !defined(NF) || !defined(COL_COUNT) || !defined(COL_STATUS)
 #error "records.cl needs NF, COL_COUNT and COL_STATUS (clcurv/cloud.py:fetch_records)"
 #endif
-/* With NB (the records of NB balls in one buffer, features.cl's REC_BALLS): ball
- * REC_BALL's records, the buffer holding blocks of REC_BLOCK points, each block ball 0's
- * REC_BLOCK records, then ball 1's... */
+/* With NB: ball REC_BALL's records among those of NB balls in one buffer, in blocks
+ * (common.h: REC_IN_BLOCKS; features.cl's REC_BALLS) */
 #if defined(SPLIT_HOST) && SPLIT_HOST
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #define OUT_REAL double
@@ -71,8 +70,8 @@ __kernel void split_records(__global const REAL *rec, const uint n,
     const uint x = get_global_id(0), blk = get_global_id(1);
     const uint j = blk * REC_BLOCK + x;
     if (j >= n || x >= REC_BLOCK) return;
-    split_one(vload16((size_t)blk * (REC_BLOCK * NB) + REC_BALL * REC_BLOCK + x, rec), j, o0,
-              o1, o2, o3, o4, o5, count, status);
+    split_one(vload16(REC_IN_BLOCKS(blk, x, REC_BALL, NB), rec), j, o0, o1, o2, o3, o4, o5,
+              count, status);
 #else
     const uint j = get_global_id(0);
     if (j >= n) return;
