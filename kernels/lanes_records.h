@@ -47,6 +47,31 @@
             if (((used) >> c_) & 1) REC_SET(r_, c_, (t)[c_][k])                           \
         REC_STORE(r_, (j), out);                                                          \
     }
+/* REC_HOST (CPU devices with cl_khr_fp64: clcurv/features.py): the record of lane k as 16
+ * doubles, stored at row j of the caller's float64 (N, 16) array itself (USE_HOST_PTR),
+ * with no record buffer and no split: the real columns cast to double as the split casts
+ * them, count (column cc, uint bits) and status (column cs, a small integer) as the bits
+ * of an int64 and of the low byte, which the host reads through int64 and uint8 views.
+ * One non-temporal store of two whole lines (the array is 128-byte aligned). */
+#define REC_HOST_VALUE(t, k, c, cc, cs)                                                   \
+    ((c) == (cc) ? as_double((ulong)REAL_AS_UINT((t)[c][k]))                              \
+     : (c) == (cs) ? as_double((ulong)(uint)(t)[c][k]) : (double)(t)[c][k])
+#define REC_EMIT_HOST(t, k, used, cc, cs, j, out)                                         \
+    {                                                                                     \
+        double16 r_ = (double16)(NAN);                                                    \
+        _Pragma("unroll") for (int c_ = 0; c_ < 16; ++c_)                                 \
+            if (((used) >> c_) & 1) REC_SET(r_, c_, REC_HOST_VALUE(t, k, c_, cc, cs))     \
+        REC_STORE_HOST(r_, (j), out);                                                     \
+    }
+#if defined(__has_builtin)
+#if __has_builtin(__builtin_nontemporal_store)
+#define REC_STORE_HOST(rec, j, out) \
+    __builtin_nontemporal_store((rec), (__global double16 *)(out) + (j))
+#endif
+#endif
+#ifndef REC_STORE_HOST
+#define REC_STORE_HOST(rec, j, out) vstore16((rec), (j), (__global double *)(out))
+#endif
 #define REC_STORE_LANES(col, kn, g0, out, used)                                           \
     {                                                                                     \
         REAL t_[16][VW];                                                                  \
