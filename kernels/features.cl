@@ -388,11 +388,11 @@ __kernel void features(OPERATOR_ARGS, const REAL4 r2s, __global REAL *out1,
 #if REC_HOST
         {
             /* each ball's records straight into its host array (lanes_records.h) */
-            REAL t_[16][VW];
-            REC_STAGE_LANES(col, t_, REC_USED)
+            double t_[16][VW];
+            REC_STAGE_HOST(col, t_, REC_USED, CIX_COUNT, CIX_STATUS)
             __global REAL *o = j == 0 ? out : j == 1 ? out1 : j == 2 ? out2 : out3;
             for (uint k = 0; k < kn; ++k)
-                REC_EMIT_HOST(t_, k, REC_USED, CIX_COUNT, CIX_STATUS, REC_INDEX(g0 + k), o)
+                REC_EMIT_HOST(t_, k, REC_USED, REC_INDEX(g0 + k), o)
         }
 #elif REC_BALLS
         {

@@ -47,20 +47,32 @@
             if (((used) >> c_) & 1) REC_SET(r_, c_, (t)[c_][k])                           \
         REC_STORE(r_, (j), out);                                                          \
     }
-/* REC_HOST (CPU devices with cl_khr_fp64: clcurv/features.py): the record of lane k as 16
+/* REC_HOST (CPU devices with cl_khr_fp64: clcurv/features.py): the records as rows of 16
  * doubles, stored at row j of the caller's float64 (N, 16) array itself (USE_HOST_PTR),
- * with no record buffer and no split: the real columns cast to double as the split casts
- * them, count (column cc, uint bits) and status (column cs, a small integer) as the bits
- * of an int64 and of the low byte, which the host reads through int64 and uint8 views.
- * One non-temporal store of two whole lines (the array is 128-byte aligned). */
-#define REC_HOST_VALUE(t, k, c, cc, cs)                                                   \
-    ((c) == (cc) ? as_double((ulong)REAL_AS_UINT((t)[c][k]))                              \
-     : (c) == (cs) ? as_double((ulong)(uint)(t)[c][k]) : (double)(t)[c][k])
-#define REC_EMIT_HOST(t, k, used, cc, cs, j, out)                                         \
+ * with no record buffer and no split. The columns are cast to double as vectors (the
+ * split's casts, lane by lane), count (column cc, uint bits) and status (column cs, a small
+ * integer) to the bits of an int64 and of its low byte, which the host reads through int64
+ * and uint8 views; then each lane's row is one non-temporal store of two whole lines (the
+ * array is 128-byte aligned). */
+#if REAL_IS_DOUBLE
+#define LANES_UINT_BITS(v) CAT(convert_uint, VW)(CAT(as_ulong, VW)(v))
+#else
+#define LANES_UINT_BITS(v) CAT(as_uint, VW)(v)
+#endif
+#define DOUBLEV CAT(double, VW)
+#define REC_HOST_COLUMN(col, c, cc, cs)                                                   \
+    ((c) == (cc) ? CAT(as_double, VW)(CAT(convert_ulong, VW)(LANES_UINT_BITS((col)[c])))  \
+     : (c) == (cs) ? CAT(as_double, VW)(CAT(convert_ulong, VW)((col)[c]))                 \
+     : CAT(convert_double, VW)((col)[c]))
+/* the columns col into t[16][VW] of doubles (REC_EMIT_HOST's first step) */
+#define REC_STAGE_HOST(col, t, used, cc, cs)                                              \
+    _Pragma("unroll") for (int c_ = 0; c_ < 16; ++c_)                                     \
+        if (((used) >> c_) & 1) CAT(vstore, VW)(REC_HOST_COLUMN(col, c_, cc, cs), 0, (t)[c_]);
+#define REC_EMIT_HOST(t, k, used, j, out)                                                 \
     {                                                                                     \
         double16 r_ = (double16)(NAN);                                                    \
         _Pragma("unroll") for (int c_ = 0; c_ < 16; ++c_)                                 \
-            if (((used) >> c_) & 1) REC_SET(r_, c_, REC_HOST_VALUE(t, k, c_, cc, cs))     \
+            if (((used) >> c_) & 1) REC_SET(r_, c_, (t)[c_][k])                           \
         REC_STORE_HOST(r_, (j), out);                                                     \
     }
 #if defined(__has_builtin)
