@@ -160,6 +160,10 @@ class FeatureResult:
     1 too few, 2 degenerate); NaN wherever the status is not 0. ``radius`` is the ball
     radius, or with ``k=`` the (N,) per-point radii (NaN for isolated points). ``result[name]``
     accepts any spelling of :func:`canonical_names` and nx, ny, nz.
+
+    The arrays, count and status included, may be strided views of one block per radius
+    that the device wrote (on CPU devices, rows of 16 float64 per point): the block lives
+    as long as any of them; ``np.ascontiguousarray`` copies one out.
     """
     radius: float | np.ndarray
     values: dict
@@ -437,9 +441,13 @@ def _split_layout(used):
 REC_BLOCK = 128
 #: a CPU device with float64 writes the features straight into the host's arrays, one row of
 #: 16 doubles per point (features.cl: REC_HOST), when a record uses at least this many real
-#: columns: the row then costs at most ~1.4x the split's arrays (ceil(cols / 4) blocks of 4
-#: float64, count int64, status uint8), and saves the record buffer and the split's pass.
-HOST_ROWS_MIN = 7
+#: columns. The split's arrays take ceil(cols / 4) blocks of 4 float64, count int64 and
+#: status uint8: 105 bytes a point for 9-12 columns, 137 for 13-14, against the row's 128,
+#: so the arrays the caller keeps grow by at most 22%, while the call's peak shrinks by the
+#: record buffer it no longer needs (64 bytes a point in float), and the split's pass is
+#: saved (1M points, ~30 neighbours, default features, Zen 4 EPYC: one radius ~4 ms, three
+#: ~10 ms faster; peak RSS 565 -> 507 MB and 926 -> 747 MB).
+HOST_ROWS_MIN = 9
 
 
 def host_rows(cloud, used):
