@@ -458,34 +458,19 @@ def split_into_host(cloud, rec, layout, out, balls=None):
     and a cast on the host (6 of the 14 ms of a 1M-point variation call's records on PoCL).
     For CPU devices with cl_khr_fp64 (:func:`splits_into_host`); the same values as
     :func:`split_records` and the host's cast, bit for bit (tests/test_records.py)."""
+    import pyopencl as cl
     fields = _fields(layout, cloud.n)
     real = fields[:-2]
     prg = _split_program(cloud, layout, real, True, balls)
-    bufs = {name: host_buffer(cloud, out[name]) for name, _, _ in fields}
+    ctx, q = cloud.device.context, cloud.device.queue
+    flags = cl.mem_flags.WRITE_ONLY | cl.mem_flags.USE_HOST_PTR
+    bufs = {name: cl.Buffer(ctx, flags, hostbuf=out[name]) for name, _, _ in fields}
     outs = [bufs[name] for name, _, _ in real]
     outs += [outs[0] if outs else bufs["count"]] * (6 - len(outs))   # unused placeholders
     _split_launch(cloud, prg, cloud.n, balls, rec, np.uint32(cloud.n), *outs,
                   bufs["count"], bufs["status"])
-    names = [name for name, _, _ in fields]
-    map_written(cloud, [bufs[k] for k in names], [out[k] for k in names])
-
-
-def host_buffer(cloud, array):
-    """A device buffer on the host array ``array`` itself (USE_HOST_PTR, write only), for a
-    kernel that writes its results there (features.cl: REC_HOST); :func:`map_written` makes
-    them valid on the host."""
-    import pyopencl as cl
-    flags = cl.mem_flags.WRITE_ONLY | cl.mem_flags.USE_HOST_PTR
-    return cl.Buffer(cloud.device.context, flags, hostbuf=array)
-
-
-def map_written(cloud, bufs, arrays):
-    """Make what the device wrote to the USE_HOST_PTR buffers ``bufs`` valid in their host
-    ``arrays`` (OpenCL: the host's view of such a buffer is defined once it is mapped)."""
-    import pyopencl as cl
-    q = cloud.device.queue
-    for buf, a in zip(bufs, arrays):
-        view, ev = cl.enqueue_map_buffer(q, buf, cl.map_flags.READ, 0, a.shape, a.dtype)
+    for name, shape, dtype in fields:       # the host's view is valid once mapped
+        view, ev = cl.enqueue_map_buffer(q, bufs[name], cl.map_flags.READ, 0, shape, dtype)
         ev.wait()
         del view
     q.finish()

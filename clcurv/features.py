@@ -42,7 +42,6 @@ feature. 0 ln 0 is taken as 0 in eigenentropy (a planar ball, l3 = 0, is defined
 """
 from __future__ import annotations
 
-import sys
 import time
 from dataclasses import dataclass, field
 
@@ -160,10 +159,6 @@ class FeatureResult:
     1 too few, 2 degenerate); NaN wherever the status is not 0. ``radius`` is the ball
     radius, or with ``k=`` the (N,) per-point radii (NaN for isolated points). ``result[name]``
     accepts any spelling of :func:`canonical_names` and nx, ny, nz.
-
-    The arrays, count and status included, may be strided views of one block per radius
-    that the device wrote (on CPU devices, rows of 16 float64 per point): the block lives
-    as long as any of them; ``np.ascontiguousarray`` copies one out.
     """
     radius: float | np.ndarray
     values: dict
@@ -439,28 +434,10 @@ def _split_layout(used):
 #: that the kernel's scattered stores cost less, and each ball's block is long enough for
 #: the split to read it as one run
 REC_BLOCK = 128
-#: a CPU device with float64 writes the features straight into the host's arrays, one row of
-#: 16 doubles per point (features.cl: REC_HOST), when a record uses at least this many real
-#: columns. The split's arrays take ceil(cols / 4) blocks of 4 float64, count int64 and
-#: status uint8: 105 bytes a point for 9-12 columns, 137 for 13-14, against the row's 128,
-#: so the arrays the caller keeps grow by at most 22%, while the call's peak shrinks by the
-#: record buffer it no longer needs (64 bytes a point in float), and the split's pass is
-#: saved (1M points, ~30 neighbours, default features, Zen 4 EPYC: one radius ~4 ms, three
-#: ~10 ms faster; peak RSS 565 -> 507 MB and 926 -> 747 MB).
-HOST_ROWS_MIN = 9
-
-
-def host_rows(cloud, used):
-    """Do ``cloud``'s records of ``used`` real columns go straight into host rows
-    (features.cl: REC_HOST)? On CPU devices with cl_khr_fp64 (clcurv.cloud.splits_into_host)
-    and a little-endian host (the rows' count and status are read through int64 and uint8
-    views of their bits)."""
-    from .cloud import splits_into_host
-    return used >= HOST_ROWS_MIN and sys.byteorder == "little" and splits_into_host(cloud)
 
 
 def program_defines(group, nr, point_radius=False, row_prune=0, anchored=True,
-                    one_buffer=False, host=False):
+                    one_buffer=False):
     """Build options of features.cl for one record layout ``group`` and ``nr`` radii
     (``row_prune``: clcurv.driver.row_prune of the walk's largest radius): each feature's
     first record column (CIX_<FEATURE>), count's and status's, and REC_USED the mask of
@@ -468,8 +445,7 @@ def program_defines(group, nr, point_radius=False, row_prune=0, anchored=True,
     (REFINE_L0=0: no anchor frame, no lambda0 refinement), whose sums, eigenvectors and
     status are those of the moments kernel built so (clcurv.api's PCA normals pass).
     ``one_buffer``: the ``nr`` radii's records in one buffer, in blocks of
-    :data:`REC_BLOCK` points (REC_BALLS), else one buffer per radius; ``host``: each
-    radius's records as rows of 16 doubles in a host array (REC_HOST, :func:`host_rows`)."""
+    :data:`REC_BLOCK` points (REC_BALLS), else one buffer per radius."""
     cols = {f"CIX_{n.upper()}": c for n, c in group.items()}
     used = (1 << _COLUMNS) | (1 << (_COLUMNS + 1))
     for n, c in group.items():
@@ -477,20 +453,7 @@ def program_defines(group, nr, point_radius=False, row_prune=0, anchored=True,
     return dict(cols, CIX_COUNT=_COLUMNS, CIX_STATUS=_COLUMNS + 1, REC_USED=hex(used), NR=nr,
                 REFINE_L0=int(anchored), MIN_COUNT=MIN_COUNT_PCA, DENSITY=0, GAUSSIAN=0,
                 REF_NORMALS=0, POINT_RADIUS=int(point_radius), ROW_PRUNE=int(row_prune),
-                REC_BALLS=nr if one_buffer and not host else 0, REC_BLOCK=REC_BLOCK,
-                REC_HOST=int(host))
-
-
-def _row_fields(rows, group, vals):
-    """(values, count, status) of host rows (REC_HOST: (N, 16) float64, one per point):
-    views of ``rows``, each feature at its record column, count and status through int64
-    and uint8 views of their columns' bits (features.cl: REC_HOST_VALUE)."""
-    for n, c in group.items():
-        w = FEATURES[n].width
-        vals[n] = rows[:, c] if w == 1 else rows[:, c:c + w]
-    count = rows.view(np.int64)[:, _COLUMNS]
-    status = rows.view(np.uint8)[:, 8 * (_COLUMNS + 1)]
-    return vals, count, status
+                REC_BALLS=nr if one_buffer else 0, REC_BLOCK=REC_BLOCK)
 
 
 def run_features(cloud, radii, names, ddof=0, point_r2=None, anchored=True):
@@ -505,9 +468,8 @@ def run_features(cloud, radii, names, ddof=0, point_r2=None, anchored=True):
     import pyopencl.cltypes as ct
     from .anchor import cell_normals
     from .driver import row_prune
-    from .cloud import (empty_fields, host_buffer, map_written, place_records, record_buffer,
-                        record_bytes, splits_into_host)
-    from .host_memory import aligned
+    from .cloud import (empty_fields, place_records, record_buffer, record_bytes,
+                        splits_into_host)
     from .program import batches, build, launch
     out = []
     groups = layouts(names)
@@ -525,28 +487,22 @@ def run_features(cloud, radii, names, ddof=0, point_r2=None, anchored=True):
                               widest=RECORD_WIDTH * np.dtype(cloud.dtype).itemsize,
                               label="the coordinates, the grid")
             chunked = plan.count > 1
-            # a CPU device with fp64: the records straight into host rows (REC_HOST), or for
-            # several radii with few columns in one buffer (REC_BLOCK)
-            host = not chunked and host_rows(cloud, used)
-            one = nr > 1 and not chunked and not host and splits_into_host(cloud)
+            # several radii on a CPU device: their records in one buffer (REC_BLOCK)
+            one = nr > 1 and not chunked and splits_into_host(cloud)
             t0 = time.perf_counter()
             opts = dict(cloud.defines, **program_defines(
                 group, nr, point_r2 is not None,
-                row_prune(cloud, max(walk), point_r2 is not None), anchored, one, host))
+                row_prune(cloud, max(walk), point_r2 is not None), anchored, one))
             prg = build(cloud.device, "features.cl", opts)
             ranges = cloud.with_middles() if opts["ROW_PRUNE"] else cloud.ranges
             t_build += time.perf_counter() - t0
-            if host:
-                rows = [aligned((cloud.n, RECORD_WIDTH), np.float64) for _ in walk]
-                recs = [host_buffer(cloud, r) for r in rows]
-                recs += [recs[0]] * (4 - nr)
-            elif one:
+            if one:
                 blocks = -(-plan.chunk // REC_BLOCK)
                 recs = [record_buffer(cloud, blocks * REC_BLOCK * nr)] * 4
             else:
                 recs = [record_buffer(cloud, plan.chunk) for _ in walk]
                 recs += [recs[0]] * (4 - nr)
-            fields = [None if host else empty_fields(layout, cloud.n) for _ in walk]
+            fields = [empty_fields(layout, cloud.n) for _ in walk]
             wbuf = point_r2 if point_r2 is not None else cloud.x
             anchors = cell_normals(cloud) if opts.get("REFINE_L0") else cloud.x
             par = make4(max(walk), 0.0, float(ddof), 0.0)    # (r, 1/h^2, ddof, 0)
@@ -559,17 +515,12 @@ def run_features(cloud, radii, names, ddof=0, point_r2=None, anchored=True):
                        np.uint32(chunked), recs[0], make4(*r2), recs[1], recs[2], recs[3])
                 cloud.device.queue.finish()
                 t1 = time.perf_counter()
-                if host:
-                    map_written(cloud, recs[:nr], rows)
-                for j in range(nr if not host else 0):
+                for j in range(nr):
                     place_records(cloud, recs[j], layout, fields[j], first, stop, chunked,
                                   balls=(nr, j, REC_BLOCK) if one else None)
                 t_run, t_fetch = t_run + t1 - t0, t_fetch + time.perf_counter() - t1
             for j in range(nr):
                 vals = res[j][0]
-                if host:
-                    res[j] = _row_fields(rows[j], group, vals)
-                    continue
                 blocks = fields[j]
                 for n, c in group.items():       # views of the (N, <= 4) float64 blocks
                     w, b, o = FEATURES[n].width, c // 4, c % 4

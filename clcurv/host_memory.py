@@ -144,18 +144,3 @@ def release():
         except BufferError:     # still exported (a holder being deallocated): unmapped
             pass                # with its last reference instead
     return freed
-
-
-def aligned(shape, dtype=np.float64, align=128):
-    """:func:`empty`, its start a multiple of ``align`` bytes (a power of two at most the
-    page size): the pool's blocks are mappings, page-aligned; a smaller array is cut from a
-    numpy array ``align`` bytes longer. For kernels that store whole cache lines into it
-    (features.cl's REC_HOST rows)."""
-    out = empty(shape, dtype)
-    if out.ctypes.data % align == 0:
-        return out
-    dtype = np.dtype(dtype)
-    nbytes = out.nbytes
-    raw = np.empty(nbytes + align, np.uint8)
-    at = -raw.ctypes.data % align
-    return raw[at:at + nbytes].view(dtype).reshape(out.shape)

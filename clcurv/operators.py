@@ -372,8 +372,6 @@ def program_variants(precision_defines):
         out.append(("features.cl", dict(base, **program_defines(group, 4,
                                                                 one_buffer=True))))
         out.append(("features.cl", dict(base, **program_defines(group, 1, True))))
-        if base.get("REAL_IS_DOUBLE"):  # rows of doubles into host arrays need fp64
-            out.append(("features.cl", dict(base, **program_defines(group, 4, host=True))))
     # the covariance operators' PCA normals of several radii (clcurv.api._radius_list)
     out.append(("features.cl", dict(base, **program_defines(layouts(("normals",))[0], 4,
                                                              anchored=False))))

@@ -29,9 +29,8 @@
  * Build options: NR (1..4) radii, their r^2 in r2s (x, y, z, w), or with POINT_RADIUS
  * (NR = 1) each point's own r^2 in W (radius.h); the records of radius j go to out (j = 0),
  * out1, out2, out3 (one record per point, REC_INDEX), or with REC_BALLS (= NR) all to out,
- * in blocks of REC_BLOCK points (common.h: REC_IN_BLOCKS; records.cl's split with NB), or
- * with REC_HOST (CPU devices with cl_khr_fp64) as rows of 16 doubles straight into the
- * host's (N, 16) arrays out .. out3, at the points' input indices (no split); REFINE_L0, DENSITY, MIN_COUNT,
+ * in blocks of REC_BLOCK points (common.h: REC_IN_BLOCKS; records.cl's split with NB);
+ * REFINE_L0, DENSITY, MIN_COUNT,
  * and the records' columns: CIX_COUNT, CIX_STATUS, one CIX_<FEATURE> (its first column) per
  * feature wanted and REC_USED their mask (clcurv/features.py, lanes_records.h).
  */
@@ -46,11 +45,8 @@
 
 #if !defined(NR) || NR < 1 || NR > 4 || !defined(REFINE_L0) || !defined(MIN_COUNT) \
     || !defined(CIX_COUNT) || !defined(CIX_STATUS) || !defined(REC_USED) || !defined(REC_BALLS) \
-    || !defined(REC_BLOCK) || !defined(REC_HOST)
-#error "features.cl needs NR (1..4), REFINE_L0, MIN_COUNT, REC_BALLS, REC_BLOCK, REC_HOST and its record columns (clcurv/features.py)"
-#endif
-#if REC_HOST
-#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+    || !defined(REC_BLOCK)
+#error "features.cl needs NR (1..4), REFINE_L0, MIN_COUNT, REC_BALLS, REC_BLOCK and its record columns (clcurv/features.py)"
 #endif
 
 #if REAL_IS_DOUBLE
@@ -385,16 +381,7 @@ __kernel void features(OPERATOR_ARGS, const REAL4 r2s, __global REAL *out1,
         FEATURE_COLUMN(CIX_NORMALS + 1, e3y)
         FEATURE_COLUMN(CIX_NORMALS + 2, e3z)
 #endif
-#if REC_HOST
-        {
-            /* each ball's records straight into its host array (lanes_records.h) */
-            double t_[16][VW];
-            REC_STAGE_HOST(col, t_, REC_USED, CIX_COUNT, CIX_STATUS)
-            __global REAL *o = j == 0 ? out : j == 1 ? out1 : j == 2 ? out2 : out3;
-            for (uint k = 0; k < kn; ++k)
-                REC_EMIT_HOST(t_, k, REC_USED, REC_INDEX(g0 + k), o)
-        }
-#elif REC_BALLS
+#if REC_BALLS
         {
             /* the NR balls' records in out, in blocks (common.h: REC_IN_BLOCKS): a point's
                NR scattered lines land close together */

@@ -47,43 +47,6 @@
             if (((used) >> c_) & 1) REC_SET(r_, c_, (t)[c_][k])                           \
         REC_STORE(r_, (j), out);                                                          \
     }
-/* REC_HOST (CPU devices with cl_khr_fp64: clcurv/features.py): the records as rows of 16
- * doubles, stored at row j of the caller's float64 (N, 16) array itself (USE_HOST_PTR),
- * with no record buffer and no split. The columns are cast to double as vectors (the
- * split's casts, lane by lane), count (column cc, uint bits) and status (column cs, a small
- * integer) to the bits of an int64 and of its low byte, which the host reads through int64
- * and uint8 views; then each lane's row is one non-temporal store of two whole lines (the
- * array is 128-byte aligned). */
-#if REAL_IS_DOUBLE
-#define LANES_UINT_BITS(v) CAT(convert_uint, VW)(CAT(as_ulong, VW)(v))
-#else
-#define LANES_UINT_BITS(v) CAT(as_uint, VW)(v)
-#endif
-#define DOUBLEV CAT(double, VW)
-#define REC_HOST_COLUMN(col, c, cc, cs)                                                   \
-    ((c) == (cc) ? CAT(as_double, VW)(CAT(convert_ulong, VW)(LANES_UINT_BITS((col)[c])))  \
-     : (c) == (cs) ? CAT(as_double, VW)(CAT(convert_ulong, VW)((col)[c]))                 \
-     : CAT(convert_double, VW)((col)[c]))
-/* the columns col into t[16][VW] of doubles (REC_EMIT_HOST's first step) */
-#define REC_STAGE_HOST(col, t, used, cc, cs)                                              \
-    _Pragma("unroll") for (int c_ = 0; c_ < 16; ++c_)                                     \
-        if (((used) >> c_) & 1) CAT(vstore, VW)(REC_HOST_COLUMN(col, c_, cc, cs), 0, (t)[c_]);
-#define REC_EMIT_HOST(t, k, used, j, out)                                                 \
-    {                                                                                     \
-        double16 r_ = (double16)(NAN);                                                    \
-        _Pragma("unroll") for (int c_ = 0; c_ < 16; ++c_)                                 \
-            if (((used) >> c_) & 1) REC_SET(r_, c_, (t)[c_][k])                           \
-        REC_STORE_HOST(r_, (j), out);                                                     \
-    }
-#if defined(__has_builtin)
-#if __has_builtin(__builtin_nontemporal_store)
-#define REC_STORE_HOST(rec, j, out) \
-    __builtin_nontemporal_store((rec), (__global double16 *)(out) + (j))
-#endif
-#endif
-#ifndef REC_STORE_HOST
-#define REC_STORE_HOST(rec, j, out) vstore16((rec), (j), (__global double *)(out))
-#endif
 #define REC_STORE_LANES(col, kn, g0, out, used)                                           \
     {                                                                                     \
         REAL t_[16][VW];                                                                  \

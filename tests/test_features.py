@@ -347,38 +347,3 @@ def test_cli_too_many_las_fields_is_refused_before_any_work(tmp_path):
     r = run_cli("features", src, "-o", out, "--radius", radii, "--features", "all", "-q")
     assert r.code == 3 and "420 extra-bytes dimensions" in r.stderr, r.stderr
     assert not out.exists()
-
-
-@pytest.mark.parametrize("precision", ["float", "double"])
-def test_host_rows_equal_the_split_records(device, monkeypatch, precision):
-    """On CPU devices with float64 the features kernel writes rows of 16 doubles straight
-    into the host's arrays (features.cl: REC_HOST) when a record has >= 7 real columns;
-    elsewhere records go through a buffer and records.cl's split. Both give the same
-    values bit for bit, count as int64 and status as uint8, one radius or three (the
-    split path forced by making host_rows answer no). A narrow record (2 columns) keeps
-    the split. NaN where the status is not OK, in both."""
-    if precision == "double" and not device.info.fp64:
-        pytest.skip("the device has no float64 (cl_khr_fp64)")
-    pts = synthetic_scene(3)
-    radii = [0.08, 0.12, 0.17]
-    cloud = clcurv.DeviceCloud(pts, max(radii), device=device, precision=precision)
-    names = F.canonical_names(F.DEFAULT_FEATURES)
-    wide = F.layouts(names)
-    assert len(wide) == 1 and sum(F.FEATURES[n].width for n in wide[0]) >= F.HOST_ROWS_MIN
-    rows = [F.run_features(cloud, rr, names) for rr in (radii, radii[1:2])]
-    narrow = F.run_features(cloud, radii, ["planarity", "linearity"])
-    cpu64 = device.info.kind == "cpu" and device.info.fp64
-    assert F.host_rows(cloud, 14) == cpu64 and not F.host_rows(cloud, 2)
-    monkeypatch.setattr(F, "host_rows", lambda *a: False)
-    split = [F.run_features(cloud, rr, names) for rr in (radii, radii[1:2])]
-    narrow_split = F.run_features(cloud, radii, ["planarity", "linearity"])
-    for a_list, b_list in zip(rows + [narrow], split + [narrow_split]):
-        for (va, ca, sa), (vb, cb, sb) in zip(a_list, b_list):
-            assert ca.dtype == cb.dtype == np.int64 and sa.dtype == sb.dtype == np.uint8
-            np.testing.assert_array_equal(ca, cb)
-            np.testing.assert_array_equal(sa, sb)
-            assert (sa == OK).mean() > 0.9 and (sa != OK).any()      # both kinds present
-            for n in va:
-                assert va[n].dtype == np.float64
-                np.testing.assert_array_equal(va[n], vb[n], err_msg=n)
-                assert np.isnan(va[n][sa != OK]).all() and not np.isnan(va[n][sa == OK]).any()
