@@ -360,9 +360,10 @@ def upload_sorted(cloud, values):
 
 
 def record_buffer(cloud, count=None):
-    """A device buffer for one output record per point (of ``count`` points; default all)."""
+    """A device buffer for one output record per point (of ``count`` points; default all),
+    which kernels write at scattered places (clcurv.memory.buffer's ``scattered``)."""
     size = (cloud.n if count is None else count) * RECORD * np.dtype(cloud.dtype).itemsize
-    return device_buffer(cloud.device, size)
+    return device_buffer(cloud.device, size, scattered=True)
 
 
 def record_bytes(cloud, layout):
