@@ -360,10 +360,9 @@ def upload_sorted(cloud, values):
 
 
 def record_buffer(cloud, count=None):
-    """A device buffer for one output record per point (of ``count`` points; default all),
-    which kernels write at scattered places (clcurv.memory.buffer's ``scattered``)."""
+    """A device buffer for one output record per point (of ``count`` points; default all)."""
     size = (cloud.n if count is None else count) * RECORD * np.dtype(cloud.dtype).itemsize
-    return device_buffer(cloud.device, size, scattered=True)
+    return device_buffer(cloud.device, size)
 
 
 def record_bytes(cloud, layout):

@@ -114,26 +114,6 @@ def empty(shape, dtype=np.float64):
     nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
     if nbytes < MIN_BYTES or not _holding():
         return np.empty(shape, dtype)
-    return _mapped(nbytes).view(dtype).reshape(shape)
-
-
-def pages(nbytes):
-    """``nbytes`` (>= 1) uninitialised bytes on whole pages of an anonymous mapping (page
-    aligned; huge pages where numpy asks for them, :func:`_advise`), from the pool when it
-    holds (see the module docstring), as a uint8 array. For device buffers over host memory
-    (clcurv.memory.buffer's ``scattered``)."""
-    nbytes = max(int(nbytes), 1)
-    if not _holding():
-        block = mmap.mmap(-1, -(-nbytes // mmap.PAGESIZE) * mmap.PAGESIZE,
-                          flags=mmap.MAP_PRIVATE)
-        _advise(block)
-        return np.frombuffer(block, np.uint8, count=nbytes)
-    return _mapped(nbytes)
-
-
-def _mapped(nbytes):
-    """A uint8 array of ``nbytes`` over a pooled mapping (a returned one of the same bin, or
-    a new one), given back to the pool when the array and its views are gone."""
     size = _bin(nbytes)
     block = None
     with _LOCK:
@@ -149,7 +129,7 @@ def _mapped(nbytes):
     holder = np.frombuffer(block, np.uint8, count=nbytes)
     fin = weakref.finalize(holder, _give_back, block, size)
     fin.atexit = False
-    return holder
+    return holder.view(dtype).reshape(shape)
 
 
 def release():

@@ -67,32 +67,14 @@ def held_bytes(device):
     return 0 if pool is None else int(pool.managed_bytes - pool.active_bytes)
 
 
-#: the smallest ``scattered`` buffer put on host pages (clcurv.host_memory.MIN_BYTES)
-SCATTERED_MIN_BYTES = 1 << 20
-
-
-def buffer(device, nbytes, scattered=False):
+def buffer(device, nbytes):
     """A READ_WRITE device buffer of at least ``nbytes`` bytes (>= 1) on ``device`` (a
     clcurv.device.Device), from its pool (see the module docstring). Its content is
-    undefined.
-
-    ``scattered``: kernels write it at scattered places (the operators' records, stored at
-    their points' input indices). On a CPU device (not a simulator) a buffer of at least
-    :data:`SCATTERED_MIN_BYTES` then lies on host pages of :func:`clcurv.host_memory.pages`
-    (USE_HOST_PTR, pooled there), which are huge pages where numpy asks for them: the
-    implementation's own allocations are on 4 KB pages, where nearly every scattered store
-    of a large buffer misses the TLB. On the Zen 4 EPYC (PoCL, 1M points, ~30 neighbours):
-    ``features(P, [r1, r2, r3])`` 42 ms and ``features(P, r)`` 7 ms faster (medians of 11
-    interleaved rounds, in a slow phase of the machine)."""
+    undefined."""
     import pyopencl as cl
     nbytes = max(int(nbytes), 1)
     pool = _pool(device)
-    if (scattered and pool is not None and device.info.kind == "cpu"
-            and nbytes >= SCATTERED_MIN_BYTES):
-        from .host_memory import pages
-        flags = cl.mem_flags.READ_WRITE | cl.mem_flags.USE_HOST_PTR
-        buf = cl.Buffer(device.context, flags, hostbuf=pages(nbytes))
-    elif pool is None:
+    if pool is None:
         buf = cl.Buffer(device.context, cl.mem_flags.READ_WRITE, size=nbytes)
     else:
         if pool.managed_bytes - pool.active_bytes > hold_limit(device):
