@@ -100,3 +100,32 @@ def test_a_call_reuses_the_pages_of_the_results_it_replaced(pool, device):
     for k, v in want.items():                         # the same values in reused pages
         np.testing.assert_array_equal(getattr(again, k), v, err_msg=k)
     assert clcurv.release_memory() >= 0 and pool.held_bytes() == 0
+
+
+def _vm_flags(address):
+    """The VmFlags of the mapping holding ``address`` (/proc/self/smaps), or None."""
+    try:
+        text = open("/proc/self/smaps").read()
+    except OSError:
+        return None
+    inside = False
+    for line in text.splitlines():
+        head = line.split()[0] if line else ""
+        if "-" in head and ":" not in head:
+            lo, hi = (int(x, 16) for x in head.split("-"))
+            inside = lo <= address < hi
+        elif inside and line.startswith("VmFlags:"):
+            return line.split()[1:]
+    return None
+
+
+def test_new_mappings_do_not_ask_for_huge_pages(pool):
+    """The pool's mappings are plain pages (no MADV_HUGEPAGE, 'hg' in smaps' VmFlags): a
+    fresh huge page may wait for memory compaction, which made first calls slower and
+    erratic (the module docstring), where numpy's own large arrays ask for them."""
+    a = pool.empty((1_000_000,))
+    a[:] = 0
+    flags = _vm_flags(a.ctypes.data)
+    if flags is None:
+        pytest.skip("no /proc/self/smaps on this system")
+    assert "hg" not in flags
