@@ -36,6 +36,13 @@ tile its linearity of flat ground, where l1 ~ l2, is up to 1.1e-7 off). PDAL's D
 neighbourhood, evaluates (4 / 3) in integers (= 1) in some versions; ``density`` here is
 n / (4/3 pi r^3).
 
+CloudCompare (CCCoreLib ``Neighbourhood::computeFeature``, its "Compute geometric
+features") divides the covariance by n (``ddof=0``, the default here) and uses the raw
+eigenvalues in every formula above, so its features are those of a default call; its
+names ("Eigenvalues sum", "Surface variation", "1st eigenvalue", ...) are accepted, and its
+curvature "Normal change rate" is ``surface_variation``. Its "Verticality", 1 - |e3_z|, is
+``verticality`` here: the exact spelling ``Verticality`` is PDAL's (Guinard's).
+
 Degenerate neighbourhoods follow clcurv's status policy: fewer than 3 points (status 1) or
 a covariance of rank < 2 (collinear or coincident points, status 2) give NaN in every
 feature. 0 ln 0 is taken as 0 in eigenentropy (a planar ball, l3 = 0, is defined).
@@ -64,10 +71,12 @@ class Feature:
     source: str = ""
 
 
-#: The features, canonical names first (jakteristics' spelling), PDAL's as aliases.
+#: The features, canonical names first (jakteristics' spelling), PDAL's and CloudCompare's
+#: as aliases.
 FEATURES = {f.name: f for f in (
-    Feature("eigenvalue_sum", 1, "length^2", "l1 + l2 + l3", ("Sum", "EigenvalueSum"),
-            "jakteristics eigenvalue_sum, PDAL Sum"),
+    Feature("eigenvalue_sum", 1, "length^2", "l1 + l2 + l3",
+            ("Sum", "EigenvalueSum", "Eigenvalues sum"),
+            "jakteristics eigenvalue_sum, PDAL Sum, CloudCompare"),
     Feature("omnivariance", 1, "length^2", "(l1 l2 l3)^(1/3)", ("Omnivariance",),
             "jakteristics, PDAL (Raw mode)"),
     Feature("eigenentropy", 1, "1", "-(l1 ln l1 + l2 ln l2 + l3 ln l3), raw eigenvalues "
@@ -82,8 +91,10 @@ FEATURES = {f.name: f for f in (
             ("pca2", "normalized_eigenvalue2"), "jakteristics"),
     Feature("surface_variation", 1, "1", "l3 / (l1 + l2 + l3), the third normalised "
             "eigenvalue (Pauly's surface variation)",
-            ("SurfaceVariation", "change_of_curvature", "normalized_eigenvalue3"),
-            "jakteristics, PDAL, clcurv method='variation'"),
+            ("SurfaceVariation", "change_of_curvature", "normalized_eigenvalue3",
+             "Surface variation", "Normal change rate"),
+            "jakteristics, PDAL, CloudCompare (also its curvature 'Normal change rate'), "
+            "clcurv method='variation'"),
     Feature("sphericity", 1, "1", "l3 / l1", ("Scattering",), "jakteristics; PDAL "
             "Scattering"),
     Feature("verticality", 1, "1", "1 - |e3_z|, e3 the unit normal (eigenvector of l3)",
@@ -91,9 +102,12 @@ FEATURES = {f.name: f for f in (
     Feature("guinard_verticality", 1, "1", "|u_z| / |u|, u = l1 |e1| + l2 |e2| + l3 |e3| "
             "(componentwise absolute values)", ("Verticality",),
             "PDAL Verticality (Guinard & Landrieu 2017)"),
-    Feature("eigenvalue1", 1, "length^2", "l1, the largest eigenvalue", (), "jakteristics"),
-    Feature("eigenvalue2", 1, "length^2", "l2", (), "jakteristics"),
-    Feature("eigenvalue3", 1, "length^2", "l3, the smallest eigenvalue", (), "jakteristics"),
+    Feature("eigenvalue1", 1, "length^2", "l1, the largest eigenvalue", ("1st eigenvalue",),
+            "jakteristics, CloudCompare"),
+    Feature("eigenvalue2", 1, "length^2", "l2", ("2nd eigenvalue",),
+            "jakteristics, CloudCompare"),
+    Feature("eigenvalue3", 1, "length^2", "l3, the smallest eigenvalue", ("3rd eigenvalue",),
+            "jakteristics, CloudCompare"),
     Feature("density", 1, "1/length^3", "n / (4/3 pi r^3)", ("Density",),
             "PDAL Density (see the module notes)"),
     Feature("normals", 3, "1", "e3, the unit PCA normal (sign arbitrary unless `orient`)",
@@ -118,12 +132,14 @@ MAX_RADII_PER_WALK = 4
 
 
 def canonical_names(names):
-    """The canonical feature names of ``names`` (canonical, jakteristics or PDAL spellings;
-    ``nx``/``ny``/``nz`` ask for ``normals``; ``number_of_neighbors`` is always returned
-    as ``count``), without repeats, in the order given. "all" asks for every feature.
+    """The canonical feature names of ``names`` (canonical, jakteristics, PDAL or
+    CloudCompare spellings; ``nx``/``ny``/``nz`` ask for ``normals``;
+    ``number_of_neighbors`` is always returned as ``count``), without repeats, in the order
+    given. "all" asks for every feature.
 
-    Exact spellings first (PDAL's ``Verticality`` is not jakteristics' ``verticality``),
-    then a case-insensitive match when it is unique. Unknown names raise ValueError.
+    Exact spellings first (PDAL's ``Verticality`` is not jakteristics' ``verticality``,
+    which is CloudCompare's Verticality: ask for that one as ``verticality``), then a
+    case-insensitive match when it is unique. Unknown names raise ValueError.
     """
     if isinstance(names, str):
         names = [n.strip() for n in names.split(",") if n.strip()]

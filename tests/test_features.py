@@ -223,6 +223,15 @@ def test_names_and_spellings():
                                                                "surface_variation")
     assert c("nx,ny,nz,number_of_neighbors") == ("normals",)
     assert c(["LINEARITY"]) == ("linearity",)           # unique case-insensitive match
+    # CloudCompare's scalar-field names (CCCoreLib divides by n, as ddof=0; its
+    # Verticality, 1 - |e3_z|, is asked for as "verticality": "Verticality" is PDAL's)
+    assert c(["Eigenvalues sum", "Surface variation", "Normal change rate", "PCA1",
+              "1st eigenvalue", "2nd eigenvalue", "3rd eigenvalue", "Omnivariance",
+              "Eigenentropy", "Anisotropy", "Planarity", "Linearity", "Sphericity"]) == (
+        "eigenvalue_sum", "surface_variation", "PCA1", "eigenvalue1", "eigenvalue2",
+        "eigenvalue3", "omnivariance", "eigenentropy", "anisotropy", "planarity",
+        "linearity", "sphericity")
+    assert c(["surface VARIATION"]) == ("surface_variation",)
     assert c("all") == tuple(F.FEATURES)
     with pytest.raises(ValueError, match="unknown feature"):
         c(["curviness"])
