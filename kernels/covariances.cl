@@ -113,7 +113,11 @@ inline uint cov_ball(__global const REAL *X, __global const REAL *Y, __global co
 #endif
 #endif
     NEIGHBOR_CHUNKS_END
+#if DENSITY || GAUSSIAN
     const REAL iw = (REAL)1 / hsum(sw);
+#else
+    const REAL iw = (REAL)1 / COUNT_TOTAL(sw);       /* w = 1: the count (common.h) */
+#endif
     const REAL ma = hsum(sa) * iw, mb = hsum(sb) * iw, md = hsum(sd) * iw;
     c[0] = hsum(saa) * iw - ma * ma; c[1] = hsum(sab) * iw - ma * mb;
     c[2] = hsum(sad) * iw - ma * md; c[3] = hsum(sbb) * iw - mb * mb;
@@ -122,7 +126,7 @@ inline uint cov_ball(__global const REAL *X, __global const REAL *Y, __global co
     return (uint)hsum(sc);
 #else
     (void)sc;
-    return (uint)hsum(sw);                  /* w = 1: the sum of the weights is the count */
+    return (uint)COUNT_TOTAL(sw);           /* w = 1: the sum of the weights is the count */
 #endif
 }
 

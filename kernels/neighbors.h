@@ -181,6 +181,9 @@ inline IREALV chunk_offsets(__global const REAL *X, __global const REAL *Y,
 /* Sum of the lanes in a fixed order (pairwise), so the result is reproducible. */
 LANE_REDUCTION(hsum, REAL, LANE_ADD)
 
+/* Sum of the integer lanes (the counts of MASKED_COUNT, common.h) */
+LANE_REDUCTION(hsum_i, IREAL, LANE_ADD)
+
 /* OR of the lanes of a mask */
 LANE_REDUCTION(or_mask, IREAL, LANE_OR)
 

@@ -91,7 +91,7 @@ typedef struct {
 #elif MASKED_SUMS
 /* MASKED_SUMS (the host's choice for CPU devices with 512-bit vectors, AVX-512): each sum
  * updated only in the lanes of the mask, s = m ? s + d : s, s2 = m ? d_i d_j + s2 : s2, which
- * AVX-512 does in one masked instruction per sum (10 a chunk against 14 above). The same
+ * AVX-512 does in one masked instruction per sum (10 a chunk against 13 above). The same
  * values bit for bit: a lane outside the mask keeps s, where the form above adds +0 to it
  * (tests/test_masked_sums.py). Where a select is an instruction of its own (AVX2: a blend)
  * it costs 6 more a chunk: the moments kernel 20% slower under Intel's runtime built for
@@ -99,7 +99,7 @@ typedef struct {
 #define PCA_ACCUMULATE(w, m, dx, dy, dz, sc, sw, sx, sy, sz, sxx, sxy, sxz, syy, syz, szz) \
     {                                                                                      \
         const REALV dx_ = (dx), dy_ = (dy), dz_ = (dz);                                    \
-        sw = select(sw, sw + (REALV)1, m);                                                 \
+        MASKED_COUNT(sw, m)                                                                \
         sx = select(sx, sx + dx_, m); sy = select(sy, sy + dy_, m);                        \
         sz = select(sz, sz + dz_, m);                                                      \
         sxx = select(sxx, dx_ * dx_ + sxx, m); sxy = select(sxy, dx_ * dy_ + sxy, m);      \
@@ -162,11 +162,12 @@ inline void pca_store_sums(REALV sc, REALV sw, REALV sx, REALV sy, REALV sz, REA
                            REALV sxy, REALV sxz, REALV syy, REALV syz, REALV szz,
                            pca_batch_t *b, uint k)
 {
-    const REAL wsum = hsum(sw);
 #if DENSITY || GAUSSIAN
+    const REAL wsum = hsum(sw);
     b->count[k] = (uint)hsum(sc);
 #else
-    b->count[k] = (uint)wsum;        /* w = 1: the sum of the weights is the count (exact) */
+    const REAL wsum = COUNT_TOTAL(sw);   /* w = 1: the sum of the weights is the count */
+    b->count[k] = (uint)wsum;
 #endif
     const REAL iw = (REAL)1 / wsum;
     const REAL3 mu = (REAL3)(hsum(sx), hsum(sy), hsum(sz)) * iw;
