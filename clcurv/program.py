@@ -65,8 +65,8 @@ _lock = threading.Lock()
 
 def precision_defines(device, precision):
     """``-D`` options for ``precision`` ('float' or 'double') on ``device``, and the
-    device-dependent choices of every kernel: VW (:func:`tuning`) and MASKED_SUMS
-    (:func:`masked_sums`)."""
+    device-dependent choices of the kernels: VW (:func:`tuning`), MASKED_SUMS
+    (:func:`masked_sums`) and FEATURES_BUF (:func:`features_buffer`)."""
     if precision not in ("float", "double"):
         raise ValueError(f"precision must be 'float' or 'double', got {precision!r}")
     if precision == "double" and not device.info.fp64:
@@ -74,7 +74,16 @@ def precision_defines(device, precision):
                              "(cl_khr_fp64); use precision='float'")
     vw = 8 if device.info.kind == "cpu" else 4
     return {"REAL_IS_DOUBLE": int(precision == "double"), "VW": vw,
-            "MASKED_SUMS": masked_sums(device.info)}
+            "MASKED_SUMS": masked_sums(device.info), "FEATURES_BUF": features_buffer(device.info)}
+
+
+def features_buffer(info):
+    """features.cl's FEATURES_BUF: the chunks of candidates its multi-radius walk keeps
+    before each ball's sums run over them. 32 on CPU devices: each run loads and stores
+    the ball's 10 accumulators, half as often as with 16 (three radii's kernel ~4-8 ms
+    faster at 1M points on the Zen 3 EPYC; 4-8 KB of the stack); 16 elsewhere, as a GPU's
+    private arrays live in slow memory. Any size gives the same sums bit for bit."""
+    return 32 if info.kind == "cpu" else 16
 
 
 def masked_sums(info):
@@ -208,8 +217,8 @@ def local_size(device, kernel, limit=128):
 def tuning(device, precision="float"):
     """The device-dependent choices clcurv makes on ``device``, for reports: ``VW`` (points
     per work-item: 8 on CPU devices, whose compilers vectorise a work-item's explicit
-    vectors, else 4; from the device type query), ``MASKED_SUMS`` (:func:`masked_sums`)
-    and ``work_group``, the work-group size
+    vectors, else 4; from the device type query), ``MASKED_SUMS`` (:func:`masked_sums`),
+    ``FEATURES_BUF`` (:func:`features_buffer`) and ``work_group``, the work-group size
     :func:`local_size` gives every kernel of the registry's programs (queried: the kernel's
     maximum and preferred multiple on this device, capped at launch's default 128). Some
     calls pass a smaller cap (clcurv.graph.CPU_GROUP: knn_graph on CPU devices)."""
@@ -219,7 +228,8 @@ def tuning(device, precision="float"):
     for file, defines in program_variants(base):
         for k in build(device, file, defines).program.all_kernels():
             sizes[k.function_name] = local_size(device, k)
-    return {"VW": base["VW"], "MASKED_SUMS": base["MASKED_SUMS"], "work_group": sizes}
+    return {"VW": base["VW"], "MASKED_SUMS": base["MASKED_SUMS"],
+            "FEATURES_BUF": base["FEATURES_BUF"], "work_group": sizes}
 
 
 def batches(n, defines):

@@ -72,8 +72,15 @@ inline IREALV ball_mask(IREALV m, REALV dx, REALV dy, REALV dz, REAL r2)
  * order as their bits do), evaluated on the vector integer units instead of the FP pipes
  * that bound the sums (three balls' kernel ~2 ms faster at 1M points on the Zen 4 EPYC) */
 #define BALL_LESS(d2, r2) (CAT(as_, IREALV)(d2) < (IREALV)CAT(as_, IREAL)(r2))
-/* chunks of candidates kept before each ball's sums run over them (features_pca) */
+/* FEATURES_BUF (the host's choice, clcurv/program.py:features_buffer): chunks of
+ * candidates kept before each ball's sums run over them (features_pca). Each run loads and
+ * stores the ball's 10 accumulators: 32 chunks, about a point's whole walk at 30
+ * neighbours, halve those moves against 16 (three balls' kernel ~4-8 ms faster at 1M
+ * points on the Zen 3 EPYC, AVX2) in 4-8 KB of a CPU's stack; a GPU keeps 16, whose
+ * private arrays live in slow memory. */
+#ifndef FEATURES_BUF
 #define FEATURES_BUF 16
+#endif
 /* Each ball's sums over the kept chunks 0 .. nb - 1: lanes of the largest ball with
  * d^2 < r2[j] (ball_mask's test on the kept d^2, +inf outside the largest ball, so that the
  * one test is the mask), in the order of the walk. */

@@ -119,3 +119,40 @@ def test_covariances_walk_the_pca_once(torus, device, monkeypatch):
     runs.clear()
     clcurv.curvature(cloud, RADII[0], method="2dcov1", orient=None)
     assert runs == [PCA.name, "2dcov1"]
+
+
+@pytest.mark.parametrize("size", [3, 16, 32])
+def test_walk_buffer_size_keeps_the_bits(torus, device, monkeypatch, size):
+    """FEATURES_BUF, the chunks the multi-radius walk keeps before each ball's sums run
+    over them (the host's choice per device, clcurv.program.features_buffer), changes how
+    often the sums pause, not their additions or order: the features of three radii and
+    the covariance operators' PCA normals are the same bits at any size (3: many partial
+    runs a point) as with the device's own."""
+    import clcurv.cloud
+    from clcurv.features import run_features
+    from clcurv.program import features_buffer
+    own = clcurv.DeviceCloud(torus, max(RADII), device=device)
+    ref = clcurv.features(own, RADII, "all")
+    ref_normals = run_features(own, RADII, ("normals",), anchored=False)
+    real = clcurv.cloud.precision_defines
+    monkeypatch.setattr(clcurv.cloud, "precision_defines",
+                        lambda dev, prec: dict(real(dev, prec), FEATURES_BUF=size))
+    cloud = clcurv.DeviceCloud(torus, max(RADII), device=device)
+    assert cloud.defines["FEATURES_BUF"] == size
+    assert own.defines["FEATURES_BUF"] == features_buffer(device.info)
+    for a, b in zip(clcurv.features(cloud, RADII, "all"), ref):
+        _same(a, b)
+    for (va, ca, sa), (vb, cb, sb) in zip(run_features(cloud, RADII, ("normals",),
+                                                       anchored=False), ref_normals):
+        np.testing.assert_array_equal(va["normals"], vb["normals"])
+        np.testing.assert_array_equal(ca, cb)
+        np.testing.assert_array_equal(sa, sb)
+
+
+def test_walk_buffer_choice():
+    """32 chunks on CPU devices, 16 on the others (GPUs: private arrays in slow memory)."""
+    import dataclasses
+    from clcurv.program import features_buffer
+    base = clcurv.device.DeviceInfo(0, "d", "p", "v", "cpu", "1", "1.2", True, 1, 1, 1, 1, 1)
+    assert features_buffer(base) == 32
+    assert features_buffer(dataclasses.replace(base, kind="gpu")) == 16
