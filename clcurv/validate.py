@@ -40,7 +40,10 @@ def check_finite_box(points, lo, hi, name="points"):
 
 
 def as_radius(radius):
-    """Return ``radius`` as a positive finite float, or raise ValueError."""
+    """Return ``radius`` as a positive finite float, or raise ValueError (TypeError for a
+    value that is not a number, a bool among them: ``radius=True`` is a slip, not 1.0)."""
+    if isinstance(radius, (bool, np.bool_)):
+        raise TypeError(f"radius must be a number, got {radius!r}")
     try:
         r = float(radius)
     except (TypeError, ValueError):

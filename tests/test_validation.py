@@ -89,6 +89,17 @@ def test_radius_not_a_number():
         clcurv.curvature(bumpy_surface(100, 0), "big")
 
 
+@pytest.mark.parametrize("radius", [True, np.bool_(True), [0.1, True]])
+def test_radius_bool_is_refused(radius):
+    """A bool is no radius (float(True) would make it 1.0): single or in a list."""
+    pts = bumpy_surface(100, 0)
+    with pytest.raises(TypeError, match="radius must be a number"):
+        clcurv.features(pts, radius)
+    if np.ndim(radius) == 0:
+        with pytest.raises(TypeError, match="radius must be a number"):
+            clcurv.curvature(pts, radius)
+
+
 @pytest.mark.parametrize("kw", [{"method": "mls9"}, {"weights": "gauss"}, {"backend": "cuda"},
                                 {"orient": "inward"}, {"precision": "half"}])
 def test_bad_options(kw, device):
