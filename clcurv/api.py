@@ -461,22 +461,32 @@ def _project(pts, radius, projections, *, normals, orient, viewpoint, **common):
     return pts, ref
 
 
-def normals(points, radius, *, weights="uniform", normals=None, orient="auto", viewpoint=None,
-            orient_k=10, device=None, precision="float", backend="opencl"):
+def normals(points, radius=None, *, weights="uniform", normals=None, orient="auto",
+            viewpoint=None, orient_k=10, device=None, precision="float", backend="opencl",
+            k=None):
     """Unit PCA normals (eigenvector of the smallest covariance eigenvalue of N_r(p)).
 
-    Same parameters as :func:`curvature` (``points`` may be a DeviceCloud). Returns an
-    (N, 3) float64 array in input order, oriented as ``orient`` says (outward by default
-    on closed shapes), NaN where fewer than 3 neighbours or a degenerate neighbourhood.
+    Same parameters as :func:`curvature` (``points`` may be a DeviceCloud), ``k`` (or
+    ``radius="knn:K"``) included: each point's ball is then that of its k nearest points
+    (PCL's ``setKSearch``, Open3D's ``KDTreeSearchParamKNN``, up to ties), from the k-NN
+    radius of :mod:`clcurv.knn_radius`; an isolated point gets NaN. Returns an (N, 3)
+    float64 array in input order, oriented as ``orient`` says (outward by default on closed
+    shapes), NaN where fewer than 3 neighbours or a degenerate neighbourhood.
     """
+    knn = None
+    if k is not None or isinstance(radius, str):
+        knn, radius = _knn(points, radius, k, weights, None, 0, 0, device, precision, backend)
+        points = knn.cloud
     points, cloud = _cloud_points(points)
     pts, r, ref_normals, vp, how = _inputs(points, radius, weights, backend, orient, normals,
                                            viewpoint, orient_k, unit=False)  # they only orient
     if len(pts) == 0:
         return np.empty((0, 3))
-    run = _Run(backend, pts, r, device, precision, cloud)
+    run = _Run(backend, pts, r, device, precision, cloud, knn)
     raw = run.pca_normals(weights)
-    _warn_sparse(raw["status"], r, PCA.min_count)
+    if knn is not None:                 # isolated points: an empty ball (r^2 = 0), NaN
+        r = knn.radius
+    _warn_sparse(raw["status"], r, PCA.min_count, None if knn is None else knn.k)
     return _oriented(run, raw, how, ref_normals, vp, orient_k)
 
 

@@ -615,3 +615,32 @@ def test_pruned_rows_change_no_bit_with_per_point_radii(device, monkeypatch):
         for key, v in arrays[0].items():
             assert np.array_equal(v, arrays[1][key], equal_nan=True), key
         assert np.array_equal(a.count, b.count)
+
+
+def test_normals_with_a_knn_radius(sphere, device):
+    """clcurv.normals(k=30) (or radius="knn:30"): each point's PCA normal of its 30 nearest
+    points (the point itself the first), as a float64 k-d tree PCA gives it; outward on the
+    closed 10x density sphere (MST orientation); the variation pass's normals at k=30 up to
+    sign and round-off; an isolated point NaN; k with a radius, or with density weights,
+    refused."""
+    from scipy.spatial import cKDTree
+    pts = sphere[::2]
+    n = clcurv.normals(pts, k=30, device=device)
+    np.testing.assert_array_equal(n, clcurv.normals(pts, "knn:30", device=device))
+    radial = pts / np.linalg.norm(pts, axis=1, keepdims=True)
+    assert np.einsum("ij,ij->i", n, radial).min() > 0.99       # outward, ~r/2R at most off
+    sample = np.random.default_rng(5).choice(len(pts), 300, replace=False)
+    _, nb = cKDTree(pts).query(pts[sample], 30)
+    for s, idx in zip(sample, nb):
+        q = pts[idx] - pts[idx].mean(axis=0)
+        ref = np.linalg.eigh(q.T @ q)[1][:, 0]
+        assert abs(n[s] @ ref) > 1 - 1e-5, s                    # float32 offsets, cell-relative
+    var = clcurv.curvature(pts, method="variation", k=30, device=device)
+    assert np.abs(np.einsum("ij,ij->i", n, var.normals)).min() > 1 - 1e-5
+    base = clcurv.shapes.sphere(5000, 1.0, seed=3)["points"]
+    far = clcurv.normals(np.vstack([base, [[500.0, 0, 0]]]), k=10, device=device)
+    assert np.isnan(far[-1]).all() and np.isfinite(far[:-1]).all()
+    with pytest.raises(ValueError, match="not both"):
+        clcurv.normals(base, 0.1, k=5, device=device)
+    with pytest.raises(ValueError, match="density"):
+        clcurv.normals(base, k=5, weights="density", device=device)
