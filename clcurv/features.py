@@ -143,6 +143,14 @@ def canonical_names(names):
     """
     if isinstance(names, str):
         names = [n.strip() for n in names.split(",") if n.strip()]
+    try:
+        names = list(names)
+    except TypeError:
+        raise TypeError(f"features must be a name, a sequence of names or 'all', got "
+                        f"{names!r}") from None
+    for n in names:
+        if not isinstance(n, str):
+            raise TypeError(f"feature names must be strings, got {n!r}")
     out = []
     lower = {}
     for a, c in _ALIASES.items():
@@ -245,9 +253,9 @@ def features(points, radius=None, features=DEFAULT_FEATURES, *, k=None, ddof=0, 
         walk (the cloud is binned at the largest) and returns one result per radius; each
         is bit-identical to a single-radius call on the same DeviceCloud. ``"knn:K"`` is
         ``k=K``.
-    features : sequence of str or str
+    features : sequence of str, str or None
         Feature names (:data:`FEATURES`; jakteristics and PDAL spellings accepted, see
-        :func:`canonical_names`; "all"). Default :data:`DEFAULT_FEATURES`.
+        :func:`canonical_names`; "all"). Default (or None) :data:`DEFAULT_FEATURES`.
     k : int, optional
         Adaptive radius: each point's ball radius is the distance to its k-th nearest point
         (the point itself the first), found on the device with the grid
@@ -286,7 +294,7 @@ def features(points, radius=None, features=DEFAULT_FEATURES, *, k=None, ddof=0, 
     from .validate import as_points, choice
     choice(backend, "backend", ("opencl", "numpy"))
     choice(ddof, "ddof", (0, 1))
-    names = canonical_names(features)
+    names = canonical_names(DEFAULT_FEATURES if features is None else features)
     if not names:
         raise ValueError("features must name at least one feature")
     up = None if orient is None else _orient_spec(orient)

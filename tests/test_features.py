@@ -235,6 +235,20 @@ def test_names_and_spellings():
     assert c("all") == tuple(F.FEATURES)
     with pytest.raises(ValueError, match="unknown feature"):
         c(["curviness"])
+    with pytest.raises(TypeError, match="feature names must be strings"):
+        c(["planarity", 3])
+    with pytest.raises(TypeError, match="features must be a name"):
+        c(7)
+
+
+def test_features_none_is_the_default_set(device):
+    """features=None asks for DEFAULT_FEATURES, as leaving it out does."""
+    pts = clcurv.shapes.sphere(3000, 1.0, seed=4)["points"]
+    a = clcurv.features(pts, 0.2, None, device=device)
+    b = clcurv.features(pts, 0.2, device=device)
+    assert a.names == b.names == F.canonical_names(F.DEFAULT_FEATURES)
+    for name in a.names:
+        np.testing.assert_array_equal(a[name], b[name])
 
 
 def test_more_than_one_record(device):
