@@ -35,8 +35,24 @@ EXIT_ERROR, EXIT_USAGE, EXIT_IO, EXIT_DEVICE, EXIT_MEMORY = 1, 2, 3, 4, 5
 EXIT_INTERRUPTED = 130
 
 
+def _knn_alias(args, default):
+    """``--radius knn:K``, the API's spelling (``radius="knn:K"``), as ``--k K``: args.k set,
+    args.radius back to ``default``."""
+    spec = args.radius
+    if not (isinstance(spec, str) and spec.strip().lower().startswith("knn:")):
+        return
+    try:
+        k = int(spec.strip()[4:])
+    except ValueError:
+        raise UsageError(f"--radius knn:K needs an integer K, got {spec!r}") from None
+    if args.k is not None:
+        raise UsageError("give --radius knn:K or --k K, not both")
+    args.k, args.radius = k, default
+
+
 def compute(args, out=print):
     """``clcurv compute``: run the file job of ``args``; return its :class:`clcurv.job.Done`."""
+    _knn_alias(args, "auto")
     return job.run(job.Job.from_args(args), out)
 
 
@@ -66,6 +82,7 @@ def features_cmd(args, out=print):
     from .tiled_job import tile_session
     from .tiling import TilingError
     inputs = args.input if len(args.input) > 1 else args.input[0]
+    _knn_alias(args, None)
     if (args.radius is None) == (args.k is None):
         raise UsageError("give --radius R[,R2,...] or --k K")
     try:
@@ -132,7 +149,7 @@ def _compute_parser(sub):
     _file_arguments(c)
     c.add_argument("--method", default="mls2", choices=METHODS)
     c.add_argument("--radius", default="auto", help="ball radius in the file's unit, or 'auto' "
-                   "(about 30 neighbours)")
+                   "(about 30 neighbours), or knn:K (the same as --k K)")
     c.add_argument("--k", type=int, default=None, metavar="K",
                    help="instead of --radius, each point's radius is the distance to its K-th "
                    "nearest point (the point itself the first; a knn_radius field is "
@@ -215,7 +232,8 @@ def build_parser():
                        allow_abbrev=False)
     _file_arguments(f)
     f.add_argument("--radius", default=None, help="ball radius in the file's unit, or several "
-                   "separated by commas (one neighbour walk; fields named <feature>_r<radius>)")
+                   "separated by commas (one neighbour walk; fields named <feature>_r<radius>), "
+                   "or knn:K (the same as --k K)")
     f.add_argument("--k", type=int, default=None, help="per-point radius: the distance to "
                    "the k-th nearest point")
     f.add_argument("--optimal", action="store_true", help="with several radii: each point's "

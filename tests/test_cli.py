@@ -79,6 +79,14 @@ def test_compute_with_a_knn_radius(tmp_path):
     assert (a["neighbours"] >= 30).all() and (a["neighbours"] == 30).mean() > 0.99
     api = clcurv.curvature(pts, method="variation", k=30)
     np.testing.assert_array_equal(a["surface_variation"], api.variation)
+    # --radius knn:30, the API's spelling, is --k 30
+    alias = tmp_path / "bunny_knn.ply"
+    p = run("compute", sample_path(), "-o", alias, "--method", "variation", "--radius",
+            "knn:30", "-q")
+    assert p.returncode == 0, p.stderr
+    b = io.read(alias).attributes
+    for name in ("knn_radius", "surface_variation", "neighbours"):
+        np.testing.assert_array_equal(b[name], a[name])
 
 
 @pytest.mark.parametrize("args,code,msg", [
@@ -109,6 +117,12 @@ def test_compute_with_a_knn_radius(tmp_path):
     (["compute", "{sample}", "-o", "{tmp}/x.ply", "--k", "30", "--tile-size", "0.05"], 2,
      "does not run in tiles"),
     (["compute", "{sample}", "-o", "{tmp}/x.ply", "--k", "0"], 2, "k must be"),
+    (["compute", "{sample}", "-o", "{tmp}/x.ply", "--radius", "knn:many"], 2,
+     "--radius knn:K needs an integer K"),
+    (["compute", "{sample}", "-o", "{tmp}/x.ply", "--radius", "knn:30", "--k", "30"], 2,
+     "give --radius knn:K or --k K, not both"),
+    (["features", "{sample}", "-o", "{tmp}/x.ply", "--radius", "knn:30", "--k", "20"], 2,
+     "give --radius knn:K or --k K, not both"),
 ])
 def test_bad_arguments_exit_codes(tmp_path, args, code, msg):
     args = [a.format(sample=sample_path(), tmp=tmp_path) for a in args]

@@ -301,6 +301,11 @@ def test_cli_features(tmp_path):
     assert main(["features", str(src), "-o", str(knn), "--k", "20"]) == 0
     got = clcurv.io.read(knn).attributes
     assert "knn_radius" in got and (got["number_of_neighbors"] >= 20).all()
+    alias = tmp_path / "alias.ply"                       # the API's spelling, radius="knn:K"
+    assert main(["features", str(src), "-o", str(alias), "--radius", "knn:20"]) == 0
+    same = clcurv.io.read(alias).attributes
+    for name in ("knn_radius", "number_of_neighbors", "planarity"):
+        np.testing.assert_array_equal(same[name], got[name])
     assert main(["features", str(src), "-o", str(knn)]) == 2           # neither --radius nor --k
     assert main(["features", str(src), "-o", str(knn), "--radius", "0.2",
                  "--features", "curviness"]) == 2
