@@ -112,6 +112,8 @@ def _inputs(points, radius, weights, backend, orient, normals, viewpoint, orient
     # on the OpenCL backend the binning checks finiteness on its bounding box (every path
     # bins before it reads a coordinate), with the same message: no extra pass here
     pts = as_points(points, finite=backend != "opencl")
+    if radius is None:
+        raise ValueError("give radius= (a number, or 'knn:K') or k=")
     r = as_radius(radius)
     ref = None
     if normals is not None:

@@ -89,6 +89,13 @@ def test_radius_not_a_number():
         clcurv.curvature(bumpy_surface(100, 0), "big")
 
 
+def test_no_radius_and_no_k_says_what_to_give():
+    pts = bumpy_surface(100, 0)
+    for fn in (clcurv.curvature, clcurv.normals):
+        with pytest.raises(ValueError, match="give radius="):
+            fn(pts)
+
+
 @pytest.mark.parametrize("radius", [True, np.bool_(True), [0.1, True]])
 def test_radius_bool_is_refused(radius):
     """A bool is no radius (float(True) would make it 1.0): single or in a list."""
