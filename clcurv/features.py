@@ -205,6 +205,47 @@ class FeatureResult:
             return self.count
         return self.values[canonical_names([name])[0]]
 
+    def _columns(self, names):
+        """[(label, (N,) array)] of ``names`` (any spelling; normals as nx, ny, nz;
+        number_of_neighbors the count, as float64)."""
+        if names is None:
+            names = list(self.names)
+        elif isinstance(names, str):
+            names = [n.strip() for n in names.split(",") if n.strip()]
+        cols = []
+        for n in names:
+            if not isinstance(n, str):
+                raise TypeError(f"feature names must be strings, got {n!r}")
+            if n in _COUNT_NAMES:
+                cols.append(("number_of_neighbors", self.count.astype(np.float64)))
+                continue
+            if n in _NORMAL_PARTS:
+                parts = [n]
+            else:
+                c = canonical_names([n])[0]
+                if c not in self.values:
+                    raise KeyError(f"{n!r} ({c}) was not computed; this result holds "
+                                   f"{', '.join(self.names)}")
+                parts = ["nx", "ny", "nz"] if c == "normals" else [c]
+            cols.extend((part, self[part]) for part in parts)
+        return cols
+
+    def columns(self, names=None):
+        """The column labels of :meth:`to_array` for ``names``."""
+        return [label for label, _ in self._columns(names)]
+
+    def to_array(self, names=None):
+        """The features as one (N, F) float64 array, a column per feature in the order of
+        ``names`` (any spelling of :func:`canonical_names`, or a comma-separated string;
+        ``normals`` gives nx, ny, nz; ``number_of_neighbors`` the count), as jakteristics'
+        ``compute_features`` returns them; default every feature held, in :attr:`names`
+        order. :meth:`columns` gives the labels. NaN where the status is not 0."""
+        cols = self._columns(names)
+        out = np.empty((len(self), len(cols)), np.float64)
+        for j, (_, v) in enumerate(cols):
+            out[:, j] = v
+        return out
+
     def file_fields(self, suffix=""):
         """Per-point scalar fields for a file: every feature (normals as nx, ny, nz), then
         number_of_neighbors and feature_status, each name followed by ``suffix`` (the

@@ -241,6 +241,32 @@ def test_names_and_spellings():
         c(7)
 
 
+def test_to_array_in_the_order_asked(device):
+    """FeatureResult.to_array: one (N, F) float64 array, a column per name in the order
+    asked (any spelling; normals as nx, ny, nz; the count), as jakteristics returns them;
+    by default every feature held, in order; a feature not computed is a KeyError."""
+    pts = clcurv.shapes.sphere(3000, 1.0, noise=0.01, seed=5)["points"]
+    f = clcurv.features(pts, 0.2, ["planarity", "normals", "Scattering"], device=device)
+    ask = ["Scattering", "nz", "number_of_neighbors", "planarity"]
+    a = f.to_array(ask)
+    assert a.shape == (len(pts), 4) and a.dtype == np.float64
+    assert f.columns(ask) == ["sphericity", "nz", "number_of_neighbors", "planarity"]
+    np.testing.assert_array_equal(a[:, 0], f["sphericity"])
+    np.testing.assert_array_equal(a[:, 1], f.values["normals"][:, 2])
+    np.testing.assert_array_equal(a[:, 2], f.count)
+    np.testing.assert_array_equal(a[:, 3], f["planarity"])
+    assert f.columns() == ["planarity", "nx", "ny", "nz", "sphericity"]
+    np.testing.assert_array_equal(f.to_array()[:, 1:4], f.values["normals"])
+    np.testing.assert_array_equal(f.to_array("planarity, Scattering"),
+                                  f.to_array(["planarity", "sphericity"]))
+    with pytest.raises(KeyError, match="linearity"):
+        f.to_array(["linearity"])
+    with pytest.raises(ValueError, match="unknown feature"):
+        f.to_array(["curviness"])
+    with pytest.raises(TypeError, match="must be strings"):
+        f.to_array([3])
+
+
 def test_features_none_is_the_default_set(device):
     """features=None asks for DEFAULT_FEATURES, as leaving it out does."""
     pts = clcurv.shapes.sphere(3000, 1.0, seed=4)["points"]
