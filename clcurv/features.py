@@ -219,14 +219,11 @@ class FeatureResult:
             if n in _COUNT_NAMES:
                 cols.append(("number_of_neighbors", self.count.astype(np.float64)))
                 continue
-            if n in _NORMAL_PARTS:
-                parts = [n]
-            else:
-                c = canonical_names([n])[0]
-                if c not in self.values:
-                    raise KeyError(f"{n!r} ({c}) was not computed; this result holds "
-                                   f"{', '.join(self.names)}")
-                parts = ["nx", "ny", "nz"] if c == "normals" else [c]
+            c = "normals" if n in _NORMAL_PARTS else canonical_names([n])[0]
+            if c not in self.values:
+                raise KeyError(f"{n!r} ({c}) was not computed; this result holds "
+                               f"{', '.join(self.names)}")
+            parts = [n] if n in _NORMAL_PARTS else ["nx", "ny", "nz"] if c == "normals" else [c]
             cols.extend((part, self[part]) for part in parts)
         return cols
 

@@ -261,6 +261,9 @@ def test_to_array_in_the_order_asked(device):
                                   f.to_array(["planarity", "sphericity"]))
     with pytest.raises(KeyError, match="linearity"):
         f.to_array(["linearity"])
+    g = clcurv.features(pts, 0.2, ["planarity"], device=device)
+    with pytest.raises(KeyError, match="normals"):
+        g.to_array(["nz"])
     with pytest.raises(ValueError, match="unknown feature"):
         f.to_array(["curviness"])
     with pytest.raises(TypeError, match="must be strings"):
