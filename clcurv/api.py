@@ -486,7 +486,7 @@ def normals(points, radius=None, *, weights="uniform", normals=None, orient="aut
         return np.empty((0, 3))
     run = _Run(backend, pts, r, device, precision, cloud, knn)
     raw = run.pca_normals(weights)
-    if knn is not None:                 # isolated points: an empty ball (r^2 = 0), NaN
+    if knn is not None:     # the warning's radius (isolated points: r^2 = 0, NaN normals)
         r = knn.radius
     _warn_sparse(raw["status"], r, PCA.min_count, None if knn is None else knn.k)
     return _oriented(run, raw, how, ref_normals, vp, orient_k)

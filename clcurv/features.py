@@ -131,6 +131,21 @@ _COLUMNS = RECORD_WIDTH - 2
 MAX_RADII_PER_WALK = 4
 
 
+def _name_list(names):
+    """``names`` (a comma-separated string or a sequence of strings) as a list of strings."""
+    if isinstance(names, str):
+        return [n.strip() for n in names.split(",") if n.strip()]
+    try:
+        names = list(names)
+    except TypeError:
+        raise TypeError(f"features must be a name, a sequence of names or 'all', got "
+                        f"{names!r}") from None
+    for n in names:
+        if not isinstance(n, str):
+            raise TypeError(f"feature names must be strings, got {n!r}")
+    return names
+
+
 def canonical_names(names):
     """The canonical feature names of ``names`` (canonical, jakteristics, PDAL or
     CloudCompare spellings; ``nx``/``ny``/``nz`` ask for ``normals``;
@@ -141,16 +156,7 @@ def canonical_names(names):
     which is CloudCompare's Verticality: ask for that one as ``verticality``), then a
     case-insensitive match when it is unique. Unknown names raise ValueError.
     """
-    if isinstance(names, str):
-        names = [n.strip() for n in names.split(",") if n.strip()]
-    try:
-        names = list(names)
-    except TypeError:
-        raise TypeError(f"features must be a name, a sequence of names or 'all', got "
-                        f"{names!r}") from None
-    for n in names:
-        if not isinstance(n, str):
-            raise TypeError(f"feature names must be strings, got {n!r}")
+    names = _name_list(names)
     out = []
     lower = {}
     for a, c in _ALIASES.items():
@@ -208,14 +214,8 @@ class FeatureResult:
     def _columns(self, names):
         """[(label, (N,) array)] of ``names`` (any spelling; normals as nx, ny, nz;
         number_of_neighbors the count, as float64)."""
-        if names is None:
-            names = list(self.names)
-        elif isinstance(names, str):
-            names = [n.strip() for n in names.split(",") if n.strip()]
         cols = []
-        for n in names:
-            if not isinstance(n, str):
-                raise TypeError(f"feature names must be strings, got {n!r}")
+        for n in list(self.names) if names is None else _name_list(names):
             if n in _COUNT_NAMES:
                 cols.append(("number_of_neighbors", self.count.astype(np.float64)))
                 continue
