@@ -5,8 +5,8 @@
 
 On a random-order unit-sphere sample (bench.harness.make_clouds) at the radius for ~30
 neighbours, end to end from the numpy array in to the arrays out, every ratio from
-interleaved runs (bench.harness.paired: a, b, a, b, ... best of each), so that a drift of
-the shared machine's speed hits both sides:
+interleaved runs (bench.harness.paired_rounds: a, b, a, b, ...; best of each, and the
+per-round ratios beside), so that a drift of the shared machine's speed hits both sides:
 
 - the feature set (DEFAULT_FEATURES, jakteristics' list) vs clcurv.normals(orient=None):
   target <= 1.2x;
@@ -35,8 +35,8 @@ import clcurv
 from clcurv.knn_radius import knn_radii
 
 from .contention import describe_threads, thread_check
-from .harness import (REPO, environment, log, make_clouds, mpts, paired, radius_for, run_python,
-                      timed)
+from .harness import (REPO, environment, log, make_clouds, mpts, paired_rounds, radius_for,
+                      run_python, timed)
 from .pdal_cli import pdal_command, pdal_version, time_covariance_features
 
 TARGETS = {"features_vs_normals": 1.2, "three_radii_vs_separate": 0.6,
@@ -145,20 +145,18 @@ def run(n, repeats):
     clcurv.curvature(pts[:20000], r * math.sqrt(n / 20000), method="variation", orient=None)
 
     rows = {}
-    feat, norm = paired(lambda: clcurv.features(pts, r),
-                        lambda: clcurv.normals(pts, r, orient=None), repeats)
-    rows["features_vs_normals"] = (feat, norm)
-    multi, sep = paired(lambda: clcurv.features(pts, radii),
-                        lambda: [clcurv.features(pts, x) for x in radii], repeats)
-    rows["three_radii_vs_separate"] = (multi, sep)
+    rows["features_vs_normals"] = paired_rounds(
+        lambda: clcurv.features(pts, r), lambda: clcurv.normals(pts, r, orient=None), repeats)
+    rows["three_radii_vs_separate"] = paired_rounds(
+        lambda: clcurv.features(pts, radii), lambda: [clcurv.features(pts, x) for x in radii],
+        repeats)
     cloud = clcurv.DeviceCloud(pts, max(radii))
-    multi_c, sep_c = paired(lambda: clcurv.features(cloud, radii),
-                            lambda: [clcurv.features(cloud, x) for x in radii], repeats)
-    rows["three_radii_same_cloud"] = (multi_c, sep_c)
-    knn, mom = paired(lambda: knn_radii(pts, 30),
-                      lambda: clcurv.curvature(pts, r, method="variation", orient=None),
-                      repeats)
-    rows["knn_vs_moments"] = (knn, mom)
+    rows["three_radii_same_cloud"] = paired_rounds(
+        lambda: clcurv.features(cloud, radii), lambda: [clcurv.features(cloud, x) for x in radii],
+        repeats)
+    rows["knn_vs_moments"] = paired_rounds(
+        lambda: knn_radii(pts, 30),
+        lambda: clcurv.curvature(pts, r, method="variation", orient=None), repeats)
     stages = knn_radii(pts, 30)
     split = _stages(pts, r)
     f = clcurv.features(pts, r)
@@ -182,11 +180,21 @@ def run(n, repeats):
            "threads_before": before, "threads_after": after, "peers": peers,
            "knn_levels": stages.levels, "knn_stages": stages.timings, "stages": split,
            "peak_rss": rss,
-           "rows": {k: {"a_seconds": a, "b_seconds": b, "ratio": a / b,
-                        "target": TARGETS[k],
-                        "met": None if TARGETS[k] is None else a / b <= TARGETS[k]}
-                    for k, (a, b) in rows.items()}}
+           "rows": {k: _row(a, b, TARGETS[k]) for k, (a, b) in rows.items()}}
     return out
+
+
+def _row(a, b, target):
+    """One ratio's record from the interleaved rounds' times a, b (s): the headline is the
+    best of each side (``paired``), ``met`` its test against the target; the per-round ratios
+    a_i / b_i (a and b of the same seconds) show how far the machine's noise moves it."""
+    best_a, best_b = min(a), min(b)
+    rounds = [x / y for x, y in zip(a, b)]
+    return {"a_seconds": best_a, "b_seconds": best_b, "ratio": best_a / best_b,
+            "target": target, "met": None if target is None else best_a / best_b <= target,
+            "a_rounds": list(a), "b_rounds": list(b), "round_ratios": rounds,
+            "round_median": float(np.median(rounds)),
+            "rounds_met": None if target is None else sum(x <= target for x in rounds)}
 
 
 def report(res):
@@ -200,9 +208,12 @@ def report(res):
              f"{n:,} points on a unit sphere in random order, r = {res['radius']:.5g} "
              f"(mean {res['mean_count']:.1f} neighbours), device {res['device']}; best of "
              f"{res['repeats']} interleaved runs of each pair (a, b, a, b, ...), end to end "
-             "(numpy in, numpy out, binning included).", "",
-             "| measured (a) | against (b) | a | b | a / b | target | met | peak RSS a, b |",
-             "|---|---|---:|---:|---:|---:|---|---|"]
+             "(numpy in, numpy out, binning included); a / b and met are of the best of each "
+             "side, and the per-round ratios of the a and b run in the same round show the "
+             "machine's noise.", "",
+             "| measured (a) | against (b) | a | b | a / b | target | met | a_i / b_i per round: "
+             "median (range), rounds met | peak RSS a, b |",
+             "|---|---|---:|---:|---:|---:|---|---|---|"]
     for k, row in res["rows"].items():
         a, b = names[k]
         target = "" if row["target"] is None else f"<= {row['target']}"
@@ -210,7 +221,7 @@ def report(res):
         rss = ", ".join(_rss_text(res.get("peak_rss", {}).get(w)) for w in RSS_CALLS.get(k, ()))
         lines.append(f"| `{a}` | `{b}` | {row['a_seconds'] * 1e3:.0f} ms | "
                      f"{row['b_seconds'] * 1e3:.0f} ms | {row['ratio']:.2f} | {target} | {met} "
-                     f"| {rss} |")
+                     f"| {_rounds_text(row)} | {rss} |")
     lines += ["", "Peak RSS: one call in a fresh process (programs built and context made "
               "beforehand), the high-water mark reset just before it; in parentheses what "
               "the call added to the RSS before it (interpreter, context, the input cloud); for "
@@ -243,6 +254,14 @@ def report(res):
     lines += ["", describe_threads(res["threads_before"], "cores before"),
               describe_threads(res["threads_after"], "cores after"), ""]
     return "\n".join(lines)
+
+
+def _rounds_text(row):
+    rr = row.get("round_ratios")
+    if not rr:
+        return ""
+    met = "" if row.get("rounds_met") is None else f", {row['rounds_met']} of {len(rr)}"
+    return f"{row['round_median']:.3f} ({min(rr):.3f}-{max(rr):.3f}){met}"
 
 
 def _rss_text(r):

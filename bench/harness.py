@@ -38,22 +38,25 @@ def timeit(fn, repeats, warmup=1, setup=None):
     return best
 
 
+def paired_rounds(fn_a, fn_b, repeats):
+    """Wall times (s) of ``fn_a`` and ``fn_b``, two lists of ``repeats`` interleaved runs
+    (a, b, a, b, ...): round i's a and b ran in the same seconds of the shared machine."""
+    times = ([], [])
+    for _ in range(repeats):
+        for fn, which in ((fn_a, 0), (fn_b, 1)):
+            t0 = time.perf_counter()
+            fn()
+            times[which].append(time.perf_counter() - t0)
+    return times
+
+
 def paired(fn_a, fn_b, repeats):
     """Minimum wall times (s) of ``fn_a`` and ``fn_b`` over ``repeats`` interleaved runs
     (a, b, a, b, ...): their ratio then compares runs made in the same seconds, which on a
     shared machine whose speed drifts between minutes is far steadier than two separate
     minima."""
-    best_a = best_b = math.inf
-    for _ in range(repeats):
-        for fn, which in ((fn_a, 0), (fn_b, 1)):
-            t0 = time.perf_counter()
-            fn()
-            dt = time.perf_counter() - t0
-            if which:
-                best_b = min(best_b, dt)
-            else:
-                best_a = min(best_a, dt)
-    return best_a, best_b
+    a, b = paired_rounds(fn_a, fn_b, repeats)
+    return min(a), min(b)
 
 
 def timed(fn):
