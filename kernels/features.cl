@@ -55,12 +55,12 @@
 #define FOUR_THIRDS_PI 4.18879020f
 #endif
 
-/* The lanes of a chunk in ball j (d^2 < r2): chunk_offsets' mask m at the largest ball, and
- * d^2 < r2 with d^2 computed by the same expression as chunk_offsets (so the mask is the one
- * chunk_offsets gives at r2, bit for bit: tests/test_multi_radius.py). */
-inline IREALV ball_mask(IREALV m, REALV dx, REALV dy, REALV dz, REAL r2)
+/* The lanes of a chunk in ball j (d^2 < r2): chunk_offsets_d2's mask m at the largest ball,
+ * and its d2 < r2 (the value chunk_offsets compares, so the mask is the one it gives at r2,
+ * bit for bit: tests/test_multi_radius.py). */
+inline IREALV ball_mask(IREALV m, REALV d2, REAL r2)
 {
-    return m & isless(offsets_d2(dx, dy, dz), (REALV)r2);
+    return m & isless(d2, (REALV)r2);
 }
 
 #if NR > 1
@@ -81,54 +81,79 @@ inline IREALV ball_mask(IREALV m, REALV dx, REALV dy, REALV dz, REAL r2)
 #ifndef FEATURES_BUF
 #define FEATURES_BUF 16
 #endif
-/* Each ball's sums over the kept chunks 0 .. nb - 1: lanes of the largest ball with
- * d^2 < r2[j] (ball_mask's test on the kept d^2, +inf outside the largest ball, so that the
- * one test is the mask), in the order of the walk. */
-#define FEATURES_FLUSH(nb)                                                                \
+#if FEATURES_BUF > 32
+#error "features.cl: FEATURES_BUF is at most 32 (one bit a chunk of the buffer in a uint)"
+#endif
+/* Ball j's sums over chunk t of the buffer: lanes of the largest ball with d^2 < r2[j]
+ * (ball_mask's test on the kept d^2, +inf outside the largest ball, so that the one test
+ * is the mask). */
+#define FEATURES_SUM_CHUNK(t)                                                             \
+    {                                                                                     \
+        const IREALV m = BALL_LESS(bd[t], r2[j]);                                         \
+        const REALV w = select((REALV)0, (REALV)1, m);                                    \
+        PCA_ACCUMULATE(w, m, bx[t], by[t], bz[t], c1, w1, x1, y1, z1, xx1, xy1, xz1, yy1, \
+                       yz1, zz1)                                                          \
+    }
+/* Each ball's sums over the buffer's chunks in the order of the walk. With the zeroed
+ * sums (MASKED_SUMS 0) over the chunks with a lane in the largest ball only, the set bits
+ * of kept: a chunk left out has no lane in any ball, and would add +0 to every lane of
+ * every sum, which changes no bit (no sum is ever -0), so the sums are a single-radius
+ * walk's, which adds every chunk. (With the masked sums of AVX-512 devices, not measured
+ * there, every chunk.) */
+#if MASKED_SUMS
+#define KEPT_BIT(m) 0u
+#define FEATURES_SUM_CHUNKS for (uint t = 0; t < nb; ++t) FEATURES_SUM_CHUNK(t)
+#else
+#define KEPT_BIT(m) ((uint)any_lane(m))
+#define FEATURES_SUM_CHUNKS                                                               \
+    for (uint bits = kept; bits; bits &= bits - 1) {                                      \
+        const uint t = 31 - clz(bits & (0u - bits));          /* the lowest set bit */    \
+        FEATURES_SUM_CHUNK(t)                                                             \
+    }
+#endif
+#define FEATURES_FLUSH                                                                    \
     for (int j = 0; j < NR; ++j) {                                                        \
         REALV c1 = sc[j], w1 = sw[j], x1 = sx[j], y1 = sy[j], z1 = sz[j];                 \
         REALV xx1 = sxx[j], xy1 = sxy[j], xz1 = sxz[j], yy1 = syy[j], yz1 = syz[j];       \
         REALV zz1 = szz[j];                                                               \
-        for (uint t = 0; t < (nb); ++t) {                                                 \
-            const IREALV m = BALL_LESS(bd[t], r2[j]);                                     \
-            const REALV w = select((REALV)0, (REALV)1, m);                                \
-            PCA_ACCUMULATE(w, m, bx[t], by[t], bz[t], c1, w1, x1, y1, z1, xx1, xy1, xz1,  \
-                           yy1, yz1, zz1)                                                 \
-        }                                                                                 \
+        FEATURES_SUM_CHUNKS                                                               \
         sc[j] = c1; sw[j] = w1; sx[j] = x1; sy[j] = y1; sz[j] = z1; sxx[j] = xx1;         \
         sxy[j] = xy1; sxz[j] = xz1; syy[j] = yy1; syz[j] = yz1; szz[j] = zz1;             \
-    }
+    }                                                                                     \
+    kept = 0;
 #endif
 
 #if NR > 1
 /* The walk of features_pca for NR balls, offsets in the anchor frame of axis AX (a
- * constant: PCA_BY_AXIS): every chunk of candidates is kept (offsets in the anchor frame,
- * d^2 as ball_mask computes it, +inf outside the largest ball) FEATURES_BUF at a time, and
- * each ball's sums then run over them with only that ball's accumulators live (with every
- * ball's at once, 10 vectors each, the registers spilled: three balls cost 245 ms at 1M
- * points against 222 for three single-radius walks; kept chunks, 214). The same lanes,
- * additions and order as a single-radius walk (pca_ball, which sums every chunk too):
- * bit-identical sums. Keeping only the chunks with a lane in the largest ball, by a test
- * per chunk (any_lane, or a branch-free count of the kept chunks), cost far more than the
- * sums it saved: on the EPYC one ball so buffered took 159 ms against 104 when every chunk
- * is kept, and three balls 251 against 217 (the test's lane reduction, and the store index
- * that depends on it, on the walk's critical path). Summing the largest ball as the walk
- * goes (its accumulators live through the walk) was slower too (217 -> 294 ms). */
+ * constant: PCA_BY_AXIS): every chunk of candidates is stored in the next slot of the
+ * buffer (offsets in the anchor frame, chunk_offsets_d2's d^2, +inf outside the largest
+ * ball), FEATURES_BUF at a time, its bit in kept set when it has a lane in the largest
+ * ball (KEPT_BIT); each ball's sums then run over the buffer with only that ball's
+ * accumulators live (with every ball's at once, 10 vectors each, the registers spilled:
+ * three balls cost 245 ms at 1M points against 222 for three single-radius walks). On the
+ * 1M sphere 15.7 of a point's 28.4 chunks at r√2 have a lane in the largest ball: the
+ * three balls' kernel 2-8 ms faster on the Zen 3 EPYC (AVX2) than with every chunk summed
+ * (bench/results/three_radii_history.md). The slot is the chunk's count whatever its
+ * lanes: a slot advanced only for kept chunks made the buffer's store addresses, and so
+ * the next chunk's loads, wait for each chunk's test (+13 ms). Summing the largest ball
+ * as the walk goes (its accumulators live through the walk) was slower too. */
 #define FEATURES_WALK(AX)                                                                 \
     {                                                                                     \
         REALV bx[FEATURES_BUF], by[FEATURES_BUF], bz[FEATURES_BUF], bd[FEATURES_BUF];     \
-        uint nb = 0;                                                                      \
+        uint nb = 0, kept = 0;                                                            \
         NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, ball, i, end, pr)                \
-            const IREALV mmax = chunk_offsets(XA, Y, Z, i, end, pr, bmax, &dx, &dy, &dz); \
+            const IREALV mmax = chunk_offsets_d2(XA, Y, Z, i, end, pr, bmax, &dx, &dy, &dz, \
+                                                 &d2);                                    \
             FEATURES_FRAME(AX)                                                            \
             bx[nb] = ex; by[nb] = ey; bz[nb] = ez;                                        \
-            bd[nb] = select((REALV)INFINITY, offsets_d2(dx, dy, dz), mmax);               \
+            bd[nb] = select((REALV)INFINITY, d2, mmax);                                   \
+            kept |= KEPT_BIT(mmax) << nb;                                                 \
             if (++nb == FEATURES_BUF) {                                                   \
-                FEATURES_FLUSH(nb)                                                        \
+                FEATURES_FLUSH                                                            \
                 nb = 0;                                                                   \
             }                                                                             \
         NEIGHBOR_CHUNKS_END                                                               \
-        FEATURES_FLUSH(nb)                                                                \
+        FEATURES_FLUSH                                                                    \
     }
 #if PCA_ANCHOR
 #define FEATURES_FRAME(AX) PCA_SHEAR(AX, fs, dx, dy, dz, ex, ey, ez)  /* masks: from d */
@@ -171,7 +196,7 @@ inline void features_pca(__global const REAL *X, __global const REAL *Y, __globa
             sc[j] = sw[j] = sx[j] = sy[j] = sz[j] = 0;
             sxx[j] = sxy[j] = sxz[j] = syy[j] = syz[j] = szz[j] = 0;
         }
-        REALV dx, dy, dz, ex, ey, ez;
+        REALV dx, dy, dz, d2, ex, ey, ez;
         int ax = 2;
         REAL2 fs = (REAL2)(0);
 #if PCA_ANCHOR
@@ -224,12 +249,12 @@ inline void features_refine(__global const REAL *X, __global const REAL *Y,
     REAL r2max = r2[0];
     for (int j = 1; j < NR; ++j) r2max = fmax(r2max, r2[j]);
     const REAL2 bmax = (REAL2)(BALL_R2(W, g, r2max), ball.y);
-    REALV dx, dy, dz;
+    REALV dx, dy, dz, d2;
     NEIGHBOR_CHUNKS_BEGIN(ranges, co & CELL_MASK, p, ball, i, end, pr)
-        const IREALV mmax = chunk_offsets(XA, Y, Z, i, end, pr, bmax, &dx, &dy, &dz);
+        const IREALV mmax = chunk_offsets_d2(XA, Y, Z, i, end, pr, bmax, &dx, &dy, &dz, &d2);
         for (int j = 0; j < NR; ++j) {
             const IREALV m = NR == 1 ? mmax
-                             : ball_mask(mmax, dx, dy, dz, BALL_R2(W, g, r2[j]));
+                             : ball_mask(mmax, d2, BALL_R2(W, g, r2[j]));
             PCA_REFINE_ACCUMULATE(s0[j], W, i, dx, dy, dz, m, v0[j], h0[j])
         }
     NEIGHBOR_CHUNKS_END

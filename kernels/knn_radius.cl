@@ -69,14 +69,12 @@
 #define NBIN 8              /* bins per counting pass */
 #define KNN_ROUNDS 12       /* counting passes at most (each narrows the interval 8x) */
 
-/* d^2 of the chunk's lanes (as chunk_offsets) and the mask of those in the open ball. */
+/* d^2 of the chunk's lanes (chunk_offsets_d2's) and the mask of those in the open ball. */
 inline IREALV chunk_d2(__global const REAL *X, __global const REAL *Y, __global const REAL *Z,
                        uint i, uint end, REAL3 pr, REAL2 ball, REALV *d2)
 {
     REALV dx, dy, dz;
-    const IREALV m = chunk_offsets(X, Y, Z, i, end, pr, ball, &dx, &dy, &dz);
-    *d2 = offsets_d2(dx, dy, dz);
-    return m;
+    return chunk_offsets_d2(X, Y, Z, i, end, pr, ball, &dx, &dy, &dz, d2);
 }
 
 /* Append the lanes of d2 set in m to buf (got values so far). Every lane is written, at

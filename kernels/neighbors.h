@@ -131,17 +131,26 @@ inline REALV offsets_d2(REALV dx, REALV dy, REALV dz)
 }
 
 /* Offsets q - p of the chunk starting at i (pr: the query point as seen from the chunk's
- * row, see the top) and the mask of lanes that are neighbours. */
-inline IREALV chunk_offsets(__global const REAL *X, __global const REAL *Y,
-                            __global const REAL *Z, uint i, uint end, REAL3 pr, REAL2 ball,
-                            REALV *dx, REALV *dy, REALV *dz)
+ * row, see the top), their |q - p|^2 in d2, and the mask of lanes that are neighbours. A
+ * caller that tests other balls on the same chunk (features.cl) tests this d2, the very
+ * value a single-ball call compares, without computing it again. */
+inline IREALV chunk_offsets_d2(__global const REAL *X, __global const REAL *Y,
+                               __global const REAL *Z, uint i, uint end, REAL3 pr, REAL2 ball,
+                               REALV *dx, REALV *dy, REALV *dz, REALV *d2)
 {
     *dx = VLOADV(0, X + i) - pr.x;
     *dy = VLOADV(0, Y + i) - pr.y;
     *dz = VLOADV(0, Z + i) - pr.z;
-    const REALV d2 = offsets_d2(*dx, *dy, *dz);
+    *d2 = offsets_d2(*dx, *dy, *dz);
     const IREALV live = LANES < (IREALV)((IREAL)(end - i));
-    return live & isless(d2, (REALV)ball.x);
+    return live & isless(*d2, (REALV)ball.x);
+}
+inline IREALV chunk_offsets(__global const REAL *X, __global const REAL *Y,
+                            __global const REAL *Z, uint i, uint end, REAL3 pr, REAL2 ball,
+                            REALV *dx, REALV *dy, REALV *dz)
+{
+    REALV d2;
+    return chunk_offsets_d2(X, Y, Z, i, end, pr, ball, dx, dy, dz, &d2);
 }
 
 /* LANE_REDUCTION(name, T, F) defines  inline T name(T<VW> v): the VW lanes of v combined
@@ -184,14 +193,25 @@ LANE_REDUCTION(hsum, REAL, LANE_ADD)
 /* Sum of the integer lanes (the counts of MASKED_COUNT, common.h) */
 LANE_REDUCTION(hsum_i, IREAL, LANE_ADD)
 
-/* OR of the lanes of a mask */
-LANE_REDUCTION(or_mask, IREAL, LANE_OR)
-
-/* Is any lane of a mask set? An OR tree: PoCL 3.1's any() made the second pass of
- * knn_graph about twice as slow. */
+/* Is any lane of a mask set? The lanes narrowed to bytes (a mask lane is 0 or -1, so its
+ * byte is too) and read as one integer: a compiler sees the sign bits of a comparison and
+ * tests them together (PoCL 3.1 on AVX2: two packs and vpmovmskb, or vmovmskps), where an
+ * OR tree of the lanes took five shuffles and ORs (the multi-radius features walk, which
+ * tests every chunk, 2-5 ms faster at 1M points) and PoCL 3.1's any() made the second
+ * pass of knn_graph about twice as slow. (clang's __builtin_reduce_or compiles to one
+ * vptest, but Oclgrind does not implement it.) */
 inline int any_lane(IREALV m)
 {
-    return or_mask(m) != 0;
+#if VW == 16
+    const ulong2 u = as_ulong2(convert_char16(m));
+    return (u.x | u.y) != 0;
+#elif VW == 8
+    return as_ulong(convert_char8(m)) != 0;
+#elif VW == 4
+    return as_uint(convert_char4(m)) != 0;
+#else
+    return as_ushort(convert_char2(m)) != 0;
+#endif
 }
 
 #endif
