@@ -38,16 +38,17 @@ EXIT_INTERRUPTED = 130
 def _knn_alias(args, default):
     """``--radius knn:K``, the API's spelling (``radius="knn:K"``), as ``--k K``: args.k set,
     args.radius back to ``default``."""
+    from .features import _parse_knn
     spec = args.radius
     if not (isinstance(spec, str) and spec.strip().lower().startswith("knn:")):
         return
-    try:
-        k = int(spec.strip()[4:])
-    except ValueError:
-        raise UsageError(f"--radius knn:K needs an integer K, got {spec!r}") from None
     if args.k is not None:
         raise UsageError("give --radius knn:K or --k K, not both")
-    args.k, args.radius = k, default
+    try:
+        args.k = _parse_knn(spec.strip().lower(), None)
+    except ValueError:
+        raise UsageError(f"--radius knn:K needs an integer K, got {spec!r}") from None
+    args.radius = default
 
 
 def compute(args, out=print):
