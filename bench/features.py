@@ -6,7 +6,10 @@
 On a random-order unit-sphere sample (bench.harness.make_clouds) at the radius for ~30
 neighbours, end to end from the numpy array in to the arrays out, every ratio from
 interleaved runs (bench.harness.paired_rounds: a, b, a, b, ...; best of each, and the
-per-round ratios beside), so that a drift of the shared machine's speed hits both sides:
+per-round ratios beside), so that a drift of the shared machine's speed hits both sides.
+21 rounds (REPEATS): with 7, one session's three runs on the Zen 3 EPYC gave 0.53-0.61x for
+the three radii and 1.02-1.21x for the features, as the machine's slow phases, tens of
+seconds long, took some runs' every round; the pairs' 21 rounds add about half a minute.
 
 - the feature set (DEFAULT_FEATURES, jakteristics' list) vs clcurv.normals(orient=None):
   target <= 1.2x;
@@ -272,6 +275,10 @@ def _rss_text(r):
     return f"{r['peak_mb']:.0f} MB (+{r['delta_mb']:.0f})"
 
 
+#: Interleaved rounds of each pair in the reference run (the module's docstring says why).
+REPEATS = 21
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="100k points, 3 repeats")
@@ -279,7 +286,7 @@ def main(argv=None):
     ap.add_argument("--repeats", type=int, default=None)
     args = ap.parse_args(argv)
     n = args.points or (100_000 if args.quick else 1_000_000)
-    res = run(n, args.repeats or (3 if args.quick else 7))
+    res = run(n, args.repeats or (3 if args.quick else REPEATS))
     md = report(res)
     print(md)
     if not args.quick and args.points is None:        # the reference run only
