@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from .tiling import within
+from .workspace import Crc, check_records
 
 #: points per read chunk of pass (1) and per written chunk of pass (3)
 READ_CHUNK = 1 << 18
@@ -39,6 +40,7 @@ class Buckets:
         self.lo = np.full(3, np.inf)
         self.hi = np.full(3, -np.inf)
         self.normals_finite = True
+        self.crc = Crc()             # count and CRC-32 of every bucket file
 
     def _index(self, xy):
         ij = np.floor((xy - self.origin) / self.side).astype(np.int64)
@@ -69,6 +71,7 @@ class Buckets:
             with open(self.path(i, j), "ab") as f:
                 rec[a:b].tofile(f)
             self.counts[i, j] += b - a
+            self.crc.add(f"{i}_{j}", rec[a:b])
 
     def overlapping(self, lo, hi):
         """(i, j) of the non-empty buckets that may hold points of the box [lo, hi) (x-y)."""
@@ -106,10 +109,13 @@ class Buckets:
         ``state.key``."""
         rows = state.rows(self, i, j, block) if state is not None else None
         start = 0
+        check = Crc()
         with open(self.path(i, j), "rb") as f:
             while True:
                 rec = np.fromfile(f, self.dtype, count=block)
+                check.add("", rec)
                 if not len(rec):
+                    self._verify(i, j, check)
                     return
                 if rows is not None:
                     rec = state.join(rec, next(rows), i * self.shape[1] + j, start)
@@ -120,22 +126,24 @@ class Buckets:
         """Pass (1b): every point appended to the input file of each tile whose cells or
         halo hold it (``folder``/<t>.bin, records of :meth:`tile_dtype` with ``own`` = 1 in
         the tile that owns it), so a tile then reads exactly its points. ``state`` as in
-        :meth:`gather`."""
+        :meth:`gather`. Returns the (count, CRC-32) of every file written, by tile."""
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
         size, h = tiling.size, tiling.halo
         ntx, nty = tiling.shape
         dtype = self.tile_dtype(state)
+        crc = Crc()
         for i in range(self.shape[0]):
             for j in range(self.shape[1]):
                 if not self.counts[i, j]:
                     continue
                 for rec, pos in self.blocks(i, j, state, block):
                     self._scatter(rec, tiling.frame.cells_xy(pos), size, h, ntx, nty,
-                                  dtype, folder)
+                                  dtype, folder, crc)
+        return crc.state()
 
     @staticmethod
-    def _scatter(rec, c, size, h, ntx, nty, dtype, folder):
+    def _scatter(rec, c, size, h, ntx, nty, dtype, folder, crc=None):
         """Append the records ``rec`` (x-y cells ``c``) to the files of the tiles whose
         reach [t size - h, (t + 1) size + h) holds them: the owner and, within h cells of
         its edges, its neighbours (h <= size)."""
@@ -168,16 +176,37 @@ class Buckets:
         for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(t)]):
             with open(folder / f"{int(t[a])}.bin", "ab") as f:
                 out[a:b].tofile(f)
+            if crc is not None:
+                crc.add(str(int(t[a])), out[a:b])
+
+    def read(self, i, j):
+        """The records of bucket (i, j), checked against the sums taken when written."""
+        path = self.path(i, j)
+        rec = np.fromfile(path, self.dtype) if path.exists() else np.empty(0, self.dtype)
+        check_records(path, rec, self.crc.sums.get(f"{i}_{j}"))
+        return rec
+
+    def _verify(self, i, j, check):
+        """CorruptWorkspace unless the count and CRC in ``check`` (a :class:`Crc` of the
+        whole file read) are those written."""
+        have = check.sums.get("", [0, 0])
+        want = self.crc.sums.get(f"{i}_{j}", [0, 0])
+        if list(have) != list(want):
+            from .workspace import CorruptWorkspace
+            raise CorruptWorkspace(self.path(i, j), f"{have[0]} records where {want[0]} "
+                                   "were written, or their CRC-32 differs (changed on disk)")
 
     def tile_dtype(self, state=None):
         """The records of a tile's input file (:meth:`split`)."""
         return np.dtype(self._dtype(state).descr + [("own", "u1")])
 
-    def read_tile(self, folder, t, state=None):
-        """The records of tile t's input file in global-id order (none: empty)."""
+    def read_tile(self, folder, t, state=None, expect=None):
+        """The records of tile t's input file in global-id order (none: empty), checked
+        against ``expect`` ((count, CRC-32) taken by :meth:`split`; CorruptWorkspace)."""
         path = Path(folder) / f"{t}.bin"
         dt = self.tile_dtype(state)
         rec = np.fromfile(path, dt) if path.exists() else np.empty(0, dt)
+        check_records(path, rec, expect)
         return rec[np.argsort(rec["id"], kind="stable")]
 
     def _dtype(self, state):
@@ -187,7 +216,7 @@ class Buckets:
         return {"origin": self.origin.tolist(), "side": self.side, "shape": list(self.shape),
                 "counts": self.counts.tolist(), "lo": self.lo.tolist(),
                 "hi": self.hi.tolist(), "normals_finite": self.normals_finite,
-                "normals": "n" in self.dtype.names}
+                "normals": "n" in self.dtype.names, "crc": self.crc.state()}
 
     @classmethod
     def from_state(cls, folder, s):
@@ -195,6 +224,7 @@ class Buckets:
         b.counts = np.asarray(s["counts"], np.int64).reshape(b.shape)
         b.lo, b.hi = np.asarray(s["lo"]), np.asarray(s["hi"])
         b.normals_finite = s["normals_finite"]
+        b.crc = Crc(s.get("crc"))
         return b
 
 

@@ -30,6 +30,7 @@ from .job import UsageError
 from .features import DEFAULT_FEATURES as FEATURE_NAMES
 from .operators import METHODS
 from .program import BuildError, PrecisionError
+from .workspace import WorkspaceError
 
 EXIT_ERROR, EXIT_USAGE, EXIT_IO, EXIT_DEVICE, EXIT_MEMORY = 1, 2, 3, 4, 5
 EXIT_INTERRUPTED = 130
@@ -258,7 +259,7 @@ def build_parser():
 #: exception types -> exit code, the first match wins (io errors are also ValueError or
 #: ImportError)
 _EXIT_CODES = ((MemoryError, EXIT_MEMORY), (UsageError, EXIT_USAGE), (io.ReadError, EXIT_IO),
-               (io.WriteError, EXIT_IO),
+               (io.WriteError, EXIT_IO), (WorkspaceError, EXIT_IO),
                (OSError, EXIT_IO), (NoDeviceError, EXIT_DEVICE), (PrecisionError, EXIT_DEVICE),
                (BuildError, EXIT_DEVICE),
                (ValueError, EXIT_USAGE), (TypeError, EXIT_USAGE), (ImportError, EXIT_ERROR))

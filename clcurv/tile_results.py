@@ -45,16 +45,23 @@ class Windows:
         return self.folder / f"h{w}.bin"
 
     def window(self, w):
-        """The records of window w, indexed by id - w * size; RuntimeError unless every
-        id of the window is there exactly once (a bug, never a silently partial output)."""
+        """The records of window w, indexed by id - w * size; CorruptWorkspace unless every
+        id of the window is there exactly once (never a silently partial output: the run
+        recomputes, :mod:`clcurv.tiled`)."""
         if w != self._w:
             lo, hi = w * self.size, min(self.n, (w + 1) * self.size)
             p = self.path(w)
             rec = np.fromfile(p, self.dtype) if p.exists() else np.empty(0, self.dtype)
-            seen = np.bincount(rec["id"] - lo, minlength=hi - lo)
+            rel = rec["id"] - lo
+            if len(rel) and (rel.min() < 0 or rel.max() >= hi - lo):
+                rel = rel[(rel >= 0) & (rel < hi - lo)]          # ids of other windows
+                seen = np.zeros(hi - lo + 1, np.int64)           # (reported below)
+            else:
+                seen = np.bincount(rel, minlength=hi - lo)
             if len(seen) != hi - lo or not np.all(seen == 1):
-                raise RuntimeError(
-                    f"the tiles wrote ids {lo}..{hi - 1} wrongly: "
+                from .workspace import CorruptWorkspace
+                raise CorruptWorkspace(
+                    p, f"the tiles wrote ids {lo}..{hi - 1} wrongly: "
                     f"{int(np.count_nonzero(seen[:hi - lo] == 0))} missing, "
                     f"{int(np.count_nonzero(seen > 1))} more than once")
             out = np.empty(hi - lo, self.dtype)
@@ -95,14 +102,15 @@ def partition(ws, n, count, specs, mst=False):
     if win.folder.exists():
         shutil.rmtree(win.folder)
     win.folder.mkdir()
+    from .workspace import load_sealed
     for t in range(count):
-        rec = np.load(tile_file(ws, t))
+        rec = load_sealed(tile_file(ws, t))             # CorruptWorkspace: recomputed
         if "status" in rec.dtype.names and len(rec):
             win.status += np.bincount(rec["status"], minlength=4)[:4]
         if len(rec):
             to_windows(rec, win.path, win.size)
         if mst:
-            halo = np.load(tile_file(ws, t).with_suffix(".halo.npy"))
+            halo = load_sealed(tile_file(ws, t).with_suffix(".halo.npy"))
             if len(halo):
                 to_windows(halo, win.halo_path, win.size)
     return win

@@ -63,6 +63,7 @@ tile size comes from the budget (``memory=``) and the density measured in pass (
 """
 from __future__ import annotations
 
+import errno
 import json
 import os
 import shutil
@@ -74,6 +75,7 @@ from pathlib import Path
 import numpy as np
 
 from . import io, tiled_orient
+from . import workspace as wsp
 from .buckets import READ_CHUNK, Buckets, bucket_grid
 from .grid import Frame
 from .io import stream
@@ -161,16 +163,18 @@ def source_aerial(src):
 
 
 def workspace(dst, workdir):
-    dst = Path(dst)
-    return Path(workdir) if workdir is not None else dst.parent / f".{dst.name}.clcurv-tiles"
+    """The workspace folder of a run writing ``dst`` (a path, or a catalog's list of
+    paths): :func:`clcurv.workspace.folder`."""
+    return wsp.folder(dst, workdir)
 
 
 def _source_key(src):
-    if isinstance(src, stream.Catalog):
-        return [_source_key(p) for p in src.parts]
-    st = os.stat(src.path)
-    return {"path": str(Path(src.path).resolve()), "size": st.st_size,
-            "mtime_ns": st.st_mtime_ns, "n": int(src.n)}
+    """The resume key of the input(s): content hashes and point counts."""
+    parts = src.parts if isinstance(src, stream.Catalog) else [src]
+    keys = wsp.source_key([p.path for p in parts])
+    for k, p in zip(keys, parts):
+        k["n"] = int(p.n)
+    return keys
 
 
 def _field_specs(method, precision, want_normals):
@@ -239,6 +243,7 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
         dst = catalog_outputs(source, dst)
     else:
         dst = io.check_output(dst)
+        io.check_not_input(dst, src)        # as the CLI: a mesh's faces are never lost
         source = stream.open_source(src)
     budget = budget_of(memory)
     if int(projections):
@@ -252,9 +257,32 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
     if not catalog and tile is None and fits_memory(source.n, budget) and client is None \
             and not workers:
         return _in_memory(src, dst, params, fields, say)
-    ws = workspace(dst[0].parent / ".catalog" if catalog else dst, workdir)
-    return run_tiles(source, dst, params, budget, tile, ws, fields, progress, say, client,
-                workers)
+    check_params(params, fields, local=client is None and not workers)
+    return run_tiles(source, dst, params, budget, tile, workspace(dst, workdir), fields,
+                     progress, say, client, workers)
+
+
+def check_params(params, fields, local=True):
+    """Every check of a tiled run's options that can be made before a point is read: the
+    field names, the options of the method (the API's own checks, run on a small synthetic
+    cloud with the NumPy reference) and, for a run in this process, the device."""
+    params.specs(fields)                                  # unknown field names
+    if params.kind == "curvature":
+        from .api import curvature
+        u = np.random.default_rng(0).normal(size=(64, 3))
+        pts = u / np.linalg.norm(u, axis=1)[:, None] * params.radius
+        how = params.orient
+        if isinstance(how, str) and how == "auto" and params.viewpoint is None:
+            how = "up"
+        given = isinstance(how, str) and how == "normals"       # the file's, in the run
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            curvature(pts, params.radius, method=params.method, weights=params.weights,
+                      orient=how, viewpoint=params.viewpoint, kernel=params.kernel,
+                      h=params.h, precision=params.precision, backend="numpy",
+                      normals=pts if given else None)
+    if local:
+        _worker_device(params.device)                     # NoDeviceError now, not later
 
 
 def check_tiled_outputs(dsts, source):
@@ -289,88 +317,155 @@ def catalog_outputs(source, dst):
     return outs
 
 
-def _manifest(ws, source, params, budget, tile):
-    return {"version": 1, "source": _source_key(source), "params": params.key(),
-            "tile": tile, "budget": budget if tile is None else None}
+def _manifest(source, params, budget, tile, wanted, client, workers):
+    """The resume key: the inputs' content, every option that changes a byte of the
+    output (the fields written among them), the code, and the device of a local run."""
+    device = None
+    if client is None and not workers:
+        info = _worker_device(params.device).info
+        device = [info.platform, info.name, info.driver]
+    return {"source": _source_key(source), "params": params.key(),
+            "fields": sorted(wanted) if wanted else None, "code": wsp.code_key(),
+            "tile": None if tile is None else float(tile),
+            "budget": budget if tile is None else None, "device": device,
+            "dask": bool(client is not None or workers)}
 
 
-def _prepare(ws, source, params, budget, tile, say):
-    """Pass (1), or its state from an interrupted run with the same manifest."""
-    want = _manifest(ws, source, params, budget, tile)
-    mf = ws / "manifest.json"
-    if mf.exists():
-        try:
-            have = json.loads(mf.read_text())
-        except ValueError:
-            have = None
-        if have and have.get("key") == want and have.get("buckets"):
-            say(f"resuming from {ws}")
-            return Buckets.from_state(ws / "buckets", have["buckets"]), have, False
-    if ws.exists():
-        shutil.rmtree(ws)
-    (ws / "buckets").mkdir(parents=True)
+def _prepare(space, want, source, params, budget, say, check_disk=None):
+    """Pass (1), or its state from an interrupted run with the same key ``want``
+    (``check_disk()`` is called before a fresh pass)."""
+    have = space.manifest()
+    if have and have.get("key") == want and have.get("buckets"):
+        say(f"resuming from {space.path}")
+        b = Buckets.from_state(space / "buckets", have["buckets"])
+        return b, have, False
+    if have is not None or (space / "buckets").exists():
+        say(f"{space.path}: left by a run of other inputs or options; starting afresh")
+    space.clear()
+    if check_disk is not None:
+        check_disk()
+    (space / "buckets").mkdir()
     target = max(budget // params.bytes_per_point(), 1)
     origin, side, shape = bucket_grid(source, target)
-    b = Buckets(ws / "buckets", origin, side, shape, source.has_normals)
+    b = Buckets(space / "buckets", origin, side, shape, source.has_normals)
     for start, xyz, nrm in source.chunks(READ_CHUNK):
         b.add(start, xyz, nrm)
     if source.n == 0:
         raise TilingError(f"{source.path}: no points")
     state = {"key": want, "buckets": b.state()}
-    _write_json(mf, state)
+    space.write_manifest(state)
     return b, state, True
 
 
-def _write_json(path, obj):
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(obj))
-    os.replace(tmp, path)
-
-
 def run_tiles(source, dst, params, budget, tile, ws, wanted, progress, say, client=None,
-         workers=None):
+              workers=None):
     """Passes (1) to (3) of a tiled run of ``params`` (:class:`_Params`, or
     clcurv.tiled_features.FeatureParams: the tiles' computation, halo, fields and budget per
-    point) from ``source`` to ``dst``, in the workspace ``ws``; the summary dict."""
+    point) from ``source`` to ``dst``, in the workspace folder ``ws``
+    (:mod:`clcurv.workspace`: claimed and locked for the run); the summary dict.
+
+    What is left behind: nothing after a success; nothing after bad input or options, or a
+    full disk (the same command cannot succeed as it is); the workspace after an
+    interruption or any other failure, for the same command to resume. A workspace file
+    that fails its check is recomputed: the run starts afresh once."""
+    want = _manifest(source, params, budget, tile, wanted, client, workers)
+    with wsp.claim(ws, dst) as space:
+        try:
+            for attempt in (0, 1):
+                try:
+                    summary = _run_tiles(space, want, source, dst, params, budget, tile,
+                                         wanted, progress, say, client, workers)
+                    break
+                except wsp.CorruptWorkspace as exc:
+                    if attempt:
+                        raise wsp.WorkspaceError(
+                            f"the workspace {space.path} failed its checks twice ({exc}): "
+                            "is another program writing there, or the disk failing?") from exc
+                    say(f"{exc}: recomputing from the start")
+                    space.clear()
+        except (io.ReadError, ValueError, TilingError):
+            space.remove()      # bad input or options: nothing to resume from
+            raise
+        except OSError as exc:
+            if exc.errno == errno.ENOSPC or isinstance(exc.__cause__, OSError) and \
+                    exc.__cause__.errno == errno.ENOSPC:
+                space.remove()
+                raise OSError(errno.ENOSPC, f"no space left on the device of {space.path} "
+                              f"or {Path(dst[0] if isinstance(dst, list) else dst).parent}: "
+                              f"a tiled run of {source.n} points needs about "
+                              f"{_gib(disk_need(source, params, wanted))} GiB of workspace "
+                              "besides its output (workdir= puts the workspace on another "
+                              "disk)") from exc
+            raise
+        space.remove()
+    return summary
+
+
+def _gib(n):
+    return f"{n / 2**30:.2g}"
+
+
+def disk_need(source, params, wanted):
+    """Bytes of workspace a tiled run of ``source`` needs at its peak, about: the buckets
+    and the tiles' inputs (the points twice, with a halo), then the tiles' results and
+    their windows (the fields twice)."""
+    point = 8 + 24 + (24 if source.has_normals else 0)
+    fields = 8 + sum(np.dtype(dt).itemsize * (w or 1) for _, w, dt in params.specs(wanted))
+    return int(source.n * (point * 2.3 + fields * 2))
+
+
+def check_disk(space, source, params, wanted, say):
+    """OSError (ENOSPC) before the run when the workspace's disk has less room than the run
+    needs (:func:`disk_need`); the need said either way."""
+    need = disk_need(source, params, wanted)
+    free = shutil.disk_usage(space.path).free
+    say(f"workspace {space.path}: about {_gib(need)} GiB at its peak ({_gib(free)} GiB free)")
+    if free < need:
+        raise OSError(errno.ENOSPC, f"{space.path}: a tiled run of {source.n} points needs "
+                      f"about {_gib(need)} GiB of workspace, and its disk has {_gib(free)} "
+                      "GiB free: free some space, or give workdir= (--workdir) on another "
+                      "disk")
+
+
+def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress, say,
+               client, workers):
     times = {}
     t0 = time.perf_counter()
-    try:
-        buckets, state, fresh = _prepare(ws, source, params, budget, tile, say)
-        times["bucketing"] = time.perf_counter() - t0
-        file_normals = (buckets.normals_finite and "n" in buckets.dtype.names
-                        and not params.ignore_normals)
-        how = params.orientation(source, file_normals)
-        halo = params.halo(file_normals)
-        specs = params.specs(wanted)
-        if not params.scale_space:
-            tiling = plan_tiles(buckets, params.radius, halo, budget, tile,
-                                bytes_per_point=params.bytes_per_point())
-    except (io.ReadError, ValueError):
-        # bad input or options: the same command cannot succeed, so nothing is kept to
-        # resume from (an interruption or a failure while computing keeps the workspace)
-        shutil.rmtree(ws, ignore_errors=True)
-        raise
+    ws = space.path
+    buckets, state, fresh = _prepare(space, want, source, params, budget, say,
+                                     lambda: check_disk(space, source, params, wanted, say))
+    times["bucketing"] = time.perf_counter() - t0
+    file_normals = (buckets.normals_finite and "n" in buckets.dtype.names
+                    and not params.ignore_normals)
+    how = params.orientation(source, file_normals)
+    halo = params.halo(file_normals)
+    specs = params.specs(wanted)
     smoothed = None
     if params.scale_space:
         from .tiled_scale import run_steps
         t_s = time.perf_counter()
+        wsp._remove(ws / "parts")            # an interrupted run's steps: made again
         smoothed = run_steps(ws, buckets, params, params.scale_space, budget,
                              lambda tasks: _execute(tasks, client, workers, step=True),
                              tile=tile)
         times["scale space"] = time.perf_counter() - t_s
         frame = Frame.covering(*smoothed.box, params.radius)
         tiling = plan_tiles(buckets, params.radius, halo, budget, tile, frame=frame)
+    else:
+        tiling = plan_tiles(buckets, params.radius, halo, budget, tile,
+                            bytes_per_point=params.bytes_per_point())
     (ws / "tiles").mkdir(exist_ok=True)
     t_split = time.perf_counter()
-    _split(ws, buckets, tiling, smoothed)
+    sums = _split(space, buckets, tiling, smoothed)
     times["splitting"] = time.perf_counter() - t_split
     say(f"{source.n} points in {tiling.count} tile(s) of {tiling.size} x {tiling.size} "
         f"cells of {tiling.frame.cell:.6g} (halo {halo} cell(s)), budget "
         f"{budget / 2**20:.0f} MiB")
-    todo = [t for t in range(tiling.count) if not tile_file(ws, t).exists()]
+    mst = isinstance(how, str) and how == "mst"
+    todo = [t for t in range(tiling.count) if not _tile_done(ws, t, mst, say)]
     skipped = tiling.count - len(todo)
     tasks = [TileTask(str(ws), t, tiling, state["buckets"], params, how, file_normals,
-                      specs, smoothed) for t in todo]
+                      specs, smoothed, sums.get(str(t))) for t in todo]
     t1 = time.perf_counter()
     computed, finished = 0, skipped
     for _, owned in _execute(tasks, client, workers):
@@ -381,7 +476,6 @@ def run_tiles(source, dst, params, budget, tile, ws, wanted, progress, say, clie
             progress(finished, tiling.count, computed)
     times["tiles"] = time.perf_counter() - t1
     t2 = time.perf_counter()
-    mst = isinstance(how, str) and how == "mst"
     windows = partition(ws, source.n, tiling.count, specs, mst)
     if mst:
         tiled_orient.reconcile_windows(ws, windows, tiling.count, params.method)
@@ -390,23 +484,49 @@ def run_tiles(source, dst, params, budget, tile, ws, wanted, progress, say, clie
     t3 = time.perf_counter()
     _write_output(dst, source, windows, specs)
     times["writing"] = time.perf_counter() - t3
-    shutil.rmtree(ws, ignore_errors=True)
     return {"tiled": True, "tiles": tiling.count, "skipped": skipped,
             "tile_cells": tiling.size, "halo": halo,
-            "points": source.n, "times": times, "status": windows.status.tolist(),
-            "dst": dst}
+            "points": source.n, "times": times,
+            "status": windows.status.tolist() if any(n == "status" for n, _, _ in specs)
+            else None, "dst": dst}
 
 
-def _split(ws, buckets, tiling, smoothed):
-    """Pass (1b), once per run (the tiles' input files; marked done for a resumed run)."""
-    done = ws / "tiles_in.done"
-    if done.exists():
-        return
-    folder = ws / "tiles_in"
-    if folder.exists():
-        shutil.rmtree(folder)
-    buckets.split(tiling, folder, state=smoothed)
-    done.touch()
+def _tile_done(ws, t, mst, say):
+    """Is tile t's result in the workspace and sound (its files pass their checks)? One
+    that fails is removed, and computed again."""
+    base = tile_file(ws, t)
+    paths = [base] + ([base.with_suffix(".halo.npy"), base.with_suffix(".nodes.npy")]
+                      if mst else [])
+    if not base.exists():
+        return False
+    if all(wsp.is_sound(p) for p in paths):
+        return True
+    say(f"{base}: fails its check; computing tile {t} again")
+    for p in paths:
+        wsp._remove(p)
+    return False
+
+
+def _split(space, buckets, tiling, smoothed):
+    """Pass (1b), once per run: the tiles' input files and their sums (a resumed run reuses
+    them when their record of sums, ``tiles_in.json``, is sound and of this tiling)."""
+    record = space / "tiles_in.json"
+    key = {"size": tiling.size, "halo": tiling.halo, "count": tiling.count,
+           "origin": list(map(float, tiling.frame.origin)), "cell": tiling.frame.cell}
+    try:
+        have = json.loads(record.read_text())
+        if have.get("key") == key and have.get("sum") == wsp._digest(
+                json.dumps(have["sums"], sort_keys=True).encode()):
+            return have["sums"]
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
+    wsp._remove(record)
+    folder = space / "tiles_in"
+    wsp._remove(folder)
+    sums = buckets.split(tiling, folder, state=smoothed)
+    wsp._write_text(record, json.dumps({"key": key, "sums": sums, "sum": wsp._digest(
+        json.dumps(sums, sort_keys=True).encode())}))
+    return sums
 
 
 def _trim():
@@ -465,6 +585,7 @@ class TileTask:
     file_normals: bool
     specs: list
     smoothed: object = None      # clcurv.tiled_scale.State after a scale space
+    expect: object = None        # (count, CRC-32) of its input file (clcurv.workspace)
 
 
 def compute_tile(task, device=None):
@@ -476,7 +597,8 @@ def compute_tile(task, device=None):
     from .memory import release_memory
     params, tiling = task.params, task.tiling
     buckets = Buckets.from_state(Path(task.ws) / "buckets", task.buckets)
-    rec = buckets.read_tile(Path(task.ws) / "tiles_in", task.t, state=task.smoothed)
+    rec = buckets.read_tile(Path(task.ws) / "tiles_in", task.t, state=task.smoothed,
+                            expect=task.expect)
     pos = rec["p"] if task.smoothed is None or not len(rec) else task.smoothed.key(rec)
     own = rec["own"].astype(bool)
     mst = isinstance(task.how, str) and task.how == "mst"
@@ -507,18 +629,14 @@ def compute_tile(task, device=None):
         out["id"] = rec["id"][own]
         for name, _, _ in task.specs:
             out[name] = f[name][own]
-        if mst:
-            _mst_records(task, out, own, pos, nl, node, rec["id"])
         del cloud               # its device buffers back to the pool, which lets them go:
         release_memory(device)  # the memory budget sizes tiles as if all were freed
+    if mst and len(out):        # the MST records first: a tile is done when its result is
+        _mst_records(task, out, own, pos, nl, node, rec["id"])
     elif mst:
         _mst_records(task, out, np.zeros(0, bool), np.empty((0, 3)), np.empty((0, 3)),
                      np.empty(0, np.int64), np.empty(0, np.int64))
-    path = tile_file(task.ws, task.t)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as fh:
-        np.save(fh, out)
-    os.replace(tmp, path)
+    wsp.save_sealed(tile_file(task.ws, task.t), out)
     return task.t, len(out)
 
 
@@ -535,11 +653,7 @@ def _mst_records(task, out, own, pos, nl, node, ids):
     for suffix, arr in ((".halo.npy", h), (".nodes.npy", tiled_orient.node_sums(
             pos[own], nl[own], node[own], o) if len(out) else
             np.empty(0, tiled_orient.SUMS_DTYPE))):
-        path = base.with_suffix(suffix)
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        with open(tmp, "wb") as fh:
-            np.save(fh, arr)
-        os.replace(tmp, path)
+        wsp.save_sealed(base.with_suffix(suffix), arr)
 
 
 _DEVICES = {}

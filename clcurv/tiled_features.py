@@ -209,7 +209,7 @@ def features_file(src, dst, radius=None, features=DEFAULT_FEATURES, *, k=None, d
     if not catalog and not forced and fits_memory(source.n, budget, params.extra_in_memory()):
         return _in_memory(src, dst, radii, names, None, ddof, optimal, device, precision)
     tiled.check_tiled_outputs(dst if catalog else [dst], source)
-    ws = tiled.workspace(dst[0].parent / ".catalog" if catalog else dst, workdir)
+    ws = tiled.workspace(dst, workdir)
     summary = tiled.run_tiles(source, dst, params, budget, tile, ws, None, progress, say,
                               client, workers)
     summary["fields"] = [n for n, _, _ in params.specs()]

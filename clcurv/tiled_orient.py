@@ -183,7 +183,8 @@ def reconcile_windows(ws, windows, count, method):
         for (x, y, g), c in zip(uniq.tolist(), cnt.tolist()):
             if x != y:
                 votes[(x, y)] = votes.get((x, y), 0) + (c if g else -c)
-    sums = [np.load(tile_file(ws, t).with_suffix(".nodes.npy")) for t in range(count)]
+    from .workspace import load_sealed
+    sums = [load_sealed(tile_file(ws, t).with_suffix(".nodes.npy")) for t in range(count)]
     flips, centroid, small = reconcile(sums, votes)
     windows.transform = lambda rec: flip_fields(rec, flip_mask(rec, flips, centroid, small),
                                                 method)

@@ -103,12 +103,8 @@ def init_state(buckets, folder, real, block=1 << 18):
         for j in range(buckets.shape[1]):
             if not buckets.counts[i, j]:
                 continue
-            with open(buckets.path(i, j), "rb") as f, \
-                    open(folder / f"s{i}_{j}.bin", "wb") as out:
-                while True:
-                    rec = np.fromfile(f, buckets.dtype, count=block)
-                    if not len(rec):
-                        break
+            with open(folder / f"s{i}_{j}.bin", "wb") as out:
+                for rec, _ in buckets.blocks(i, j, block=block):    # checked
                     st = np.zeros(len(rec), dt)
                     st["pb"] = rec["p"]
                     st.tofile(out)
@@ -238,7 +234,7 @@ def _apply(ws, buckets, state, step, rebin, block=1 << 18):
                 part = np.fromfile(f, pdt)
                 st["it"][part["row"]] = part["it"]
                 st["d"][part["row"]] = part["d"]
-            rec = np.fromfile(buckets.path(i, j), buckets.dtype)
+            rec = buckets.read(i, j)                    # checked against its sums
             d64 = st["d"].astype(np.float64)
             if rebin:
                 st["pb"] = rec["p"] + d64

@@ -216,7 +216,7 @@ def test_an_interrupted_run_resumes(scene, tmp_path):
         tiled.curvature_file(paths["laz"], out, R, method="mls1", tile=8.0,
                              progress=stop_after_5)
     assert not out.exists()
-    ws = tmp_path / ".out.laz.clcurv-tiles"
+    ws = tiled.workspace(out, None)
     assert len(os.listdir(ws / "tiles")) == 5
     summary = tiled.curvature_file(paths["laz"], out, R, method="mls1", tile=8.0)
     assert summary["skipped"] == 5
