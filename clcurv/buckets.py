@@ -110,6 +110,9 @@ class Buckets:
         rows = state.rows(self, i, j, block) if state is not None else None
         start = 0
         check = Crc()
+        if not self.path(i, j).exists():
+            from .workspace import CorruptWorkspace
+            raise CorruptWorkspace(self.path(i, j), "missing")
         with open(self.path(i, j), "rb") as f:
             while True:
                 rec = np.fromfile(f, self.dtype, count=block)

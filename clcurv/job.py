@@ -287,8 +287,9 @@ def _summary(job, cloud, done, device, times, normals_written):
     yield f"\n{len(pts)} points from {job.input}{dropped}"
     yield (f"method {job.method}, {_radius_text(job, done.radius)}, scale space "
            f"{job.scale_space} iteration(s), weights {job.weights}")
-    yield (f"mean neighbours {res.count.mean():.1f} (median {np.median(res.count):.0f}); "
-           f"status ok {np.mean(res.valid):.1%}")
+    if len(pts):
+        yield (f"mean neighbours {res.count.mean():.1f} (median {np.median(res.count):.0f}); "
+               f"status ok {np.mean(res.valid):.1%}")
     yield f"device {device.info.name} ({device.info.platform})"
     yield "time: " + ", ".join(f"{k} {v:.2f} s" for k, v in times.items())
     ranged = summary_fields(job.method)

@@ -53,25 +53,23 @@ class Windows:
             p = self.path(w)
             rec = np.fromfile(p, self.dtype) if p.exists() else np.empty(0, self.dtype)
             rel = rec["id"] - lo
-            if len(rel) and (rel.min() < 0 or rel.max() >= hi - lo):
-                rel = rel[(rel >= 0) & (rel < hi - lo)]          # ids of other windows
-                seen = np.zeros(hi - lo + 1, np.int64)           # (reported below)
-            else:
-                seen = np.bincount(rel, minlength=hi - lo)
-            if len(seen) != hi - lo or not np.all(seen == 1):
+            inside = (rel >= 0) & (rel < hi - lo)
+            seen = np.bincount(rel[inside], minlength=hi - lo)
+            if not inside.all() or not np.all(seen == 1):
                 from .workspace import CorruptWorkspace
                 raise CorruptWorkspace(
                     p, f"the tiles wrote ids {lo}..{hi - 1} wrongly: "
-                    f"{int(np.count_nonzero(seen[:hi - lo] == 0))} missing, "
-                    f"{int(np.count_nonzero(seen > 1))} more than once")
+                    f"{int(np.count_nonzero(seen == 0))} missing, "
+                    f"{int(np.count_nonzero(seen > 1))} more than once, "
+                    f"{int(np.count_nonzero(~inside))} out of range")
             out = np.empty(hi - lo, self.dtype)
             out[rec["id"] - lo] = rec
             self._w, self._rec = w, out
         return self._rec
 
     def rows(self, start, stop):
-        """The records of ids start..stop-1 (may span windows)."""
-        parts = []
+        """The records of ids start..stop-1 (may span windows; none: empty)."""
+        parts = [np.empty(0, self.dtype)] if start >= stop else []
         while start < stop:
             w = start // self.size
             rec = self.window(w)

@@ -79,11 +79,12 @@ from . import workspace as wsp
 from .buckets import READ_CHUNK, Buckets, bucket_grid
 from .grid import Frame
 from .io import stream
-from .tile_results import partition, tile_dtype, tile_file
+from .constants import TOO_FEW
+from .tile_results import Windows, partition, tile_dtype, tile_file
 from .tiling import (AUTO_CAP, TILE_BYTES_PER_POINT, Tiling, TilingError,  # noqa: F401 (re-exported)
                      budget_of, fits_memory, halo_cells, parse_memory, plan_tiles)
 from .operators import METHODS, OPERATORS
-from .validate import as_radius, choice
+from .validate import as_radius, choice, device_radius
 
 
 # --------------------------------------------------------------------------- memory
@@ -264,25 +265,26 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
 
 def check_params(params, fields, local=True):
     """Every check of a tiled run's options that can be made before a point is read: the
-    field names, the options of the method (the API's own checks, run on a small synthetic
-    cloud with the NumPy reference) and, for a run in this process, the device."""
+    field names, the radius for the precision, and the options of the method: the API's
+    own checks, run on a small synthetic cloud; on this process's device (a run here: its
+    precision and kernels too), else with the NumPy reference (the workers' devices)."""
     params.specs(fields)                                  # unknown field names
-    if params.kind == "curvature":
-        from .api import curvature
-        u = np.random.default_rng(0).normal(size=(64, 3))
-        pts = u / np.linalg.norm(u, axis=1)[:, None] * params.radius
-        how = params.orient
-        if isinstance(how, str) and how == "auto" and params.viewpoint is None:
-            how = "up"
-        given = isinstance(how, str) and how == "normals"       # the file's, in the run
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            curvature(pts, params.radius, method=params.method, weights=params.weights,
-                      orient=how, viewpoint=params.viewpoint, kernel=params.kernel,
-                      h=params.h, precision=params.precision, backend="numpy",
-                      normals=pts if given else None)
-    if local:
-        _worker_device(params.device)                     # NoDeviceError now, not later
+    device_radius(params.radius, params.precision)
+    if params.kind != "curvature":
+        return
+    from .api import curvature
+    u = np.random.default_rng(0).normal(size=(64, 3))
+    pts = u / np.linalg.norm(u, axis=1)[:, None] * params.radius
+    how = params.orient
+    if isinstance(how, str) and how == "auto" and params.viewpoint is None:
+        how = "up"
+    given = isinstance(how, str) and how == "normals"           # the file's, in the run
+    where = ({"device": _worker_device(params.device)} if local else {"backend": "numpy"})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        curvature(pts, params.radius, method=params.method, weights=params.weights,
+                  orient=how, viewpoint=params.viewpoint, kernel=params.kernel, h=params.h,
+                  precision=params.precision, normals=pts if given else None, **where)
 
 
 def check_tiled_outputs(dsts, source):
@@ -432,6 +434,12 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
     times = {}
     t0 = time.perf_counter()
     ws = space.path
+    specs = params.specs(wanted)
+    stored = _stored_specs(params, specs)
+    if source.n == 0:                   # as the in-memory run: an empty output
+        windows = Windows(ws / "windows", 0, tile_dtype(stored))
+        _write_output(dst, source, windows, specs)
+        return _summary(params, 0, 0, 0, source, times, windows, dst)
     buckets, state, fresh = _prepare(space, want, source, params, budget, say,
                                      lambda: check_disk(space, source, params, wanted, say))
     times["bucketing"] = time.perf_counter() - t0
@@ -439,7 +447,6 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
                     and not params.ignore_normals)
     how = params.orientation(source, file_normals)
     halo = params.halo(file_normals)
-    specs = params.specs(wanted)
     smoothed = None
     if params.scale_space:
         from .tiled_scale import run_steps
@@ -465,7 +472,7 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
     todo = [t for t in range(tiling.count) if not _tile_done(ws, t, mst, say)]
     skipped = tiling.count - len(todo)
     tasks = [TileTask(str(ws), t, tiling, state["buckets"], params, how, file_normals,
-                      specs, smoothed, sums.get(str(t))) for t in todo]
+                      stored, smoothed, sums.get(str(t))) for t in todo]
     t1 = time.perf_counter()
     computed, finished = 0, skipped
     for _, owned in _execute(tasks, client, workers):
@@ -476,7 +483,7 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
             progress(finished, tiling.count, computed)
     times["tiles"] = time.perf_counter() - t1
     t2 = time.perf_counter()
-    windows = partition(ws, source.n, tiling.count, specs, mst)
+    windows = partition(ws, source.n, tiling.count, stored, mst)
     if mst:
         tiled_orient.reconcile_windows(ws, windows, tiling.count, params.method)
     _trim()
@@ -484,11 +491,31 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
     t3 = time.perf_counter()
     _write_output(dst, source, windows, specs)
     times["writing"] = time.perf_counter() - t3
-    return {"tiled": True, "tiles": tiling.count, "skipped": skipped,
-            "tile_cells": tiling.size, "halo": halo,
-            "points": source.n, "times": times,
-            "status": windows.status.tolist() if any(n == "status" for n, _, _ in specs)
-            else None, "dst": dst}
+    return _summary(params, tiling.count, skipped, tiling.size, source, times, windows, dst,
+                    halo)
+
+
+def _stored_specs(params, specs):
+    """The fields the tiles store: those written, and a curvature run's status always (the
+    summary's counts and the small-radius warning need it)."""
+    if params.kind != "curvature" or any(n == "status" for n, _, _ in specs):
+        return specs
+    return list(specs) + [("status", None, np.uint8)]
+
+
+def _summary(params, tiles, skipped, size, source, times, windows, dst, halo=0):
+    """The summary dict of a tiled run; warns, as the in-memory run does, when most points
+    have too few neighbours."""
+    status = windows.status.tolist() if params.kind == "curvature" else None
+    if status is not None:
+        few, total = status[TOO_FEW], sum(status)
+        need = OPERATORS[params.method].min_count
+        if few > total // 2:
+            warnings.warn(f"{few} of {total} points have fewer than {need} neighbours "
+                          f"within radius {params.radius}: their outputs are NaN; the "
+                          "radius is probably too small", RuntimeWarning, stacklevel=5)
+    return {"tiled": True, "tiles": tiles, "skipped": skipped, "tile_cells": size,
+            "halo": halo, "points": source.n, "times": times, "status": status, "dst": dst}
 
 
 def _tile_done(ws, t, mst, say):

@@ -159,12 +159,12 @@ def run_job(job, out=print):
     except TilingError as exc:
         raise UsageError(str(exc)) from exc
     times = ", ".join(f"{k} {v:.2f} s" for k, v in summary["times"].items())
-    st = summary["status"] or []
-    ok = st[0] / max(sum(st), 1) if st else float("nan")
+    st = summary["status"]
+    ok = f"; status ok {st[0] / sum(st):.1%}" if st and sum(st) else ""
     what = (f"{len(job.input)} files" if isinstance(job.input, (list, tuple))
             else job.input)
     out(f"\n{summary['points']} points from {what} in {summary['tiles']} tile(s) "
-        f"(halo {summary['halo']} cell(s)); status ok {ok:.1%}")
+        f"(halo {summary['halo']} cell(s)){ok}")
     out(f"time: {times}")
     out(f"wrote {job.output}")
     return summary

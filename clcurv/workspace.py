@@ -27,10 +27,12 @@ from __future__ import annotations
 
 import errno
 import fcntl
+import glob
 import hashlib
 import io as _io
 import json
 import os
+import re
 import shutil
 import socket
 import struct
@@ -175,10 +177,21 @@ def claim(ws, dsts):
             stack.enter_context(_locked_path(lock, _make_file, f"the output {d}"))
             stack.callback(_unlink, lock)
             Path(lock).write_text(owner)
+            _remove_stale_temps(d)
         stack.enter_context(_locked_path(ws, _make_dir, f"the workspace {ws}"))
         (ws / TAG).touch()
         _write_text(ws / "owner.json", owner)
         yield Workspace(ws)
+
+
+def _remove_stale_temps(dst):
+    """Remove the temporary files of ``dst`` that a killed run left (clcurv.io.atomic_output
+    names them ``.<name>.<8 hex digits>.tmp<ext>``); called with ``dst``'s lock held."""
+    pattern = re.compile(re.escape(f".{dst.name[:180]}.") + r"[0-9a-f]{8}\.tmp"
+                         + re.escape(dst.suffix) + "$")
+    for p in dst.parent.glob(f".{glob.escape(dst.name[:180])}.*.tmp*"):
+        if pattern.match(p.name) and p.is_file():
+            _unlink(p)
 
 
 def _unlink(path):
