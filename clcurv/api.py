@@ -51,18 +51,23 @@ class _Run:
             if grid is not None:
                 check_pairs(grid, points, radius)
 
-    def operator(self, op, normals=None, weights="uniform", kernel="ball", h=None):
+    def operator(self, op, normals=None, weights="uniform", kernel="ball", h=None,
+                 align=None):
         """The raw fields of ``op`` (a clcurv.operators.Operator); ``h`` defaults to r / 2
-        for ``kernel='gaussian'``."""
+        for ``kernel='gaussian'``; ``align`` (2dcov2, 3dcov): align each neighbour's normal
+        with the query point's (None: the kernel's default, the normals as given)."""
         if self.cloud is None:
             opts = {"kernel": kernel, "h": h} if "kernel" in op.options else {}
+            if align is not None:
+                opts["align_normals"] = align
             return op.reference(self.points, self.radius, normals, weights, **opts)
         from .driver import run_kernel
         if kernel == "gaussian" and h is None:
             h = self.radius / 2
         return run_kernel(op.kernel, self.cloud, self.radius, normals=normals, weights=weights,
                           h=h if kernel == "gaussian" else None, fields=op.fields,
-                          point_r2=self.point_r2)
+                          point_r2=self.point_r2,
+                          defines=None if align is None else {"ALIGN_NORMALS": int(align)})
 
     def mst_flips(self, normals, k):
         """Flip mask of Hoppe's propagation over the ``k``-nearest-neighbour graph within the
@@ -207,10 +212,11 @@ def _empty(op, r, weights):
     return _result(op, r, weights, np.empty(0), np.empty(0), attrs)
 
 
-def _check_options(op, kernel, h, projections):
+def _check_options(op, kernel, h, projections, align_normals=None):
     """The method-specific options: given to a method that ignores them, they raise."""
     extra = op.foreign_options({"kernel": kernel is not None, "h": h is not None,
-                                "projections": projections != 0})
+                                "projections": projections != 0,
+                                "align_normals": align_normals is not None})
     if extra:
         takers = next(iter(extra.values()))
         raise ValueError(f"{', '.join(extra)} {'is' if len(extra) == 1 else 'are'} not an "
@@ -226,12 +232,15 @@ def _check_options(op, kernel, h, projections):
     projections = int(projections)
     if projections < 0:
         raise ValueError(f"projections must be >= 0, got {projections}")
+    if align_normals is not None and not isinstance(align_normals, (bool, np.bool_)):
+        raise TypeError(f"align_normals must be True, False or None, got {align_normals!r}")
     return kernel, h, projections
 
 
 def curvature(points, radius=None, *, method="mls1", weights="uniform", normals=None,
               orient="auto", viewpoint=None, orient_k=10, kernel=None, h=None, projections=0,
-              scale_space=0, device=None, precision="float", backend="opencl", k=None):
+              scale_space=0, device=None, precision="float", backend="opencl", k=None,
+              align_normals=None):
     """Differential operators on the ball N_r(p) = {q : |q - p| < radius} of every point.
 
     Parameters
@@ -269,14 +278,16 @@ def curvature(points, radius=None, *, method="mls1", weights="uniform", normals=
         'density' weights each neighbour q by 1/#N_r(q) to compensate irregular sampling.
     normals : (N, 3) array_like, optional
         Normals of the points (need not be unit). They orient the PCA normals and are the
-        normals of the normal-based operators (the PCL/CGAL convention).
+        normals of the normal-based operators (the PCL/CGAL convention), used as given:
+        2dcov2 is then PCL's PrincipalCurvaturesEstimation with these normals (see
+        ``align_normals``).
     orient : {'auto', 'mst', 'viewpoint', 'normals', 'up', None} or 3 floats
         How to orient the normals (and so sign H, k1, k2). 'auto' uses ``normals`` when given,
         else ``viewpoint`` when given, else, for a signed method (mls0, mls1, mls2), 'mst',
         and for an unsigned one (variation, 2dcov1, 2dcov2, 3dcov) None: their values do not
-        depend on the normals' signs (2dcov2 and 3dcov align each neighbour's normal with the
-        query point's inside the kernel), so no global orientation is paid for and their
-        ``normals`` keep the PCA sign. 'mst': Hoppe's minimum-spanning-tree propagation
+        depend on the PCA normals' signs (2dcov2 and 3dcov align each neighbour's PCA normal
+        with the query point's inside the kernel, see ``align_normals``), so no global
+        orientation is paid for and their ``normals`` keep the PCA sign. 'mst': Hoppe's minimum-spanning-tree propagation
         over the graph of each point's ``orient_k`` nearest neighbours within the radius,
         on the device (:mod:`clcurv.forest`), then each connected component turned outward
         (:func:`clcurv.orient.component_signs`: closed shapes, nested ones included, come
@@ -317,6 +328,13 @@ def curvature(points, radius=None, *, method="mls1", weights="uniform", normals=
         ``result.radius`` is then the (N,) array of radii. Not with weights='density',
         kernel='gaussian', scale_space, projections or backend='numpy'; the MST
         orientation graph uses the largest radius.
+    align_normals : bool, optional
+        2dcov2 and 3dcov only: align each neighbour's normal with the query point's
+        (n_i := -n_i where <n_i, n> < 0) before its covariance, so that only the normals'
+        agreement within each ball matters, not their signs. Default (None): aligned where
+        clcurv estimates the normals itself (the PCA normals, whatever ``orient``); the
+        ``normals`` you pass are used as given. True: yours too (normals of arbitrary
+        signs); False: never (the PCA normals as ``orient`` leaves them).
 
     Returns
     -------
@@ -345,13 +363,14 @@ def curvature(points, radius=None, *, method="mls1", weights="uniform", normals=
         return _radius_list(op, points, radius, dict(
             weights=weights, normals=normals, orient=orient, viewpoint=viewpoint,
             orient_k=orient_k, kernel=kernel, h=h, projections=projections,
-            scale_space=scale_space, device=device, precision=precision, backend=backend))
+            scale_space=scale_space, device=device, precision=precision, backend=backend,
+            align_normals=align_normals))
     knn = None
     if k is not None or isinstance(radius, str):
         knn, radius = _knn(points, radius, k, weights, kernel, scale_space, projections, device,
                            precision, backend)
         points = knn.cloud
-    kernel, h, projections = _check_options(op, kernel, h, projections)
+    kernel, h, projections = _check_options(op, kernel, h, projections, align_normals)
     points, cloud = _cloud_points(points)
     pts, r, ref_normals, vp, how = _inputs(points, radius, weights, backend, orient, normals,
                                            viewpoint, orient_k, unit=op.normals == "values",
@@ -364,7 +383,7 @@ def curvature(points, radius=None, *, method="mls1", weights="uniform", normals=
     if len(pts) == 0:
         return _empty(op, r, weights)
     same = dict(method=method, weights=weights, viewpoint=vp, orient_k=orient_k, device=device,
-                precision=precision, backend=backend)
+                precision=precision, backend=backend, align_normals=align_normals)
     mls = dict(kernel=kernel if "kernel" in op.options else None, h=h)
     if scale_space:
         from .smoothing import scale_space as smooth
@@ -397,13 +416,16 @@ def curvature(points, radius=None, *, method="mls1", weights="uniform", normals=
             use = None                      # MLS2 with the solver's sign for v0
         elif op.flip is not None and run.cloud is not None:
             use = "own"                     # orient the fit's own normals afterwards
-        else:                               # None: 2dcov2/3dcov align them per ball
+        else:                               # 2dcov2/3dcov align these per ball
             use = _oriented(run, run.pca_normals(weights), how, None, vp, orient_k)
+        # yours as given, clcurv's own PCA normals aligned (align_normals)
+        align = ((ref_normals is None if align_normals is None else bool(align_normals))
+                 if "align_normals" in op.options else None)
         if isinstance(use, str):
             raw = run.operator(op, None, weights, kernel, h)
             use = op.flip(raw, _flip(run, raw["normals"], how, None, vp, orient_k))["normals"]
         else:
-            raw = run.operator(op, use, weights, kernel, h)
+            raw = run.operator(op, use, weights, kernel, h, align)
     else:
         raw = run.operator(op, weights=weights)
         use = _oriented(run, raw, how, ref_normals, vp, orient_k)

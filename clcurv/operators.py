@@ -91,8 +91,11 @@ class Operator:
       'sign'   their sign only (orientation of the PCA normal; signed outputs);
       'values' their values: the normals you pass (normalised), else the PCA normals,
                oriented when the method is signed (MLS0 alone falls back on its PCA
-               normal); 2dcov2 and 3dcov align each neighbour's normal with the query
-               point's in the kernel, so their values do not depend on the signs.
+               normal). 2dcov2 and 3dcov (option ``align_normals``, the kernel's
+               ALIGN_NORMALS) align each neighbour's normal with the query point's where
+               clcurv estimated the normals itself, so that their values do not depend on
+               the PCA signs; the normals you pass are used as given (then 2dcov2 is
+               PCL's PrincipalCurvaturesEstimation), unless ``align_normals=True``.
     ``options``: the keyword arguments of :func:`clcurv.curvature` it takes beyond the
     common ones (others given raise). ``reference(points, r, normals, weights, **options)``
     returns the same raw fields as the kernel (float64); ``finish(raw, points, r,
@@ -153,10 +156,13 @@ PCA = Kernel("moments", "moments.cl", "moments",
 
 def _cov_kernel(name, code):
     ne = 3 if code == 3 else 2
+    # ALIGN_NORMALS: 0 uses the neighbours' normals as given, 1 aligns each with the query
+    # point's (kernels/covariances.cl); the host sets it per call (clcurv.api)
     return Kernel(name, "covariances.cl", "covariance",
                   {"eigenvalues": slice(0, ne), "k1": 3, "k2": 4, "dir1": slice(5, 8),
                    "dir2": slice(8, 11), "count": 11, "status": 12},
-                  MIN_COUNT_PCA, {"COV_METHOD": code}, reads_normals=True)
+                  MIN_COUNT_PCA, {"COV_METHOD": code, "ALIGN_NORMALS": 0},
+                  reads_normals=True)
 
 
 MLS2 = Kernel("mls2", "mls2.cl", "mls2",
@@ -250,9 +256,10 @@ def _ref_moments(points, r, normals, weights):
 
 
 def _ref_cov(method):
-    def run(points, r, normals, weights):
+    def run(points, r, normals, weights, align_normals=False):
         from . import reference
-        return reference.covariance_ops(points, r, normals, method, weights=weights)
+        return reference.covariance_ops(points, r, normals, method, weights=weights,
+                                        align=align_normals)
     run.__name__ = f"_ref_{method}"
     return run
 
@@ -272,9 +279,11 @@ def _ref_mls2(points, r, normals, weights, kernel="ball", h=None):
 
 def _cov(name, code, title, formula, eig_unit, eig_doc):
     k = _cov_kernel(name, code)
+    # 2dcov1 reads p's normal alone: aligning its neighbours' would change nothing
     return Operator(name, title, formula, k, _magnitudes((k.width("eigenvalues"), eig_unit,
                                                          eig_doc)),
-                    "values", _finish_cov, _ref_cov(name))
+                    "values", _finish_cov, _ref_cov(name),
+                    options=("align_normals",) if code != 1 else ())
 
 
 OPERATORS = {op.name: op for op in (
@@ -360,9 +369,10 @@ def program_variants(precision_defines):
         out.append(("records.cl", dict(split, SPLIT_HOST=1, **balls)))
     for k in {op.kernel.name: op.kernel for op in OPERATORS.values()}.values():
         gaussian = any("kernel" in op.options for op in OPERATORS.values() if op.kernel is k)
+        on = {d: 1 for d in ("ALIGN_NORMALS",) if d in k.defines}
         out.append((k.file, dict(base, **k.build_defines(), DENSITY=1, GAUSSIAN=int(gaussian),
                                  REF_NORMALS=int(k.reads_normals), POINT_RADIUS=0,
-                                 ROW_PRUNE=1)))
+                                 ROW_PRUNE=1) | on))
         # the k-NN radius (kernels/radius.h): per-point balls, which exclude DENSITY
         out.append((k.file, dict(base, **k.build_defines(), DENSITY=0, GAUSSIAN=0,
                                  REF_NORMALS=int(k.reads_normals), POINT_RADIUS=1)))

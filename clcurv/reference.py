@@ -32,8 +32,9 @@ Conventions
 * Normals: :func:`moments` returns **unoriented** PCA normals (sign as ``numpy.linalg.eigh``
   gives it; :mod:`clcurv.orient` orients them). :func:`mls2` and :func:`mls2_iterate` take
   normals **oriented outward** (user normals or oriented PCA normals); :func:`covariance_ops`
-  takes normals of any signs (it aligns each neighbour's with its query point's). They are
-  normalised again here; a non-finite or zero row is invalid.
+  uses the normals as given, or, with ``align=True``, takes normals of any signs (it then
+  aligns each neighbour's with its query point's). They are normalised again here; a
+  non-finite or zero row is invalid.
 * Curvature sign (clcurv): outward normals, a surface bending away from its normal is
   positive (sphere of radius R: ``k1 = k2 = H = +1/R``, ``K = 1/R^2``), ``k1 >= k2``.
   :func:`covariance_ops` returns magnitudes ``k1 >= k2 >= 0``, :func:`mls2` signed values.
@@ -448,7 +449,7 @@ def _aligned(nb, n):
     return np.where(_rowdot3(nb, n) < 0, -nb, nb)
 
 
-def covariance_ops(points, radius, normals, method, weights="uniform"):
+def covariance_ops(points, radius, normals, method, weights="uniform", align=False):
     """Normal-based covariance curvature operators 2dcov1, 2dcov2 and 3dcov.
 
     For every point ``p`` with unit outward normal ``n``, tangent basis ``(t1, t2)``
@@ -464,14 +465,18 @@ def covariance_ops(points, radius, normals, method, weights="uniform"):
       (2D, dimensionless);
     * ``"3dcov"`` (operator 3): ``f_i = n_i`` (3D).
 
-    **Signs.** For 2dcov2 and 3dcov every neighbour's normal is first aligned with ``n``:
-    ``n_i := -n_i`` where ``<n_i, n> < 0`` (kept where it is 0), the paper's "orientation
-    made consistent with n", as the kernels do. The normals need to agree within each
-    ball only (unoriented PCA normals will do): the sign of a neighbour's normal changes
-    nothing, and the sign of ``n`` changes no eigenvalue and no magnitude (``-n`` gives
-    the frame ``(-t1, t2)``, so the features become ``(f_a, -f_b)`` for 2dcov1 and 2dcov2,
-    ``-f`` for 3dcov: the same eigenvalues). It may change the sign of ``dir1`` and
-    ``dir2`` (``dir2 = n x dir1`` keeps the frame right-handed).
+    **Signs.** By default (``align=False``) the normals are used as given: 2dcov2 is then
+    PCL's PrincipalCurvaturesEstimation with the same normals, and 2dcov2 and 3dcov need
+    normals that agree in sign across each ball (outward ones do). With ``align=True``
+    (the kernels' ALIGN_NORMALS 1) every neighbour's normal is first aligned with ``n``
+    for 2dcov2 and 3dcov: ``n_i := -n_i`` where ``<n_i, n> < 0`` (kept where it is 0), the
+    paper's "orientation made consistent with n". The normals then need to agree within
+    each ball only (unoriented PCA normals will do): the sign of a neighbour's normal
+    changes nothing, and the sign of ``n`` changes no eigenvalue and no magnitude (``-n``
+    gives the frame ``(-t1, t2)``, so the features become ``(f_a, -f_b)`` for 2dcov1 and
+    2dcov2, ``-f`` for 3dcov: the same eigenvalues). It may change the sign of ``dir1``
+    and ``dir2`` (``dir2 = n x dir1`` keeps the frame right-handed). 2dcov1 reads the
+    normal at ``p`` alone: ``align`` changes nothing there.
 
     **Count normalisation.** The reported eigenvalues are those of
     ``C = sum_i w_i (f_i - f_mean)(f_i - f_mean)^T / sum_i w_i`` with
@@ -502,9 +507,12 @@ def covariance_ops(points, radius, normals, method, weights="uniform"):
     points, radius : array_like (N, 3), float
         Coordinates and ball radius ``r`` (> 0), unit ``L``, as for :func:`moments`.
     normals : array_like, shape (N, 3)
-        Unit normals at every point (normalised again here); any signs (see **Signs**).
+        Unit normals at every point (normalised again here); see **Signs**.
     method : {"2dcov1", "2dcov2", "3dcov"}
     weights : {"uniform", "density"}, optional
+    align : bool, optional
+        Align each neighbour's normal with the query point's (see **Signs**); default
+        False, the normals as given.
 
     Returns
     -------
@@ -539,12 +547,13 @@ def covariance_ops(points, radius, normals, method, weights="uniform"):
                              s * _rowdot3(blk.d, blk.row(t2t))])
     elif method == "2dcov2":
         def features(blk):
-            nb = _aligned(blk.nb(nt), blk.row(nt))
+            nb = _aligned(blk.nb(nt), blk.row(nt)) if align else blk.nb(nt)
             return np.stack([_rowdot3(nb, blk.row(t1t)), _rowdot3(nb, blk.row(t2t))])
     else:
         def features(blk):
             own = blk.row(nt)
-            return _aligned(blk.nb(nt), own) - own   # shifted by n(p): same covariance
+            nb = _aligned(blk.nb(nt), own) if align else blk.nb(nt)
+            return nb - own                          # shifted by n(p): same covariance
 
     _, cov = _mean_cov(ball, _edge_weights(ball, weights), features)
     enough = ball.counts >= MIN_COUNT_PCA

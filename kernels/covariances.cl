@@ -8,11 +8,16 @@
  * weights, the paper's count normalisation). The 3D normals are accumulated relative to n
  * (a shift leaves a covariance unchanged and keeps float32 sums small).
  *
- * Signs: the normals need to agree within each ball only, not across the cloud. Each
- * neighbour's normal n_i is first aligned with p's: n_i := -n_i where <n_i, n> < 0 (kept
- * where <n_i, n> = 0; the paper's "orientation made consistent with n", Theorem 3), so the
- * sign of any neighbour's normal changes nothing. The sign of n itself changes no
- * eigenvalue and no magnitude either, bit for bit: tangent_frame(-n) = (-t1, t2), so
+ * Signs. The neighbours' normals n_i are used as given (ALIGN_NORMALS 0): the normals a
+ * caller passes are data, and 2dcov2 is then PCL's PrincipalCurvaturesEstimation with the
+ * same normals (tests/test_pcl_oracle.py). With ALIGN_NORMALS 1 (the host's choice for the
+ * PCA normals it estimates itself, whose signs are arbitrary, or when asked for), each
+ * neighbour's normal is first aligned with p's: n_i := -n_i where <n_i, n> < 0 (kept where
+ * <n_i, n> = 0; the paper's "orientation made consistent with n", Theorem 3), so the
+ * normals need to agree within each ball only, not across the cloud, and the sign of any
+ * neighbour's normal changes nothing. The sign of n itself changes no eigenvalue and no
+ * magnitude either (with ALIGN_NORMALS 1, or for 2dcov1, which reads n alone), bit for bit:
+ * tangent_frame(-n) = (-t1, t2), so
  *   2dcov1: s_i = <d_i, n> flips, f_i = s_i (<d_i, t1>, <d_i, t2>) becomes (f_a, -f_b);
  *   2dcov2: the aligned n_i flip with n, f_i = (<n_i, t1>, <n_i, t2>) becomes (f_a, -f_b);
  *   3dcov:  f_i = n_i - n becomes -f_i;
@@ -26,7 +31,7 @@
  * Outputs per point (one record, input order): count, status, eigenvalues (descending; 2
  * or 3), the curvature magnitudes k1 >= k2 >= 0 (1/length) and the unit tangent directions
  * dir1, dir2 (dir2 = n x dir1). A NaN normal anywhere in the ball gives status DEGENERATE.
- * Build options: COV_METHOD, DENSITY, POINT_RADIUS (radius.h), MIN_COUNT and the record
+ * Build options: COV_METHOD, ALIGN_NORMALS (0 or 1; 2dcov2, 3dcov), DENSITY, POINT_RADIUS (radius.h), MIN_COUNT and the record
  * columns COL_EIGENVALUES (2, or 3 for 3dcov), COL_K1, COL_K2, COL_DIR1 (3), COL_DIR2 (3),
  * COL_COUNT, COL_STATUS, with their first columns' numbers CIX_<FIELD> and their mask
  * REC_USED (lanes_records.h; clcurv/operators.py).
@@ -39,10 +44,11 @@
 #include "radius.h"
 #include "lanes_records.h"
 
-#if !defined(COV_METHOD) || !defined(MIN_COUNT) || !defined(COL_EIGENVALUES) \
+#if !defined(COV_METHOD) || !defined(ALIGN_NORMALS) || !defined(MIN_COUNT) \
+    || !defined(COL_EIGENVALUES) \
     || !defined(COL_K1) || !defined(COL_K2) || !defined(COL_DIR1) || !defined(COL_DIR2) \
     || !defined(COL_COUNT) || !defined(COL_STATUS)
-#error "covariances.cl needs COV_METHOD, MIN_COUNT and its record columns (clcurv/operators.py)"
+#error "covariances.cl needs COV_METHOD, ALIGN_NORMALS, MIN_COUNT and its record columns (clcurv/operators.py)"
 #endif
 
 /* |k1| >= |k2| from 2dcov1's count-normalised eigenvalues (Theorem 1) in the VW lanes,
@@ -77,11 +83,15 @@ inline uint cov_ball(__global const REAL *X, __global const REAL *Y, __global co
         const REALV fb0 = s * (dx * t2.x + dy * t2.y + dz * t2.z);
         const REALV fd0 = 0;
 #else
+#if ALIGN_NORMALS
         /* align each neighbour's normal with p's: q := -q where <q, n> < 0 (= 0 or NaN: kept) */
         const REALV qx0 = VLOADV(0, NX + i), qy0 = VLOADV(0, NY + i), qz0 = VLOADV(0, NZ + i);
         const IREALV flip = isless(qx0 * nrm.x + qy0 * nrm.y + qz0 * nrm.z, (REALV)0);
         const REALV qx = select(qx0, -qx0, flip), qy = select(qy0, -qy0, flip);
         const REALV qz = select(qz0, -qz0, flip);
+#else                                   /* the normals as given */
+        const REALV qx = VLOADV(0, NX + i), qy = VLOADV(0, NY + i), qz = VLOADV(0, NZ + i);
+#endif
 #if COV_METHOD == 2
         const REALV fa0 = qx * t1.x + qy * t1.y + qz * t1.z;
         const REALV fb0 = qx * t2.x + qy * t2.y + qz * t2.z;
