@@ -271,6 +271,8 @@ def check_params(params, fields, local=True):
     params.specs(fields)                                  # unknown field names
     device_radius(params.radius, params.precision)
     if params.kind != "curvature":
+        if local:
+            _worker_device(params.device)
         return
     from .api import curvature
     u = np.random.default_rng(0).normal(size=(64, 3))

@@ -12,6 +12,7 @@ import numpy as np
 
 from .buckets import BUCKETS_PER_TILE, READ_CHUNK, Buckets, bucket_grid
 from .io import stream
+from .operators import OPERATORS
 from .tiled import curvature_file
 from .tiling import (AUTO_FRACTION, TILE_BYTES_PER_POINT, TilingError, available_memory,
                      budget_of, fits_memory)
@@ -125,6 +126,19 @@ def tile_session(quiet, scheduler=None):
             client.close()
 
 
+def _check_before_reading(job):
+    """The checks of :func:`clcurv.tiled.check_params` before ``radius="auto"`` reads the
+    cloud to estimate the radius (made with a radius of 1; the run checks the real one)."""
+    from .job import ORIENT_CHOICES
+    from .tiled import _Params, check_params
+    from .validate import choice
+    choice(job.method, "method", tuple(OPERATORS))
+    params = _Params(job.method, 1.0, job.weights, ORIENT_CHOICES.get(job.orient, job.orient),
+                     job.viewpoint, job.kernel, job.h, job.device, job.precision,
+                     bool(job.ignore_normals), int(job.scale_space))
+    check_params(params, job.fields, local=not (job.workers or job.scheduler))
+
+
 def run_job(job, out=print):
     """The file job ``job`` in tiles (:func:`curvature_file`); prints a summary on ``out``
     and returns the summary dict."""
@@ -135,6 +149,7 @@ def run_job(job, out=print):
                          "files, or a cloud larger than this machine's memory); give --radius "
                          "to run in tiles")
     if job.radius == "auto" or job.radius is None:
+        _check_before_reading(job)
         src = (stream.Catalog(job.input) if isinstance(job.input, (list, tuple))
                else stream.open_source(job.input))
         job.radius = auto_radius_tiled(src,

@@ -449,6 +449,11 @@ def test_options_fields_and_device_are_refused_before_any_point_is_read(inputs, 
     for kw, exc, msg in bad:
         with pytest.raises(exc, match=msg):
             _run(d / "scene.laz", out, **kw)
+    from clcurv.cli import main                  # --radius auto reads the cloud: not yet
+    for extra, code in ((["--fields", "k1"], 2), (["--kernel", "gaussian"], 2),
+                        (["--device", "99"], 4)):
+        assert main(["compute", str(d / "scene.laz"), "-o", str(out), "--method", "mls1",
+                     "--tile-size", "8", "-q"] + extra) == code, extra
     assert sorted(os.listdir(tmp_path)) == []
 
 
