@@ -500,3 +500,42 @@ def test_the_tiled_summary_says_status_only_when_known(inputs, tmp_path):
     r = run_cli("compute", d / "scene.laz", "-o", tmp_path / "s.laz", "--radius", "0.01",
                 "--method", "mls1", "--tile-size", "8", "-q")
     assert r.code == 0 and "clcurv: warning:" in r.stderr and "too small" in r.stderr
+
+
+# --------------------------------------------------------------------------- full disk
+
+def test_a_disk_too_small_is_refused_before_reading(inputs, tmp_path, monkeypatch):
+    """The workspace's need is estimated from the point count and the fields, and said; a
+    disk with less room refuses the run before a point is bucketed."""
+    import shutil
+    d, _ = inputs
+    usage = shutil.disk_usage(tmp_path)
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage._replace(free=100_000))
+    out = tmp_path / "out.laz"
+    with pytest.raises(OSError, match=r"needs about .* GiB of workspace") as e:
+        _run(d / "scene.laz", out)
+    assert e.value.errno == 28
+    assert sorted(os.listdir(tmp_path)) == []
+
+
+def test_a_disk_that_fills_during_the_tiles_removes_the_workspace(inputs, tmp_path,
+                                                                  monkeypatch):
+    """ENOSPC part way: the workspace goes (it cannot be resumed on this disk as it is),
+    the error says how much a run needs, and the previous output is intact."""
+    import errno
+    d, _ = inputs
+    out = tmp_path / "out.laz"
+    out.write_bytes(b"previous")
+    calls = [0]
+    save = wsp.save_sealed
+
+    def filling(path, arr):
+        calls[0] += 1
+        if calls[0] == 4:
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        save(path, arr)
+    monkeypatch.setattr(wsp, "save_sealed", filling)
+    with pytest.raises(OSError, match="no space left .* needs about") as e:
+        _run(d / "scene.laz", out)
+    assert e.value.errno == errno.ENOSPC
+    assert sorted(os.listdir(tmp_path)) == ["out.laz"] and out.read_bytes() == b"previous"
