@@ -28,6 +28,12 @@ RTOL = 1e-5
 #: carries up to a few float32 ulps of the eigenvalues, i.e. an absolute error of about
 #: 2^-22 on the [0, 1] ratios: the only absolute floor of the comparison.
 ATOL_RATIO = 2.0 ** -22
+#: jakteristics matches its eigenvectors to its sorted eigenvalues by |l_i - l_j| < 1e-5,
+#: an absolute threshold in the data's units squared (utils.pyx, c_sort_eigenvalues)
+JAK_MATCH = 1e-5
+#: the most points (fraction of the cloud) that the normals' rules may leave out while
+#: jakteristics returns a finite normal there (synthetic scene: 4 of 23000)
+MAX_LEFT_OUT = 1e-3
 
 
 def synthetic_scene(seed=0):
@@ -55,8 +61,35 @@ def _points(path):
     return synthetic_scene() if path is None else clcurv.io.read(path).points
 
 
+def normals_compared(J, f):
+    """The rules of test_against_jakteristics's note 5 for its normals, as two masks: (a)
+    jakteristics' normal is its eigenvector of l3, (b) that normal is well posed."""
+    l1, l2, l3 = (J[f"eigenvalue{i}"] for i in (1, 2, 3))
+    # (a) its matching is unambiguous; widened by 2^-22 l1, the rounding of its float32
+    #     outputs
+    slack = JAK_MATCH + 2.0 ** -22 * l1
+    matched = (l1 - l2 >= slack) & (l2 - l3 >= slack)
+    # (b) Davis-Kahan: the angle between the computed and the exact normal is at most
+    #     |dC| / (l2 - l3), with |dC| <= n_p 2^-53 l1 for a float64 covariance of n_p points
+    #     (both sides compute in float64): compared where that bound is below ATOL_RATIO / 10
+    e1, e2, e3 = (f[f"eigenvalue{i}"] for i in (1, 2, 3))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        posed = f.count * 2.0 ** -53 * e1 < 0.1 * ATOL_RATIO * (e2 - e3)
+    return matched, posed
+
+
 @pytest.mark.parametrize("path, radius", _clouds())
 def test_against_jakteristics(path, radius, device):
+    """Every feature of jakteristics 0.6 at RTOL (+ ATOL_RATIO for the ratios), where both
+    are defined (notes 1-6 below). The normals are compared only where (a) jakteristics'
+    eigenvector matching is unambiguous, l1 - l2 >= 1e-5 and l2 - l3 >= 1e-5 (its absolute
+    threshold; elsewhere its normal is NaN or its middle eigenvector, on any CPU), and (b)
+    the normal is well posed, n_p 2^-53 l1 / (l2 - l3) < ATOL_RATIO / 10 (Davis-Kahan for a
+    float64 PCA). The test fails if the points so left out, where jakteristics' normal is
+    finite, exceed MAX_LEFT_OUT = 0.1% of the cloud, or if one left out by (a) alone is not
+    orthogonal to clcurv's normal (|cos| >= 1e-6). Measured (PoCL, AMD EPYC Zen 4): the
+    synthetic scene 4 of 23000 left out, all by (a), |cos| <= 9e-9; Autzen and the bunny
+    none."""
     jak = pytest.importorskip("jakteristics", reason="jakteristics is not installed: "
                               "pip install jakteristics (the 'test' extra) to run this check")
     if not device.info.fp64:
@@ -77,18 +110,43 @@ def test_against_jakteristics(path, radius, device):
     # 4. For an exactly coplanar ball (LAS coordinates quantised to 0.01 ft make flat
     #    ground so) l3 is round-off in both (~1e-16 l1): the features through l3 are
     #    compared only where jakteristics' l3 > 1e-9 l1.
-    # 5. jakteristics' normals are cross(e1, e2) of eigenvectors matched to the sorted
-    #    eigenvalues with an absolute threshold |l_i - l_j| < 1e-5: when the eigenvalues
-    #    lie within 1e-5 of each other (the bunny in metres: l ~ 1e-6 m^2) its rows are
-    #    the same vector and its normals NaN (not compared); otherwise the normals agree
-    #    up to the sign, which is arbitrary in both (PCA sign).
+    # 5. jakteristics' normals are cross(e1, e2) of its rows e1, e2, the eigenvectors
+    #    matched to its sorted eigenvalues l1 >= l2 >= l3 (LAPACK dsyev, float64): the
+    #    sorted l_i takes the vector of the first of dsyev's ascending eigenvalues within
+    #    JAK_MATCH = 1e-5 of it, an absolute threshold in the data's units squared. The
+    #    normal is compared, up to its sign (arbitrary in both: PCA sign), only where
+    #    (a) the matching is unambiguous: l1 - l2 >= 1e-5 and l2 - l3 >= 1e-5 (its
+    #        eigenvalues). Elsewhere its normal is not the eigenvector of l3, whatever the
+    #        CPU: NaN when e1 = e2 (l1 - l2 < 1e-5; the bunny in metres, l ~ 1e-6 m^2), or
+    #        the middle eigenvector when l2 - l3 < 1e-5 <= l1 - l2 (e2 := v3, so e1 x e2 =
+    #        +-v2). The synthetic scene has 4 such points (balls of 3 points of the
+    #        scatter, l2 ~ 4e-6 to 8e-6, l3 = 0, relative gaps (l2 - l3) / l1 of 1.2e-3 to
+    #        2.7e-3: well posed), where jakteristics' normal is orthogonal to clcurv's and
+    #        to the float64 reference's; checked below: at every point left out by (a)
+    #        where jakteristics' normal is finite and (b) holds, the two are orthogonal;
+    #    (b) the normal is well posed: the Davis-Kahan bound n_p 2^-53 l1 / (l2 - l3) on
+    #        the angle error of a float64 PCA is below ATOL_RATIO / 10 (normals_compared).
+    #    The points left out with a finite normal of jakteristics' are at most
+    #    MAX_LEFT_OUT of the cloud.
     # 6. Its formulas run in float32 (see ATOL_RATIO).
     f = clcurv.features(pts, radius, "all", ddof=1, device=device, precision="double")
     same = J["number_of_neighbors"] == f.count
     assert same.mean() > 0.9999
     resolved = J["eigenvalue3"] > 1e-9 * J["eigenvalue1"]
-    sign = np.sign(np.einsum("ij,ij->i", f["normals"],
-                             np.c_[J["nx"], J["ny"], J["nz"]]))
+    jn = np.c_[J["nx"], J["ny"], J["nz"]]
+    cos = np.einsum("ij,ij->i", f["normals"], jn)
+    sign = np.sign(cos)
+    matched, posed = normals_compared(J, f)
+    normal_ok = matched & posed
+    both = same & np.isfinite(cos)
+    left_out = both & ~normal_ok
+    print(f"\nnormals: {int(left_out.sum())} of {len(pts)} points left out where both are "
+          f"finite ({int((both & ~matched).sum())} by (a), "
+          f"{int((both & matched & ~posed).sum())} by (b only))")
+    assert left_out.sum() <= MAX_LEFT_OUT * len(pts), int(left_out.sum())
+    # (a) leaves out only jakteristics' other eigenvectors: orthogonal to ours
+    other = both & ~matched & posed
+    assert np.all(np.abs(cos[other]) < 1e-6), np.abs(cos[other]).max()
     compared = {}
     for name in JAK_NAMES:
         if name == "number_of_neighbors":
@@ -98,6 +156,8 @@ def test_against_jakteristics(path, radius, device):
         m = same & np.isfinite(ours) & np.isfinite(theirs)
         if name in L3_FEATURES:
             m &= resolved
+        if name in ("nx", "ny", "nz"):
+            m &= normal_ok
         compared[name] = int(m.sum())
         atol = 0.0 if name.startswith("eigenvalue") or name in (
             "omnivariance", "eigenentropy") else ATOL_RATIO
@@ -108,6 +168,8 @@ def test_against_jakteristics(path, radius, device):
     assert min(v for k, v in compared.items() if k not in ("nx", "ny", "nz")) > 0.8 * len(pts)
     if path == AUTZEN:
         assert compared["nx"] > 0.99 * len(pts)
+    if path is None:        # 250 points of the scatter have fewer than 3 neighbours
+        assert compared["nx"] > 0.98 * len(pts), compared["nx"]
 
 
 def _check_reference(pts, radius, device, precision, tol):
