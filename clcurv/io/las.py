@@ -13,6 +13,12 @@ attribute; extra dimensions named ``nx, ny, nz`` are the normals. ``Cloud.header
 compression bit of the point format), so a LAZ file named ``.las`` or a LAS file named
 ``.laz`` is read correctly.
 
+A COPC file (``.copc.laz``, Cloud Optimized Point Cloud) is a LAZ 1.4 file and is read as
+one: its points in the order the file stores them (COPC's octree order: the root node's
+points first, then each node's), which is the order of every output. Its COPC VLRs and
+EVLRs (the info VLR, the hierarchy EVLR) stay in ``Cloud.header``; an output leaves them out
+(below).
+
 Before laspy sees the file, the public header block is checked against the file size
 (laspy trusts its counts for allocation): signature, version 1.0-1.5, header size, point
 format 0-10 and a record length at least the format's, finite non-zero scales and finite
@@ -29,9 +35,12 @@ read. A header claiming 0 points is an empty cloud.
 Writing
 -------
 With ``like`` (a Cloud read from a LAS/LAZ file with the same number of points): its header
-(version, point format, scales, offsets, VLRs) is kept, so a point read from that file is
-written back to the same integer; its attributes (classification, intensity, GPS time,
-extra bytes...) are copied, and its normals when none are given. From a ``like`` Cloud read
+(version, point format, scales, offsets, VLRs and EVLRs) is kept, so a point read from that
+file is written back to the same integer; its attributes (classification, intensity, GPS
+time, extra bytes...) are copied, and its normals when none are given. The output is a
+plain LAS/LAZ, never COPC (whatever its name): the VLRs and EVLRs of a COPC input (user id
+``copc``), which describe its octree, and any record laspy cannot write, are left out
+(:func:`output_header`); the points keep the input's order. From a ``like`` Cloud read
 from another format (PLY, PCD, text, NPY...): a fresh header, its normals when none are
 given, its attributes as extra bytes in their own types (:func:`carried_plan`,
 :mod:`clcurv.io.carry`: names mended to 32 characters, one named like a dimension of the
@@ -433,6 +442,35 @@ def carried_plan(path, like, fields):
     return fmt, rgb, carry.plan(path, carry.specs_of(rest), list(fields), "las", reserved)
 
 
+#: user ids of the VLRs and EVLRs an output leaves out: COPC's (the info VLR, the hierarchy
+#: EVLR, copclib's extents VLR) describe the octree layout of the input file, which the
+#: output (a plain LAS/LAZ, its points in the input's order) does not have
+_DROPPED_USER_IDS = ("copc",)
+
+
+def _writable(vlr):
+    """True when ``vlr`` is kept in an output: not COPC's, and laspy can write its data."""
+    if str(getattr(vlr, "user_id", "")).rstrip("\0").lower() in _DROPPED_USER_IDS:
+        return False
+    try:
+        vlr.record_data_bytes()
+    except NotImplementedError:       # a record laspy reads but cannot write
+        return False
+    return True
+
+
+def output_header(header):
+    """A copy of the input's LAS header for an output: every VLR and EVLR kept except COPC's
+    (user id ``copc``: the octree of a COPC input, which the output does not have) and any
+    other record laspy cannot write. The output is a plain LAS/LAZ, never COPC."""
+    from laspy.vlrs.vlrlist import VLRList
+    out = copy.deepcopy(header)
+    out.vlrs = VLRList([v for v in out.vlrs if _writable(v)])
+    if out.evlrs is not None:
+        out.evlrs = VLRList([v for v in out.evlrs if _writable(v)])
+    return out
+
+
 def _target_header(laspy, path, pts, like, fields):
     """(header, attributes to copy, their extra-bytes dtypes, normals to use when none are
     given) for the output."""
@@ -450,7 +488,7 @@ def _target_header(laspy, path, pts, like, fields):
                 v = np.asarray(like.attributes[k])
                 keep[dim] = v.astype(np.uint16) * np.uint16(257) if v.dtype == np.uint8 else v
         return _fresh_header(laspy, path, pts, fmt), keep, dtypes, like.normals
-    return copy.deepcopy(like.header), dict(like.attributes), {}, like.normals
+    return output_header(like.header), dict(like.attributes), {}, like.normals
 
 
 def _scaled_ints(path, pts, header):

@@ -283,15 +283,15 @@ class PlySource:
 
 def write_las(path, src, names, rows, chunk=1_000_000):
     """Write a LAS/LAZ ``path`` holding the points of LAS/LAZ ``src`` (a :class:`LasSource`:
-    its header, scales, offsets, VLRs and every dimension kept, the records copied as read)
-    with the fields ``names`` added as extra-bytes dimensions (float32 for real fields, or
-    overwriting a dimension of that name); ``"normals"`` becomes ``nx ny nz``.
-    ``rows(start, stop)`` gives the structured records (one field per name) of the points
-    start..stop-1. Written chunk by chunk in input order."""
-    import copy
+    its header, scales, offsets, VLRs, EVLRs and every dimension kept, the records copied as
+    read; a COPC input's VLRs and EVLRs left out, :func:`clcurv.io.las.output_header`: a
+    plain LAS/LAZ, as in memory) with the fields ``names`` added as extra-bytes dimensions
+    (float32 for real fields, or overwriting a dimension of that name); ``"normals"``
+    becomes ``nx ny nz``. ``rows(start, stop)`` gives the structured records (one field per
+    name) of the points start..stop-1. Written chunk by chunk in input order."""
     from . import las
     laspy = las._import_laspy(path, las._is_laz(path))
-    header = copy.deepcopy(src.header)
+    header = las.output_header(src.header)
 
     def columns(rec):
         out = {}
@@ -306,6 +306,7 @@ def write_las(path, src, names, rows, chunk=1_000_000):
         header.add_extra_dims(new)
     dims = set(header.point_format.dimension_names)
     added = {p.name for p in new}
+    evlrs = header.evlrs if header.version.minor >= 4 else None
     with laspy.open(str(src.path)) as reader, \
             laspy.open(str(path), mode="w", header=header) as writer:
         start = 0
@@ -321,6 +322,8 @@ def write_las(path, src, names, rows, chunk=1_000_000):
                     out[name] = a
             writer.write_points(out)
             start += m
+        if evlrs:                                     # as LasData.write does in memory
+            writer.write_evlrs(evlrs)
 
 
 def _copy_records(src, dst):

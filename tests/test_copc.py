@@ -1,0 +1,315 @@
+"""COPC input (issue 47, item 3): a ``.copc.laz`` file is read as the LAZ that it is, and
+written as a plain LAZ/LAS (its COPC VLRs and EVLRs, which describe the octree of the input
+file and which laspy cannot write, are left out), in memory, in tiles and by the command.
+
+The COPC files are made here by copclib (PyPI ``copclib``, the ``test`` extra), the way a
+COPC writer does: the points are split into the nodes of an octree (a sample of the cloud at
+the root, the rest in the depth-1 and depth-2 cells), so the file holds them in octree
+order, not in the order they were given. Each point carries its index in the given order
+(``gps_time``), so the tests can tell one order from the other.
+
+The reference is the same points in a plain LAZ written by laspy in the COPC file's order:
+the outputs must be equal to it bit for bit (same input, same computation), in the COPC
+file's order. Against the plain LAZ of the points in their given order (a different order
+of computation), the values of each point must agree to 1e-4 (float32 sums in another
+order), matched by the point's index.
+"""
+import numpy as np
+import pytest
+
+import clcurv
+from clcurv import io as cio
+from clcurv import tiled
+
+from hostile import run_cli
+
+laspy = pytest.importorskip("laspy", reason="laspy not installed")
+copc = pytest.importorskip("copclib", reason='copclib not installed (pip install -e ".[test]")')
+if not laspy.LazBackend.detect_available():
+    pytest.skip('no LAZ backend (pip install "laspy[lazrs]")', allow_module_level=True)
+
+R = 1.0
+SCALE = 2.0 ** -7                      # coordinates are exact binary fractions
+N = 6000
+
+
+def _scene(n=N, seed=5):
+    """An aerial scene on the LAS grid of SCALE, with a class and an RGB colour per point."""
+    s = clcurv.shapes.aerial_scene(n, extent=(31.3, 27.9), seed=seed)
+    pts = np.round(s["points"] / SCALE) * SCALE
+    rng = np.random.default_rng(seed)
+    rgb = rng.integers(0, 65536, size=(len(pts), 3))
+    return pts, s["kind"], rgb
+
+
+def write_copc(path, pts, kind, rgb=None, fmt=6, seed=0):
+    """A COPC file of ``pts`` written by copclib; returns the indices of ``pts`` in the
+    file's order (octree order: the root node first, then the depth-1 and depth-2 nodes).
+
+    ``gps_time`` is the index of each point in ``pts``, ``classification`` its ``kind``,
+    ``intensity`` the index modulo 65536 and, for point formats 7 and 8, ``rgb`` the colour.
+    """
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    span = float((hi - lo).max())
+    cfg = copc.CopcConfigWriter(fmt, scale=(SCALE,) * 3, offset=tuple(np.floor(lo)))
+    cfg.las_header.min = copc.Vector3(*lo)
+    cfg.las_header.max = copc.Vector3(*(lo + span))
+    info = cfg.copc_info
+    info.center_x, info.center_y, info.center_z = lo + span / 2
+    info.halfsize = span / 2
+    info.spacing = span / 32
+    writer = copc.FileWriter(str(path), cfg)
+    header = writer.copc_config.las_header
+
+    def node(idx):
+        points = copc.Points(header)
+        for i in idx:
+            p = points.CreatePoint()
+            p.gps_time = float(i)
+            p.intensity = int(i) % 65536
+            p.classification = int(kind[i])
+            p.return_number, p.number_of_returns = 1, 1
+            if fmt in (7, 8):
+                p.red, p.green, p.blue = (int(c) for c in rgb[i])
+            points.AddPoint(p)
+        points.x, points.y, points.z = (list(pts[idx, k]) for k in range(3))
+        return points
+
+    order = []
+    rng = np.random.default_rng(seed)
+    perm = rng.permutation(len(pts))
+    root, rest = perm[:len(pts) // 8], perm[len(pts) // 8:]
+    writer.AddNode(copc.VoxelKey(0, 0, 0, 0), node(root))
+    order.append(root)
+    depth1, depth2 = rest[:len(rest) // 3], rest[len(rest) // 3:]
+    for depth, idx in ((1, depth1), (2, depth2)):
+        cell = np.clip(((pts[idx] - lo) / (span / 2 ** depth)).astype(int), 0, 2 ** depth - 1)
+        keys = cell[:, 0] * 16 + cell[:, 1] * 4 + cell[:, 2]
+        for key in np.unique(keys):
+            sel = idx[keys == key]
+            writer.AddNode(copc.VoxelKey(depth, *map(int, cell[keys == key][0])), node(sel))
+            order.append(sel)
+    writer.Close()
+    assert copc.FileReader(str(path)).ValidateSpatialBounds()   # a valid octree
+    return np.concatenate(order)
+
+
+def write_plain(path, src):
+    """``src`` (a COPC file) as a plain LAZ/LAS written by laspy: the same header fields,
+    records and order, without the COPC VLRs and EVLRs."""
+    las = laspy.read(str(src))
+    header = laspy.LasHeader(point_format=las.header.point_format.id, version="1.4")
+    header.scales, header.offsets = las.header.scales, las.header.offsets
+    out = laspy.LasData(header)
+    out.points = las.points.copy()
+    out.write(str(path))
+    return path
+
+
+def write_given_order(path, pts, kind, rgb, fmt):
+    """The points in their given order (gps_time = index) as a plain LAZ."""
+    header = laspy.LasHeader(point_format=fmt, version="1.4")
+    header.scales, header.offsets = [SCALE] * 3, np.floor(pts.min(axis=0))
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = pts.T
+    las.gps_time = np.arange(len(pts), dtype=float)
+    las.intensity = np.arange(len(pts)) % 65536
+    las.classification = kind
+    las.return_number = las.number_of_returns = np.ones(len(pts), np.uint8)
+    if fmt in (7, 8):
+        las.red, las.green, las.blue = rgb.T
+    las.write(str(path))
+    return path
+
+
+@pytest.fixture(scope="module", params=[6, 7])
+def files(request, tmp_path_factory):
+    """(folder, the COPC file, the same points as a plain LAZ in the COPC's order, in
+    their given order, the given points, the COPC order) for point format 6 and 7."""
+    fmt = request.param
+    d = tmp_path_factory.mktemp(f"copc{fmt}")
+    pts, kind, rgb = _scene(seed=fmt)
+    src = d / "survey.copc.laz"
+    order = write_copc(src, pts, kind, rgb, fmt=fmt, seed=fmt)
+    plain = write_plain(d / "plain.laz", src)
+    given = write_given_order(d / "given.laz", pts, kind, rgb, fmt)
+    return d, src, plain, given, pts, order
+
+
+def _dims(path):
+    las = laspy.read(str(path))
+    return las, {n: np.asarray(las[n]) for n in las.point_format.dimension_names}
+
+
+def assert_same(a, b):
+    """Every dimension of the LAS/LAZ files ``a`` and ``b`` equal, NaN included."""
+    la, da = _dims(a)
+    lb, db = _dims(b)
+    assert la.header.point_count == lb.header.point_count
+    assert list(da) == list(db)
+    diff = [n for n in da if not np.array_equal(da[n], db[n], equal_nan=True)]
+    assert diff == [], f"dimensions differ: {diff}"
+
+
+def assert_plain(path):
+    """``path`` is a plain LAS/LAZ: no COPC VLR or EVLR, and laspy's COPC reader refuses it."""
+    las = laspy.read(str(path))
+    ids = [v.user_id for v in las.header.vlrs] + [v.user_id for v in las.header.evlrs or []]
+    assert "copc" not in ids, ids
+    with pytest.raises(Exception):
+        laspy.CopcReader.open(str(path))
+
+
+def test_the_copc_files_are_copc_in_octree_order(files):
+    """The inputs are what the tests claim: COPC files (laspy's COPC reader opens them) whose
+    points are not in the given order."""
+    _, src, _, _, pts, order = files
+    with laspy.CopcReader.open(str(src)) as r:
+        assert r.header.point_count == len(pts)
+    las = laspy.read(str(src))
+    assert [v.user_id for v in las.header.vlrs][0] == "copc"
+    assert np.array_equal(np.asarray(las.gps_time), order)
+    assert not np.array_equal(order, np.arange(len(pts)))
+
+
+def test_copc_is_read_as_the_laz_it_is_in_file_order(files):
+    _, src, plain, _, pts, order = files
+    a, b = cio.read(src), cio.read(plain)
+    assert a.format == "laz" and len(a) == len(pts) and a.dropped == 0
+    assert np.array_equal(a.points, pts[order])                  # the file's order
+    assert np.array_equal(a.points, b.points)
+    assert list(a.attributes) == list(b.attributes)
+    for k in a.attributes:
+        assert np.array_equal(a.attributes[k], b.attributes[k]), k
+
+
+@pytest.mark.parametrize("ext", [".laz", ".las"])
+def test_io_write_from_a_copc_like_is_a_plain_file(files, tmp_path, ext):
+    """clcurv.io.write with like= a COPC Cloud: the header, records and other VLRs kept,
+    the COPC ones left out; the points in the file's order."""
+    _, src, _, _, _, _ = files
+    cloud = cio.read(src)
+    k = np.linspace(-1, 1, len(cloud))
+    out = cio.write(tmp_path / f"o{ext}", cloud.points, {"k1": k}, like=cloud)
+    assert_plain(out)
+    back = cio.read(out)
+    assert np.array_equal(back.points, cloud.points)
+    assert np.array_equal(back.attributes["k1"], k.astype(np.float32))
+    for name, a in cloud.attributes.items():
+        assert np.array_equal(back.attributes[name], a), name
+    las = laspy.read(str(out))
+    assert las.header.point_format.id == cloud.header.point_format.id
+    assert np.array_equal(las.header.scales, cloud.header.scales)
+    assert np.array_equal(las.header.offsets, cloud.header.offsets)
+    assert cloud.header.vlrs[0].user_id == "copc"                   # like= is not modified
+
+
+@pytest.mark.parametrize("method,tile", [("mls1", None), ("mls1", 8.0), ("2dcov2", None),
+                                         ("2dcov2", 8.0)])
+def test_copc_runs_equal_the_plain_laz_runs(files, method, tile):
+    """In memory and in tiles: the output of the COPC input equals the output of the same
+    points in a plain LAZ (same order), bit for bit, and is a plain LAZ in the COPC's
+    order."""
+    d, src, plain, _, pts, order = files
+    tag = f"{method}_{tile}"
+    a, b = d / f"copc_{tag}.laz", d / f"plain_{tag}.laz"
+    ra = tiled.curvature_file(src, a, R, method=method, tile=tile, memory="64GiB")
+    rb = tiled.curvature_file(plain, b, R, method=method, tile=tile, memory="64GiB")
+    assert ra["tiled"] == rb["tiled"] == (tile is not None)
+    assert_plain(a)
+    assert_same(a, b)
+    las, dims = _dims(a)
+    assert np.array_equal(np.column_stack([las.x, las.y, las.z]), pts[order])
+    assert np.array_equal(dims["gps_time"], order)
+    assert (dims["status"] == 0).mean() > 0.9
+
+
+def test_tiled_copc_equals_in_memory_copc(files):
+    d, src, _, _, _, _ = files
+    a, b = d / "mem_t.laz", d / "til_t.laz"
+    tiled.curvature_file(src, a, R, method="mls1", memory="64GiB")
+    tiled.curvature_file(src, b, R, method="mls1", tile=6.0, memory="64GiB")
+    assert_same(a, b)
+
+
+def test_each_value_goes_to_its_point(files):
+    """The COPC output against the points in their given order (another order of
+    computation): each point's values agree to 1e-4, matched by its index (gps_time)."""
+    d, src, _, given, pts, order = files
+    a, b = d / "order_copc.laz", d / "order_given.laz"
+    tiled.curvature_file(src, a, R, method="mls1", fields=["mean_curvature", "status"],
+                         memory="64GiB")
+    tiled.curvature_file(given, b, R, method="mls1", fields=["mean_curvature", "status"],
+                         memory="64GiB")
+    _, da = _dims(a)
+    _, db = _dims(b)
+    assert np.array_equal(db["gps_time"], np.arange(len(pts)))
+    idx = da["gps_time"].astype(np.int64)
+    assert np.array_equal(da["status"], db["status"][idx])
+    h_a, h_b = da["mean_curvature"], db["mean_curvature"][idx]
+    ok = np.isfinite(h_b)
+    assert ok.mean() > 0.9 and np.array_equal(np.isfinite(h_a), ok)
+    np.testing.assert_allclose(h_a[ok], h_b[ok], rtol=1e-4, atol=1e-4)
+    # and the same comparison fails when the values are taken in the given order
+    assert not np.allclose(da["mean_curvature"][ok], db["mean_curvature"][ok], atol=1e-4,
+                           equal_nan=True)
+
+
+@pytest.mark.parametrize("extra", [[], ["--tile-size", "8"]])
+def test_the_command_on_copc(files, tmp_path, extra):
+    _, src, plain, _, _, order = files
+    a, b = tmp_path / "a.laz", tmp_path / "b.laz"
+    for inp, out in ((src, a), (plain, b)):
+        p = run_cli("compute", inp, "-o", out, "--radius", "1", "--method", "mls1", "-q",
+                    *extra, timeout=120)
+        assert p.code == 0, p.stderr[-2000:]
+        assert "Traceback" not in p.stderr
+    assert_plain(a)
+    assert_same(a, b)
+
+
+def test_output_named_copc_laz_is_plain_laz(files, tmp_path):
+    """clcurv writes no COPC: an output named .copc.laz is a plain LAZ (documented)."""
+    _, src, plain, _, _, _ = files
+    a = tmp_path / "out.copc.laz"
+    tiled.curvature_file(src, a, R, method="mls1", fields=["mean_curvature"], memory="64GiB")
+    assert_plain(a)
+
+
+def test_evlrs_that_can_be_written_are_kept_in_memory_and_in_tiles(tmp_path):
+    """What is dropped is what laspy cannot write (COPC's); other VLRs and EVLRs of a LAS
+    1.4 input are kept, in memory and in tiles alike."""
+    pts, kind, _ = _scene(3000, seed=9)
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.scales, header.offsets = [SCALE] * 3, np.floor(pts.min(axis=0))
+    header.vlrs.append(laspy.VLR("clcurv_test", 7, "a VLR", b"vlr data"))
+    header.evlrs = laspy.vlrs.vlrlist.VLRList([laspy.VLR("clcurv_test", 8, "an EVLR", b"evlr data" * 100)])
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = pts.T
+    las.classification = kind
+    src = tmp_path / "evlr.laz"
+    las.write(str(src))
+    assert len(laspy.read(str(src)).header.evlrs) == 1
+    outs = []
+    for tile in (None, 8.0):
+        out = tmp_path / f"out_{tile}.laz"
+        tiled.curvature_file(src, out, R, method="mls1", fields=["mean_curvature"], tile=tile,
+                             memory="64GiB")
+        back = laspy.read(str(out))
+        assert [(v.user_id, v.record_id, v.record_data) for v in back.header.evlrs] == \
+            [("clcurv_test", 8, b"evlr data" * 100)], tile
+        assert ("clcurv_test", 7) in [(v.user_id, v.record_id) for v in back.header.vlrs]
+        outs.append(out)
+    assert_same(*outs)
+
+
+@pytest.mark.parametrize("tile", [None, 8.0])
+def test_features_of_copc_equal_those_of_the_plain_laz(files, tile):
+    """clcurv.features_file (covariance features), in memory and in tiles: the same rule."""
+    d, src, plain, _, _, order = files
+    a, b = d / f"feat_copc_{tile}.laz", d / f"feat_plain_{tile}.laz"
+    clcurv.features_file(src, a, R, tile=tile, memory="64GiB")
+    clcurv.features_file(plain, b, R, tile=tile, memory="64GiB")
+    assert_plain(a)
+    assert_same(a, b)
+    assert np.array_equal(_dims(a)[1]["gps_time"], order)
