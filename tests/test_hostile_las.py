@@ -1,6 +1,9 @@
 """Hostile LAS/LAZ input (issue 10): crafted headers are refused with one CorruptFileError
 naming what the header claims and what the file holds, never a hang, a MemoryError or a
-silently partial read; LAS output from non-LAS input gets a header scaled to the extent.
+silently partial read; LAS output from non-LAS input gets a header scaled to the extent; an
+input dimension named like an output field is replaced (extra bytes) or must hold the
+values (standard dimensions), the same in memory and in tiles (issue 47: it was quantised,
+NaN written as 0 or a traceback).
 
 Every crafted file starts from a valid file written by :func:`clcurv.io.write` and has
 header bytes patched with ``struct`` (offsets of the LAS 1.4 public header block). Reads
@@ -313,3 +316,155 @@ def test_round_trip_within_the_chosen_scale(tmp_path, offset, extent):
     assert np.all(header.scales == scale)
     err = np.abs(cio.read(path).points - pts).max()
     assert err <= scale / 2 + 4 * np.spacing(abs(offset) + extent), (err, scale)
+
+
+# --------------------------------- an input dimension named like an output field (issue 47)
+
+R_CLASH = 1.0
+SCALE_CLASH = 2.0 ** -7
+
+
+def _clash_input(path, extra, fmt=6, values=None):
+    """A LAS/LAZ of an aerial scene (point format ``fmt``) with the extra-bytes dimensions
+    ``extra`` (ExtraBytesParams), each filled with ``values(name, n)`` or 0.5."""
+    import clcurv
+    s = clcurv.shapes.aerial_scene(4000, extent=(25.3, 21.9), seed=2)
+    pts = np.round(s["points"] / SCALE_CLASH) * SCALE_CLASH
+    header = laspy.LasHeader(point_format=fmt, version="1.4")
+    header.scales, header.offsets = [SCALE_CLASH] * 3, np.floor(pts.min(axis=0))
+    if extra:
+        header.add_extra_dims(extra)
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = pts.T
+    las.classification = s["kind"]
+    for p in extra:
+        shape = (len(pts),) + p.type.shape
+        las[p.name] = values(p.name, shape) if values else np.full(shape, 0.5)
+    las.write(str(path))
+    return path
+
+
+def _scaled(name, dtype, scale, offset=0.0):
+    return laspy.ExtraBytesParams(name, dtype, scales=np.array([scale]),
+                                  offsets=np.array([offset]))
+
+
+CLASHES = {
+    "scaled_i4": [_scaled("mean_curvature", "i4", 0.01)],
+    "scaled_u2_offset": [_scaled("mean_curvature", "u2", 0.001, -30.0)],
+    "unscaled_i2": [laspy.ExtraBytesParams("mean_curvature", "i2")],
+    "float64": [laspy.ExtraBytesParams("mean_curvature", "f8")],
+    "array_3f4": [laspy.ExtraBytesParams("mean_curvature", "3f4")],
+    "u1_neighbours": [laspy.ExtraBytesParams("neighbours", "u1")],
+    "scaled_normals": [_scaled(k, "i2", 1e-4) for k in ("nx", "ny", "nz")],
+    "several": [_scaled("mean_curvature", "i2", 0.01), laspy.ExtraBytesParams("keep_me", "f4"),
+                laspy.ExtraBytesParams("surface_variation", "u1")],
+}
+
+
+def _dims(path):
+    las = laspy.read(str(path))
+    return las, {n: np.asarray(las[n]) for n in las.point_format.dimension_names}
+
+
+@needs_laz
+@pytest.mark.parametrize("case", list(CLASHES))
+def test_a_clashing_extra_dimension_is_replaced_in_memory_and_in_tiles(tmp_path, case):
+    """An extra-bytes dimension of the input named like an output field is replaced by the
+    field's own float32 (or integer) dimension: NaN stays NaN and nothing is quantised.
+    The in-memory and tiled outputs are the same, and equal the run on the same input
+    without the clashing dimensions (the other dimensions, ``keep_me``, kept)."""
+    from clcurv import tiled
+    params = CLASHES[case]
+    src = _clash_input(tmp_path / "in.laz", params)
+    plain = _clash_input(tmp_path / "plain.laz",
+                         [p for p in params if p.name == "keep_me"])
+    fields = ["normals", "mean_curvature", "surface_variation", "neighbours", "status"]
+    outs = {}
+    for name, inp, tile in (("mem", src, None), ("til", src, 7.0), ("ref", plain, None)):
+        outs[name] = tmp_path / f"{name}.laz"
+        tiled.curvature_file(inp, outs[name], R_CLASH, method="mls1", fields=fields,
+                             orient="up", ignore_normals=True, tile=tile, memory="64GiB")
+    las, mem = _dims(outs["mem"])
+    _, til = _dims(outs["til"])
+    _, ref = _dims(outs["ref"])
+    assert list(mem) == list(til)
+    assert [n for n in mem if not np.array_equal(mem[n], til[n], equal_nan=True)] == []
+    assert sorted(mem) == sorted(ref)
+    for n in ref:
+        assert np.array_equal(mem[n], ref[n], equal_nan=True), n
+    h = mem["mean_curvature"]
+    assert h.dtype == np.float32 and np.isnan(h).any() and (mem["status"] != 0).any()
+    assert np.array_equal(np.isnan(h), mem["status"] != 0)
+    assert len(np.unique(h[np.isfinite(h)])) > 0.5 * np.isfinite(h).sum()   # not quantised
+    extra = {d.name: d for d in las.point_format.extra_dimensions}
+    for name in ("nx", "mean_curvature", "surface_variation"):
+        assert extra[name].scales is None and np.dtype(extra[name].dtype) == np.float32, name
+    assert all(mem[n].dtype == ref[n].dtype for n in ref)
+
+
+@needs_laz
+def test_the_input_normals_are_kept_as_stored_when_no_normals_are_written(tmp_path):
+    """Input normals in scaled int16 extra bytes, no ``normals`` field: the output keeps
+    the input's dimensions and their raw values, in memory and in tiles."""
+    from clcurv import tiled
+    rng = np.random.default_rng(3)
+
+    def values(name, shape):
+        return np.round(rng.uniform(-1, 1, size=shape) / 1e-4) * 1e-4
+
+    params = [_scaled(k, "i2", 1e-4) for k in ("nx", "ny", "nz")]
+    src = _clash_input(tmp_path / "in.laz", params, values=values)
+    outs = []
+    for tile in (None, 7.0):
+        out = tmp_path / f"o{tile}.laz"
+        tiled.curvature_file(src, out, R_CLASH, method="mls1", orient="up",
+                             fields=["mean_curvature"], tile=tile, memory="64GiB")
+        outs.append(out)
+    a, da = _dims(outs[0])
+    _, db = _dims(outs[1])
+    inp = laspy.read(str(src))
+    for k in ("nx", "ny", "nz"):
+        assert a.point_format.dimension_by_name(k).scales is not None
+        assert np.array_equal(a.points.array[k], inp.points.array[k]), k
+        assert np.array_equal(da[k], db[k]), k
+
+
+@pytest.mark.parametrize("fmt,name,values,ok", [
+    (1, "classification", np.full(N, 2.0), True),             # 5-bit field, integral float
+    (1, "classification", np.full(N, 40), False),             # over 31
+    (1, "classification", np.r_[np.nan, np.full(N - 1, 2.0)], False),
+    (6, "classification", np.full(N, 2.5), False),            # uint8, a fraction
+    (6, "return_number", np.full(N, 2.5), False),             # 4-bit field, a fraction
+    (6, "return_number", np.full(N, 15), True),
+    (6, "intensity", np.full(N, 70000), False),
+    (6, "gps_time", np.r_[np.nan, np.linspace(0, 1, N - 1)], True),   # float64 holds it
+])
+def test_a_field_in_a_standard_dimension_must_fit_it(tmp_path, fmt, name, values, ok):
+    """A field named like a standard dimension of the input's point format is stored in it
+    when the dimension holds every value exactly, else a WriteError naming the dimension
+    (never a TypeError, a wrapped integer or NaN written as 0); clcurv.io.write and the
+    tiled writer (clcurv.io.stream.write_las) alike."""
+    from clcurv.io import stream
+    header = laspy.LasHeader(point_format=fmt, version="1.4" if fmt >= 6 else "1.2")
+    header.scales, header.offsets = [1e-3] * 3, [0, 0, 0]
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = make_points().T
+    las.write(str(tmp_path / "in.las"))
+    like = cio.read(tmp_path / "in.las")
+    rec = np.empty(N, [(name, np.asarray(values).dtype)])
+    rec[name] = values
+    writers = {
+        "io.write": lambda out: cio.write(out, like.points, {name: values}, like=like),
+        "stream": lambda out: stream.write_las(out, stream.open_source(tmp_path / "in.las"),
+                                               [name], lambda a, b: rec[a:b], chunk=128),
+    }
+    for kind, write in writers.items():
+        out = tmp_path / f"{kind}.las"
+        if ok:
+            write(out)
+            got = np.asarray(laspy.read(str(out))[name])
+            assert np.array_equal(got, np.asarray(values).astype(got.dtype), equal_nan=True)
+        else:
+            with pytest.raises(cio.WriteError, match=f"dimension '{name}'.*cannot hold"):
+                write(out)

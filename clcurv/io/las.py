@@ -37,26 +37,41 @@ Writing
 With ``like`` (a Cloud read from a LAS/LAZ file with the same number of points): its header
 (version, point format, scales, offsets, VLRs and EVLRs) is kept, so a point read from that
 file is written back to the same integer; its attributes (classification, intensity, GPS
-time, extra bytes...) are copied, and its normals when none are given. The output is a
-plain LAS/LAZ, never COPC (whatever its name): the VLRs and EVLRs of a COPC input (user id
-``copc``), which describe its octree, and any record laspy cannot write, are left out
-(:func:`output_header`); the points keep the input's order. From a ``like`` Cloud read
-from another format (PLY, PCD, text, NPY...): a fresh header, its normals when none are
-given, its attributes as extra bytes in their own types (:func:`carried_plan`,
-:mod:`clcurv.io.carry`: names mended to 32 characters, one named like a dimension of the
-point format suffixed ``_input``), and an 8- or 16-bit ``red, green, blue`` triple as the
-RGB of point format 7 (8-bit values times 257, LAS colours being 16-bit). Anything else
-than a Cloud (or one of another size) is a WriteError.
+time, extra bytes...) are copied, and its normals, in their own dimensions, when none are
+given. The output is a plain LAS/LAZ, never COPC (whatever its name): the VLRs and EVLRs
+of a COPC input (user id ``copc``), which describe its octree, and any record laspy cannot
+write, are left out (:func:`output_header`); the points keep the input's order. From a
+``like`` Cloud read from another format (PLY, PCD, text, NPY...): a fresh header, its
+normals when none are given, its attributes as extra bytes in their own types
+(:func:`carried_plan`, :mod:`clcurv.io.carry`: names mended to 32 characters, one named like
+a dimension of the point format suffixed ``_input``), and an 8- or 16-bit ``red, green,
+blue`` triple as the RGB of point format 7 (8-bit values times 257, LAS colours being
+16-bit). Anything else than a Cloud (or one of another size) is a WriteError.
+
 Without a LAS ``like``, a fresh header: LAS 1.4, point format 6 (7 with RGB), offsets = the per-axis
 minimum and one scale on all axes, :func:`scale_for_extent` of the largest extent (the
 finest power of ten that keeps the integers within 2**30, half the int32 range), so
 coordinates are kept within half that scale (0.5e-9 to 5e-9 times the extent; 0.001 when
-all points are equal). Each field is added as an extra-bytes dimension (float32, or its
-integer type; names of at most 32 characters) through ``laspy.ExtraBytesParams``, described
-``clcurv``; a field named like an existing dimension (e.g. ``classification``) overwrites
-it. Normals are stored as float32 extra dimensions ``nx, ny, nz``. LAS cannot hold NaN
-coordinates, nor coordinates outside int32 at a ``like`` header's scale and offset
-(WriteError).
+all points are equal).
+
+Each field is added as an extra-bytes dimension (float32, or its integer type; names of at
+most 32 characters) through ``laspy.ExtraBytesParams``, described ``clcurv``. A field named
+like a dimension of a LAS ``like`` (:func:`_extra_dims`):
+
+* an extra-bytes dimension (e.g. ``mean_curvature`` stored by another tool as a scaled
+  integer, an array, another type): *replaced* by the field's own dimension (float32 or its
+  integer type, added after the others; kept in place when it already is that dimension,
+  e.g. an earlier clcurv output), so no value is quantised and NaN stays NaN;
+* a standard dimension of the point format (``classification``, ``intensity``,
+  ``gps_time``...): the values are stored in it when it holds every one of them exactly (an
+  integer dimension or bit field: integers in its range; ``gps_time``: any), else a
+  WriteError naming the dimension (:func:`check_fits`). clcurv's own field names name no
+  standard dimension.
+
+The tiled writer (:func:`clcurv.io.stream.write_las`) follows the same rules, so a run in
+tiles writes what the run in memory writes. Normals are stored as float32 extra dimensions
+``nx, ny, nz``. LAS cannot hold NaN coordinates, nor coordinates outside int32 at a ``like``
+header's scale and offset (WriteError).
 """
 from __future__ import annotations
 
@@ -514,48 +529,90 @@ def check_extra_count(path, count):
                          "write fewer fields (radii, features), or NPZ or PLY")
 
 
+def _field_dtype(path, name, a, dtypes=None):
+    """(the extra-bytes dtype clcurv writes field ``name`` with, its description): float32
+    for real values, the integer type of an integer field, ``dtypes[name]`` when given."""
+    if dtypes and name in dtypes:
+        return np.dtype(dtypes[name]), "the input's"
+    a = np.asarray(a)
+    if a.dtype.kind == "f":
+        return np.dtype("f4"), "clcurv"
+    return _int_as(path, name, a, _INTS), "clcurv"
+
+
+def _holds_as_is(info, dt):
+    """True when the input's extra dimension ``info`` is the dimension clcurv would create
+    with dtype ``dt`` (unscaled, no offset, one element of that type)."""
+    return (info.scales is None and info.offsets is None and info.num_elements == 1
+            and info.dtype is not None and np.dtype(info.dtype) == dt)
+
+
 def _extra_dims(laspy, path, columns, header, dtypes=None):
-    """ExtraBytesParams for the columns that are not dimensions of the header already
-    (float32 or the integer type of a field, ``dtypes[name]`` when given)."""
-    existing = set(header.point_format.dimension_names)
-    check_extra_count(path, len(list(header.point_format.extra_dimension_names))
-                      + sum(1 for name in columns if name not in existing))
-    new = []
+    """Make ``header`` (the output's, modified in place) hold the columns; returns the names
+    of the extra-bytes dimensions created for them, whose raw values are the values.
+
+    A column named like no dimension gets a new extra-bytes dimension (float32, or the
+    integer type of the field, ``dtypes[name]`` when given), described ``clcurv``. A column
+    named like an extra-bytes dimension of the input *replaces* it: that dimension is
+    removed and the new one added at the end, unless it already is exactly that dimension
+    (an earlier clcurv output); a scaled integer, another type or an array would quantise the
+    values or turn NaN into a number. A column named like a standard dimension of the point
+    format (``classification``, ``gps_time``...) is stored in it and must fit it
+    (:func:`check_fits`)."""
+    fmt = header.point_format
+    extra = {d.name: d for d in fmt.extra_dimensions}
+    standard = set(fmt.standard_dimension_names)
+    plan, replaced = [], []
     for name, a in columns.items():
-        if name in existing:
+        if name in standard:
             continue
         if len(name) > 32:
             raise WriteError(f"{path}: LAS extra-bytes names have at most 32 characters: "
                              f"{name!r}")
-        if dtypes and name in dtypes:
-            dt, what = dtypes[name], "the input's"
-        else:
-            dt = np.dtype("f4") if a.dtype.kind == "f" else _int_as(path, name, a, _INTS)
-            what = "clcurv"
-        new.append(laspy.ExtraBytesParams(name=name, type=dt, description=what))
-    return new
+        dt, what = _field_dtype(path, name, a, dtypes)
+        if name in extra:
+            if _holds_as_is(extra[name], dt):
+                continue
+            replaced.append(name)
+        plan.append(laspy.ExtraBytesParams(name=name, type=dt, description=what))
+    check_extra_count(path, len(extra) - len(replaced) + len(plan))
+    if replaced:
+        header.remove_extra_dims(replaced)
+    if plan:
+        header.add_extra_dims(plan)
+    return {p.name for p in plan}
 
 
 def check_fits(path, point_format, name, a):
-    """WriteError unless the existing unscaled integer dimension ``name`` of
-    ``point_format`` (a dimension of the input file that a field overwrites) holds the
-    values ``a`` exactly: a feature in [0, 1] stored in the input's uint8 ``planarity`` was
-    all 0, counts over 255 wrapped."""
+    """WriteError unless the existing unscaled integer or bit-field dimension ``name`` of
+    ``point_format`` (a standard dimension of the input file that a field is stored in)
+    holds the values ``a`` exactly: a feature in [0, 1] stored in a uint8 was all 0, counts
+    over 255 wrapped, a 5-bit ``classification`` holds 0 to 31. Float dimensions
+    (``gps_time``) hold any value."""
     info = point_format.dimension_by_name(name)
-    dt = np.dtype(info.dtype) if info.dtype is not None else None
-    if dt is None or dt.kind not in "iu" or getattr(info, "scales", None) is not None:
-        return
+    kind = getattr(info.kind, "name", "")
+    if kind == "BitField":
+        lo, hi, what = 0, 2 ** info.num_bits - 1, f"a {info.num_bits}-bit field"
+    else:
+        dt = np.dtype(info.dtype) if info.dtype is not None else None
+        if dt is None or dt.kind not in "iu" or getattr(info, "scales", None) is not None:
+            return
+        lo, hi, what = np.iinfo(dt).min, np.iinfo(dt).max, dt.name
     v = np.asarray(a)
     if v.dtype.kind in "iub":
-        ok = not len(v) or (v.min() >= np.iinfo(dt).min and v.max() <= np.iinfo(dt).max)
+        ok = not v.size or (v.min() >= lo and v.max() <= hi)
     else:
         with np.errstate(invalid="ignore"):
-            ok = bool(np.all(np.isfinite(v) & (v == np.round(v)) & (v >= np.iinfo(dt).min)
-                             & (v <= np.iinfo(dt).max)))
+            ok = bool(np.all(np.isfinite(v) & (v == np.round(v)) & (v >= lo) & (v <= hi)))
     if not ok:
-        raise WriteError(f"{path}: the input's LAS dimension {name!r} is {dt.name}, which "
-                         f"cannot hold clcurv's {name!r} (fractions, NaN or out of range): "
-                         "rename or drop that dimension, or write another format")
+        raise WriteError(f"{path}: the LAS dimension {name!r} of point format "
+                         f"{point_format.id} is {what} ({lo} to {hi}), which cannot hold "
+                         f"the values of field {name!r} (fractions, NaN or out of range): "
+                         "rename the field, or write another format")
+
+
+def _is_bitfield(point_format, name):
+    return getattr(point_format.dimension_by_name(name).kind, "name", "") == "BitField"
 
 
 def _store(laspy, path, las, header, values):
@@ -566,10 +623,18 @@ def _store(laspy, path, las, header, values):
     try:
         for name, a in values.items():
             if name in las.point_format.dimension_names:
-                las[name] = a
+                las[name] = np.asarray(a).astype(np.int64) if _is_bitfield(
+                    las.point_format, name) else a
     except (ValueError, OverflowError, laspy.LaspyException) as exc:
         raise WriteError(f"{path}: cannot store field {name!r} in LAS point format "
                          f"{header.point_format.id}: {exc}") from exc
+
+
+def _normal_names(header):
+    """The names of the normal triple of a LAS header's dimensions (as clcurv.io.read)."""
+    from ._common import split_names
+    dims = [n for n in header.point_format.dimension_names if n not in ("X", "Y", "Z")]
+    return split_names(dims, xyz=False)[1]
 
 
 def write(path, pts, fields, normals, like, carried):
@@ -579,6 +644,12 @@ def write(path, pts, fields, normals, like, carried):
                          f"({int((~np.isfinite(pts).all(axis=1)).sum())} rows)")
     del carried                     # LAS keeps what like= has itself (Format.carries None)
     header, keep, dtypes, like_normals = _target_header(laspy, path, pts, like, fields)
+    if normals is None and like_normals is not None and isinstance(like.header,
+                                                                   laspy.LasHeader):
+        # a LAS like's own normals stay in its own dimensions, as the input has them
+        names = _normal_names(like.header)
+        keep.update({k: like_normals[:, i] for i, k in enumerate(names)})
+        like_normals = None
     normals = like_normals if normals is None else normals
     ints = _scaled_ints(path, pts, header)
     columns = dict(fields)
@@ -587,12 +658,11 @@ def write(path, pts, fields, normals, like, carried):
         columns = {"nx": nrm[:, 0], "ny": nrm[:, 1], "nz": nrm[:, 2], **columns}
     if dtypes:                      # carried from a non-LAS like: extra bytes, first
         columns = {**{k: keep[k] for k in dtypes}, **columns}
-    new = _extra_dims(laspy, path, columns, header, dtypes)
+    _extra_dims(laspy, path, columns, header, dtypes)
     las = laspy.LasData(header, points=laspy.ScaleAwarePointRecord.zeros(len(pts),
                                                                           header=header))
-    if new:
-        las.add_extra_dims(new)
     las.X, las.Y, las.Z = (ints[:, i].astype(np.int32) for i in range(3))
+    keep = {k: v for k, v in keep.items() if k not in columns}
     _store(laspy, path, las, header, {**keep, **columns})
     las.write(str(path))
 

@@ -284,11 +284,14 @@ class PlySource:
 def write_las(path, src, names, rows, chunk=1_000_000):
     """Write a LAS/LAZ ``path`` holding the points of LAS/LAZ ``src`` (a :class:`LasSource`:
     its header, scales, offsets, VLRs, EVLRs and every dimension kept, the records copied as
-    read; a COPC input's VLRs and EVLRs left out, :func:`clcurv.io.las.output_header`: a
-    plain LAS/LAZ, as in memory) with the fields ``names`` added as extra-bytes dimensions
-    (float32 for real fields, or overwriting a dimension of that name); ``"normals"``
-    becomes ``nx ny nz``. ``rows(start, stop)`` gives the structured records (one field per
-    name) of the points start..stop-1. Written chunk by chunk in input order."""
+    read) with the fields ``names`` added as extra-bytes dimensions; ``"normals"`` becomes
+    ``nx ny nz``. The header and dimensions follow the rules of the in-memory writer
+    (:func:`clcurv.io.las.output_header`: a COPC input's VLRs and EVLRs left out, a plain
+    LAS/LAZ written; :func:`clcurv.io.las._extra_dims`: float32 for real fields, a field
+    replacing an extra-bytes dimension of its name, one stored in a standard dimension must
+    fit it), so both outputs are the same. ``rows(start, stop)`` gives the structured
+    records (one field per name) of the points start..stop-1. Written chunk by chunk in
+    input order."""
     from . import las
     laspy = las._import_laspy(path, las._is_laz(path))
     header = las.output_header(src.header)
@@ -301,11 +304,8 @@ def write_las(path, src, names, rows, chunk=1_000_000):
             else:
                 out[name] = rec[name]
         return out
-    new = las._extra_dims(laspy, path, columns(rows(0, min(1, src.n))), header)
-    if new:
-        header.add_extra_dims(new)
+    added = las._extra_dims(laspy, path, columns(rows(0, min(1, src.n))), header)
     dims = set(header.point_format.dimension_names)
-    added = {p.name for p in new}
     evlrs = header.evlrs if header.version.minor >= 4 else None
     with laspy.open(str(src.path)) as reader, \
             laspy.open(str(path), mode="w", header=header) as writer:
@@ -319,7 +319,8 @@ def write_las(path, src, names, rows, chunk=1_000_000):
                     out.array[name] = a
                 elif name in dims:
                     las.check_fits(path, header.point_format, name, a)
-                    out[name] = a
+                    out[name] = (np.asarray(a).astype(np.int64)
+                                 if las._is_bitfield(header.point_format, name) else a)
             writer.write_points(out)
             start += m
         if evlrs:                                     # as LasData.write does in memory
@@ -327,9 +328,10 @@ def write_las(path, src, names, rows, chunk=1_000_000):
 
 
 def _copy_records(src, dst):
-    """Copy the records ``src`` into the leading fields of ``dst`` (the same fields at the
-    same offsets, extra bytes appended after them): one strided byte copy when the
-    layouts allow it, else field by field."""
+    """Copy the records ``src`` into the fields of ``dst`` of the same names (the same
+    fields at the same offsets, extra bytes appended after them, or some replaced): one
+    strided byte copy when the layouts allow it, else field by field (a field ``dst`` does
+    not have, an extra dimension a field replaces, is left out)."""
     a, b = src.dtype, dst.dtype
     same = all(n in b.fields and b.fields[n][1] == a.fields[n][1]
                and b.fields[n][0] == a.fields[n][0] for n in a.names)
@@ -338,7 +340,8 @@ def _copy_records(src, dst):
             src.view(np.uint8).reshape(len(src), a.itemsize)
         return
     for name in a.names:
-        dst[name] = src[name]
+        if name in b.fields and b.fields[name][0] == a.fields[name][0]:
+            dst[name] = src[name]
 
 
 def _carried(path, src, names, kind):
