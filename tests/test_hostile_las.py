@@ -1,9 +1,10 @@
 """Hostile LAS/LAZ input (issue 10): crafted headers are refused with one CorruptFileError
 naming what the header claims and what the file holds, never a hang, a MemoryError or a
-silently partial read; LAS output from non-LAS input gets a header scaled to the extent; an
-input dimension named like an output field is replaced (extra bytes) or must hold the
-values (standard dimensions), the same in memory and in tiles (issue 47: it was quantised,
-NaN written as 0 or a traceback).
+silently partial read; LAS output from non-LAS input gets a header scaled per axis to its
+extent (issue 47: one far point no longer collapses the other axes; a precision LAS cannot
+keep is a LasPrecisionWarning); an input dimension named like an output field is replaced
+(extra bytes) or must hold the values (standard dimensions), the same in memory and in
+tiles (issue 47: it was quantised, NaN written as 0 or a traceback).
 
 Every crafted file starts from a valid file written by :func:`clcurv.io.write` and has
 header bytes patched with ``struct`` (offsets of the LAS 1.4 public header block). Reads
@@ -12,6 +13,7 @@ address space and 10 s, so a regression fails instead of stalling the suite.
 """
 import json
 import math
+import re
 import shutil
 import struct
 import subprocess
@@ -272,9 +274,9 @@ def test_cli_writes_las_from_other_formats(tmp_path, src_ext, out_ext):
     assert outcome.code == 0, outcome.stderr[-2000:]
     back = cio.read(out)
     header = laspy.read(str(out)).header
-    scale = float(header.scales[0])
-    assert scale == cl.scale_for_extent(np.ptp(pts, axis=0).max())
-    assert np.abs(back.points - pts).max() <= scale / 2 * (1 + 1e-6)
+    scales = np.asarray(header.scales)
+    assert list(scales) == [cl.scale_for_extent(e) for e in np.ptp(pts, axis=0)]
+    assert np.all(np.abs(back.points - pts) <= scales / 2 * (1 + 1e-6))
     assert "mean_curvature" in back.attributes and back.normals is not None
 
 
@@ -312,10 +314,105 @@ def test_round_trip_within_the_chosen_scale(tmp_path, offset, extent):
     pts = offset + extent * rng.random(size=(1000, 3))
     path = cio.write(tmp_path / "r.las", pts)
     header = laspy.read(str(path)).header
-    scale = cl.scale_for_extent(np.ptp(pts, axis=0).max())
-    assert np.all(header.scales == scale)
-    err = np.abs(cio.read(path).points - pts).max()
-    assert err <= scale / 2 + 4 * np.spacing(abs(offset) + extent), (err, scale)
+    scales = np.array([cl.scale_for_extent(e) for e in np.ptp(pts, axis=0)])
+    assert np.array_equal(header.scales, scales)
+    assert np.array_equal(header.offsets, pts.min(axis=0))
+    err = np.abs(cio.read(path).points - pts).max(axis=0)
+    assert np.all(err <= scales / 2 + 4 * np.spacing(abs(offset) + extent)), (err, scales)
+
+
+# --------------------------------------------- a fresh header: one scale and offset per axis
+
+def _far(pts, axis, distance):
+    """``pts`` and one more point ``distance`` away from the first along ``axis``."""
+    far = pts[0].copy()
+    far[axis] += distance
+    return np.vstack([pts, far])
+
+
+def _written(path, pts):
+    """(the points read back, the header, the LasPrecisionWarnings) of ``pts`` written to
+    ``path`` without like=."""
+    import warnings
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        cio.write(path, pts)
+    header = laspy.read(str(path)).header
+    precision = [w for w in caught if issubclass(w.category, cl.LasPrecisionWarning)]
+    return cio.read(path).points, header, precision
+
+
+@pytest.mark.parametrize("axis,distance", [(0, 1e7), (1, -3e6), (2, 5e5), (0, 1e4)])
+def test_a_far_point_does_not_collapse_the_other_axes(tmp_path, axis, distance):
+    """A point far away along one axis: the two other axes keep the precision of their own
+    extent (they took the scale of the largest extent: 1e7 away made every z one of 3
+    values); the far axis is kept within half its own scale, and a LasPrecisionWarning
+    names it when that scale is coarser than 1e-6 of the extent of the other points."""
+    pts = _far(_sphere(), axis, distance)
+    back, header, precision = _written(tmp_path / "far.las", pts)
+    scales = np.asarray(header.scales)
+    expect = np.array([cl.scale_for_extent(e) for e in np.ptp(pts, axis=0)])
+    assert np.array_equal(scales, expect)
+    assert np.array_equal(header.offsets, pts.min(axis=0))
+    err = np.abs(back - pts).max(axis=0)
+    assert np.all(err <= scales / 2 + 4 * np.spacing(np.abs(pts).max(axis=0))), (err, scales)
+    for other in set(range(3)) - {axis}:
+        assert scales[other] <= 1e-8                  # the sphere's own 4-unit extent
+        assert err[other] <= 5e-9
+        assert len(np.unique(back[:-1, other])) == len(np.unique(pts[:-1, other]))
+    far_scale_is_coarse = expect[axis] > cl.PRECISION * 4.0
+    assert len(precision) == int(far_scale_is_coarse), [str(w.message) for w in precision]
+    if precision:
+        msg = str(precision[0].message)
+        assert msg.startswith(str(tmp_path / "far.las")) and f"{'xyz'[axis]} spans" in msg
+        assert f"{expect[axis]:g}" in msg and "PLY or NPZ" in msg
+
+
+def test_no_precision_warning_without_far_points(tmp_path):
+    """An ordinary cloud, UTM-like or tiny, a flat one (z constant), a line: no warning,
+    every axis within half its own scale."""
+    rng = np.random.default_rng(7)
+    utm = rng.random((2000, 3)) * [800.0, 600.0, 40.0] + [481200.0, 4390100.0, 12.0]
+    tiny = rng.random((2000, 3)) * 1e-3
+    flat = utm.copy()
+    flat[:, 2] = 101.25
+    line = np.column_stack([np.linspace(0, 1e4, 2000), np.zeros(2000), np.full(2000, 3.0)])
+    for name, pts in (("utm", utm), ("tiny", tiny), ("flat", flat), ("line", line)):
+        back, header, precision = _written(tmp_path / f"{name}.las", pts)
+        assert precision == [], (name, [str(w.message) for w in precision])
+        scales = np.asarray(header.scales)
+        assert np.all(np.abs(back - pts) <= scales / 2 + 4 * np.spacing(np.abs(pts).max())), \
+            name
+    assert np.all(cio.read(tmp_path / "flat.las").points[:, 2] == 101.25)
+
+
+def test_a_precision_int32_cannot_keep_is_a_warning_naming_the_axes(tmp_path):
+    """A far "no data" point at (0, 0, 0) beside a UTM-like survey: x and y span millions of
+    metres, so their scales are coarser than 1e-6 of the survey's extent (warned, each
+    named); z keeps its own precision."""
+    rng = np.random.default_rng(8)
+    pts = np.vstack([rng.random((3000, 3)) * [90.0, 70.0, 8.0] + [481200.0, 4390100.0, 310.0],
+                     [[0.0, 0.0, 0.0]]])
+    back, header, precision = _written(tmp_path / "nodata.las", pts)
+    warned = sorted(re.search(r"integers: (\w) spans", str(w.message)).group(1)
+                    for w in precision)
+    assert warned == ["x", "y"], [str(w.message) for w in precision]
+    scales = np.asarray(header.scales)
+    assert scales[2] == cl.scale_for_extent(np.ptp(pts[:, 2]))
+    assert np.abs(back[:, 2] - pts[:, 2]).max() <= scales[2] / 2 + 1e-12
+
+
+def test_the_command_warns_once_per_coarse_axis(tmp_path):
+    pts = _far(_sphere(), 0, 1e7)
+    src = write_input(tmp_path / "far.ply", pts)
+    out = tmp_path / "far.las"
+    outcome = run_cli("compute", src, "-o", out, "--radius", "0.8", "-q")
+    assert outcome.code == 0, outcome.stderr[-2000:]
+    warnings = [ln for ln in outcome.lines if "32-bit integers" in ln]
+    assert len(warnings) == 1 and warnings[0].startswith("clcurv: warning: ")
+    assert "x spans" in warnings[0], warnings
+    back = cio.read(out)
+    assert np.abs(back.points[:, 2] - pts[:, 2]).max() <= 5e-9
 
 
 # --------------------------------- an input dimension named like an output field (issue 47)

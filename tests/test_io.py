@@ -260,16 +260,17 @@ def test_las_round_trip_without_like(tmp_path):
     path = cio.write(tmp_path / "c.las", pts, fields, normals=nrm)
     las = laspy.read(str(path))
     assert las.header.version == "1.4" and las.header.point_format.id == 6
-    scale = cio.las.scale_for_extent(np.ptp(pts, axis=0).max())     # one for the 3 axes
-    assert np.array_equal(las.header.scales, [scale] * 3)
+    scales = [cio.las.scale_for_extent(e) for e in np.ptp(pts, axis=0)]     # one per axis
+    assert np.array_equal(las.header.scales, scales)
     assert np.array_equal(las.header.offsets, pts.min(axis=0))
     assert list(las.point_format.extra_dimension_names) == ["nx", "ny", "nz", *fields]
     for name, a in fields.items():  # extra bytes readable by laspy directly
         expect = a.astype(np.float32) if a.dtype.kind == "f" else a
         assert np.array_equal(np.asarray(las[name]), expect, equal_nan=True), name
     cloud = cio.read(path)
-    # half the scale, plus the float64 rounding of X * scale + offset
-    assert np.abs(cloud.points - pts).max() <= scale / 2 + 4 * np.spacing(np.abs(pts).max())
+    # half the axis's scale, plus the float64 rounding of X * scale + offset
+    assert np.all(np.abs(cloud.points - pts).max(axis=0)
+                  <= np.array(scales) / 2 + 4 * np.spacing(np.abs(pts).max()))
     assert np.array_equal(cloud.normals, nrm.astype(np.float32).astype(np.float64))
     assert np.array_equal(cloud.attributes["label"], fields["label"])
 

@@ -184,10 +184,12 @@ def write(path, points, fields=None, normals=None, like=None):
     like : Cloud, optional
         The Cloud (from :func:`read`) that the points come from, with the same number of
         points: what the output keeps of it. LAS/LAZ output from a LAS/LAZ ``like``: its
-        header (version, point format, scales, offsets, VLRs) and its attributes
-        (classification, intensity, GPS time, extra bytes...); from another format's
-        ``like``: a fresh header scaled to the extent
-        (:func:`clcurv.io.las.scale_for_extent`), ``like``'s attributes as extra bytes and
+        header (version, point format, scales, offsets, VLRs and EVLRs but a COPC input's:
+        the output is a plain LAS/LAZ, :func:`clcurv.io.las.output_header`) and its
+        attributes (classification, intensity, GPS time, extra bytes...; an extra-bytes
+        dimension named like a field is replaced by the field's); from another format's
+        ``like`` (or without ``like``): a fresh header, each axis scaled to its own extent
+        (:func:`clcurv.io.las.fresh_scales`), ``like``'s attributes as extra bytes and
         its 8/16-bit red, green, blue as LAS RGB (:func:`clcurv.io.las.carried_plan`).
         PLY, NPZ and text output: ``like``'s
         attributes (colours, intensity, ...), whatever format it was read from, between
@@ -215,6 +217,12 @@ def write(path, points, fields=None, normals=None, like=None):
     MissingDependencyError
         LAS needs ``laspy``, LAZ needs ``laspy[lazrs]``.
 
+    Warns
+    -----
+    clcurv.io.las.LasPrecisionWarning
+        A fresh LAS header cannot keep most points to 1e-6 of their extent on an axis (far
+        points): :func:`clcurv.io.las.fresh_scales`. The writer's warnings name ``path``.
+
     Notes
     -----
     The write is atomic (:func:`atomic_output`): on any error, and on ``KeyboardInterrupt``,
@@ -235,8 +243,11 @@ def write(path, points, fields=None, normals=None, like=None):
     if kind is not None:
         carried, normals = carry.from_like(path, like, len(pts), fields, normals, kind)
         normals = _check_normals(path, normals, len(pts))
-    with atomic_output(path) as tmp:
+    with atomic_output(path) as tmp, warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         _WRITERS[path.suffix.lower()][1](tmp, pts, fields, normals, like, carried)
+    for w in caught:                # the writer's warnings, naming path, not the temporary
+        warnings.warn(str(w.message).replace(str(tmp), str(path)), w.category, stacklevel=2)
     return path
 
 

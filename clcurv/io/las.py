@@ -48,11 +48,15 @@ a dimension of the point format suffixed ``_input``), and an 8- or 16-bit ``red,
 blue`` triple as the RGB of point format 7 (8-bit values times 257, LAS colours being
 16-bit). Anything else than a Cloud (or one of another size) is a WriteError.
 
-Without a LAS ``like``, a fresh header: LAS 1.4, point format 6 (7 with RGB), offsets = the per-axis
-minimum and one scale on all axes, :func:`scale_for_extent` of the largest extent (the
-finest power of ten that keeps the integers within 2**30, half the int32 range), so
-coordinates are kept within half that scale (0.5e-9 to 5e-9 times the extent; 0.001 when
-all points are equal).
+Without a LAS ``like``, a fresh header: LAS 1.4, point format 6 (7 with RGB), and each axis
+its own offset and scale (as PDAL's ``scale_x=auto, offset_x=auto``; :func:`fresh_scales`):
+the offset is the axis's minimum and the scale :func:`scale_for_extent` of the axis's own
+extent (the finest power of ten that keeps the integers within 2**30, half the int32
+range), so each coordinate is kept within half its axis's scale (0.5e-9 to 5e-9 times that
+axis's extent; 0.001 when all are equal), and one far point coarsens its own axis only.
+When far points make an axis's scale coarser than :data:`PRECISION` (1e-6) times the extent
+of 98% of the points on it, a :class:`LasPrecisionWarning` says so (the axis, the extents,
+the precision kept; PLY and NPZ keep float64).
 
 Each field is added as an extra-bytes dimension (float32, or its integer type; names of at
 most 32 characters) through ``laspy.ExtraBytesParams``, described ``clcurv``. A field named
@@ -78,6 +82,7 @@ from __future__ import annotations
 import copy
 import math
 import struct
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -408,21 +413,61 @@ def scale_for_extent(extent):
     return 10.0**k
 
 
-def _fresh_header(laspy, path, pts, point_format=6):
-    """LAS 1.4, point format 6 (7: with RGB), one scale for all axes from the extent,
-    offsets = minimum."""
-    header = laspy.LasHeader(point_format=point_format, version="1.4")
+class LasPrecisionWarning(UserWarning):
+    """A fresh LAS header cannot keep most of the points to :data:`PRECISION` of their own
+    extent on some axis: far points stretch the extent that the 32-bit integers must span
+    (:func:`fresh_scales`)."""
+
+
+#: the precision a fresh header keeps, relative to the extent of the bulk of the points
+#: (the 1st to the 99th percentile) on each axis; coarser gives a LasPrecisionWarning
+PRECISION = 1e-6
+_BULK = (0.01, 0.99)
+#: the percentiles are taken on every k-th point, k = N // this (at least 1)
+_BULK_SAMPLE = 100_000
+
+
+def fresh_scales(path, pts):
+    """(scales, offsets) of a fresh LAS header for the (N, 3) finite points ``pts``.
+
+    Each axis has its own (PDAL's ``scale_x=auto, offset_x=auto``): the offset is the
+    axis's minimum and the scale :func:`scale_for_extent` of the axis's own extent, so a
+    point far away on one axis does not coarsen the others. When far points stretch an
+    axis so much that its scale is coarser than :data:`PRECISION` times the extent of the
+    bulk of the points on that axis (1st to 99th percentile), the 32-bit integers of LAS
+    cannot keep those points to that precision: a :class:`LasPrecisionWarning` names the
+    axis, the extents and the precision kept (half the scale). The points are written
+    all the same, each within half its axis's scale.
+    """
+    pts = np.asarray(pts, dtype=np.float64)
     if not len(pts):
-        header.scales, header.offsets = np.full(3, _FRESH_DEFAULT_SCALE), np.zeros(3)
-        return header
+        return np.full(3, _FRESH_DEFAULT_SCALE), np.zeros(3)
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     with np.errstate(over="ignore"):
-        extent = float((hi - lo).max())
-    if not math.isfinite(extent):
+        extent = hi - lo
+    if not np.isfinite(extent).all():
         raise WriteError(f"{path}: coordinates span more than float64 can hold "
                          f"(min {lo}, max {hi}); LAS cannot store them")
-    header.scales = np.full(3, scale_for_extent(extent))
-    header.offsets = lo
+    scales = np.array([scale_for_extent(e) for e in extent])
+    sample = pts[::max(1, len(pts) // _BULK_SAMPLE)]
+    q = np.quantile(sample, _BULK, axis=0)
+    bulk = q[1] - q[0]
+    for i in np.flatnonzero((scales > PRECISION * bulk) & (bulk > 0)):
+        axis = "xyz"[i]
+        warnings.warn(
+            f"{path}: LAS stores coordinates as 32-bit integers: {axis} spans "
+            f"{extent[i]:.6g} (from {lo[i]:.10g} to {hi[i]:.10g}) while 98% of the points "
+            f"span {bulk[i]:.6g}, so the {axis} scale is {scales[i]:g} and {axis} is kept "
+            f"within {scales[i] / 2:g}, coarser than {PRECISION:g} of that extent: drop the "
+            "far points, or write PLY or NPZ (float64)", LasPrecisionWarning, stacklevel=2)
+    return scales, lo
+
+
+def _fresh_header(laspy, path, pts, point_format=6):
+    """LAS 1.4, point format 6 (7: with RGB), scales and offsets per axis
+    (:func:`fresh_scales`)."""
+    header = laspy.LasHeader(point_format=point_format, version="1.4")
+    header.scales, header.offsets = fresh_scales(path, pts)
     return header
 
 
