@@ -302,7 +302,8 @@ def check_tiled_outputs(dsts, source):
 
 def catalog_outputs(source, dst):
     """The output path of every file of a catalog: ``dst`` (an existing folder) / the
-    input's name (an NPY input's as .npz); never an input itself."""
+    input's name (an NPY input's as .npz, a COPC one's as .laz: the output is a plain LAZ);
+    never an input itself."""
     folder = Path(dst)
     if not folder.is_dir():
         raise TilingError(f"{dst}: the output of a catalog (several input files) is an "
@@ -311,7 +312,10 @@ def catalog_outputs(source, dst):
     inputs = {Path(p).resolve() for p in source.paths}
     for p in source.paths:
         p = Path(p)
-        out = folder / (p.name if p.suffix.lower() != ".npy" else p.stem + ".npz")
+        name = (p.stem + ".npz" if p.suffix.lower() == ".npy"
+                else p.name[:-len(".copc.laz")] + ".laz"     # a plain LAZ: not COPC
+                if p.name.lower().endswith(".copc.laz") else p.name)
+        out = folder / name
         if out.resolve() in inputs:
             raise TilingError(f"{out} would replace the input file of that name: choose "
                               "another output folder")

@@ -14,6 +14,7 @@ file's order. Against the plain LAZ of the points in their given order (a differ
 of computation), the values of each point must agree to 1e-4 (float32 sums in another
 order), matched by the point's index.
 """
+import os
 import numpy as np
 import pytest
 
@@ -313,3 +314,21 @@ def test_features_of_copc_equal_those_of_the_plain_laz(files, tile):
     assert_plain(a)
     assert_same(a, b)
     assert np.array_equal(_dims(a)[1]["gps_time"], order)
+
+
+def test_a_catalog_names_the_output_of_a_copc_file_laz(files, tmp_path):
+    """A catalog's output of ``x.copc.laz`` is ``x.laz``: it is a plain LAZ, and PDAL and
+    QGIS choose their COPC reader by the ``.copc.laz`` extension."""
+    d, src, plain, _, _, _ = files
+    far = laspy.read(str(plain))
+    far.header.offsets = far.header.offsets + [1000.0, 0.0, 0.0]    # another tile, apart
+    far.x = np.asarray(far.x) + 1000.0
+    far.write(str(tmp_path / "far.laz"))
+    folder = tmp_path / "out"
+    folder.mkdir()
+    tiled.curvature_file([str(src), str(tmp_path / "far.laz")], folder, R, method="mls1")
+    assert sorted(os.listdir(folder)) == ["far.laz", "survey.laz"]
+    assert_plain(folder / "survey.laz")
+    ref = tmp_path / "ref.laz"
+    tiled.curvature_file(src, ref, R, method="mls1", tile=8.0)
+    assert_same(folder / "survey.laz", ref)       # the far file: the same grid frame
