@@ -647,16 +647,20 @@ def compute_tile(task, device=None):
                 f = params.tile_fields(cloud)
         else:
             normals, how = (rec["n"] if task.file_normals else None), task.how
+            extra = {}
             if mst:
                 nl, node = tiled_orient.orient_tile(cloud, params.radius, params.orient_k,
                                                     task.t, tiling.frame.origin)
                 normals = np.where(node[:, None] >= 0, nl, (0.0, 0.0, 1.0))
                 how = "normals"
+                if "align_normals" in OPERATORS[params.method].options:
+                    extra["align_normals"] = True   # clcurv's own normals, as in memory
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)   # per tile; summed at the end
                 res = curvature(cloud, params.radius, method=params.method,
                                 weights=params.weights, normals=normals, orient=how,
-                                viewpoint=params.viewpoint, kernel=params.kernel, h=params.h)
+                                viewpoint=params.viewpoint, kernel=params.kernel, h=params.h,
+                                **extra)
             f = result_fields(res)
             f["normals"] = res.normals
         out["id"] = rec["id"][own]

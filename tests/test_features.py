@@ -413,8 +413,9 @@ def test_radius_suffixes_are_distinct_and_plain():
 
 def test_cli_features_counts_dropped_rows_and_keeps_integer_dimensions(tmp_path):
     """Non-finite rows are dropped and counted in the summary (as `compute` does); a LAS
-    input whose own uint8 dimension is named like a feature is not silently truncated
-    (planarity stored as 0, counts wrapped): exit code 3 and no output."""
+    input whose own uint8 extra-bytes dimension is named like a feature is not silently
+    truncated (planarity stored as 0): the feature replaces it as a float dimension (the
+    rule of clcurv.io.las for a clashing extra-bytes dimension)."""
     laspy = pytest.importorskip("laspy")
     from tests.hostile import run_cli
     pts = clcurv.shapes.sphere(3000, 1.0, noise=0.005, seed=8)["points"]
@@ -433,8 +434,14 @@ def test_cli_features_counts_dropped_rows_and_keeps_integer_dimensions(tmp_path)
     las.write(str(typed))
     out = tmp_path / "typed_f.las"
     r = run_cli("features", typed, "-o", out, "--radius", "0.2", "-q")
-    assert r.code == 3 and "'planarity' is uint8" in r.stderr, r.stderr
-    assert not out.exists()
+    assert r.code == 0, r.stderr
+    back = laspy.read(str(out))
+    got = np.asarray(back["planarity"])
+    assert got.dtype.kind == "f"
+    want = clcurv.features(np.column_stack([back.x, back.y, back.z]), 0.2,
+                           ["planarity"])["planarity"]
+    ok = np.isfinite(want)
+    assert ok.mean() > 0.99 and np.allclose(got[ok], want[ok], atol=1e-6)
 
 
 def test_cli_output_that_is_the_input(tmp_path):
