@@ -76,10 +76,15 @@ class Buckets:
     def overlapping(self, lo, hi):
         """(i, j) of the non-empty buckets that may hold points of the box [lo, hi) (x-y)."""
         ij = self._index(np.array([lo, hi], float))
-        for i in range(ij[0, 0], ij[1, 0] + 1):
-            for j in range(ij[0, 1], ij[1, 1] + 1):
-                if self.counts[i, j]:
-                    yield i, j
+        i0, j0 = int(ij[0, 0]), int(ij[0, 1])
+        for i, j in np.argwhere(self.counts[i0:ij[1, 0] + 1, j0:ij[1, 1] + 1] > 0):
+            yield i0 + int(i), j0 + int(j)
+
+    def nonempty(self):
+        """(i, j) of the non-empty buckets, in order (their number, not the grid's, is what
+        a loop over the buckets costs)."""
+        for i, j in np.argwhere(self.counts > 0):
+            yield int(i), int(j)
 
     def gather(self, tiling, t, block=1 << 18, state=None):
         """The records of the points in tile t's cells and halo, in global-id order.
@@ -129,20 +134,20 @@ class Buckets:
         """Pass (1b): every point appended to the input file of each tile whose cells or
         halo hold it (``folder``/<t>.bin, records of :meth:`tile_dtype` with ``own`` = 1 in
         the tile that owns it), so a tile then reads exactly its points. ``state`` as in
-        :meth:`gather`. Returns the (count, CRC-32) of every file written, by tile."""
+        :meth:`gather`. Returns the (count, CRC-32) of every file written, by tile: their
+        keys are the tiles that hold points (:meth:`clcurv.tiling.Tiling.occupied`), a pass
+        that costs O(points) whatever the number of tiles of the frame (tile ids are int64:
+        one far point makes them large)."""
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
         size, h = tiling.size, tiling.halo
         ntx, nty = tiling.shape
         dtype = self.tile_dtype(state)
         crc = Crc()
-        for i in range(self.shape[0]):
-            for j in range(self.shape[1]):
-                if not self.counts[i, j]:
-                    continue
-                for rec, pos in self.blocks(i, j, state, block):
-                    self._scatter(rec, tiling.frame.cells_xy(pos), size, h, ntx, nty,
-                                  dtype, folder, crc)
+        for i, j in self.nonempty():
+            for rec, pos in self.blocks(i, j, state, block):
+                self._scatter(rec, tiling.frame.cells_xy(pos), size, h, ntx, nty,
+                              dtype, folder, crc)
         return crc.state()
 
     @staticmethod

@@ -179,12 +179,16 @@ def step_tile(task):
 def run_steps(ws, buckets, params, steps, budget, execute, progress=None, tile=None):
     """The ``steps`` scale-space steps over tiles (see the module docstring); leaves the
     final state in ``ws/state`` and returns the State to read smoothed positions from."""
-    from .tiling import plan_tiles
+    from .tiling import covering, occupied_tiles, plan_tiles
     real = "<f4" if params.precision == "float" else "<f8"
     folder = Path(ws) / "state"
-    init_state(buckets, folder, real)
     r = params.radius
     h = r * (1 + 2 * MARGIN)
+    # an extent too large for a grid key: the in-memory run's refusal (its first binning is
+    # at h), then the operator's at r, before any step
+    covering(buckets, h)
+    covering(buckets, r)
+    init_state(buckets, folder, real)
     density = params.weights == "density"
     halo = 2 if density else 1
     lo, hi = buckets.lo.copy(), buckets.hi.copy()
@@ -192,12 +196,14 @@ def run_steps(ws, buckets, params, steps, budget, execute, progress=None, tile=N
     fresh = True
     for step in range(steps):
         frame = Frame.covering(lo, hi, h)
-        tiling = plan_tiles(buckets, h, halo, budget, tile, frame=frame)
         state = State(str(folder), real, "pb", moved)
+        tiling = plan_tiles(buckets, h, halo, budget, tile, frame=frame, state=state)
         _parts(ws, step).mkdir(parents=True, exist_ok=True)
-        tasks = [StepTask(str(ws), t, step, tiling, buckets.state(), state, fresh, r,
+        # the tiles that own points (one pass), never range(tiling.count): one far point
+        # makes the frame's tiles astronomically many
+        tasks = [StepTask(str(ws), int(t), step, tiling, buckets.state(), state, fresh, r,
                           params.precision, params.device, density)
-                 for t in range(tiling.count)]
+                 for t in occupied_tiles(buckets, tiling, state)]
         drift = 0.0
         for _, most in execute(tasks):
             drift = max(drift, most)
