@@ -200,15 +200,38 @@ def _tile_options(c):
                    help="host memory budget, e.g. 2GiB (default auto: half the available "
                    "RAM, at most 512 MiB). LAS/LAZ/NPY input that does not fit runs in tiles "
                    "with an exact halo (same results as in memory), output LAS/LAZ/NPZ")
-    c.add_argument("--tile-size", type=float, default=None, metavar="S",
-                   help="run in tiles of S x S (file unit) even if the cloud fits")
+    from .cluster import CONNECT_TIMEOUT, FORCE_WORKERS
+    from .tiling import TilingError, check_tile_size
+
+    def tile_size(text):                # a finite length > 0, refused before any work
+        try:
+            return check_tile_size(text)
+        except TilingError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+
+    def workers(text):
+        try:
+            n = int(text)
+        except ValueError:
+            n = 0
+        if n < 1:
+            raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
+        return n
+
+    c.add_argument("--tile-size", type=tile_size, default=None, metavar="S",
+                   help="run in tiles of S x S (file unit, a finite number > 0) even if the "
+                   "cloud fits; larger than the cloud: one tile")
     w = c.add_mutually_exclusive_group()
-    w.add_argument("--workers", type=int, default=None, metavar="N",
+    w.add_argument("--workers", type=workers, default=None, metavar="N",
                    help="run the tiles on a local Dask cluster of N worker processes "
-                   '(pip install "clcurv[dask]")')
+                   '(pip install "clcurv[dask]"), at most the cores this process may use: '
+                   f"more are clamped to them with a warning, unless {FORCE_WORKERS}=1. "
+                   "The workers exit with the command, even if it is killed")
     w.add_argument("--scheduler", default=None, metavar="ADDRESS",
-                   help="run the tiles on the Dask cluster at ADDRESS (its workers must see "
-                   "the input and the output's folder at the same paths)")
+                   help="run the tiles on the Dask cluster at ADDRESS, e.g. "
+                   "tcp://host:8786 (its workers must see the input and the output's folder "
+                   "at the same paths; --memory is then each worker's). Refused after "
+                   f"{CONNECT_TIMEOUT:g} s if no Dask scheduler answers there")
 
 
 def build_parser():

@@ -95,11 +95,13 @@ def tile_session(quiet, scheduler=None):
     """(progress, client) of a tiled CLI run: a tqdm bar of the tiles on stderr, made at
     the first tile's report (none when ``quiet``, and none for a run that turns out to fit
     in memory, which reports no tile) and a Dask client of ``scheduler`` (None without);
-    both closed at the end."""
+    both closed at the end. A scheduler that does not answer within
+    clcurv.cluster.CONNECT_TIMEOUT seconds raises clcurv.cluster.SchedulerError (a
+    ConnectionError: nothing listening there, or not a Dask scheduler), never a hang."""
     client = None
     if scheduler:
-        from .cluster import _import
-        client = _import().Client(scheduler)
+        from .cluster import connect
+        client = connect(scheduler)
     bars = []
     started = [None]
 
