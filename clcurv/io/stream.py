@@ -3,7 +3,8 @@
 A *source* yields a file's points in input order, a bounded number at a time:
 
     src = open_source("survey.laz")         # LAS/LAZ (laspy's chunk iterator) or NPY (mmap)
-    src.n, src.format, src.bounds_hint()    # point count, 'las'/'laz'/'npy', header box
+    src.n, src.format, src.bounds_hint()    # point count, 'las'/'laz'/'npy', box (or None)
+    src.dropped                             # rows left out: a non-finite x, y or z
     for start, xyz, normals in src.chunks(1_000_000):
         ...                                 # xyz (m, 3) float64 of points start..start+m-1
 
@@ -12,10 +13,21 @@ in float64), so a computation on the chunks can equal the in-memory one bit for 
 ``normals`` are the file's normals as :func:`clcurv.io.read` finds them (LAS extra
 dimensions ``nx, ny, nz``; NPY columns 3-5 of a 6-column array of unit vectors), else None.
 
+Rows whose x, y or z is NaN or +-Inf are left out, as :func:`clcurv.io.read` drops them
+(from the points, normals and attributes alike): the NPY and PLY sources scan the file
+once when opened, ``n`` is the count of the other rows, ``dropped`` theirs, and ``chunks``
+yields only those rows, their ``start`` counting them alone (contiguous ids 0..n-1), in
+chunks of ``size`` rows but the last, as without them. Everything read from a source (the
+buckets, the ids, the writers, which read it again) sees the cloud of
+:func:`clcurv.io.read`; a file whose every row is non-finite is a source of 0 points (the
+empty output of an empty file). LAS/LAZ coordinates are integers times a finite scale:
+``dropped`` is 0.
+
 The sources check what they read: a LAS/LAZ header is checked against the file size before
 any point is decoded (clcurv.io.las), a LAZ file that ends early or decodes fewer points
 than its header claims is a :class:`CorruptFileError` (never a partial cloud), and NPY data
-must be a numeric (N, >= 3) array of finite coordinates.
+must be a numeric (N, >= 3) array. A file that changes between the scan and a later read
+(another count of finite rows) is a :class:`CorruptFileError` too.
 
 Writers (:func:`write_las`, :func:`write_npz`) take the output fields as a function giving
 the records of a range of points, and write them chunk by chunk, in input order.
@@ -33,6 +45,8 @@ from .carry import specs_of as carry_specs
 #: formats a tiled run reads and writes
 STREAM_READS = (".las", ".laz", ".npy", ".ply")
 STREAM_WRITES = (".las", ".laz", ".npz", ".ply")
+#: bytes of the file read at a time by the scan of an NPY or PLY source
+SCAN_BYTES = 16 << 20
 
 
 def open_source(path):
@@ -70,6 +84,7 @@ class Catalog:
         self.paths = [s.path for s in self.parts]
         self.offsets = np.cumsum([0] + [s.n for s in self.parts])
         self.n = int(self.offsets[-1])
+        self.dropped = sum(s.dropped for s in self.parts)
         self.has_normals = all(s.has_normals for s in self.parts)
 
     def bounds_hint(self):
@@ -85,7 +100,10 @@ class Catalog:
 
 
 class LasSource:
-    """A LAS/LAZ file read with ``laspy.open(...).chunk_iterator``."""
+    """A LAS/LAZ file read with ``laspy.open(...).chunk_iterator`` (its coordinates are
+    integers times finite scales: none is dropped)."""
+
+    dropped = 0
 
     def __init__(self, path):
         from . import las
@@ -146,8 +164,74 @@ class LasSource:
                                    f"{start} were decoded (a truncated file?)")
 
 
+def _regroup(blocks, size, n, path):
+    """(start, xyz, normals, attributes) of exactly ``size`` rows (the last: the rest) from
+    ``blocks``, the (xyz, normals or None, attributes or None) of the finite rows of the
+    file's successive blocks; ``start`` counts the rows yielded before. Blocks already of
+    ``size`` rows (a file without non-finite rows) pass as they are. CorruptFileError
+    unless ``n`` rows in all (the count of the scan: the file changed since)."""
+    pending, have, start = [], 0, 0
+    for block in blocks:
+        m = len(block[0])
+        if not m:
+            continue
+        if not pending and m == size:
+            yield (start,) + block
+            start += m
+            continue
+        pending.append(block)
+        have += m
+        if have >= size:                # blocks have at most size rows: once at most
+            whole = _join(pending)
+            yield (start,) + _cut(whole, 0, size)
+            start += size
+            have -= size
+            pending = [_cut(whole, size, size + have)] if have else []
+    if have:
+        yield (start,) + _join(pending)
+        start += have
+    if start != n:
+        raise CorruptFileError(f"{path}: {start} rows of finite coordinates read, {n} when "
+                               "the file was opened (it changed during the run?)")
+
+
+def _join(blocks):
+    """One (xyz, normals, attributes) block of the rows of ``blocks``, in order."""
+    if len(blocks) == 1:
+        return blocks[0]
+    xyz = np.concatenate([b[0] for b in blocks])
+    nrm = None if blocks[0][1] is None else np.concatenate([b[1] for b in blocks])
+    attrs = blocks[0][2]
+    if attrs is not None:
+        attrs = {k: np.concatenate([b[2][k] for b in blocks]) for k in attrs}
+    return xyz, nrm, attrs
+
+
+def _cut(block, a, b):
+    """Rows a..b-1 of the (xyz, normals, attributes) ``block``."""
+    xyz, nrm, attrs = block
+    return (xyz[a:b], None if nrm is None else nrm[a:b],
+            None if attrs is None else {k: v[a:b] for k, v in attrs.items()})
+
+
+def _scan_blocks(blocks):
+    """(finite rows, non-finite rows, (mins, maxs) of the finite rows or None) of the
+    (m, 3) float64 coordinate blocks ``blocks``."""
+    n = bad = 0
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    for xyz in blocks:
+        keep = np.isfinite(xyz).all(axis=1)
+        k = int(np.count_nonzero(keep))
+        n, bad = n + k, bad + len(xyz) - k
+        if k:
+            fin = xyz if k == len(xyz) else xyz[keep]
+            lo, hi = np.minimum(lo, fin.min(axis=0)), np.maximum(hi, fin.max(axis=0))
+    return n, bad, ((lo, hi) if n else None)
+
+
 class NpySource:
-    """An (N, >= 3) numeric NPY array, memory-mapped."""
+    """An (N, >= 3) numeric NPY array, read a block of rows at a time; ``rows`` is N,
+    ``n`` the count of rows with finite x, y, z (the others are left out: ``dropped``)."""
 
     def __init__(self, path):
         from .npy import _check_npy
@@ -158,27 +242,37 @@ class NpySource:
         if a.dtype.names or a.dtype.kind not in "fiu" or a.ndim != 2 or a.shape[1] < 3:
             raise CorruptFileError(f"{path}: a tiled run reads an (N, >= 3) numeric NPY "
                                    f"array, got shape {a.shape} dtype {a.dtype}")
-        self.array, self.n = a, a.shape[0]
+        self.array, self.rows = a, a.shape[0]
         # rows are read with plain file reads (memory-mapped pages would stay resident)
         self.offset = a.offset if a.flags.c_contiguous else None
         self.row = a.dtype.itemsize * a.shape[1]
-        self.has_normals = a.shape[1] == 6 and self._unit_normals()
+        self._scan()
 
-    def _unit_normals(self, step=1 << 22):
-        """The rule of clcurv.io (columns 3-5 of exactly 6 are normals when every finite
-        row is a unit vector), checked a block at a time."""
-        seen = False
-        for s in range(0, self.n, step):
-            block = self._rows(s, min(step, self.n - s))[:, 3:6]
-            fin = np.isfinite(block).all(axis=1)
-            if fin.any():
-                seen = True
-                if not _looks_like_normals(block[fin]):
-                    return False
-        return seen
+    def _scan(self):
+        """One pass over the rows: ``n``, ``dropped``, the box of the finite rows and
+        ``has_normals``, the rule of clcurv.io (columns 3-5 of exactly 6 are normals when
+        every finite row of them is a unit vector, on every row of the file: the rule is
+        applied before the non-finite coordinates are dropped)."""
+        six = self.array.shape[1] == 6
+        state = {"seen": False, "unit": six}
+        step = max(SCAN_BYTES // self.row, 1)
+
+        def blocks():
+            for s in range(0, self.rows, step):
+                block = self._rows(s, min(step, self.rows - s))
+                if state["unit"]:
+                    nrm = block[:, 3:6]
+                    fin = np.isfinite(nrm).all(axis=1)
+                    if fin.any():
+                        state["seen"] = True
+                        state["unit"] = _looks_like_normals(nrm[fin])
+                yield block[:, :3]
+        self.n, self.dropped, self._box = _scan_blocks(blocks())
+        self.has_normals = six and state["unit"] and state["seen"]
 
     def bounds_hint(self):
-        return None
+        """The exact (mins, maxs) of the finite rows (from the scan), None without any."""
+        return self._box
 
     def _rows(self, s, m):
         if self.offset is None:                       # Fortran order: through the map
@@ -201,26 +295,26 @@ class NpySource:
     def chunks(self, size, attributes=False):
         """(start, xyz, normals or None) of each ``size`` points; with ``attributes``
         (start, xyz, normals, {name: values} of the attributes, as clcurv.io.read has them)."""
-        for s in range(0, self.n, size):
-            block = self._rows(s, min(size, self.n - s))
-            xyz = np.ascontiguousarray(block[:, :3])
-            bad = ~np.isfinite(xyz).all(axis=1)
-            if bad.any():
-                raise CorruptFileError(
-                    f"{self.path}: row {s + int(np.argmax(bad))} has a non-finite coordinate "
-                    f"({int(bad.sum())} in rows {s}..{s + len(xyz) - 1}); a tiled run needs "
-                    "finite coordinates: drop those rows first")
-            nrm = np.ascontiguousarray(block[:, 3:6]) if self.has_normals else None
-            if attributes:
-                yield s, xyz, nrm, {f"col{j}": np.ascontiguousarray(block[:, j])
-                                    for j in self._attribute_columns()}
-            else:
-                yield s, xyz, nrm
+        def blocks():
+            for s in range(0, self.rows, size):
+                block = self._rows(s, min(size, self.rows - s))
+                keep = np.isfinite(block[:, :3]).all(axis=1)
+                if not keep.all():
+                    block = block[keep]
+                xyz = np.ascontiguousarray(block[:, :3])
+                nrm = np.ascontiguousarray(block[:, 3:6]) if self.has_normals else None
+                attrs = ({f"col{j}": np.ascontiguousarray(block[:, j])
+                          for j in self._attribute_columns()} if attributes else None)
+                yield xyz, nrm, attrs
+        for start, xyz, nrm, attrs in _regroup(blocks(), size, self.n, self.path):
+            yield (start, xyz, nrm, attrs) if attributes else (start, xyz, nrm)
 
 
 class PlySource:
     """A binary PLY whose vertex element comes first with scalar properties only (what
-    scanners and clcurv write): its rows read with plain file reads at their offset."""
+    scanners and clcurv write): its rows read with plain file reads at their offset;
+    ``rows`` is the vertex count, ``n`` the count of vertices with finite x, y, z (the
+    others are left out: ``dropped``)."""
 
     def __init__(self, path):
         from . import ply
@@ -237,46 +331,62 @@ class PlySource:
                 f"{fmt}{'' if ok else ', another layout'}); convert it, or run in memory")
         order = "<" if fmt == "binary_little_endian" else ">"
         self.dtype = np.dtype([(p[2], order + ply._TYPES[p[1]]) for p in props])
-        self.n, self.offset = elements[0][1], start
+        self.rows, self.offset = elements[0][1], start
         from ._common import _check_claim
-        _check_claim(path, f"{self.n} vertices of {self.dtype.itemsize} bytes",
-                     self.n * self.dtype.itemsize, path.stat().st_size - start)
+        _check_claim(path, f"{self.rows} vertices of {self.dtype.itemsize} bytes",
+                     self.rows * self.dtype.itemsize, path.stat().st_size - start)
         if len(elements) > 1:               # the rows after the vertices, as io.read checks
             import mmap
             with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as m:
-                ply._check_binary_rest(path, m, start, start + self.n * self.dtype.itemsize,
+                ply._check_binary_rest(path, m, start, start + self.rows * self.dtype.itemsize,
                                        elements[1:], order, whole=False)
         self.xyz, self.nrm, self.attributes = split_names(self.dtype.names)  # as io.read
         if self.xyz is None:
             raise CorruptFileError(f"{path}: the vertex element has no x, y and z")
         self.has_normals = self.nrm is not None
+        step = max(SCAN_BYTES // self.dtype.itemsize, 1)
+        self.n, self.dropped, self._box = _scan_blocks(
+            self._xyz(rec) for _, rec in self._records(step))
 
     def attribute_specs(self):
         """{name: (dtype, trailing shape)} of the attributes clcurv.io.read gives."""
         return {k: (self.dtype[k].newbyteorder("="), ()) for k in self.attributes}
 
     def bounds_hint(self):
-        return None
+        """The exact (mins, maxs) of the finite rows (from the scan), None without any."""
+        return self._box
+
+    def _records(self, size):
+        """(first row, records) of each ``size`` vertices of the file."""
+        with open(self.path, "rb") as f:
+            for s in range(0, self.rows, size):
+                f.seek(self.offset + s * self.dtype.itemsize)
+                m = min(size, self.rows - s)
+                rec = np.fromfile(f, self.dtype, count=m)
+                if len(rec) != m:
+                    raise CorruptFileError(f"{self.path}: vertex {s + len(rec)} is past the "
+                                           "end of the file (it changed during the run?)")
+                yield s, rec
+
+    def _xyz(self, rec):
+        return np.column_stack([rec[k].astype(np.float64) for k in self.xyz])
 
     def chunks(self, size, attributes=False):
         """(start, xyz, normals or None) of each ``size`` points; with ``attributes``
         (start, xyz, normals, {name: values} of the attributes, as clcurv.io.read has them)."""
-        with open(self.path, "rb") as f:
-            for s in range(0, self.n, size):
-                f.seek(self.offset + s * self.dtype.itemsize)
-                rec = np.fromfile(f, self.dtype, count=min(size, self.n - s))
-                xyz = np.column_stack([rec[k].astype(np.float64) for k in self.xyz])
-                bad = ~np.isfinite(xyz).all(axis=1)
-                if bad.any():
-                    raise CorruptFileError(
-                        f"{self.path}: vertex {s + int(np.argmax(bad))} has a non-finite "
-                        "coordinate; a tiled run needs finite coordinates: drop those rows")
+        def blocks():
+            for _, rec in self._records(size):
+                xyz = self._xyz(rec)
+                keep = np.isfinite(xyz).all(axis=1)
+                if not keep.all():
+                    rec, xyz = rec[keep], np.ascontiguousarray(xyz[keep])
                 nrm = (np.column_stack([rec[k].astype(np.float64) for k in self.nrm])
                        if self.has_normals else None)
-                if attributes:
-                    yield s, xyz, nrm, {k: _native(rec[k]) for k in self.attributes}
-                else:
-                    yield s, xyz, nrm
+                attrs = ({k: _native(rec[k]) for k in self.attributes} if attributes
+                         else None)
+                yield xyz, nrm, attrs
+        for start, xyz, nrm, attrs in _regroup(blocks(), size, self.n, self.path):
+            yield (start, xyz, nrm, attrs) if attributes else (start, xyz, nrm)
 
 
 # --------------------------------------------------------------------------- writing
