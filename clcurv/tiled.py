@@ -257,7 +257,9 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
                      bool(ignore_normals), int(scale_space))
     if not catalog and tile is None and fits_memory(source.n, budget) and client is None \
             and not workers:
-        return _in_memory(src, dst, params, fields, say)
+        summary = _in_memory(src, dst, params, fields, say)
+        summary["dropped"] = int(getattr(source, "dropped", 0))
+        return summary
     check_params(params, fields, local=client is None and not workers)
     return run_tiles(source, dst, params, budget, tile, workspace(dst, workdir), fields,
                      progress, say, client, workers)
@@ -521,7 +523,8 @@ def _summary(params, tiles, skipped, size, source, times, windows, dst, halo=0):
                           f"within radius {params.radius}: their outputs are NaN; the "
                           "radius is probably too small", RuntimeWarning, stacklevel=5)
     return {"tiled": True, "tiles": tiles, "skipped": skipped, "tile_cells": size,
-            "halo": halo, "points": source.n, "times": times, "status": status, "dst": dst}
+            "halo": halo, "points": source.n, "dropped": int(getattr(source, "dropped", 0)),
+            "times": times, "status": status, "dst": dst}
 
 
 def _tile_done(ws, t, mst, say):

@@ -180,7 +180,9 @@ def run_job(job, out=print):
     ok = f"; status ok {st[0] / sum(st):.1%}" if st and sum(st) else ""
     what = (f"{len(job.input)} files" if isinstance(job.input, (list, tuple))
             else job.input)
-    out(f"\n{summary['points']} points from {what} in {summary['tiles']} tile(s) "
+    dropped = summary.get("dropped", 0)
+    dropped = f" ({dropped} non-finite dropped)" if dropped else ""
+    out(f"\n{summary['points']} points from {what}{dropped} in {summary['tiles']} tile(s) "
         f"(halo {summary['halo']} cell(s)){ok}")
     out(f"time: {times}")
     out(f"wrote {job.output}")
