@@ -124,6 +124,17 @@ class StepTask:
     precision: str
     device: object
     density: bool
+    #: the step's tiles' input files (Buckets.split) and this tile's sums, when the
+    #: buckets are too coarse for each tile to gather its points (:func:`run_steps`)
+    split: str = None
+    expect: list = None
+
+
+#: a step splits the buckets into tile files (one pass) instead of letting each tile gather
+#: its points from the buckets around it, when the gathers would read more than this many
+#: times the points: buckets far larger than the tiles (one far point stretched the bucket
+#: grid), which every tile would read whole
+GATHER_FACTOR = 4
 
 
 def _parts(ws, step):
@@ -140,12 +151,16 @@ def step_tile(task):
     from .tiling import within
     buckets = Buckets.from_state(Path(task.ws) / "buckets", task.buckets)
     state = State(task.state.folder, task.state.real, "pb", task.state.margin)
-    rec = buckets.gather(task.tiling, task.t, state=state)
     tiling = task.tiling
+    if task.split is not None:
+        rec = buckets.read_tile(task.split, task.t, state=state, expect=task.expect)
+        own = rec["own"].astype(bool)
+    else:
+        rec = buckets.gather(tiling, task.t, state=state)
+        own = within(tiling.frame.cells_of(rec["pb"]), tiling.cells(task.t, halo=False))
     out_dir = _parts(task.ws, task.step)
     if not len(rec):
         return task.t, 0.0
-    own = within(tiling.frame.cells_of(rec["pb"]), tiling.cells(task.t, halo=False))
     drift = 0.0
     if own.any():
         device = _worker_device(task.device)
@@ -201,9 +216,15 @@ def run_steps(ws, buckets, params, steps, budget, execute, progress=None, tile=N
         _parts(ws, step).mkdir(parents=True, exist_ok=True)
         # the tiles that own points (one pass), never range(tiling.count): one far point
         # makes the frame's tiles astronomically many
+        tiles = occupied_tiles(buckets, tiling, state)
+        split, sums = None, {}
+        if _gathered(buckets, tiling, tiles, state) > GATHER_FACTOR * buckets.counts.sum():
+            split = _parts(ws, step) / ".tiles_in"           # (a dot: not a part file)
+            sums = buckets.split(tiling, split, state=state)
         tasks = [StepTask(str(ws), int(t), step, tiling, buckets.state(), state, fresh, r,
-                          params.precision, params.device, density)
-                 for t in occupied_tiles(buckets, tiling, state)]
+                          params.precision, params.device, density,
+                          None if split is None else str(split), sums.get(str(int(t))))
+                 for t in tiles]
         drift = 0.0
         for _, most in execute(tasks):
             drift = max(drift, most)
@@ -214,6 +235,17 @@ def run_steps(ws, buckets, params, steps, budget, execute, progress=None, tile=N
         if progress is not None:
             progress(step + 1, steps)
     return State(str(folder), real, "smoothed", dmax, _apply.smoothed_box)
+
+
+def _gathered(buckets, tiling, tiles, state):
+    """The records the ``tiles`` would read in all, each gathering its points from the
+    buckets that overlap it (:meth:`Buckets.gather`)."""
+    total = 0
+    for t in tiles:
+        lo, hi = tiling.box(int(t))
+        lo, hi = np.subtract(lo, state.margin), np.add(hi, state.margin)
+        total += sum(int(buckets.counts[i, j]) for i, j in buckets.overlapping(lo, hi))
+    return total
 
 
 def _apply(ws, buckets, state, step, rebin, block=1 << 18):

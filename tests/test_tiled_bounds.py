@@ -180,6 +180,27 @@ def test_a_tile_larger_than_the_cloud_is_one_tile(far_cloud, tmp_path):
     _same_npz(tmp_path / "mem.npz", tmp_path / "one.npz")
 
 
+@pytest.mark.parametrize("factor", [0, 10 ** 9], ids=["split", "gather"])
+def test_scale_space_steps_split_or_gather_alike(tmp_path, monkeypatch, factor):
+    """A step's tiles read their points from files split once (buckets far larger than the
+    tiles: one far point stretches the bucket grid, and every tile would read it whole) or
+    gather them from the buckets around them: the in-memory scale space either way."""
+    from clcurv import tiled_scale
+    monkeypatch.setattr(tiled_scale, "GATHER_FACTOR", factor)
+    path = tmp_path / "s.npy"
+    np.save(path, _survey(3000))
+    kw = dict(method="mls1", orient="up", scale_space=2)
+    clcurv.curvature_file(path, tmp_path / "mem.npz", 1.0, **kw)
+    used = []
+    split = clcurv.buckets.Buckets.split
+    monkeypatch.setattr(clcurv.buckets.Buckets, "split",
+                        lambda self, *a, **k: used.append(1) or split(self, *a, **k))
+    with deadline(60):
+        clcurv.curvature_file(path, tmp_path / "tiles.npz", 1.0, tile=6.0, **kw)
+    assert len(used) == (3 if factor == 0 else 1)        # 2 steps and the operator's pass
+    _same_npz(tmp_path / "mem.npz", tmp_path / "tiles.npz")
+
+
 #: the change that ends the last loop over the frame's tiles: clcurv.tiled.run_tiles (its
 #: tiles, progress and summary), tile_results.partition and tiled_orient.reconcile_windows
 #: iterate Tiling.occupied(sums) instead of range(tiling.count) (files outside this
