@@ -305,6 +305,8 @@ def plan_tiles(buckets, radius, halo, budget, tile=None, frame=None,
 BUCKET_PAIRS = 1 << 16
 #: most blocks an :func:`occupancy` keeps (its blocks of g x g cells double until they fit)
 OCCUPANCY_BLOCKS = 1 << 18
+#: blocks an :func:`occupancy` holds unmerged (at least): its memory follows the blocks
+OCCUPANCY_MERGE = 1 << 16
 
 
 def densest(buckets, tiling, occ=None):
@@ -412,14 +414,14 @@ class Occupancy:
         return np.unique((t0[k, 0] + off // span[k, 1]) + ntx * (t0[k, 1] + off % span[k, 1]))
 
 
-def occupancy(buckets, frame, state=None, g=1, limit=OCCUPANCY_BLOCKS):
+def occupancy(buckets, frame, state=None, g=1, limit=OCCUPANCY_BLOCKS, block=1 << 18):
     """The :class:`Occupancy` of the points of ``buckets`` (placed by ``state.key`` with a
     scale space's ``state``) in blocks of ``g`` cells of ``frame``, or of 2 g, 4 g ... until
     at most ``limit`` blocks are occupied (None: no limit). One pass over the buckets; its
     memory follows the occupied blocks."""
     ny = frame.dims[1]
     g = max(int(g), 1)
-    parts, held = [], 0
+    parts, held, kept = [], 0, 0
 
     def merge(parts):
         u, inv = np.unique(np.concatenate([k for k, _ in parts]), return_inverse=True)
@@ -431,16 +433,16 @@ def occupancy(buckets, frame, state=None, g=1, limit=OCCUPANCY_BLOCKS):
         return merge([((bx // 2) * -(-ny // (2 * g)) + by // 2, n)])
 
     for i, j in np.argwhere(buckets.counts > 0):
-        for _, pos in buckets.blocks(int(i), int(j), state):
+        for _, pos in buckets.blocks(int(i), int(j), state, block):
             c = frame.cells_xy(pos) // g
             parts.append(np.unique(c[:, 0] * -(-ny // g) + c[:, 1], return_counts=True))
             held += len(parts[-1][0])
-            if limit is not None and held > 2 * limit:
+            if held > 2 * max(kept, limit or 0, OCCUPANCY_MERGE):   # memory: the blocks
                 u, n = merge(parts)
-                while len(u) > limit:
+                while limit is not None and len(u) > limit:
                     u, n = coarser(u, n, g)
                     g *= 2
-                parts, held = [(u, n)], len(u)
+                parts, held, kept = [(u, n)], len(u), len(u)
     u, n = merge(parts) if parts else (np.empty(0, np.int64), np.empty(0, np.int64))
     while limit is not None and len(u) > limit:
         u, n = coarser(u, n, g)

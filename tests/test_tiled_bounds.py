@@ -112,6 +112,25 @@ def test_planning_a_far_point_costs_its_tiles_not_the_extent(far_cloud, tmp_path
         assert exact.densest(tl) == most
 
 
+@pytest.mark.parametrize("block", [1 << 18, 97])
+def test_occupancy_coarsens_to_its_limit(far_cloud, tmp_path, monkeypatch, block):
+    """Blocks of g cells double until at most ``limit`` are occupied (merged as they come
+    when the points come in many small blocks): every point is still counted once, and
+    the tiles it names hold every owner."""
+    _, path = far_cloud
+    pts = np.load(path)
+    b = _buckets(path, tmp_path / "b")
+    tl = tiling.plan_tiles(b, 1.0, 1, 512 << 20, 8.0)
+    monkeypatch.setattr(tiling, "OCCUPANCY_MERGE", 8)
+    occ = tiling.occupancy(b, tl.frame, limit=40, block=block)
+    assert occ.g > 1 and len(occ.count) <= 40 and occ.count.sum() == len(pts)
+    own, _ = _owners(pts, tl)
+    assert set(own) <= set(occ.tiles(tl))
+    assert occ.densest(tl) > 0
+    exact = tiling.occupancy(b, tl.frame, g=tl.size, limit=None, block=block)
+    assert np.array_equal(exact.tiles(tl), own)
+
+
 def test_budget_estimate_unchanged_without_outliers(tmp_path):
     """On an ordinary cloud the buckets' estimate still decides (no extra pass) and gives a
     tile size whose densest tile fits the budget."""
