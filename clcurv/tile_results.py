@@ -92,16 +92,17 @@ def to_windows(rec, path_of, size=WINDOW):
             rec[a:b].tofile(f)
 
 
-def partition(ws, n, count, specs, mst=False):
-    """Pass (3a): the tile files' records appended to the id windows' files (and, for MST
-    orientation, the halo records to the windows' halo files)."""
+def partition(ws, n, tiles, specs, mst=False):
+    """Pass (3a): the records of the files of ``tiles`` (the ids of the tiles that hold
+    points) appended to the id windows' files (and, for MST orientation, the halo records
+    to the windows' halo files)."""
     dtype = tile_dtype(specs, mst)
     win = Windows(Path(ws) / "windows", n, dtype)
     if win.folder.exists():
         shutil.rmtree(win.folder)
     win.folder.mkdir()
     from .workspace import load_sealed
-    for t in range(count):
+    for t in tiles:
         rec = load_sealed(tile_file(ws, t))             # CorruptWorkspace: recomputed
         if "status" in rec.dtype.names and len(rec):
             win.status += np.bincount(rec["status"], minlength=4)[:4]

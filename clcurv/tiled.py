@@ -87,6 +87,15 @@ from .operators import METHODS, OPERATORS
 from .validate import as_radius, choice, device_radius
 
 
+def worker_budget(budget, workers, client):
+    """The budget of one tile: :func:`clcurv.cluster.worker_budget` (a LocalCluster's
+    workers share the run's budget; a Dask client's each have it)."""
+    if client is None and not workers:
+        return budget
+    from .cluster import worker_budget as per_worker
+    return per_worker(budget, workers, client)
+
+
 # --------------------------------------------------------------------------- memory
 
 
@@ -261,6 +270,7 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
         summary["dropped"] = int(getattr(source, "dropped", 0))
         return summary
     check_params(params, fields, local=client is None and not workers)
+    budget = worker_budget(budget, workers, client)
     return run_tiles(source, dst, params, budget, tile, workspace(dst, workdir), fields,
                      progress, say, client, workers)
 
@@ -473,12 +483,13 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
     t_split = time.perf_counter()
     sums = _split(space, buckets, tiling, smoothed)
     times["splitting"] = time.perf_counter() - t_split
-    say(f"{source.n} points in {tiling.count} tile(s) of {tiling.size} x {tiling.size} "
+    tiles = tiling.occupied(sums)       # never range(tiling.count): see Tiling.occupied
+    say(f"{source.n} points in {len(tiles)} tile(s) of {tiling.size} x {tiling.size} "
         f"cells of {tiling.frame.cell:.6g} (halo {halo} cell(s)), budget "
         f"{budget / 2**20:.0f} MiB")
     mst = isinstance(how, str) and how == "mst"
-    todo = [t for t in range(tiling.count) if not _tile_done(ws, t, mst, say)]
-    skipped = tiling.count - len(todo)
+    todo = [t for t in tiles if not _tile_done(ws, t, mst, say)]
+    skipped = len(tiles) - len(todo)
     tasks = [TileTask(str(ws), t, tiling, state["buckets"], params, how, file_normals,
                       stored, smoothed, sums.get(str(t))) for t in todo]
     t1 = time.perf_counter()
@@ -488,18 +499,18 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
         finished += 1
         _trim()
         if progress is not None:
-            progress(finished, tiling.count, computed)
+            progress(finished, len(tiles), computed)
     times["tiles"] = time.perf_counter() - t1
     t2 = time.perf_counter()
-    windows = partition(ws, source.n, tiling.count, stored, mst)
+    windows = partition(ws, source.n, tiles, stored, mst)
     if mst:
-        tiled_orient.reconcile_windows(ws, windows, tiling.count, params.method)
+        tiled_orient.reconcile_windows(ws, windows, tiles, params.method)
     _trim()
     times["merging"] = time.perf_counter() - t2
     t3 = time.perf_counter()
     _write_output(dst, source, windows, specs)
     times["writing"] = time.perf_counter() - t3
-    return _summary(params, tiling.count, skipped, tiling.size, source, times, windows, dst,
+    return _summary(params, len(tiles), skipped, tiling.size, source, times, windows, dst,
                     halo)
 
 

@@ -162,9 +162,10 @@ def flip_fields(rec, mask, method):
     return rec
 
 
-def reconcile_windows(ws, windows, count, method):
+def reconcile_windows(ws, windows, tiles, method):
     """Votes between tile components from the halo points and their owners, window by
-    window; sets ``windows.transform`` to the final flips (clcurv.tiled_orient)."""
+    window, and the node sums of ``tiles`` (the ids of the tiles that hold points); sets
+    ``windows.transform`` to the final flips (clcurv.tiled_orient)."""
     from .tile_results import tile_file
     votes = {}
     for w in range(windows.count):
@@ -184,7 +185,7 @@ def reconcile_windows(ws, windows, count, method):
             if x != y:
                 votes[(x, y)] = votes.get((x, y), 0) + (c if g else -c)
     from .workspace import load_sealed
-    sums = [load_sealed(tile_file(ws, t).with_suffix(".nodes.npy")) for t in range(count)]
+    sums = [load_sealed(tile_file(ws, t).with_suffix(".nodes.npy")) for t in tiles]
     flips, centroid, small = reconcile(sums, votes)
     windows.transform = lambda rec: flip_fields(rec, flip_mask(rec, flips, centroid, small),
                                                 method)

@@ -216,13 +216,6 @@ def test_workers_die_with_a_client_killed_by_sigkill(tmp_path):
                 os.kill(p, signal.SIGKILL)
 
 
-#: the one change that divides the budget in a run: curvature_file and features_file size
-#: tiles with cluster.worker_budget(budget, workers, client) (files outside this change's
-#: reach; issue 47's report gives it). Until then each worker takes the whole budget.
-PENDING = pytest.mark.xfail(strict=True, reason="curvature_file does not call worker_budget")
-
-
-@PENDING
 def test_a_run_of_two_workers_sizes_tiles_to_half_the_budget(tmp_path, monkeypatch):
     monkeypatch.setenv(cluster.FORCE_WORKERS, "1")
     s = clcurv.shapes.aerial_scene(20_000, extent=(60.0, 40.0), seed=2)

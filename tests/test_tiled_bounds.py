@@ -220,16 +220,6 @@ def test_scale_space_steps_split_or_gather_alike(tmp_path, monkeypatch, factor):
     _same_npz(tmp_path / "mem.npz", tmp_path / "tiles.npz")
 
 
-#: the change that ends the last loop over the frame's tiles: clcurv.tiled.run_tiles (its
-#: tiles, progress and summary), tile_results.partition and tiled_orient.reconcile_windows
-#: iterate Tiling.occupied(sums) instead of range(tiling.count) (files outside this
-#: change's reach; issue 47's report gives the patch). Until then a far point hangs there.
-PENDING = pytest.mark.xfail(
-    strict=True, raises=TimeoutError,
-    reason="run_tiles, partition and reconcile_windows still loop over range(tiling.count)")
-
-
-@PENDING
 @pytest.mark.parametrize("kind", ["mls2", "scale_space", "features"])
 def test_a_far_point_runs_in_tiles_as_in_memory(far_cloud, tmp_path, kind):
     """A small survey and one "no data" point at (0, 0, 0), in 8 m tiles: the run finishes
