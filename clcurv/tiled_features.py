@@ -209,6 +209,8 @@ def features_file(src, dst, radius=None, features=DEFAULT_FEATURES, *, k=None, d
     if not catalog and not forced and fits_memory(source.n, budget, params.extra_in_memory()):
         return _in_memory(src, dst, radii, names, None, ddof, optimal, device, precision)
     tiled.check_tiled_outputs(dst if catalog else [dst], source)
+    tiled.check_params(params, None, local=client is None and not workers)
+    budget = tiled.worker_budget(budget, workers, client)
     ws = tiled.workspace(dst, workdir)
     summary = tiled.run_tiles(source, dst, params, budget, tile, ws, None, progress, say,
                               client, workers)
