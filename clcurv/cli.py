@@ -226,7 +226,8 @@ def _tile_options(c):
                    help="run the tiles on a local Dask cluster of N worker processes "
                    '(pip install "clcurv[dask]"), at most the cores this process may use: '
                    f"more are clamped to them with a warning, unless {FORCE_WORKERS}=1. "
-                   "The workers exit with the command, even if it is killed")
+                   "--memory is the whole run's: each worker's tiles get SIZE / N. The "
+                   "workers exit with the command, even if it is killed")
     w.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="run the tiles on the Dask cluster at ADDRESS, e.g. "
                    "tcp://host:8786 (its workers must see the input and the output's folder "
