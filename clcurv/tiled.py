@@ -82,7 +82,8 @@ from .io import stream
 from .constants import TOO_FEW
 from .tile_results import Windows, partition, tile_dtype, tile_file
 from .tiling import (AUTO_CAP, TILE_BYTES_PER_POINT, Tiling, TilingError,  # noqa: F401 (re-exported)
-                     budget_of, fits_memory, halo_cells, parse_memory, plan_tiles)
+                     budget_of, check_tile_size, fits_memory, halo_cells, parse_memory,
+                     plan_tiles)
 from .operators import METHODS, OPERATORS
 from .validate import as_radius, choice, device_radius
 
@@ -255,6 +256,7 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
         dst = io.check_output(dst)
         io.check_not_input(dst, src)        # as the CLI: a mesh's faces are never lost
         source = stream.open_source(src)
+    tile = check_tile_size(tile)                    # before any point is read
     budget = budget_of(memory)
     if int(projections):
         raise TilingError("a tiled run does not take projections yet (iterated MLS2 moves "
@@ -488,10 +490,10 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
         f"cells of {tiling.frame.cell:.6g} (halo {halo} cell(s)), budget "
         f"{budget / 2**20:.0f} MiB")
     mst = isinstance(how, str) and how == "mst"
-    todo = [t for t in tiles if not _tile_done(ws, t, mst, say)]
+    todo = [(rank, t) for rank, t in enumerate(tiles) if not _tile_done(ws, t, mst, say)]
     skipped = len(tiles) - len(todo)
     tasks = [TileTask(str(ws), t, tiling, state["buckets"], params, how, file_normals,
-                      stored, smoothed, sums.get(str(t))) for t in todo]
+                      stored, smoothed, sums.get(str(t)), rank) for rank, t in todo]
     t1 = time.perf_counter()
     computed, finished = 0, skipped
     for _, owned in _execute(tasks, client, workers):
@@ -633,6 +635,7 @@ class TileTask:
     specs: list
     smoothed: object = None      # clcurv.tiled_scale.State after a scale space
     expect: object = None        # (count, CRC-32) of its input file (clcurv.workspace)
+    rank: int = 0                # its place among the run's tiles (< 2^31: MST node ids)
 
 
 def compute_tile(task, device=None):
@@ -664,7 +667,7 @@ def compute_tile(task, device=None):
             extra = {}
             if mst:
                 nl, node = tiled_orient.orient_tile(cloud, params.radius, params.orient_k,
-                                                    task.t, tiling.frame.origin)
+                                                    task.rank, tiling.frame.origin)
                 normals = np.where(node[:, None] >= 0, nl, (0.0, 0.0, 1.0))
                 how = "normals"
                 if "align_normals" in OPERATORS[params.method].options:

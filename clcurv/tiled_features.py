@@ -26,7 +26,8 @@ import numpy as np
 from . import io
 from .features import DEFAULT_FEATURES, _empty, _radii, canonical_names, radius_suffix
 from .io import stream
-from .tiling import TILE_BYTES_PER_POINT, TilingError, budget_of, fits_memory
+from .tiling import (TILE_BYTES_PER_POINT, TilingError, budget_of, check_tile_size,
+                     fits_memory)
 from .validate import choice
 
 #: host bytes per point and written column beyond a curvature run's (the float64 result
@@ -168,6 +169,7 @@ def features_file(src, dst, radius=None, features=DEFAULT_FEATURES, *, k=None, d
         ``times`` (seconds per stage), ``dst``.
     """
     from . import tiled
+    tile = check_tile_size(tile)                    # before any point is read
     say = out or (lambda s: None)
     choice(ddof, "ddof", (0, 1))
     names = canonical_names(features)

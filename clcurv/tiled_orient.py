@@ -42,7 +42,9 @@ SUMS_DTYPE = np.dtype([("node", "<i8"), ("count", "<i8"), ("sp", "<f8", (3,)),
 
 def orient_tile(cloud, radius, k, t, origin):
     """(normals (N, 3) consistent within each tile component, node (N,) int64 (-1 where
-    the normal is invalid)) of the points of a tile's DeviceCloud."""
+    the normal is invalid)) of the points of a tile's DeviceCloud; ``t`` numbers the tile
+    among the run's (0 <= t < 2^31: a tile id t = tx + ntx ty, which one far point makes
+    larger, would overflow the node ids t << 32)."""
     from . import forest, graph
     from .api import normals as pca_normals
     n = pca_normals(cloud, radius, orient=None)

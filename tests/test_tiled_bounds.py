@@ -199,8 +199,6 @@ def test_a_tile_larger_than_the_cloud_is_one_tile(far_cloud, tmp_path):
     _same_npz(tmp_path / "mem.npz", tmp_path / "one.npz")
 
 
-@pytest.mark.xfail(strict=True, reason="compute_tile numbers MST nodes by the tile id "
-                   "(t << 32 overflows for t >= 2^31): TileTask needs the tile's rank")
 def test_mst_orientation_of_a_far_point_in_tiles(tmp_path):
     """The default orientation of a signed method on NPY input is MST propagation, whose
     nodes are numbered (t << 32) | component: tile ids t beyond 2^31 (a survey beside a
@@ -271,9 +269,7 @@ def test_a_far_point_runs_in_tiles_as_in_memory(far_cloud, tmp_path, kind):
 
 # --------------------------------------------------------------------------- tile sizes
 
-#: (a string such as "abc" too, once curvature_file and features_file check the tile size
-#: first: today their resume key's float(tile) refuses it, with a poorer message)
-BAD_TILES = [float("inf"), float("nan"), 0.0, -8.0, True, 1e400]
+BAD_TILES = [float("inf"), float("nan"), 0.0, -8.0, "abc", True, 1e400]
 
 
 @pytest.mark.parametrize("tile", BAD_TILES, ids=repr)
