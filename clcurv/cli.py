@@ -104,7 +104,7 @@ def features_cmd(args, out=print):
                 optimal=args.optimal, memory=args.memory, tile=args.tile_size,
                 device=args.device, precision=args.precision, progress=progress,
                 out=None if args.quiet else (lambda s: print(s, file=sys.stderr)),
-                client=client, workers=args.workers)
+                client=client, workers=args.workers, workdir=args.workdir)
     except TilingError as exc:
         raise UsageError(str(exc)) from exc
     nf = len(done["fields"]) - ("normals" in done["fields"])
@@ -233,6 +233,10 @@ def _tile_options(c):
                    "tcp://host:8786 (its workers must see the input and the output's folder "
                    "at the same paths; --memory is then each worker's). Refused after "
                    f"{CONNECT_TIMEOUT:g} s if no Dask scheduler answers there")
+    c.add_argument("--workdir", default=None, metavar="DIR",
+                   help="an existing folder to keep a tiled run's workspace in (default: "
+                   "beside the output), e.g. on another disk; the run makes its own folder "
+                   "there and touches nothing else (docs/workspace.md)")
 
 
 def build_parser():

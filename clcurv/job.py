@@ -76,6 +76,7 @@ class Job:
     tile_size: float | None = None
     workers: int | None = None
     scheduler: str | None = None
+    workdir: str | Path | None = None
     k: int | None = None
 
     @classmethod

@@ -172,7 +172,7 @@ def run_job(job, out=print):
                 tile=job.tile_size, fields=job.fields, ignore_normals=job.ignore_normals,
                 device=job.device, precision=job.precision, progress=progress,
                 out=None if job.quiet else (lambda s: print(s, file=sys.stderr)),
-                client=client, workers=job.workers)
+                client=client, workers=job.workers, workdir=job.workdir)
     except TilingError as exc:
         raise UsageError(str(exc)) from exc
     times = ", ".join(f"{k} {v:.2f} s" for k, v in summary["times"].items())

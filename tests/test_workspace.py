@@ -539,3 +539,22 @@ def test_a_disk_that_fills_during_the_tiles_removes_the_workspace(inputs, tmp_pa
         _run(d / "scene.laz", out)
     assert e.value.errno == errno.ENOSPC
     assert sorted(os.listdir(tmp_path)) == ["out.laz"] and out.read_bytes() == b"previous"
+
+
+def test_the_command_takes_a_workdir(inputs, fresh, tmp_path):
+    """--workdir DIR: the workspace is made in DIR (a missing DIR is refused, exit 3, before
+    any point is read) and DIR keeps only what it held."""
+    from tests.hostile import run_cli
+    d, _ = inputs
+    D = tmp_path / "scratch"
+    out = tmp_path / "out.laz"
+    args = ["compute", d / "scene.laz", "-o", out, "--radius", "1", "--method", "mls1",
+            "--tile-size", "8", "-q", "--workdir", D]
+    r = run_cli(*args)
+    assert r.code == 3 and "does not exist" in r.stderr and not out.exists(), r.stderr
+    D.mkdir()
+    (D / "keep.txt").write_text("k")
+    r = run_cli(*args)
+    assert r.code == 0, r.stderr
+    assert sorted(os.listdir(D)) == ["keep.txt"]
+    _same(out, fresh("laz"))
