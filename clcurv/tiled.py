@@ -272,6 +272,7 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
         summary["dropped"] = int(getattr(source, "dropped", 0))
         return summary
     check_params(params, fields, local=client is None and not workers)
+    wsp.check_workdir(workdir)
     budget = worker_budget(budget, workers, client)
     return run_tiles(source, dst, params, budget, tile, workspace(dst, workdir), fields,
                      progress, say, client, workers)

@@ -212,6 +212,7 @@ def features_file(src, dst, radius=None, features=DEFAULT_FEATURES, *, k=None, d
         return _in_memory(src, dst, radii, names, None, ddof, optimal, device, precision)
     tiled.check_tiled_outputs(dst if catalog else [dst], source)
     tiled.check_params(params, None, local=client is None and not workers)
+    tiled.wsp.check_workdir(workdir)
     budget = tiled.worker_budget(budget, workers, client)
     ws = tiled.workspace(dst, workdir)
     summary = tiled.run_tiles(source, dst, params, budget, tile, ws, None, progress, say,

@@ -139,6 +139,8 @@ def _check_before_reading(job):
                      job.viewpoint, job.kernel, job.h, job.device, job.precision,
                      bool(job.ignore_normals), int(job.scale_space))
     check_params(params, job.fields, local=not (job.workers or job.scheduler))
+    from .workspace import check_workdir
+    check_workdir(job.workdir)
 
 
 def run_job(job, out=print):

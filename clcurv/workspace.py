@@ -88,6 +88,13 @@ def folder(dsts, workdir=None):
     return parent / f".{name}.{digest}.clcurv-tiles"
 
 
+def check_workdir(workdir):
+    """WorkspaceError unless ``workdir`` (None: beside the output) is an existing folder."""
+    if workdir is not None and not Path(workdir).is_dir():
+        raise WorkspaceError(f"{workdir}: the workspace's folder does not exist (give an "
+                             "existing folder; clcurv makes its own folder inside it)")
+
+
 def _lock_fd(fd, what):
     """flock ``fd`` without waiting, or WorkspaceError naming ``what``."""
     try:

@@ -552,6 +552,8 @@ def test_the_command_takes_a_workdir(inputs, fresh, tmp_path):
             "--tile-size", "8", "-q", "--workdir", D]
     r = run_cli(*args)
     assert r.code == 3 and "does not exist" in r.stderr and not out.exists(), r.stderr
+    r = run_cli(*[a for a in args if a not in ("--radius", "1")])           # radius auto
+    assert r.code == 3 and "does not exist" in r.stderr and not out.exists(), r.stderr
     D.mkdir()
     (D / "keep.txt").write_text("k")
     r = run_cli(*args)
