@@ -406,12 +406,11 @@ def run_tiles(source, dst, params, budget, tile, ws, wanted, progress, say, clie
                             "is another program writing there, or the disk failing?") from exc
                     say(f"{exc}: recomputing from the start")
                     space.clear()
-        except (io.ReadError, ValueError, TilingError):
-            space.remove()      # bad input or options: nothing to resume from
-            raise
-        except OSError as exc:
-            if exc.errno == errno.ENOSPC or isinstance(exc.__cause__, OSError) and \
-                    exc.__cause__.errno == errno.ENOSPC:
+        except Exception as exc:
+            if _no_space(exc) and "needs about" in str(exc):
+                space.remove()          # the check before the run: says it already
+                raise
+            if _no_space(exc):
                 space.remove()
                 raise OSError(errno.ENOSPC, f"no space left on the device of {space.path} "
                               f"or {Path(dst[0] if isinstance(dst, list) else dst).parent}: "
@@ -419,9 +418,20 @@ def run_tiles(source, dst, params, budget, tile, ws, wanted, progress, say, clie
                               f"{_gib(disk_need(source, params, wanted))} GiB of workspace "
                               "besides its output (workdir= puts the workspace on another "
                               "disk)") from exc
+            if isinstance(exc, (io.ReadError, ValueError, TilingError)):
+                space.remove()      # bad input or options: nothing to resume from
             raise
         space.remove()
     return summary
+
+
+def _no_space(exc):
+    """Is ``exc`` (or what it was raised from) a full disk (ENOSPC, EDQUOT)?"""
+    while exc is not None:
+        if getattr(exc, "errno", None) in (errno.ENOSPC, errno.EDQUOT):
+            return True
+        exc = exc.__cause__
+    return False
 
 
 def _gib(n):

@@ -560,3 +560,20 @@ def test_the_command_takes_a_workdir(inputs, fresh, tmp_path):
     assert r.code == 0, r.stderr
     assert sorted(os.listdir(D)) == ["keep.txt"]
     _same(out, fresh("laz"))
+
+
+def test_a_disk_that_fills_while_writing_the_output_removes_the_workspace(inputs, tmp_path,
+                                                                          monkeypatch):
+    import errno
+    from clcurv.io import stream
+    d, _ = inputs
+    out = tmp_path / "out.laz"
+    out.write_bytes(b"previous")
+
+    def full(*a, **kw):
+        raise OSError(errno.ENOSPC, "No space left on device")
+    monkeypatch.setattr(stream, "write_las", full)
+    with pytest.raises(OSError, match="no space left .* needs about") as e:
+        _run(d / "scene.laz", out)
+    assert e.value.errno == errno.ENOSPC
+    assert sorted(os.listdir(tmp_path)) == ["out.laz"] and out.read_bytes() == b"previous"
