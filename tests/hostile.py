@@ -3,7 +3,9 @@ input in a child process and measure what a user would see (exit code, stderr li
 time, the child's own peak RSS)."""
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -86,3 +88,17 @@ def lzf_literals(data):
         out.append(len(chunk) - 1)
         out += chunk
     return bytes(out)
+
+
+@contextlib.contextmanager
+def deadline(seconds):
+    """TimeoutError when the block runs longer than ``seconds`` (a hang, not a timing)."""
+    def fire(signum, frame):
+        raise TimeoutError(f"still running after {seconds} s: a hang")
+    old = signal.signal(signal.SIGALRM, fire)
+    signal.alarm(seconds)
+    try:
+        yield
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old)

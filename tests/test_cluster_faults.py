@@ -20,23 +20,10 @@ import numpy as np
 import pytest
 
 import clcurv
+from tests.hostile import deadline
 from clcurv import cli, cluster
 
 distributed = pytest.importorskip("distributed")
-
-
-@contextlib.contextmanager
-def deadline(seconds):
-    """TimeoutError when the block runs longer than ``seconds`` (a hang, not a timing)."""
-    def fire(signum, frame):
-        raise TimeoutError(f"still running after {seconds} s: a hang")
-    old = signal.signal(signal.SIGALRM, fire)
-    signal.alarm(seconds)
-    try:
-        yield
-    finally:
-        signal.alarm(0)
-        signal.signal(signal.SIGALRM, old)
 
 
 @contextlib.contextmanager

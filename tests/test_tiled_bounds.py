@@ -3,13 +3,12 @@
 per-tile loops cost O(points + occupied tiles), and the outcome is the in-memory run's: the
 same output, or the same refusal word for word. Hangs are caught by an alarm, never by a
 timing assertion. Item 5: a tile size that is not a finite number > 0 is refused clearly."""
-import contextlib
-import signal
 
 import numpy as np
 import pytest
 
 import clcurv
+from tests.hostile import deadline
 from clcurv import tiling
 from clcurv.buckets import READ_CHUNK, Buckets, bucket_grid
 from clcurv.grid import ExtentError
@@ -18,20 +17,6 @@ from clcurv.tiled_features import features_file
 from clcurv.tiling import TilingError
 
 SURVEY = np.array([500000.0, 4000000.0, 100.0])       # a projected (UTM-like) survey
-
-
-@contextlib.contextmanager
-def deadline(seconds):
-    """TimeoutError when the block runs longer than ``seconds`` (a hang, not a timing)."""
-    def fire(signum, frame):
-        raise TimeoutError(f"still running after {seconds} s: a hang")
-    old = signal.signal(signal.SIGALRM, fire)
-    signal.alarm(seconds)
-    try:
-        yield
-    finally:
-        signal.alarm(0)
-        signal.signal(signal.SIGALRM, old)
 
 
 def _survey(n=4000, seed=1):
