@@ -39,7 +39,7 @@ cloud) computes, bit for bit on the same device. How:
 * **Not tiled:** ``projections`` and the projected positions (refused with a message),
   ascii PLY and the text formats. Input: LAS/LAZ, NPY, binary PLY, or a list of such files
   read as one cloud (a catalog: one output per input file); output: LAS/LAZ (from LAS/LAZ
-  input), NPZ, binary PLY. ``radius="auto"`` of the CLI job is estimated from 16 regions
+  input), NPZ, binary PLY. ``radius="auto"`` of the CLI job is estimated from regions
   (:mod:`clcurv.tiled_job`).
 
 Passes and files. (1) The input is read once in chunks (:mod:`clcurv.io.stream`) and each

@@ -491,7 +491,7 @@ def run_job(job, out=print):
         job.radius = auto_radius_tiled(src,
                                        budget=budget_of(job.memory))
         out(f"radius auto: {job.radius:.6g} (median distance to the 30th neighbour, "
-            "sampled in 16 regions of the cloud)")
+            "sampled in regions spread over the cloud)")
     if job.positions != "original":
         raise UsageError("a tiled run writes the original positions (--positions original)")
     if job.workers is not None and job.workers < 1:
