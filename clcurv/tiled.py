@@ -53,9 +53,11 @@ regrouped by windows of consecutive ids (:mod:`clcurv.tile_results`; every point
 present once) and the output is written in input order, a window at a time (LAS/LAZ: the
 input's header, scales, offsets, VLRs and records kept, the fields as extra bytes),
 atomically (:func:`clcurv.io.atomic_output`). The workspace (buckets, tile files, windows,
-the manifest) is a folder beside the output, ``.<output name>.clcurv-tiles``; a run
-interrupted or killed is resumed by the same command (finished tiles are skipped), and the
-folder is removed at the end (and on bad input).
+the manifest) is a folder the run makes, locks and checks (:mod:`clcurv.workspace`,
+docs/workspace.md): a run interrupted or killed is resumed by the same command (finished
+tiles are skipped) only when its inputs' content and options are the same and every file
+passes its count and CRC check; the folder is removed at the end, on bad input and on a full
+disk.
 
 Memory: peak RSS is about the baseline (interpreter, OpenCL) plus the largest tile (its
 core and halo) times :data:`TILE_BYTES_PER_POINT`, whatever the size of the cloud; the
