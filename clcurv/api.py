@@ -72,8 +72,9 @@ class _Run:
     def mst_flips(self, normals, k):
         """Flip mask of Hoppe's propagation over the ``k``-nearest-neighbour graph within the
         radius: on the device (the same graph and forest), or the float64 reference."""
-        if self.cloud is None:
-            return _orient.flip_by_propagation(self.points, normals, k=k, radius=self.radius)
+        if self.cloud is None:              # the reference's own propagation
+            from .reference import mst_flips
+            return mst_flips(self.points, normals, k=k, radius=self.radius)
         # a k-NN ball of K points holds each point's k < K nearest: the orientation graph
         # walks that ball, not the grid's largest radius
         own = self.point_r2 if self.knn_k is not None and k < self.knn_k else None
@@ -169,6 +170,9 @@ def _orientation(orient, normals, viewpoint, signed=True):
 
 def _flip(run, n, how, normals, viewpoint, k):
     """Flip mask of the normals ``n`` of ``run``'s points for the orientation ``how``."""
+    if run.cloud is None:                   # backend='numpy': the reference's own flips
+        from .reference import orientation_flips
+        return orientation_flips(run.points, n, how, normals, viewpoint, k, run.radius)
     if isinstance(how, np.ndarray):
         return _orient.flip_to_reference(n, how)
     if how == "normals":
@@ -433,8 +437,12 @@ def curvature(points, radius=None, *, method="mls1", weights="uniform", normals=
         r = knn.radius
         raw["status"][knn.isolated] = TOO_FEW
     _warn_sparse(raw["status"], r, op.min_count, None if knn is None else knn.k)
-    res = _result(op, r, weights, raw["count"], raw["status"],
-                  op.finish(raw, pts, r, use, ref_normals))
+    if run.cloud is None:               # backend='numpy': the reference's own finishing
+        from .reference import finish
+        attrs = finish(op.name, raw, pts, r, use, ref_normals)
+    else:
+        attrs = op.finish(raw, pts, r, use, ref_normals)
+    res = _result(op, r, weights, raw["count"], raw["status"], attrs)
     res.info["orientation"] = how
     if knn is not None:
         res.info["k"] = knn.k

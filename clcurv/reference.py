@@ -1,8 +1,37 @@
 """Independent float64 reference ("oracle") of the clcurv operators (Digne & Morel 2013).
 
-The host-side ground truth the OpenCL kernels are checked against. It shares no code with
-the OpenCL side: NumPy and SciPy only, float64 throughout, clarity and numerical care
-before speed (still ~10^5 points in seconds, and ~10^6 in memory bounded by blocks).
+The host-side ground truth the OpenCL kernels are checked against: NumPy and SciPy only,
+float64 throughout, clarity and numerical care before speed (still ~10^5 points in
+seconds, and ~10^6 in memory bounded by blocks).
+
+What is shared with the kernel path, and what is not
+----------------------------------------------------
+``clcurv.curvature(..., backend="numpy")`` (and :func:`clcurv.normals`) runs this module
+for every step that decides a result:
+
+* the operators (:func:`moments`, :func:`covariance_ops`, :func:`mls2`,
+  :func:`scale_space`), never a kernel;
+* the finishing step from the operator's fields to the result (:func:`finish`: MLS0's and
+  MLS1's H and points, MLS2's H and K from the shape operator's trace and determinant),
+  not the kernel path's ``clcurv.operators._finish_*``;
+* the orientation (:func:`orientation_flips`, :func:`mst_flips`: the sign of every
+  normal, so of H, k1, k2, K), not :mod:`clcurv.orient` (whose ``flip_by_propagation``
+  is the host twin of the device's forest, and shares ``component_signs`` with it).
+  The kernel path's ``_flip_mls2`` (MLS2 fitted first, its normals flipped afterwards)
+  has no counterpart here: the numpy backend orients the PCA normals first and fits
+  with them, so a wrong flip shows as a difference between the backends.
+
+Shared (not independent): the input checks and normalisation of the normals
+(:mod:`clcurv.validate`), the choice of orientation an ``orient`` value stands for
+(``clcurv.api._orientation``), the status codes and minimum counts
+(:mod:`clcurv.constants`), the result container (:class:`clcurv.result.CurvatureResult`),
+the registry's adapters that rename fields (``clcurv.operators._ref_*``: the MLS2
+projection handed over as ``shift``), the loop of ``projections`` (``clcurv.api._project``)
+and, in :func:`clcurv.features`, the step that turns normals towards ``orient='up'`` (its
+float64 features are :mod:`clcurv.reference_features`). The definitions
+(strict balls, weights, the tangent frame's rule, the orientation graph's neighbours and
+weights) are the same by specification, written twice. tests/test_reference_independent.py
+checks both sides' finishing, MLS2 flip and orientation against exact values.
 
 Engine
 ------
@@ -59,7 +88,7 @@ __all__ = ["OK", "TOO_FEW", "DEGENERATE", "SINGULAR", "MIN_COUNT_PCA", "MIN_COUN
            "STATUS_OK", "STATUS_TOO_FEW", "STATUS_DEGENERATE", "STATUS_SINGULAR", "MIN_COUNT",
            "RANK_TOL", "SINGULAR_RCOND", "COV_METHODS", "ball_neighbors", "neighbor_counts",
            "moments", "tangent_frame", "covariance_ops", "invert_theorem1", "mls2",
-           "mls2_iterate", "scale_space"]
+           "mls2_iterate", "scale_space", "finish", "orientation_flips", "mst_flips"]
 
 # Former names of the shared constants (clcurv.constants).
 STATUS_OK, STATUS_TOO_FEW, STATUS_DEGENERATE, STATUS_SINGULAR = OK, TOO_FEW, DEGENERATE, SINGULAR
@@ -820,3 +849,230 @@ def scale_space(points, radius, iterations, weights="uniform"):
         pts[ok] += along[:, None] * n
         out.append(pts.copy())
     return out
+
+
+# --- the API's host steps, the reference's own: finishing and orientation ---
+#
+# clcurv.curvature(..., backend="numpy") runs the operators above and then these, never
+# the kernel path's finishing steps (clcurv.operators: _finish_*, _flip_mls2) nor its
+# orientation (clcurv.orient). They are written from the paper's formulas and Hoppe's
+# algorithm as stated here, not from that code.
+
+def finish(method, raw, points, radius, normals, user=None):
+    """The result attributes of ``method`` (float64 arrays in input order, NaN where the
+    status is not OK) from its reference fields ``raw``.
+
+    ``raw``: the fields of :func:`moments` (variation, MLS0, MLS1), :func:`covariance_ops`
+    (2dcov1, 2dcov2, 3dcov) or :func:`mls2` (MLS2), with the position field given as
+    ``shift`` (``o - p`` for the moments, the projection minus ``p`` for MLS2: the form
+    the operator registry hands over). ``normals``: the unit normals the call used (the
+    oriented PCA normals, or the user's); ``user``: the user's unit normals or None.
+
+    * variation: the PCA normals (``normals``), the ascending eigenvalues and
+      ``l0 / (l0 + l1 + l2)``, as :func:`moments` gives them.
+    * MLS0 (Lemma 2): the barycenter ``o = p + shift`` and ``H = 4 <p - o, n> / r^2``, ``n``
+      the user's normal when given, else the oriented PCA normal.
+    * MLS1 (Theorem 5): ``p'`` = ``p`` projected on the plane through ``o`` normal to the
+      oriented PCA normal ``n``, ``p' = p - <p - o, n> n``, and ``H = 4 <p - p', n> / r^2``.
+    * 2dcov1, 2dcov2, 3dcov: the magnitudes, directions and eigenvalues as
+      :func:`covariance_ops` gives them, and the normals used.
+    * MLS2: as :func:`mls2` gives them, the projection ``p + shift``; ``mean`` and
+      ``gaussian`` are its ``-tr(S) / 2`` and ``det S`` of the shape operator, not
+      ``(k1 + k2) / 2`` and ``k1 k2`` (the kernel path's host step forms those).
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    r = float(radius)
+    n = np.asarray(normals, dtype=np.float64)
+    bad = np.asarray(raw["status"]) != OK
+    if method in ("variation", "mls0", "mls1"):
+        out = {"normals": n, "eigenvalues": raw["eigenvalues"], "variation": raw["variation"]}
+        o = pts + raw["shift"]                                  # the barycenter
+        if method == "mls0":
+            nref = n if user is None else np.asarray(user, dtype=np.float64)
+            out["mean"] = 4.0 * np.einsum("ij,ij->i", pts - o, nref) / r ** 2
+            out["points"] = o
+        elif method == "mls1":
+            proj = pts - np.einsum("ij,ij->i", pts - o, n)[:, None] * n
+            out["mean"] = 4.0 * np.einsum("ij,ij->i", pts - proj, n) / r ** 2
+            out["points"] = proj
+    elif method in COV_METHODS:
+        out = {k: raw[k] for k in ("k1", "k2", "dir1", "dir2", "eigenvalues")}
+        out["normals"] = n
+    elif method == "mls2":
+        out = {k: raw[k] for k in ("k1", "k2", "dir1", "dir2", "normals", "mean", "gaussian")}
+        out["points"] = pts + raw["shift"]
+    else:
+        raise ValueError(f"unknown method {method!r}")
+    out = {k: np.array(v, dtype=np.float64) for k, v in out.items()}
+    for k in ("mean", "points"):
+        if k in out:
+            out[k][bad] = np.nan
+    return out
+
+
+def _against(normals, directions):
+    """True where ``<n, d> < 0`` (rows; False where either is NaN or the product is 0)."""
+    with np.errstate(invalid="ignore"):
+        return np.einsum("ij,ij->i", normals, directions) < 0.0
+
+
+def orientation_flips(points, normals, how, reference=None, viewpoint=None, k=10,
+                      radius=None):
+    """Flip mask (True: negate the row) of the unoriented ``normals`` (N, 3) of ``points``
+    for the orientation ``how`` of :func:`clcurv.curvature`: a direction (3,) (the normals
+    agree with it), 'normals' (each agrees with the row of ``reference``), 'viewpoint'
+    (each faces ``viewpoint``: ``<n, v - p> >= 0``), 'mst' (:func:`mst_flips` over the
+    ``k`` nearest points within ``radius``) or None (no flip). A NaN normal, or one
+    perpendicular to its reference, is not flipped."""
+    n = np.asarray(normals, dtype=np.float64)
+    if how is None:
+        return np.zeros(len(n), dtype=bool)
+    if isinstance(how, np.ndarray):
+        return _against(n, np.broadcast_to(how.astype(np.float64), n.shape))
+    if how == "normals":
+        return _against(n, np.asarray(reference, dtype=np.float64))
+    if how == "viewpoint":
+        return _against(n, np.asarray(viewpoint, dtype=np.float64)
+                        - np.asarray(points, dtype=np.float64))
+    if how == "mst":
+        return mst_flips(points, n, k=k, radius=radius)
+    raise ValueError(f"unknown orientation {how!r}")
+
+
+#: components of fewer points are not propagated over (each point faces away from the
+#: centroid of all valid points); :data:`clcurv.orient.MIN_COMPONENT`
+MST_MIN_COMPONENT = 3
+#: components of at least this many points take part in the nesting check
+MST_NEST_MIN = 100
+#: added to every edge weight (Hoppe's graph stores no zero weights)
+MST_EDGE_EPS = 1e-6
+
+
+def _mst_graph(p, u, k, radius):
+    """Upper-triangular CSR of the orientation graph: each point joined to its ``k``
+    nearest other points closer than ``radius`` (None: any distance), weight
+    ``1 - |u_i . u_j| + |e . u_i| |e . u_j| + MST_EDGE_EPS`` (``e`` the unit offset, 0 for
+    coincident points)."""
+    from scipy.sparse import coo_matrix
+    m = len(p)
+    kk = min(k, m - 1)
+    bound = np.inf if radius is None else float(radius)
+    dist, nb = cKDTree(p).query(p, k=kk + 1, distance_upper_bound=bound)
+    me = np.arange(m)[:, None]
+    other = (nb < m) & (nb != me)
+    # at most k others per row (when coincident points hide the point itself)
+    other &= np.cumsum(other, axis=1) <= kk
+    i = np.broadcast_to(me, nb.shape)[other]
+    j = nb[other]
+    a, b = np.minimum(i, j), np.maximum(i, j)
+    key = np.sort(a.astype(np.int64) * m + b)
+    key = key[np.r_[True, key[1:] != key[:-1]]]            # each edge once
+    a, b = key // m, key % m
+    e = p[b] - p[a]
+    le = np.linalg.norm(e, axis=1)
+    eh = e / np.where(le > 0, le, 1.0)[:, None]
+    ua, ub = u[a], u[b]
+    w = (1.0 - np.abs(np.einsum("ij,ij->i", ua, ub))
+         + np.abs(np.einsum("ij,ij->i", eh, ua)) * np.abs(np.einsum("ij,ij->i", eh, ub))
+         + MST_EDGE_EPS)
+    return coo_matrix((w, (a, b)), shape=(m, m)).tocsr()
+
+
+def _propagated(u, tree, labels, ncomp):
+    """The unit normals ``u`` made consistent along the spanning forest ``tree``: from each
+    component's first point, breadth first, a normal is negated where it points against
+    its parent's (already propagated) normal (Hoppe 1992)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import breadth_first_order
+    m = len(u)
+    t = tree.tocoo()
+    roots = np.unique(labels, return_index=True)[1]      # the first point of each component
+    # one breadth-first search from a virtual node m joined to every root
+    rows = np.concatenate([t.row, t.col, np.full(ncomp, m)])
+    cols = np.concatenate([t.col, t.row, roots])
+    g = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(m + 1, m + 1)).tocsr()
+    order, pred = breadth_first_order(g, m, directed=True, return_predecessors=True)
+    depth = np.zeros(m + 1, dtype=np.int64)
+    for node in order[1:]:                  # breadth first: a parent comes before its child
+        depth[node] = depth[pred[node]] + 1
+    out = u.copy()
+    nodes = order[1:][np.argsort(depth[order[1:]], kind="stable")]
+    cuts = np.flatnonzero(np.diff(depth[nodes])) + 1
+    for at in np.split(nodes, cuts)[1:]:    # level by level, the roots' (depth 1) first
+        par = out[pred[at]]
+        out[at] *= np.where(np.einsum("ij,ij->i", u[at], par) < 0.0, -1.0, 1.0)[:, None]
+    return out
+
+
+def _inside(q, surface, normals):
+    """For each row of ``q``: whether it lies inside the solid bounded by the oriented
+    samples ``surface`` (outward ``normals``): the nearest sample's normal points away from
+    it, ``<q - s, n_s> < 0``."""
+    _, near = cKDTree(surface).query(q)
+    return np.einsum("ij,ij->i", q - surface[near], normals[near]) < 0.0
+
+
+def mst_flips(points, normals, k=10, radius=None):
+    """Flip mask of Hoppe's propagation, written on its own (not :mod:`clcurv.orient`).
+
+    1. Valid rows (finite point and normal, normal not zero) only; the others get False.
+       Fewer than :data:`MST_MIN_COMPONENT` valid points: each faces away from their
+       centroid.
+    2. The graph of each point's ``k`` nearest other points within ``radius``, weights
+       ``1 - |n_i . n_j| + |e . n_i| |e . n_j|`` (+1e-6; ``e`` the unit offset: an edge
+       across a thin sheet costs more), and its minimum spanning forest.
+    3. In each tree, breadth first from its first point, each normal is negated where it
+       points against its parent's.
+    4. Each component then faces outward: its normals, summed, point away from its
+       centroid (``sum <n_i, p_i - c> >= 0``), else all are negated. Components of fewer
+       than :data:`MST_MIN_COMPONENT` points: each point faces away from the centroid of
+       all valid points.
+    5. Nesting: components of at least :data:`MST_NEST_MIN` points, largest bounding box
+       first; one whose box lies in the boxes of larger ones, and whose points lie (in the
+       majority) inside the solid those bound, is the wall of a cavity: it faces the
+       cavity, i.e. its sign of step 4 is reversed. Inside means: the nearest point of
+       those larger components has a normal pointing away from it.
+    """
+    from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
+    p_all = np.asarray(points, dtype=np.float64)
+    n_all = np.asarray(normals, dtype=np.float64)
+    flip = np.zeros(len(p_all), dtype=bool)
+    valid = (np.all(np.isfinite(p_all), axis=1) & np.all(np.isfinite(n_all), axis=1)
+             & np.any(np.nan_to_num(n_all) != 0.0, axis=1))
+    idx = np.flatnonzero(valid)
+    if len(idx) == 0:
+        return flip
+    p = p_all[idx]
+    u = n_all[idx] / np.linalg.norm(n_all[idx], axis=1)[:, None]
+    centre = p.mean(axis=0)
+    if len(idx) < MST_MIN_COMPONENT:
+        flip[idx] = np.einsum("ij,ij->i", u, p - centre) < 0.0
+        return flip
+    tree = minimum_spanning_tree(_mst_graph(p, u, int(k), radius))
+    ncomp, labels = connected_components(tree, directed=False)
+    o = _propagated(u, tree, labels, ncomp)
+    size = np.bincount(labels, minlength=ncomp)
+    sign = np.ones(ncomp)
+    members = np.split(np.argsort(labels, kind="stable"), np.cumsum(size)[:-1])
+    for c, rows in enumerate(members):
+        vote = np.einsum("ij,ij->", o[rows], p[rows] - p[rows].mean(axis=0))
+        sign[c] = -1.0 if vote < 0.0 else 1.0
+    big = [c for c in range(ncomp) if size[c] >= MST_NEST_MIN]
+    lo = {c: p[members[c]].min(axis=0) for c in big}
+    hi = {c: p[members[c]].max(axis=0) for c in big}
+    big.sort(key=lambda c: -np.linalg.norm(hi[c] - lo[c]))
+    for i, c in enumerate(big):
+        outer = [a for a in big[:i] if np.all(lo[a] <= lo[c]) and np.all(hi[a] >= hi[c])]
+        if not outer:
+            continue
+        rows = np.concatenate([members[a] for a in outer])
+        each = np.repeat([sign[a] for a in outer], [len(members[a]) for a in outer])
+        q = p[members[c][::max(1, size[c] // 1000)]]          # about 1000 of its points
+        if np.mean(_inside(q, p[rows], o[rows] * each[:, None])) > 0.5:
+            sign[c] = -sign[c]
+    o *= sign[labels][:, None]
+    small = size[labels] < MST_MIN_COMPONENT
+    o[small] = u[small] * np.where(np.einsum("ij,ij->i", u[small], p[small] - centre) < 0.0,
+                                   -1.0, 1.0)[:, None]
+    flip[idx] = np.einsum("ij,ij->i", o, u) < 0.0
+    return flip
