@@ -3,10 +3,8 @@
 The reference is the oracle the OpenCL kernels are checked against, so it is itself checked
 here against brute force, the paper's asymptotic limits (Digne & Morel 2013, Theorem 4 and
 Lemma 2, valid for dense uniform-in-area sampling) and the status rules. Fixed seeds, no
-OpenCL, no timing assertions (timings are printed with -s).
+OpenCL, no timings (those are ``python -m bench.reference_speed``).
 """
-import time
-
 import numpy as np
 import pytest
 
@@ -185,11 +183,7 @@ def test_status_degenerate_collinear_and_coincident():
 def fib_sphere():
     R, r = 2.0, 0.2
     pts, nrm = fibonacci_sphere(20_000, R)
-    t0 = time.perf_counter()
-    m = reference.moments(pts, r)
-    print(f"\nmoments: 20k points, mean count {m['count'].mean():.1f}: "
-          f"{time.perf_counter() - t0:.3f} s")
-    return R, r, pts, nrm, m
+    return R, r, pts, nrm, reference.moments(pts, r)
 
 
 def test_sphere_variation_theorem4(fib_sphere):
@@ -286,11 +280,9 @@ def _pca_normals_randomly_signed(points, r, seed):
 
 
 def _outward_fraction(points, normals, truth):
-    t0 = time.perf_counter()
     flip = orient.flip_by_propagation(points, normals, k=10)
-    dt = time.perf_counter() - t0
     oriented = orient.apply_flip(flip, normals)
-    return np.mean(rowdot(oriented, truth) > 0), dt
+    return np.mean(rowdot(oriented, truth) > 0)
 
 
 ORIENT_CASES = {
@@ -310,9 +302,7 @@ def test_flip_by_propagation_outward(name):
     pts, truth = make()
     n = _pca_normals_randomly_signed(pts, r, seed=len(name))
     assert 0.4 < np.mean(rowdot(n, truth) > 0) < 0.6
-    frac, dt = _outward_fraction(pts, n, truth)
-    print(f"\nflip_by_propagation {name} ({len(pts)} points): {dt:.3f} s, "
-          f"{frac:.5%} outward")
+    frac = _outward_fraction(pts, n, truth)
     assert frac >= 0.999, f"{name}: {frac:.4%} outward"
 
 
@@ -351,17 +341,3 @@ def test_flip_by_propagation_tiny_inputs():
     assert orient.flip_by_propagation(p, n).tolist() == [True, False]
     n_nan = np.array([[np.nan] * 3, [-1.0, 0, 0]])
     assert orient.flip_by_propagation(p, n_nan).tolist() == [False, False]
-
-
-def test_speed_report():
-    """Not asserted: prints the timings the lead asked for (run with -s)."""
-    s = shapes.sphere(100_000, 2.0, seed=12)
-    t0 = time.perf_counter()
-    m = reference.moments(s["points"], 0.1)
-    t1 = time.perf_counter()
-    flip = orient.flip_by_propagation(s["points"], m["normals"])
-    t2 = time.perf_counter()
-    out = orient.apply_flip(flip, m["normals"])
-    print(f"\n100k sphere points: moments (mean count {m['count'].mean():.1f}) "
-          f"{t1 - t0:.3f} s, flip_by_propagation {t2 - t1:.3f} s")
-    assert np.mean(rowdot(out, s["normals"]) > 0) >= 0.999
