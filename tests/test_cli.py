@@ -9,6 +9,7 @@ import pytest
 
 from clcurv import cli, io, job
 from clcurv.data import sample_path
+from conftest import data_path
 
 DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
 
@@ -39,9 +40,9 @@ def test_compute_on_bundled_sample_writes_fields(tmp_path):
 
 
 def test_compute_on_las_keeps_header_and_adds_extra_bytes(tmp_path):
-    src = DATA / "laspy_simple.las"
-    if not src.is_file():
-        pytest.skip(f"{src} not present (shared data set)")
+    src = data_path("laspy_simple.las")         # shared, else shipped in tests/data
+    if src is None:
+        pytest.skip("laspy_simple.las not present (../shared/data, tests/data)")
     out = tmp_path / "simple.las"
     p = run("compute", src, "-o", out, "--method", "mls1", "--radius", "400",
             "--fields", "mean_curvature", "surface_variation", "-q")
@@ -206,12 +207,34 @@ def test_summary_prints_the_ranges_of_the_width_1_fields(tmp_path, sphere_points
 
 
 def test_mls2_gaussian_kernel_and_projections_options(tmp_path):
+    """--kernel, --h and --projections reach clcurv.curvature: the file's fields are the
+    API's with the same options (float32 fields: its values rounded to them, the same
+    kernels on the same device), and each option changes them: the API's result without
+    it differs on most points."""
+    import clcurv
     out = tmp_path / "g.ply"
-    p = run("compute", sample_path(), "-o", out, "--method", "mls2", "--kernel", "gaussian",
-            "--h", "0.002", "--projections", "1", "-q")
+    r, h = 0.004, 0.0012
+    p = run("compute", sample_path(), "-o", out, "--method", "mls2", "--radius", r,
+            "--kernel", "gaussian", "--h", h, "--projections", "1", "-q")
     assert p.returncode == 0, p.stderr
-    ok = io.read(out).attributes["status"] == 0
-    assert ok.mean() > 0.98
+    got = io.read(out)
+    pts = io.read(sample_path()).points
+    np.testing.assert_array_equal(got.points, pts)                    # positions original
+    opts = dict(kernel="gaussian", h=h, projections=1)
+    want = clcurv.curvature(pts, r, method="mls2", **opts)
+    assert want.valid.mean() > 0.98
+    np.testing.assert_array_equal(got.attributes["status"], want.status)
+    fields = {"mean_curvature": want.mean, "gaussian_curvature": want.gaussian,
+              "k1": want.k1, "k2": want.k2}
+    for name, v in fields.items():
+        np.testing.assert_array_equal(got.attributes[name], v.astype(np.float32), err_msg=name)
+    for dropped in ("kernel", "h", "projections"):
+        kw = {k: v for k, v in opts.items() if k != dropped and not (dropped == "kernel" and
+                                                                      k == "h")}
+        other = clcurv.curvature(pts, r, method="mls2", **kw)
+        ok = want.valid & other.valid
+        changed = np.abs(other.mean[ok] - want.mean[ok]) > 1e-3 * np.abs(want.mean[ok])
+        assert changed.mean() > 0.5, (dropped, changed.mean())
 
 
 def test_render_up_takes_a_negative_axis_as_written():

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from clcurv import io as cio
+from conftest import data_params, data_path
 from hostile import lzf_literals
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -33,9 +34,12 @@ FILES = {
 
 
 def data_file(name):
-    path = DATA / name
-    if not path.is_file():
-        pytest.skip(f"{path} not present (shared data set)")
+    """The shared data file ``name``, or its copy shipped in tests/data (conftest.data_path);
+    skips, naming it, when neither is there (the large scans are not shipped)."""
+    path = data_path(name)
+    if path is None:
+        pytest.skip(f"{name} not present: ../shared/data is absent and the file is too large "
+                    "to ship in tests/data")
     return path
 
 
@@ -48,7 +52,7 @@ def laspy_or_skip(laz=False):
 
 # ------------------------------------------------------------------ shared data files
 
-@pytest.mark.parametrize("name", list(FILES))
+@pytest.mark.parametrize("name", data_params(FILES))
 def test_read_shared_file_counts(name):
     path = data_file(name)
     if path.suffix == ".laz":
@@ -150,9 +154,31 @@ def test_ply_mesh_vertex_properties():
     assert np.array_equal(cloud.points, np.column_stack([v["x"], v["y"], v["z"]]))
 
 
-def test_cgal_points_on_the_paraboloid():
-    p = cio.read(data_file("cgal_jet_fitting_in_points_d4.txt")).points
-    assert np.allclose(p[:, 2], 0.1 * p[:, 0] ** 2 + 0.2 * p[:, 1] ** 2)
+def test_cgal_points_on_the_paraboloid(tmp_path):
+    """clcurv reads CGAL's 17-point jet-fitting input (Jet_fitting_3's in_points_d4.txt:
+    no header, bare ".2" decimals, no newline after the last row) as the text says: every
+    row in order, each value the float64 Python's float() gives, nothing else (no
+    normals, no attributes, nothing dropped); the same with a final newline or Windows
+    line ends. The copy in tests/data (a bare clone) and the shared one, when present."""
+    copies = [folder / "cgal_jet_fitting_in_points_d4.txt"
+              for folder in (Path(__file__).resolve().parent / "data", DATA)]
+    copies = [c for c in copies if c.is_file()]
+    if not copies:
+        pytest.skip("cgal_jet_fitting_in_points_d4.txt in neither tests/data nor "
+                    f"{DATA}")
+    for path in copies:
+        raw = path.read_bytes()
+        assert b" ." in raw and not raw.endswith(b"\n")       # the quirks are exercised
+        want = np.array([[float(v) for v in row.split()] for row in raw.decode().split("\n")])
+        assert want.shape == (17, 3)
+        cloud = cio.read(path)
+        assert cloud.points.dtype == np.float64
+        np.testing.assert_array_equal(cloud.points, want)
+        assert cloud.normals is None and cloud.attributes == {} and cloud.dropped == 0
+        for variant in (raw + b"\n", raw.replace(b"\n", b"\r\n")):
+            copy = tmp_path / path.name
+            copy.write_bytes(variant)
+            np.testing.assert_array_equal(cio.read(copy).points, want)
 
 
 # ------------------------------------------------------------------ round trips

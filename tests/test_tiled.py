@@ -103,12 +103,71 @@ def test_scale_space_tiles_equal_the_in_memory_run_bit_for_bit(scene, method):
     _assert_same(a, b)
 
 
-def test_the_scale_space_case_re_bins(scene):
-    """The scene's three steps cross the drift bound at least once, so the tiled lock step
-    is checked through a re-binning too."""
-    _, _, pts = scene
-    _, stats = clcurv.scale_space(pts, R, 3, return_stats=True)
+def _dome(n=30_000, seed=4):
+    """A smooth dome on the LAS grid: z = 50 - |xy - c|^2 / 16 over 40 m x 40 m (curvature
+    radius ~8 m). Each MLS1 step at r = 1 moves its points by ~0.03 r, so the drift from
+    the last binning crosses the bound (0.1 r) after the 4th of 5 steps only."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(0, 40, (n, 2)) + [1000.3, 2000.7]
+    z = 50 - ((xy - [1020.3, 2020.7]) ** 2).sum(axis=1) / 16
+    return np.round(np.column_stack([xy, z]) / SCALE) * SCALE
+
+
+def test_the_scale_space_case_re_bins(scene, tmp_path, monkeypatch):
+    """The tiled scale space (clcurv.tiled_scale) re-bins after exactly the steps the
+    in-memory one (clcurv.smoothing) does, and after every step its smoothed cloud (p + d
+    from its state files) is the in-memory iterate, bit for bit. On the dome some steps
+    re-bin and some do not; the scene's three steps (test_scale_space_tiles_equal_...)
+    re-bin at least once, so that test goes through a re-binning too."""
+    from clcurv import smoothing, tiled_scale
+    _, stats = clcurv.scale_space(scene[2], R, 3, return_stats=True)
     assert stats["rebins"] >= 1
+    pts = _dome()
+    path = write_scene(pts, np.full(len(pts), 2, np.uint8), tmp_path / "dome.las")
+    done, mem_rebins = [0], []
+
+    class Spy(smoothing._DeviceState):      # a new binning after step done[0] - 1
+        def __init__(self, *a, **kw):
+            if done[0]:
+                mem_rebins.append(done[0] - 1)
+            super().__init__(*a, **kw)
+
+        def step(self, *a, **kw):
+            done[0] += 1
+            return super().step(*a, **kw)
+
+    real = smoothing._DeviceState
+    monkeypatch.setattr(smoothing, "_DeviceState", Spy)
+    iterates, stats = clcurv.scale_space(pts, R, 5, return_iterates=True, return_stats=True)
+    monkeypatch.setattr(smoothing, "_DeviceState", real)    # (the tiles make their own)
+    assert done[0] == 5 and len(mem_rebins) == stats["rebins"]
+    assert 1 <= len(mem_rebins) < 4                          # some steps re-bin, some not
+
+    til_rebins, smoothed = [], []
+    apply = tiled_scale._apply
+
+    def spy(ws, buckets, state, step, rebin, **kw):
+        out = apply(ws, buckets, state, step, rebin, **kw)
+        if rebin:
+            til_rebins.append(step)
+        cur = np.full(pts.shape, np.nan)
+        for i in range(buckets.shape[0]):
+            for j in range(buckets.shape[1]):
+                if buckets.counts[i, j]:
+                    rec = buckets.read(i, j)
+                    st = np.fromfile(state.path(i, j), state.dtype)
+                    cur[rec["id"]] = rec["p"] + st["d"].astype(np.float64)
+        smoothed.append(cur)
+        return out
+
+    monkeypatch.setattr(tiled_scale, "_apply", spy)     # (it keeps its box on the name)
+    til = tiled.curvature_file(path, tmp_path / "dome_out.las", R, method="variation",
+                               scale_space=5, tile=12.0, memory="64GiB")
+    assert til["tiled"] and til["tiles"] >= 9
+    assert til_rebins == mem_rebins
+    assert len(smoothed) == 5
+    for k, cur in enumerate(smoothed):
+        np.testing.assert_array_equal(cur, iterates[k + 1], err_msg=f"step {k}")
 
 
 def test_density_weights_and_las_output_tile_exactly(scene):

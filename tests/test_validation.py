@@ -179,10 +179,27 @@ def test_far_from_origin_gives_same_results(device):
 
 
 def test_integer_and_float32_input(device):
+    """Integer and float32 coordinates are read as the float64 numbers they stand for:
+    the results equal those of the float64 array bit for bit, and match the float64
+    reference's. On an integer grid squared distances are exact integers, many exactly
+    r^2 = 9 ((3, 0, 0), (2, 2, 1)): the counts equal the reference's, so the ball is open
+    (|q - p| < r) for every input type."""
     pts = np.random.default_rng(3).integers(0, 20, size=(3000, 3))
-    a = clcurv.curvature(pts, 3.0, method="variation", device=device, orient=None)
-    b = clcurv.curvature(pts.astype(np.float32), 3.0, method="variation", device=device, orient=None)
-    np.testing.assert_array_equal(a.variation, b.variation)
+    want = clcurv.curvature(pts.astype(np.float64), 3.0, method="variation", device=device,
+                            orient=None)
+    ref = clcurv.curvature(pts.astype(np.float64), 3.0, method="variation", backend="numpy",
+                           orient=None)
+    assert want.valid.mean() > 0.99
+    d2 = ((pts[:300, None, :] - pts[None, :, :]) ** 2).sum(axis=2)
+    assert (d2 == 9).sum() > 100                            # the case is exercised
+    np.testing.assert_array_equal(want.count, ref.count)
+    ok = want.valid & ref.valid
+    np.testing.assert_allclose(want.variation[ok], ref.variation[ok], rtol=1e-3, atol=1e-6)
+    for dtype in (np.int64, np.int32, np.int16, np.uint8, np.float32):
+        got = clcurv.curvature(pts.astype(dtype), 3.0, method="variation", device=device,
+                               orient=None)
+        for k, v in want.arrays().items():
+            np.testing.assert_array_equal(got.arrays()[k], v, err_msg=f"{dtype.__name__} {k}")
 
 
 def test_double_on_device_without_fp64(device):
