@@ -285,7 +285,9 @@ def plan_tiles(buckets, radius, halo, budget, tile=None, frame=None,
     while True:
         tiling = Tiling(frame, size, halo)
         worst = densest(buckets, tiling, occ)
-        if worst is None:                   # buckets far larger than the tiles
+        if occ is None and (worst is None or _finer_than_buckets(buckets, tiling)):
+            # buckets far larger than the tiles, or not much smaller: their counts spread
+            # uniformly misjudge clustered points (both ways); the cells' counts do not
             occ = occupancy(buckets, frame, state)
             worst = densest(buckets, tiling, occ)
         if worst <= limit:
@@ -297,6 +299,12 @@ def plan_tiles(buckets, radius, halo, budget, tile=None, frame=None,
                 f"{worst} points with its halo, {bytes_per_point} bytes each; give "
                 "more memory (--memory) or a smaller radius")
         size = max(max(halo, 1), int(size * min(0.7, math.sqrt(limit / worst))))
+
+
+def _finer_than_buckets(buckets, tiling):
+    """Is a tile with its halo less than two buckets wide (the buckets' counts then say
+    little about where in a bucket its points lie)?"""
+    return (tiling.size + 2 * tiling.halo) * tiling.frame.cell < 2 * buckets.side
 
 
 #: (bucket, tile) pairs up to which :func:`densest` spreads the buckets' counts over the
