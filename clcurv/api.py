@@ -348,7 +348,8 @@ def curvature(points, radius=None, *, method="mls1", weights="uniform", normals=
         method's minimum, 3, or 6 for MLS2), a degenerate neighbourhood (2) or a singular
         fit (3) get NaN. MLS2 with 6 to 9 neighbours (``count``) is an interpolation more
         than a fit: it amplifies round-off, and float32 results may differ from float64 by
-        up to about 0.15 / r (measured on spheres; from 10 neighbours below 1e-4 / r, see
+        up to about 0.4 / r with exactly 6 neighbours, 0.015 / r with 7 to 9, and below
+        1e-4 / r from 10 (measured on spheres over several seeds, see
         tests/test_hostile_api.py). Use a radius with ~30 neighbours, or
         ``precision='double'``, where such points matter.
 
