@@ -12,6 +12,7 @@ listed, when it is unset, so that a bare ``python -m pytest`` tests the same dev
 """
 import os
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -53,6 +54,38 @@ def device(request):
     if request.param is None:
         pytest.fail("no OpenCL device found: " + clcurv.device.APT_HINT)
     return clcurv.get_device(request.param)
+
+
+#: the external data sets, made outside the project (../shared/data next to the repository,
+#: described by its README): a bare clone has none of them
+SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+#: the small ones shipped with the suite, byte-exact copies (tests/data/README.md: sources
+#: and licences)
+TEST_DATA = Path(__file__).resolve().parent / "data"
+
+
+def data_path(name):
+    """The data file ``name`` (a file name of ../shared/data): the shared copy when present,
+    else the one shipped in tests/data, else None (the caller skips, naming the file)."""
+    for folder in (SHARED_DATA, TEST_DATA):
+        path = folder / name
+        if path.is_file():
+            return path
+    return None
+
+
+def data_params(names):
+    """Parameters for a test run once per data file: one per file found (``data_path``),
+    and, when some are not, ONE skipped parameter naming them all (a bare clone reports
+    the missing large scans on one line, not one skip per file)."""
+    names = list(names)
+    absent = [n for n in names if data_path(n) is None]
+    params = [pytest.param(n, id=n) for n in names if n not in absent]
+    if absent:
+        params.append(pytest.param(None, id="absent", marks=pytest.mark.skip(
+            reason=f"{len(absent)} data files not present: ../shared/data is absent and they "
+                   f"are too large to ship in tests/data: {', '.join(absent)}")))
+    return params
 
 
 def bumpy_surface(n, seed, noise=0.002):
