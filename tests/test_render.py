@@ -272,16 +272,19 @@ def test_nan_points_are_drawn_beneath(tmp_path):
 
 def test_cli_render_las_and_up(tmp_path):
     """`clcurv render` on a LAS/LAZ file draws two views (top, oblique); --up y on the same
-    file draws the three object views."""
-    if not AUTZEN.exists():
-        pytest.skip("the Autzen LAZ of ../shared/data is not present")
+    file draws the three object views. The Autzen LAZ of ../shared/data, else laspy's
+    simple.las shipped in tests/data (conftest.data_path)."""
+    from conftest import data_path
+    tile = AUTZEN if AUTZEN.exists() else data_path("laspy_simple.las")
+    if tile is None:
+        pytest.skip("no LAS tile: neither ../shared/data's Autzen LAZ nor laspy_simple.las")
     from clcurv.cli import main
-    attrs = __import__("clcurv").io.read(AUTZEN).attributes
+    attrs = __import__("clcurv").io.read(tile).attributes
     field = "intensity" if "intensity" in attrs else next(iter(attrs))
     out = tmp_path / "a.png"
-    assert main(["render", str(AUTZEN), "--field", field, "-o", str(out)]) == 0
+    assert main(["render", str(tile), "--field", field, "-o", str(out)]) == 0
     assert load_rgb(out).shape[1] == round((3.7 * 2 + 0.9) * 110)
-    assert main(["render", str(AUTZEN), "--field", field, "--up", "y", "-o", str(out)]) == 0
+    assert main(["render", str(tile), "--field", field, "--up", "y", "-o", str(out)]) == 0
     assert load_rgb(out).shape[1] == round((3.7 * 3 + 0.9) * 110)
 
 
