@@ -102,3 +102,22 @@ def deadline(seconds):
     finally:
         signal.alarm(0)
         signal.signal(signal.SIGALRM, old)
+
+
+def las_dims(path):
+    """(the LasData of ``path``, {dimension name: its values})."""
+    import laspy
+    import numpy as np
+    las = laspy.read(str(path))
+    return las, {n: np.asarray(las[n]) for n in las.point_format.dimension_names}
+
+
+def assert_same_las(a, b):
+    """Every dimension of the LAS/LAZ files ``a`` and ``b`` equal, NaN included."""
+    import numpy as np
+    la, da = las_dims(a)
+    lb, db = las_dims(b)
+    assert la.header.point_count == lb.header.point_count
+    assert list(da) == list(db)
+    diff = [n for n in da if not np.array_equal(da[n], db[n], equal_nan=True)]
+    assert diff == [], f"dimensions differ: {diff}"

@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 import clcurv
+from tests.hostile import assert_same_las, las_dims
 from clcurv import io as cio
 from clcurv import tiled
 
@@ -137,19 +138,7 @@ def files(request, tmp_path_factory):
     return d, src, plain, given, pts, order
 
 
-def _dims(path):
-    las = laspy.read(str(path))
-    return las, {n: np.asarray(las[n]) for n in las.point_format.dimension_names}
-
-
-def assert_same(a, b):
-    """Every dimension of the LAS/LAZ files ``a`` and ``b`` equal, NaN included."""
-    la, da = _dims(a)
-    lb, db = _dims(b)
-    assert la.header.point_count == lb.header.point_count
-    assert list(da) == list(db)
-    diff = [n for n in da if not np.array_equal(da[n], db[n], equal_nan=True)]
-    assert diff == [], f"dimensions differ: {diff}"
+_dims, assert_same = las_dims, assert_same_las
 
 
 def assert_plain(path):

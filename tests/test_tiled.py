@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import clcurv
+from tests.hostile import assert_same_las, las_dims
 from clcurv import tiled, tiled_job
 from clcurv.io._common import CorruptFileError
 
@@ -60,18 +61,7 @@ def scene(tmp_path_factory):
     return d, paths, pts
 
 
-def _dims(path):
-    las = laspy.read(str(path))
-    return las, {n: np.asarray(las[n]) for n in las.point_format.dimension_names}
-
-
-def _assert_same(a, b):
-    la, da = _dims(a)
-    lb, db = _dims(b)
-    assert la.header.point_count == lb.header.point_count
-    assert list(da) == list(db)
-    diff = [n for n in da if not np.array_equal(da[n], db[n], equal_nan=True)]
-    assert diff == [], f"fields differ between tiled and in-memory output: {diff}"
+_dims, _assert_same = las_dims, assert_same_las
 
 
 @pytest.mark.parametrize("method", clcurv.METHODS)
