@@ -19,7 +19,7 @@ VENDORS := $(CURDIR)/$(VENV)/etc/OpenCL/vendors
 ICDS     = if [ -z "$${OCL_ICD_VENDORS:-}" ] && [ -d "$(VENDORS)" ]; then export OCL_ICD_VENDORS="$(VENDORS)"; fi;
 PYOCL    = $$($(PY) -c "import os, pyopencl; print(os.path.dirname(pyopencl.__file__))")
 
-.PHONY: setup opencl demo test bench clean intel-opencl oclgrind icd-links
+.PHONY: setup opencl demo test bench mutants clean intel-opencl oclgrind icd-links
 
 setup: $(VENV)/.installed opencl
 
@@ -75,6 +75,12 @@ bench: setup $(VENV)/.bench
 $(VENV)/.bench: pyproject.toml $(VENV)/.installed
 	$(PY) -m pip install -q -e '.[bench]'
 	touch $@
+
+# the mutation check (docs/mutants.md): faults planted one at a time in a scratch copy of the
+# kernels and the host code, the suite run against each; writes bench/results/mutants.md
+# (a few hours; MUTANTS="--only NAME" for one)
+mutants: setup oclgrind
+	$(ICDS) $(PY) -m bench.mutants $(MUTANTS)
 
 clean:
 	rm -rf $(VENV) out build *.egg-info
