@@ -63,6 +63,8 @@ class DeviceInfo:
     simulator: bool = False   # a simulator or emulator: never the default
     library: str | None = None  # the ICD library it came from (None where unknown)
     native_float_width: int = 1  # CL_DEVICE_NATIVE_VECTOR_WIDTH_FLOAT (16: 512-bit vectors)
+    fma_float: bool = False   # CL_FP_FMA in CL_DEVICE_SINGLE_FP_CONFIG: a fused multiply-add
+    fma_double: bool = False  # CL_FP_FMA in CL_DEVICE_DOUBLE_FP_CONFIG
 
     def __str__(self):
         sim = ", simulator" if self.simulator else ""
@@ -149,6 +151,7 @@ def _is_simulator(platform, dev):
 
 
 def _info(index, platform, dev) -> DeviceInfo:
+    cl = _cl()
     return DeviceInfo(
         index=index, name=dev.name.strip(), platform=platform.name.strip(),
         vendor=dev.vendor.strip(), kind=_kind(dev), driver=dev.driver_version,
@@ -157,7 +160,9 @@ def _info(index, platform, dev) -> DeviceInfo:
         local_mem=dev.local_mem_size, max_work_group=dev.max_work_group_size,
         compute_units=dev.max_compute_units, simulator=_is_simulator(platform, dev),
         library=_platform_library(platform),
-        native_float_width=int(dev.native_vector_width_float))
+        native_float_width=int(dev.native_vector_width_float),
+        fma_float=bool(dev.single_fp_config & cl.device_fp_config.FMA),
+        fma_double=bool(dev.double_fp_config & cl.device_fp_config.FMA))
 
 
 # ------------------------------------------------------------------------ ICD files

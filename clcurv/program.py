@@ -66,7 +66,8 @@ _lock = threading.Lock()
 def precision_defines(device, precision):
     """``-D`` options for ``precision`` ('float' or 'double') on ``device``, and the
     device-dependent choices of the kernels: VW (:func:`tuning`), MASKED_SUMS
-    (:func:`masked_sums`) and FEATURES_BUF (:func:`features_buffer`)."""
+    (:func:`masked_sums`), PCA_FMA (:func:`fused_sums`) and FEATURES_BUF
+    (:func:`features_buffer`)."""
     if precision not in ("float", "double"):
         raise ValueError(f"precision must be 'float' or 'double', got {precision!r}")
     if precision == "double" and not device.info.fp64:
@@ -74,7 +75,17 @@ def precision_defines(device, precision):
                              "(cl_khr_fp64); use precision='float'")
     vw = 8 if device.info.kind == "cpu" else 4
     return {"REAL_IS_DOUBLE": int(precision == "double"), "VW": vw,
-            "MASKED_SUMS": masked_sums(device.info), "FEATURES_BUF": features_buffer(device.info)}
+            "MASKED_SUMS": masked_sums(device.info), "PCA_FMA": fused_sums(device.info, precision),
+            "FEATURES_BUF": features_buffer(device.info)}
+
+
+def fused_sums(info, precision):
+    """pca.h's PCA_FMA: 1 where the device has a fused multiply-add in ``precision``
+    (CL_FP_FMA), and the sums of products are then written fma(a, b, c); 0 elsewhere (a * b
+    + c, fused or not as the compiler likes). Spelled out, the fusing no longer depends on
+    the compiler's reading of the two forms of MASKED_SUMS: Intel's runtime fused them
+    differently in float64 (1 ulp apart in 5% of the smallest eigenvalues)."""
+    return int(info.fma_double if precision == "double" else info.fma_float)
 
 
 def features_buffer(info):
@@ -218,7 +229,7 @@ def tuning(device, precision="float"):
     """The device-dependent choices clcurv makes on ``device``, for reports: ``VW`` (points
     per work-item: 8 on CPU devices, whose compilers vectorise a work-item's explicit
     vectors, else 4; from the device type query), ``MASKED_SUMS`` (:func:`masked_sums`),
-    ``FEATURES_BUF`` (:func:`features_buffer`) and ``work_group``, the work-group size
+    ``PCA_FMA`` (:func:`fused_sums`), ``FEATURES_BUF`` (:func:`features_buffer`) and ``work_group``, the work-group size
     :func:`local_size` gives every kernel of the registry's programs (queried: the kernel's
     maximum and preferred multiple on this device, capped at launch's default 128). Some
     calls pass a smaller cap (clcurv.graph.CPU_GROUP: knn_graph on CPU devices)."""
@@ -228,7 +239,7 @@ def tuning(device, precision="float"):
     for file, defines in program_variants(base):
         for k in build(device, file, defines).program.all_kernels():
             sizes[k.function_name] = local_size(device, k)
-    return {"VW": base["VW"], "MASKED_SUMS": base["MASKED_SUMS"],
+    return {"VW": base["VW"], "MASKED_SUMS": base["MASKED_SUMS"], "PCA_FMA": base["PCA_FMA"],
             "FEATURES_BUF": base["FEATURES_BUF"], "work_group": sizes}
 
 

@@ -83,9 +83,18 @@ typedef struct {
 /* Uniform weights: the offsets zeroed outside the ball (3 selects: a masked lane's values,
  * whatever they are, are never read), then plain adds and multiply-adds of the zeroed
  * offsets, e = m ? d : 0, s += e, s2 += e_i e_j: a masked lane adds +0 exactly. The
- * products are written a * b + c, not mad(a, b, c): the compiler fuses the expression
- * where the device has an FMA (one instruction), where PoCL 3.1's mad is a multiply and
- * an add (the flush loop of features.cl's three radii: 30 -> 24 instructions a chunk). */
+ * products are PCA_MAD, fma(a, b, c) where the device has an FMA (one instruction), not
+ * mad(a, b, c), which PoCL 3.1 makes a multiply and an add (the flush loop of features.cl's
+ * three radii: 30 -> 24 instructions a chunk). */
+#if !defined(PCA_FMA)
+#error "pca.h needs PCA_FMA (0|1, clcurv/program.py: precision_defines)"
+#elif PCA_FMA
+/* The device has a fused multiply-add (clcurv/program.py: fused_sums): every product sum is
+ * one, spelled out, so that both forms below fuse alike whatever the compiler's reading. */
+#define PCA_MAD(a, b, c) fma(a, b, c)
+#else
+#define PCA_MAD(a, b, c) ((a) * (b) + (c))
+#endif
 #if !defined(MASKED_SUMS)
 #error "pca.h needs MASKED_SUMS (0|1, clcurv/program.py: precision_defines)"
 #elif MASKED_SUMS
@@ -102,9 +111,12 @@ typedef struct {
         MASKED_COUNT(sw, m)                                                                \
         sx = select(sx, sx + dx_, m); sy = select(sy, sy + dy_, m);                        \
         sz = select(sz, sz + dz_, m);                                                      \
-        sxx = select(sxx, dx_ * dx_ + sxx, m); sxy = select(sxy, dx_ * dy_ + sxy, m);      \
-        sxz = select(sxz, dx_ * dz_ + sxz, m); syy = select(syy, dy_ * dy_ + syy, m);      \
-        syz = select(syz, dy_ * dz_ + syz, m); szz = select(szz, dz_ * dz_ + szz, m);      \
+        sxx = select(sxx, PCA_MAD(dx_, dx_, sxx), m);                                      \
+        sxy = select(sxy, PCA_MAD(dx_, dy_, sxy), m);                                      \
+        sxz = select(sxz, PCA_MAD(dx_, dz_, sxz), m);                                      \
+        syy = select(syy, PCA_MAD(dy_, dy_, syy), m);                                      \
+        syz = select(syz, PCA_MAD(dy_, dz_, syz), m);                                      \
+        szz = select(szz, PCA_MAD(dz_, dz_, szz), m);                                      \
     }
 #else
 #define PCA_ACCUMULATE(w, m, dx, dy, dz, sc, sw, sx, sy, sz, sxx, sxy, sxz, syy, syz, szz) \
@@ -113,8 +125,9 @@ typedef struct {
         const REALV ez_ = select((REALV)0, dz, m);                                         \
         MASKED_COUNT(sw, m)                                                                \
         sx += ex_; sy += ey_; sz += ez_;                                                   \
-        sxx += ex_ * ex_; sxy += ex_ * ey_; sxz += ex_ * ez_;                              \
-        syy += ey_ * ey_; syz += ey_ * ez_; szz += ez_ * ez_;                              \
+        sxx = PCA_MAD(ex_, ex_, sxx); sxy = PCA_MAD(ex_, ey_, sxy);                        \
+        sxz = PCA_MAD(ex_, ez_, sxz); syy = PCA_MAD(ey_, ey_, syy);                        \
+        syz = PCA_MAD(ey_, ez_, syz); szz = PCA_MAD(ez_, ez_, szz);                        \
     }
 #endif
 #endif

@@ -16,7 +16,7 @@ from clcurv.program import (BuildError, BuildWarning, _warn_from_log, build, ker
 
 from conftest import DEVICES, SIMULATORS
 
-GRID = {"REAL_IS_DOUBLE": 0, "VW": 8, "MASKED_SUMS": 1}
+GRID = {"REAL_IS_DOUBLE": 0, "VW": 8, "MASKED_SUMS": 1, "PCA_FMA": 1}
 
 
 def test_devices_listed_with_capabilities():
@@ -202,7 +202,8 @@ def test_every_kernel_builds_in_both_precisions(device):
     for name, defines in variants:
         build(device, name, defines)
     if device.info.fp64:
-        for name, defines in program_variants({"REAL_IS_DOUBLE": 1, "VW": 4, "MASKED_SUMS": 0}):
+        for name, defines in program_variants({"REAL_IS_DOUBLE": 1, "VW": 4, "MASKED_SUMS": 0,
+                                                "PCA_FMA": 0}):
             build(device, name, defines)
 
 

@@ -21,7 +21,7 @@ from clcurv.program import kernels_dir
 BUILTINS = {"NAN", "INFINITY", "FLT_MAX", "FLT_EPSILON", "FLT_MIN", "DBL_MAX", "DBL_EPSILON",
             "DBL_MIN", "CLK_LOCAL_MEM_FENCE", "CLK_GLOBAL_MEM_FENCE", "OPENCL", "EXTENSION",
             "M_PI", "M_PI_F", "MAXFLOAT", "HUGE_VALF"}
-PRECISION = {"REAL_IS_DOUBLE": 0, "VW": 8, "MASKED_SUMS": 1}
+PRECISION = {"REAL_IS_DOUBLE": 0, "VW": 8, "MASKED_SUMS": 1, "PCA_FMA": 1}
 
 
 def sources():
