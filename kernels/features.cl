@@ -132,11 +132,11 @@ inline IREALV ball_mask(IREALV m, REALV d2, REAL r2)
  * accumulators live (with every ball's at once, 10 vectors each, the registers spilled:
  * three balls cost 245 ms at 1M points against 222 for three single-radius walks). On the
  * 1M sphere 15.7 of a point's 28.4 chunks at r√2 have a lane in the largest ball: the
- * three balls' kernel 2-8 ms faster on the Zen 3 EPYC (AVX2) than with every chunk summed
- * (bench/results/three_radii_history.md). The slot is the chunk's count whatever its
- * lanes: a slot advanced only for kept chunks made the buffer's store addresses, and so
- * the next chunk's loads, wait for each chunk's test (+13 ms). Summing the largest ball
- * as the walk goes (its accumulators live through the walk) was slower too. */
+ * three balls' kernel 2-8 ms faster on the Zen 3 EPYC (AVX2) than with every chunk summed.
+ * The slot is the chunk's count whatever its lanes: a slot advanced only for kept chunks
+ * made the buffer's store addresses, and so the next chunk's loads, wait for each chunk's
+ * test (+13 ms). Summing the largest ball as the walk goes (its accumulators live through
+ * the walk) was slower too. */
 #define FEATURES_WALK(AX)                                                                 \
     {                                                                                     \
         REALV bx[FEATURES_BUF], by[FEATURES_BUF], bz[FEATURES_BUF], bd[FEATURES_BUF];     \
