@@ -316,7 +316,7 @@ def _warn_line(message, category, filename, lineno, file=None, line=None):
 
 def _glue_negative_axes(argv):
     """``--up -z`` as ``--up=-z``: argparse takes a value starting with '-' for an option
-    (the README spells the axes x, y, z, -x, -y, -z)."""
+    (docs/methods.md spells the axes x, y, z, -x, -y, -z)."""
     out = []
     for a in argv:
         if out and out[-1] == "--up" and a in ("-x", "-y", "-z"):

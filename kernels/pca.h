@@ -32,8 +32,8 @@
 
 /* status 2 (degenerate) when the middle eigenvalue is at most DEGENERATE_RATIO of the
  * largest: 1e-10 in double (as clcurv/reference.py), 1e-5 in float, where the sums resolve
- * the second direction of a thinner ball only to a few per cent (README, NaN policy: a
- * wire thinner than ~0.005 r is degenerate in float only) */
+ * the second direction of a thinner ball only to a few per cent (docs/methods.md, NaN
+ * policy: a wire thinner than ~0.005 r is degenerate in float only) */
 #if REAL_IS_DOUBLE
 #define DEGENERATE_RATIO 1e-10
 #else

@@ -238,7 +238,7 @@ def test_mls2_gaussian_kernel_and_projections_options(tmp_path):
 
 
 def test_render_up_takes_a_negative_axis_as_written():
-    """`--up -z` (the README's spelling) is the axis -z, not an unknown option -z."""
+    """`--up -z` (docs/methods.md's spelling) is the axis -z, not an unknown option -z."""
     from clcurv.cli import _glue_negative_axes, build_parser
     argv = ["render", "a.ply", "--field", "f", "--up", "-z", "-o", "a.png"]
     assert build_parser().parse_args(_glue_negative_axes(argv)).up == "-z"

@@ -213,7 +213,7 @@ def test_results_scale_with_the_cloud_over_the_radius_range(method, precision):
 # --------------------------------------------------------------------------- sparse MLS2
 
 def test_mls2_with_few_neighbours_matches_the_documented_bounds():
-    """The curvature docstring and the README: float32 MLS2 differs from the float64
+    """The curvature docstring and docs/methods.md: float32 MLS2 differs from the float64
     reference by up to ~0.15 / r with 6-9 neighbours (an interpolation), < 1e-4 / r from
     10 neighbours, and precision='double' removes the difference. A sparse sphere (R = 1,
     r = 0.09, counts 5-20): the errors in units of 1/r, per neighbour count.
