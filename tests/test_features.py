@@ -9,9 +9,10 @@ import clcurv
 from importlib import import_module
 F = import_module("clcurv.features")   # the module; clcurv.features is the function
 from clcurv.constants import DEGENERATE, OK, TOO_FEW
+from conftest import data_path
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-AUTZEN = DATA / "laspy_autzen_trim.laz"
+AUTZEN = data_path("laspy_autzen_trim.laz")      # shipped in tests/data too
 BUNNY = DATA / "stanford_bun_zipper.ply"
 
 #: jakteristics 0.6 names, eigenvectors aside (clcurv returns e3 only, as normals)
@@ -190,8 +191,7 @@ POSED32 = 0.01
 
 def _clouds32():
     """The synthetic scene and the bundled bunny (clcurv/data/bunny.ply: bun_zipper's
-    vertices in float32, metres; r = 2^-8 m, ~30 neighbours) always; Autzen when the shared
-    data are present."""
+    vertices in float32, metres; r = 2^-8 m, ~30 neighbours) and Autzen (tests/data)."""
     out = [pytest.param(None, 0.125, id="synthetic"),
            pytest.param(clcurv.data.sample_path(), 2.0 ** -8, id="bunny")]
     if AUTZEN.exists():

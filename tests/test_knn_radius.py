@@ -10,6 +10,7 @@ import clcurv
 from clcurv.constants import DEGENERATE, OK, TOO_FEW
 from clcurv.knn_radius import knn_radii
 from clcurv.reference_features import knn_radii as ref_knn_radii
+from conftest import data_path
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"      # when present
 
@@ -498,8 +499,8 @@ def _isolation_cases():
     rho = rng.pareto(1.2, 30000) + 1.0
     ang = rng.uniform(0, 2 * np.pi, 30000)
     yield np.c_[rho * np.cos(ang), rho * np.sin(ang), np.zeros(30000)]
-    autzen = DATA / "laspy_autzen_trim.laz"
-    if autzen.exists():
+    autzen = data_path("laspy_autzen_trim.laz")
+    if autzen is not None:
         yield clcurv.io.read(autzen).points
 
 

@@ -198,17 +198,15 @@ def test_bunny_sample(tmp_path):
 
 from clcurv import render as R  # noqa: E402
 from clcurv.render import figure  # noqa: E402
+from conftest import data_path  # noqa: E402
 
-AUTZEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "laspy_autzen_trim.laz"
+AUTZEN = data_path("laspy_autzen_trim.laz")      # shipped in tests/data too
 
 
 def tile():
-    """A LAS tile's points: the Autzen LAZ when present, else a synthetic aerial scene."""
-    if AUTZEN.exists():
-        import clcurv
-        return clcurv.io.read(AUTZEN).points
+    """A LAS tile's points: the Autzen LAZ (tests/data)."""
     import clcurv
-    return clcurv.shapes.aerial_scene(20_000)["points"]
+    return clcurv.io.read(AUTZEN).points
 
 
 def test_las_tile_leads_with_top_and_oblique_views():
@@ -272,12 +270,8 @@ def test_nan_points_are_drawn_beneath(tmp_path):
 
 def test_cli_render_las_and_up(tmp_path):
     """`clcurv render` on a LAS/LAZ file draws two views (top, oblique); --up y on the same
-    file draws the three object views. The Autzen LAZ of ../shared/data, else laspy's
-    simple.las shipped in tests/data (conftest.data_path)."""
-    from conftest import data_path
-    tile = AUTZEN if AUTZEN.exists() else data_path("laspy_simple.las")
-    if tile is None:
-        pytest.skip("no LAS tile: neither ../shared/data's Autzen LAZ nor laspy_simple.las")
+    file draws the three object views. The Autzen LAZ (tests/data)."""
+    tile = AUTZEN
     from clcurv.cli import main
     attrs = __import__("clcurv").io.read(tile).attributes
     field = "intensity" if "intensity" in attrs else next(iter(attrs))

@@ -10,6 +10,7 @@ import clcurv
 from tests.hostile import assert_same_las, las_dims
 from clcurv import tiled, tiled_job
 from clcurv.io._common import CorruptFileError
+from conftest import data_path
 
 laspy = pytest.importorskip("laspy")
 
@@ -437,11 +438,10 @@ def test_binary_ply_in_and_out_byte_for_byte(tmp_path):
         tiled.curvature_file(ascii_ply, tmp_path / "o.ply", 0.1, tile=1.0)
 
 
-AUTZEN = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data",
-                      "laspy_autzen_trim.laz")
+AUTZEN = str(data_path("laspy_autzen_trim.laz"))      # shipped in tests/data too
 
 
-@pytest.mark.skipif(not os.path.exists(AUTZEN), reason="../shared/data not present")
+@pytest.mark.skipif(not os.path.exists(AUTZEN), reason="the Autzen LAZ is not present")
 def test_a_real_aerial_scan_tiles_exactly(tmp_path):
     """The Autzen LAZ (110k points, feet, radius 6 for ~30 neighbours), two scale-space
     steps then MLS2 in 100-ft tiles: the in-memory output, bit for bit."""
