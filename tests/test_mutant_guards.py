@@ -52,3 +52,24 @@ def test_every_ball_of_a_multi_radius_walk_is_open(device):
     for m, g, f in zip((2, 3), got, ref):
         assert np.all(g.count[inner] == lattice_count(m)), (m, np.unique(g.count[inner]))
         np.testing.assert_array_equal(g.count, f.count)
+
+
+def test_scale_space_re_bins_when_a_point_drifted_past_the_margin(device):
+    """scale-space-drift: the device's drift |x' - B| (B: the positions the grid was binned
+    on) decides the re-binning; a drift under-reported lets points leave the cells that hold
+    their balls. On a unit sphere at r = 0.6 each MLS1 step moves points by ~0.17 r, well past
+    the MARGIN r = 0.1 r allowed between binnings: every step but the last re-bins, as the
+    drifts of the float64 iterates say."""
+    from clcurv.smoothing import MARGIN
+    pts = clcurv.shapes.sphere(4000, 1.0, seed=3)["points"]
+    r, steps = 0.6, 3
+    its, stats = clcurv.scale_space(pts, r, steps, return_iterates=True, return_stats=True,
+                                    device=device)
+    binned, want = its[0], 0
+    for it in its[1:steps]:                     # the last step never re-bins
+        d = np.linalg.norm(it - binned, axis=1).max() / r
+        assert not 0.8 * MARGIN < d < 1.25 * MARGIN, d      # clear of the threshold
+        if d > MARGIN:
+            want, binned = want + 1, it
+    assert want == steps - 1
+    assert stats["rebins"] == want
