@@ -537,11 +537,11 @@ def _radius_list(op, points, radius, kw):
     PCA normals from it (built as the moments kernel's normals pass, so the same bits), then
     orient them and run their covariance pass once per radius. Other cases run once per
     radius."""
-    from .features import _radii
+    from .features import as_radii
     if op.name not in MULTI_RADIUS_METHODS:
         raise ValueError(f"a list of radii is for methods {', '.join(MULTI_RADIUS_METHODS)} "
                          f"(and clcurv.features), not {op.name!r}")
-    radii, _ = _radii(radius)
+    radii, _ = as_radii(radius)
     points, cloud = _cloud_points(points)
     if kw["backend"] == "opencl" and cloud is None and len(as_points(points)):
         from .cloud import DeviceCloud

@@ -266,7 +266,7 @@ def radius_suffix(r):
     return "_r" + np.format_float_positional(float(r), trim="-")
 
 
-def _radii(radius):
+def as_radii(radius):
     """(list of float radii, multi) from a number or a sequence of numbers."""
     from .validate import as_radius
     if np.ndim(radius) == 0:
@@ -355,7 +355,7 @@ def features(points, radius=None, features=DEFAULT_FEATURES, *, k=None, ddof=0, 
     if radius is None:
         raise ValueError("features needs radius= (a number, a list of numbers or 'knn:K') "
                          "or k=")
-    radii, multi = _radii(radius)
+    radii, multi = as_radii(radius)
     if optimal:
         if not multi or len(radii) < 2:
             raise ValueError("optimal=True needs a list of at least two radii to choose from, "
@@ -365,7 +365,7 @@ def features(points, radius=None, features=DEFAULT_FEATURES, *, k=None, ddof=0, 
         _warn_sparse(res)
         return _finish(res, up)
     if len(pts) == 0:
-        out = [_empty(names, r, ddof) for r in radii]
+        out = [empty_features(names, r, ddof) for r in radii]
     elif backend == "numpy":
         from . import reference_features as ref
         out = [FeatureResult(r, *ref.features(pts, r, names, ddof=ddof), ddof=ddof)
@@ -399,7 +399,7 @@ def _parse_knn(spec, k):
 def _knn_features(pts, k, names, ddof, device, precision, backend):
     from .knn_radius import check_k, knn_radii
     if len(pts) == 0:
-        return _empty(names, np.empty(0), ddof)
+        return empty_features(names, np.empty(0), ddof)
     check_k(k, len(pts))
     if backend == "numpy":
         from . import reference_features as ref
@@ -418,7 +418,7 @@ def _optimal_features(pts, cloud, radii, names, ddof, device, precision, backend
     """The FeatureResult of features(optimal=True) (clcurv.optimal) for sorted ``radii``."""
     from . import optimal as opt
     if len(pts) == 0:
-        res = _empty(names, np.empty(0), ddof)
+        res = empty_features(names, np.empty(0), ddof)
         res.info.update(radii=radii, optimal_index=np.empty(0, np.intp))
         return res
     if backend == "numpy":
@@ -457,7 +457,7 @@ def _warn_sparse(res):
                       f"neighbours within {where}", RuntimeWarning, stacklevel=3)
 
 
-def _empty(names, radius, ddof):
+def empty_features(names, radius, ddof):
     vals = {n: np.empty((0, FEATURES[n].width) if FEATURES[n].width > 1 else 0)
             for n in names}
     return FeatureResult(radius, vals, np.empty(0, np.int64), np.empty(0, np.uint8), ddof)

@@ -42,7 +42,7 @@ def _copies(cloud, buffers):
     return out
 
 
-class _DeviceState:
+class DeviceState:
     """One binning of the current positions, with ping-pong and displacement buffers (whole
     cloud, on the device) and the drift of one chunk of sorted points at a time."""
 
@@ -210,7 +210,7 @@ def scale_space(points, radius, steps, *, weights="uniform", return_iterates=Fal
         return done(iterates if return_iterates else pts.copy())
     disp = np.zeros_like(pts)
     density = weights == "density"
-    state = _DeviceState(pts, disp, r, device, precision, density)
+    state = DeviceState(pts, disp, r, device, precision, density)
     stats.update(rebins=0, binning=state.cloud.timings["binning"], steps=0.0, plan=state.plan)
     for it in range(steps):
         t = time.perf_counter()
@@ -225,7 +225,7 @@ def scale_space(points, radius, steps, *, weights="uniform", return_iterates=Fal
                 iterates.append(pts + disp)
         if not last and drift > MARGIN * r:
             state = None                    # its device memory goes before the next binning
-            state = _DeviceState(pts, disp, r, device, precision, density)
+            state = DeviceState(pts, disp, r, device, precision, density)
             stats["rebins"] += 1
             stats["plan"] = state.plan
             stats["binning"] += state.cloud.timings["binning"]

@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from . import io
-from .features import DEFAULT_FEATURES, _empty, _radii, canonical_names, radius_suffix
+from .features import (DEFAULT_FEATURES, as_radii, canonical_names, empty_features,
+                       radius_suffix)
 from .io import stream
 from .tiling import (TILE_BYTES_PER_POINT, TilingError, budget_of, check_tile_size,
                      fits_memory)
@@ -99,9 +100,9 @@ class FeatureParams:
     def specs(self, wanted=None):
         """(name, width, dtype) of the written fields, in the in-memory file's order."""
         if self.several:
-            res = [_empty(self.names, r, self.ddof) for r in self.radii]
+            res = [empty_features(self.names, r, self.ddof) for r in self.radii]
         else:
-            res = _empty(self.names, np.empty(0) if self.optimal else self.radius, self.ddof)
+            res = empty_features(self.names, np.empty(0) if self.optimal else self.radius, self.ddof)
         fields, normals = self._fields_of(res)
         specs = [(name, None, np.float64) for name in fields]
         if normals is not None:
@@ -191,7 +192,7 @@ def features_file(src, dst, radius=None, features=DEFAULT_FEATURES, *, k=None, d
         return _in_memory(src, dst, None, names, k, ddof, False, device, precision)
     if radius is None:
         raise ValueError("features_file needs radius= (a number or a list) or k=")
-    radii, _ = _radii(radius)
+    radii, _ = as_radii(radius)
     if optimal and len(radii) < 2:
         raise ValueError(f"optimal=True needs a list of at least two radii, got {radius!r}")
     params = FeatureParams(tuple(radii), names, int(ddof), bool(optimal), device, precision)

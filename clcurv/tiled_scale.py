@@ -144,7 +144,7 @@ def _parts(ws, step):
 def step_tile(task):
     """One scale-space step of tile ``task.t``: its own points' new state rows go to part
     files (one per bucket they belong to); returns (t, largest drift of its points)."""
-    from .smoothing import _DeviceState
+    from .smoothing import DeviceState
     from .buckets import Buckets
     from .memory import release_memory
     from .tiled import _worker_device
@@ -165,7 +165,7 @@ def step_tile(task):
     if own.any():
         device = _worker_device(task.device)
         ping = None if task.fresh else rec["it"]
-        st = _DeviceState(rec["pb"], np.zeros_like(rec["pb"]), task.radius, device,
+        st = DeviceState(rec["pb"], np.zeros_like(rec["pb"]), task.radius, device,
                           task.precision, task.density, frame=tiling.frame,
                           iterate=(ping, rec["d"]))
         drifts = np.zeros(len(rec))

@@ -117,7 +117,7 @@ def test_the_scale_space_case_re_bins(scene, tmp_path, monkeypatch):
     path = write_scene(pts, np.full(len(pts), 2, np.uint8), tmp_path / "dome.las")
     done, mem_rebins = [0], []
 
-    class Spy(smoothing._DeviceState):      # a new binning after step done[0] - 1
+    class Spy(smoothing.DeviceState):      # a new binning after step done[0] - 1
         def __init__(self, *a, **kw):
             if done[0]:
                 mem_rebins.append(done[0] - 1)
@@ -127,10 +127,10 @@ def test_the_scale_space_case_re_bins(scene, tmp_path, monkeypatch):
             done[0] += 1
             return super().step(*a, **kw)
 
-    real = smoothing._DeviceState
-    monkeypatch.setattr(smoothing, "_DeviceState", Spy)
+    real = smoothing.DeviceState
+    monkeypatch.setattr(smoothing, "DeviceState", Spy)
     iterates, stats = clcurv.scale_space(pts, R, 5, return_iterates=True, return_stats=True)
-    monkeypatch.setattr(smoothing, "_DeviceState", real)    # (the tiles make their own)
+    monkeypatch.setattr(smoothing, "DeviceState", real)    # (the tiles make their own)
     assert done[0] == 5 and len(mem_rebins) == stats["rebins"]
     assert 1 <= len(mem_rebins) < 4                          # some steps re-bin, some not
 
