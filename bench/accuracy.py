@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from clcurv.operators import OPERATORS
+from clcurv.ops.registry import OPERATORS
 
 from .harness import cap_interior
 from .ops import NORMAL_OPS

@@ -14,7 +14,7 @@ seconds long, took some runs' every round; the pairs' 21 rounds add about half a
 - the feature set (DEFAULT_FEATURES, jakteristics' list) vs clcurv.normals(orient=None):
   target <= 1.2x;
 - three radii (r / sqrt 2, r, r sqrt 2) in one walk vs three separate calls: target <= 0.6x;
-- the k-NN radius pass (K = 30, clcurv.knn_radius.knn_radii, binning included) vs one
+- the k-NN radius pass (K = 30, clcurv.ops.knn_radius.knn_radii, binning included) vs one
   moments pass (curvature(method='variation', orient=None), binning included): target <=
   1.5x;
 - jakteristics.compute_features (same features, 2 threads, k-d tree included) and PDAL's
@@ -35,7 +35,7 @@ import time
 import numpy as np
 
 import clcurv
-from clcurv.knn_radius import knn_radii
+from clcurv.ops.knn_radius import knn_radii
 
 from .contention import describe_threads, thread_check
 from .harness import (REPO, environment, log, make_clouds, mpts, paired_rounds, radius_for,
@@ -70,7 +70,7 @@ def _bench_pdal(pts, r):
 _PEAK_RSS = """
 import json, math, sys, time
 import clcurv
-from clcurv.knn_radius import knn_radii
+from clcurv.ops.knn_radius import knn_radii
 from bench.harness import make_clouds, radius_for
 n, what = int(sys.argv[1]), sys.argv[2]
 def status_mb(key):
@@ -235,7 +235,7 @@ def report(res):
               f"download {sp['features_download']:.0f} ms; normals kernel "
               f"{sp['normals_kernel']:.0f} ms, download {sp['normals_download']:.0f} ms"]
     st = res["knn_stages"]
-    binnings = ("one binning: a tight cloud, clcurv.knn_radius._tight"
+    binnings = ("one binning: a tight cloud, clcurv.ops.knn_radius._tight"
                 if len(res["knn_levels"]) == 1 else
                 "a level binned ahead on a worker thread where the cloud is not tight")
     lines += [f"k-NN radius cells binned: {', '.join(f'{c:.4g}' for c in res['knn_levels'])}"

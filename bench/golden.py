@@ -51,8 +51,8 @@ def results():
     _arrays("mls2.gauss", clcurv.curvature(pts, 0.12, method="mls2", kernel="gaussian",
                                            h=0.05, projections=2), out)
     _arrays("mls2.scale_space", clcurv.curvature(pts, 0.12, method="mls2", scale_space=2), out)
-    _arrays("scene.mls2", clcurv.curvature(scene, 0.125, method="mls2", orient="up"), out)
-    _arrays("scene.mst", clcurv.curvature(scene, 0.125, method="mls1", orient="mst"), out)
+    _arrays("scene.mls2", clcurv.curvature(scene, 2.0, method="mls2", orient="up"), out)
+    _arrays("scene.mst", clcurv.curvature(scene, 2.0, method="mls1", orient="mst"), out)
     _arrays("scale_space", clcurv.scale_space(pts, 0.06, 3), out)
     _arrays("normals", clcurv.normals(pts, 0.12), out)
     _arrays("normals.knn", clcurv.normals(pts, k=20), out)
@@ -66,14 +66,14 @@ def results():
         src = Path(tmp) / "scene.npy"
         np.save(src, scene)
         for name, call in (
-                ("tiled.mls2", lambda o: clcurv.curvature_file(src, o, 0.125, method="mls2",
-                                                               tile=1.5)),
-                ("tiled.mst", lambda o: clcurv.curvature_file(src, o, 0.125, method="mls1",
-                                                              orient="mst", tile=1.5)),
+                ("tiled.mls2", lambda o: clcurv.curvature_file(src, o, 2.0, method="mls2",
+                                                               tile=30.0)),
+                ("tiled.mst", lambda o: clcurv.curvature_file(src, o, 2.0, method="mls1",
+                                                              orient="mst", tile=30.0)),
                 ("tiled.scale_space", lambda o: clcurv.curvature_file(
-                    src, o, 0.125, method="mls1", scale_space=2, tile=1.5)),
-                ("tiled.features", lambda o: clcurv.features_file(src, o, [0.1, 0.15], "all",
-                                                                  tile=1.5))):
+                    src, o, 2.0, method="mls1", scale_space=2, tile=30.0)),
+                ("tiled.features", lambda o: clcurv.features_file(src, o, [1.5, 2.5], "all",
+                                                                  tile=30.0))):
             dst = Path(tmp) / f"{name}.npz"
             call(dst)
             with np.load(dst) as z:

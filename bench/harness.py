@@ -16,7 +16,7 @@ from scipy.spatial import cKDTree
 
 import clcurv
 from clcurv import shapes
-from clcurv.grid import bin_points
+from clcurv.grid.binning import bin_points
 
 REPO = Path(__file__).resolve().parent.parent
 

@@ -1,5 +1,5 @@
 """The clcurv measurements on one OpenCL device: stages, end to end per registered operator,
-each operator kernel alone (``cloud.timings`` of :func:`clcurv.driver.run_kernel`), the MLS1
+each operator kernel alone (``cloud.timings`` of :func:`clcurv.ops.driver.run_kernel`), the MLS1
 scale space and the pipeline; then the accuracy checks of those runs."""
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ import json
 import math
 
 import clcurv
-from clcurv.cloud import DeviceCloud
-from clcurv.driver import run_kernel
-from clcurv.operators import OPERATORS, PCA
+from clcurv.grid.cloud import DeviceCloud
+from clcurv.ops.driver import run_kernel
+from clcurv.ops.registry import OPERATORS, PCA
 
 from .accuracy import check_against_reference, check_ops, check_scale_space
 from .harness import cap_interior, log, paired, run_python, timed, timeit
@@ -23,8 +23,8 @@ STAGES = ("binning", "upload", "build", "cell_ranges", BUILD_PCA, KERNEL_PCA, "d
 
 _COLD_BUILD = r"""
 import sys, time, clcurv
-from clcurv.operators import PCA
-from clcurv.program import build, precision_defines
+from clcurv.ops.registry import PCA
+from clcurv.runtime.program import build, precision_defines
 dev = clcurv.get_device(int(sys.argv[1]))
 d = precision_defines(dev, "float")
 t0 = time.perf_counter(); build(dev, "grid.cl", d); t1 = time.perf_counter()
@@ -188,7 +188,7 @@ def clcurv_label(index, cid):
 
 
 def device_record(info):
-    from clcurv.program import tuning
+    from clcurv.runtime.program import tuning
     return {"index": info.index, "name": info.name, "platform": info.platform, "kind": info.kind,
             "driver": info.driver, "version": info.version, "compute_units": info.compute_units,
             "tuning": tuning(clcurv.get_device(info.index))}

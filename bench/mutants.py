@@ -17,7 +17,7 @@ Each mutant runs in its own scratch copy: the files of HEAD (``git archive``; wi
 --worktree the tracked files of the working tree) in a temporary directory, ``shared`` next
 to it linked to the repository's ``../shared`` (the tests' optional data), the mutation
 applied, and ``python -m pytest -x -n 2`` run there with the copy first on PYTHONPATH:
-``import clcurv`` and its kernel lookup (clcurv/program.py: kernels_dir) take the copy,
+``import clcurv`` and its kernel lookup (clcurv/runtime/program.py: kernels_dir) take the copy,
 which is checked before the suite runs. The test files run in a fixed order, the fast ones
 that compare the kernels with the float64 reference and the analytic values first (FIRST);
 -x stops at the first failure, so a caught mutant costs a minute or two and a survivor the
@@ -242,38 +242,38 @@ MUTANTS = (
       "drift[g - first] = length(q - (REAL3)(BX[g], BY[g], BZ[g]));",
       "drift[g - first] = (REAL)0.5 * length(q - (REAL3)(BX[g], BY[g], BZ[g]));",
       "the drift since the last binning halved (the re-binning comes late)"),
-    # ---- host finishing: clcurv/operators.py -------------------------------------------
-    M("mls0-mean-sign", "clcurv/operators.py", "sign flip",
+    # ---- host finishing: clcurv/ops/registry.py -------------------------------------------
+    M("mls0-mean-sign", "clcurv/ops/registry.py", "sign flip",
       'mean = -4.0 * np.einsum("ij,ij->i", shift, nref) / (r * r)',
       'mean = 4.0 * np.einsum("ij,ij->i", shift, nref) / (r * r)',
       "MLS0's H = 4 <p - o, n> / r^2 with the sign flipped"),
-    M("mls1-mean-normalisation", "clcurv/operators.py", "normalisation",
+    M("mls1-mean-normalisation", "clcurv/ops/registry.py", "normalisation",
       "mean=-4.0 * along / (r * r)", "mean=-2.0 * along / (r * r)",
       "MLS1's H = 2 <p - p', n> / r^2 instead of 4 <...> / r^2"),
-    M("mls1-projection-sign", "clcurv/operators.py", "sign flip",
+    M("mls1-projection-sign", "clcurv/ops/registry.py", "sign flip",
       "points=pts + along[:, None] * n)", "points=pts - along[:, None] * n)",
       "MLS1's projection p' moved away from the plane"),
-    M("flip-mls2-order", "clcurv/operators.py", "sign flip",
+    M("flip-mls2-order", "clcurv/ops/registry.py", "sign flip",
       'raw["k1"][m], raw["k2"][m] = -k2, -k1', 'raw["k1"][m], raw["k2"][m] = -k1, -k2',
       "flipping an MLS2 normal negates k1, k2 without swapping them (k1 < k2)"),
-    M("flip-mls2-dirs", "clcurv/operators.py", "sign flip",
+    M("flip-mls2-dirs", "clcurv/ops/registry.py", "sign flip",
       'raw["dir1"][m], raw["dir2"][m] = d2, d1', 'raw["dir1"][m], raw["dir2"][m] = d1, d2',
       "flipping an MLS2 normal keeps dir1, dir2 (not swapped with k1, k2)"),
-    M("mls2-mean-normalisation", "clcurv/operators.py", "normalisation",
+    M("mls2-mean-normalisation", "clcurv/ops/registry.py", "normalisation",
       '"mean": 0.5 * (k1 + k2)', '"mean": (k1 + k2)',
       "MLS2's mean curvature k1 + k2 instead of (k1 + k2) / 2"),
-    # ---- orientation: clcurv/orient.py -----------------------------------------------------
-    M("viewpoint-sign", "clcurv/orient.py", "sign flip",
+    # ---- orientation: clcurv/orient/orientation.py -----------------------------------------------------
+    M("viewpoint-sign", "clcurv/orient/orientation.py", "sign flip",
       "return _negative(_rowdot(n, v - p))", "return _negative(_rowdot(n, p - v))",
       "normals turned away from the viewpoint"),
-    M("reference-sign", "clcurv/orient.py", "sign flip",
+    M("reference-sign", "clcurv/orient/orientation.py", "sign flip",
       "return _negative(_rowdot(n, ref))", "return _negative(-_rowdot(n, ref))",
       "normals turned against the reference normals / direction"),
-    M("device-vote-sign", "clcurv/orient.py", "sign flip",
+    M("device-vote-sign", "clcurv/orient/orientation.py", "sign flip",
       "flip = fo.parity ^ (_one_vote(cloud.points, n, fo.parity) < 0)",
       "flip = fo.parity ^ (_one_vote(cloud.points, n, fo.parity) > 0)",
       "a single-component MST orientation turned inward"),
-    M("components-vote-sign", "clcurv/orient.py", "sign flip",
+    M("components-vote-sign", "clcurv/orient/orientation.py", "sign flip",
       "    flip = vote < 0\n    big = ", "    flip = vote > 0\n    big = ",
       "several components each turned towards their centroid (inward)"),
 )
@@ -284,7 +284,7 @@ SENTINELS = (
     M("sentinel-kernel", "kernels/common.h", "sentinel",
       "#define CAT_(a, b) a##b", '#error "bench.mutants: sentinel"\n#define CAT_(a, b) a##b',
       "every kernel build fails"),
-    M("sentinel-host", "clcurv/operators.py", "sentinel",
+    M("sentinel-host", "clcurv/ops/registry.py", "sentinel",
       "def _finish_mls1(raw, pts, r, n, user):\n",
       "def _finish_mls1(raw, pts, r, n, user):\n    raise RuntimeError('bench.mutants: sentinel')\n",
       "MLS1's finishing step raises"),
@@ -365,7 +365,7 @@ def env_for(repo):
 def check_copy_is_used(repo):
     """``import clcurv`` and its kernels must come from the copy."""
     out = subprocess.run(
-        [sys.executable, "-c", "import clcurv, clcurv.program as p; "
+        [sys.executable, "-c", "import clcurv, clcurv.runtime.program as p; "
          "print(clcurv.__file__); print(p.kernels_dir())"],
         cwd=repo, env=env_for(repo), capture_output=True, text=True)
     lines = out.stdout.split()

@@ -1,9 +1,9 @@
-"""Which operators the bench times, read from the registry (clcurv.operators): a newly
+"""Which operators the bench times, read from the registry (clcurv.ops.registry): a newly
 registered operator is timed, checked and tabulated without touching the bench; and the
 public calls of the bench's lead table (:func:`call`)."""
 import clcurv
-from clcurv.api import _orientation
-from clcurv.operators import OPERATORS
+from clcurv.api.curvature import _orientation
+from clcurv.ops.registry import OPERATORS
 
 _ORIENT_NONE = "_orient_none"
 
@@ -76,6 +76,6 @@ def call_text(row, variant="default"):
 
 def default_orientation(row):
     """What the default orient='auto' does for a row given neither normals nor a viewpoint
-    (clcurv.api's own rule): 'mst' (Hoppe's propagation on the device) or None."""
+    (clcurv.api.curvature's own rule): 'mst' (Hoppe's propagation on the device) or None."""
     signed = True if row in ("normals", "pipeline") else OPERATORS[row].signed
     return _orientation("auto", None, None, signed)

@@ -8,8 +8,9 @@ import time
 import numpy as np
 
 import clcurv
-from clcurv import orient, reference
-from clcurv.operators import OPERATORS, PCA
+from clcurv.orient import orientation as orient
+from clcurv.reference import operators as reference
+from clcurv.ops.registry import OPERATORS, PCA
 
 from .harness import device_coordinates, mpts, radius_for, timed, timeit
 from .ops import HEADLINE, NORMAL_OPS
@@ -149,7 +150,7 @@ def bench_variation_pairs(o3d, clouds, r, device, repeats=VARIATION_PAIRS):
 
 #: the orientation graph's neighbour count (clcurv's default orient_k; Open3D's argument)
 ORIENT_K = 10
-#: the stages of clcurv.orient.flip_on_device, in its cloud.timings
+#: the stages of clcurv.orient.orientation.flip_on_device, in its cloud.timings
 ORIENT_STAGES = ("orient_graph", "orient_forest", "orient_signs")
 
 
@@ -167,13 +168,13 @@ def oriented(nrm, flip):
 def bench_orientation(o3d, clouds, host_points, device, repeats):
     """Orientation alone (Hoppe, k = ORIENT_K nearest within the radius of ~30 neighbours) of
     the unoriented normals (clcurv.normals, orient=None) of each cloud ({n: points}):
-    clcurv.orient.flip_on_device on a DeviceCloud binned beforehand (min of ``repeats`` runs
+    clcurv.orient.orientation.flip_on_device on a DeviceCloud binned beforehand (min of ``repeats`` runs
     after a warm-up; its stage times from the fastest run), then one run of its stages by
-    hand for the forest's rounds (clcurv.graph.knn_graph, clcurv.forest.spanning_forest).
+    hand for the forest's rounds (clcurv.orient.graph.knn_graph, clcurv.orient.forest.spanning_forest).
     On the cloud of ``host_points`` also the host reference flip_by_propagation (same graph;
     min of 2) and Open3D's orient_normals_consistent_tangent_plane(ORIENT_K) (one run)."""
-    from clcurv import forest, graph
-    from clcurv.cloud import DeviceCloud
+    from clcurv.orient import forest, graph
+    from clcurv.grid.cloud import DeviceCloud
     out = {"k": ORIENT_K, "device": device, "sizes": {}}
     for n, pts in sorted(clouds.items()):
         r = radius_for(30, n)

@@ -1,6 +1,6 @@
-"""Timings of the float64 host code: the reference's moments (clcurv.reference.moments) and
-the two host orientations, clcurv.orient.flip_by_propagation (the device forest's host
-twin) and clcurv.reference.mst_flips (the numpy backend's own), on a sphere and on the
+"""Timings of the float64 host code: the reference's moments (clcurv.reference.operators.moments) and
+the two host orientations, clcurv.orient.orientation.flip_by_propagation (the device forest's host
+twin) and clcurv.reference.operators.mst_flips (the numpy backend's own), on a sphere and on the
 shapes of tests/test_reference.py's orientation cases.
 
 Run from the repository root::
@@ -20,7 +20,9 @@ import argparse
 
 import numpy as np
 
-from clcurv import orient, reference, shapes
+from clcurv.orient import orientation as orient
+from clcurv.reference import operators as reference
+from clcurv import shapes
 
 from .harness import timeit
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from clcurv.operators import OPERATORS
+from clcurv.ops.registry import OPERATORS
 
 from .accuracy import SS_HOPS, tolerance
 from .contention import describe_threads
@@ -349,7 +349,7 @@ LEAD_NOTE = (
 
 
 def tuning_text(d):
-    """'VW 8, masked sums, work-groups 128' (clcurv.program.tuning: chosen per device from
+    """'VW 8, masked sums, work-groups 128' (clcurv.runtime.program.tuning: chosen per device from
     queries)."""
     t = d.get("tuning")
     if not t:
@@ -387,7 +387,7 @@ def orientation_rows(o):
     col = lambda f: [f(x) for x in S]
     opt = lambda key, f: [f(x) if key in x else "" for x in S]
     rows = [("radius (~30 neighbours)", col(lambda x: f"{x['radius']:.5f}")),
-            (f"clcurv.orient.flip_on_device (k={o['k']}), M pts/s (ms)",
+            (f"clcurv.orient.orientation.flip_on_device (k={o['k']}), M pts/s (ms)",
              col(lambda x: f"{x['mpts']:.2f} ({ms(x['seconds'])})")),
             ("  k-NN graph (orient_graph), ms", col(lambda x: ms(x["stages"]["orient_graph"]))),
             ("  spanning forest (orient_forest), ms",
@@ -418,7 +418,7 @@ ORIENT_NOTE = (
     "Orientation alone: the unoriented PCA normals (normals(P, r, orient=None)) of the bench "
     "sphere oriented on a DeviceCloud binned beforehand (binning not included), min of the "
     "repeats after a warm-up; stage times of the fastest run; the forest's rounds from one "
-    "more run of clcurv.graph.knn_graph + clcurv.forest.spanning_forest. The host reference "
+    "more run of clcurv.orient.graph.knn_graph + clcurv.orient.forest.spanning_forest. The host reference "
     "builds the same graph (k nearest within the radius) in float64.")
 
 

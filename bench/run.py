@@ -15,13 +15,13 @@ minimum of ``--repeats`` runs after an untimed warm-up (so program builds are ca
 where the table says otherwise.
 
 Measured, per device, size and neighbour count, first what a user gets from the default
-call: every operator of the registry (``clcurv.operators``) as ``curvature(P, r, method=m)``,
+call: every operator of the registry (``clcurv.ops.registry``) as ``curvature(P, r, method=m)``,
 ``normals(P, r)`` and the paper's pipeline ``curvature(P, r, method="mls2", scale_space=5)``,
 each with its default arguments (orient='auto': signed methods orient their PCA normals on
 the device, unsigned ones do not orient), with ``orient=None`` and with the exact normals
 (``normals=``), end to end; at sizes >= ``--rss-min-points`` (1M) the peak RSS of each default
 call (a fresh process running it once). Then orientation alone at every size and at
-``--orient-points`` (100k): ``clcurv.orient.flip_on_device`` split into the k-NN graph, the
+``--orient-points`` (100k): ``clcurv.orient.orientation.flip_on_device`` split into the k-NN graph, the
 Boruvka rounds and the signs, against the host reference ``flip_by_propagation`` (same
 graph) and Open3D ``orient_normals_consistent_tangent_plane(10)`` at 100k, with the outward
 fraction of each. Then the detail: the stages of one moments run, each kernel alone
@@ -116,7 +116,7 @@ def bench_devices():
     only the one ``CLCURV_DEVICE`` names (``CLCURV_DEVICE=gpu make bench``)."""
     infos = clcurv.devices()
     if not infos:
-        raise SystemExit("no OpenCL device: " + clcurv.device.APT_HINT)
+        raise SystemExit("no OpenCL device: " + clcurv.runtime.device.APT_HINT)
     if os.environ.get("CLCURV_DEVICE"):
         return [infos[clcurv.get_device().info.index]]
     real = [d for d in infos if not d.simulator]

@@ -5,7 +5,7 @@ Kept out of the package on purpose: an installed clcurv has no use for them. Pla
 only (no imports), so that a test can import this module cheaply.
 
 Accuracy tolerances bound float32 kernels against the float64 NumPy reference
-(clcurv.reference) on the points whose neighbour counts agree with the reference's (float32
+(clcurv.reference.operators) on the points whose neighbour counts agree with the reference's (float32
 may put a neighbour at distance ~r on the other side of the ball). The tests assert them on
 15k-200k-point clouds, mostly on the worst point; the bench, on the polar cap of a
 whole-cloud run, on the 99.9th percentile (equal counts do not guarantee equal neighbour
@@ -44,7 +44,7 @@ DEFAULT_VARIATION_VS_OPEN3D = 10.0
 # curvature(P, r, method="mls2", scale_space=5) with default arguments (the scale space, the
 # PCA normals, their orientation on the device, MLS2) end to end, seconds at ~30 neighbours, at most
 PIPELINE_DEFAULT_MAX_S = 1.5
-# orientation alone (clcurv.orient.flip_on_device: k-NN graph, spanning forest, signs; the
+# orientation alone (clcurv.orient.orientation.flip_on_device: k-NN graph, spanning forest, signs; the
 # cloud binned beforehand), M points/s, at least
 ORIENT_MPTS = 2.0
 # moments kernel alone (lambda_0 refined), M points/s at ~30 neighbours, at least

@@ -1,4 +1,4 @@
-"""Bench of the tiled engine (clcurv.tiled) on a synthetic aerial LAZ scene.
+"""Bench of the tiled engine (clcurv.tiles.engine) on a synthetic aerial LAZ scene.
 
     python -m bench.tiled --points 10e6 --memory 1GiB [--points 40e6 ...] [--in-memory]
 
@@ -33,7 +33,7 @@ RADIUS = 0.6                 # about 30 neighbours at ~100 points / m^2 on the t
 def make_scene(path, n, seed=0):
     """Write a LAZ of about ``n`` points (blocks of aerial_scene side by side)."""
     import laspy
-    from clcurv.shapes import aerial_scene
+    from clcurv.data.shapes import aerial_scene
     blocks = max(1, round(n / BLOCK))
     side = math.ceil(math.sqrt(blocks))
     hdr = laspy.LasHeader(point_format=3, version="1.2")
@@ -55,7 +55,7 @@ def make_scene(path, n, seed=0):
 
 def run_cli(args):
     """(wall seconds, peak RSS bytes, stdout) of ``clcurv`` ``args`` in a child process."""
-    cmd = ["/usr/bin/time", "-f", "MAXRSS %M", sys.executable, "-m", "clcurv.cli", *args]
+    cmd = ["/usr/bin/time", "-f", "MAXRSS %M", sys.executable, "-m", "clcurv.cli.main", *args]
     t = time.perf_counter()
     p = subprocess.run(cmd, capture_output=True, text=True)
     wall = time.perf_counter() - t

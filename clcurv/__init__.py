@@ -4,18 +4,19 @@
 Reference: J. Digne, J.-M. Morel, *Numerical analysis of differential operators on raw point
 clouds*, Numerische Mathematik 127 (2014), DOI 10.1007/s00211-013-0584-y.
 """
-from .api import curvature, normals, project
-from .features import features, FeatureResult
-from .operators import METHODS, OPERATORS
-from .smoothing import scale_space
-from .tiled import curvature_file
-from .tiled_features import features_file
-from .cloud import DeviceCloud
-from .memory import release_memory
-from .device import devices, get_device, NoDeviceError
-from .program import BuildError, PrecisionError
-from .result import CurvatureResult
-from . import data, io, render, shapes
+from clcurv.api.curvature import curvature, normals, project
+from clcurv.api.features import features, FeatureResult
+from clcurv.ops.registry import METHODS, OPERATORS
+from clcurv.ops.smoothing import scale_space
+from clcurv.tiles.engine import curvature_file
+from clcurv.tiles.features import features_file
+from clcurv.grid.cloud import DeviceCloud
+from clcurv.runtime.memory import release_memory
+from clcurv.runtime.device import devices, get_device, NoDeviceError
+from clcurv.runtime.program import BuildError, PrecisionError
+from clcurv.api.result import CurvatureResult
+from clcurv import data, io, render
+from clcurv.data import shapes
 
 __version__ = "0.1.0"
 __all__ = ["curvature", "normals", "project", "features", "FeatureResult", "scale_space", "METHODS", "OPERATORS",

@@ -55,8 +55,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import atomic_output, check_output
-from .operators import OPERATORS, signed_file_fields
+from clcurv.io import atomic_output, check_output
+from clcurv.ops.registry import OPERATORS, signed_file_fields
 
 __all__ = ["render", "figure", "check_image_output", "MissingMatplotlibError", "VIEWS",
            "SIGNED_FIELDS", "IMAGE_FORMATS", "up_axis", "default_views", "field_unit"]
@@ -84,12 +84,12 @@ _RADIUS_SUFFIX = re.compile(r"^(.+)_r[0-9.eE+-]+$")
 
 def field_unit(name):
     """The unit of a field that clcurv writes, for the colour-bar label: the registry's
-    (:mod:`clcurv.operators` outputs, e.g. ``"1/length"`` for ``mean_curvature``,
-    ``"1/length^2"`` for ``gaussian_curvature``; :data:`clcurv.features.FEATURES`, also with
+    (:mod:`clcurv.ops.registry` outputs, e.g. ``"1/length"`` for ``mean_curvature``,
+    ``"1/length^2"`` for ``gaussian_curvature``; :data:`clcurv.api.features.FEATURES`, also with
     a ``_r<radius>`` suffix, e.g. ``"length^2"`` for ``eigenvalue_sum``), ``""`` for a
     dimensionless field (planarity, directions, counts, statuses), None for a name clcurv
     does not write (a field of another tool: its unit is unknown)."""
-    from .features import FEATURES
+    from clcurv.api.features import FEATURES
     for op in OPERATORS.values():
         for o in op.outputs:
             if name in o.file_fields() or name == o.name:

@@ -1,9 +1,9 @@
 /* common.h -- precision and vector-width macros shared by every clcurv kernel.
  *
- * Build options (set by clcurv/program.py, never by editing a kernel):
+ * Build options (set by clcurv/runtime/program.py, never by editing a kernel):
  *   -D REAL_IS_DOUBLE=0|1   scalar type REAL = float or double (double needs cl_khr_fp64)
  *   -D VW=2|4|8|16          width of the explicit vectors used in neighbour loops
- * and the host's constants, defined once in clcurv/constants.py (kernel_defines): PAD,
+ * and the host's constants, defined once in clcurv/_shared/constants.py (kernel_defines): PAD,
  * RECORD_WIDTH, CELL_BITS, CELL_MASK, the status codes ST_* and the minimum neighbour
  * counts MIN_COUNT_PCA, MIN_COUNT_MLS2. No kernel defines or defaults any of them.
  */
@@ -14,7 +14,7 @@
     || !defined(CELL_BITS) || !defined(CELL_MASK) || !defined(ST_OK) || !defined(ST_TOO_FEW) \
     || !defined(ST_DEGENERATE) || !defined(ST_SINGULAR) || !defined(MIN_COUNT_PCA) \
     || !defined(MIN_COUNT_MLS2)
-#error "clcurv kernels take their constants from the host: build them with clcurv.program.build"
+#error "clcurv kernels take their constants from the host: build them with clcurv.runtime.program.build"
 #endif
 
 #define CAT_(a, b) a##b
@@ -52,7 +52,7 @@
  * the point's input index (or its place in a chunk, REC_INDEX): one cache line per point in
  * float32, where a scattered store per
  * output array costs a cache miss each. records.cl:split_records turns them into per-field
- * arrays. The columns are the operator's (clcurv/operators.py), given as -D COL_<FIELD>
+ * arrays. The columns are the operator's (clcurv/ops/registry.py), given as -D COL_<FIELD>
  * options holding the field's REAL16 component selector (COL_NORMALS=s012, COL_COUNT=sa):
  * a record is a REAL16 value written by swizzles, which stays in registers (a private
  * array indexed by column numbers cost 10-30% of the kernels under PoCL). Integer fields
@@ -105,14 +105,14 @@
     acc = CAT(as_, REALV)(CAT(as_, IREALV)(acc) - (m));
 #define COUNT_TOTAL(acc) ((REAL)hsum_i(CAT(as_, IREALV)(acc)))
 
-/* The arguments of every operator kernel, in the order clcurv/driver.py passes them: the
+/* The arguments of every operator kernel, in the order clcurv/ops/driver.py passes them: the
  * sorted coordinates (neighbors.h), the sorted reference normals NX, NY, NZ (unused by the
  * moments), the density weights W (read when DENSITY), the cells' anchor normals CN
  * (anchor.cl; read when REFINE_L0, pca.h), the grid, order (sorted -> input
  * index), the cloud's size n, the ball (r^2, cell), par = (r, 1 / h^2, 0, 0), the sorted
  * points [first, stop) of this launch, and the records: with chunk = 0 (the whole cloud)
  * the record of sorted point g goes to its input index order[g], with chunk = 1 to g - first
- * (a chunk-sized buffer that the host scatters by order: clcurv/driver.py). */
+ * (a chunk-sized buffer that the host scatters by order: clcurv/ops/driver.py). */
 #define OPERATOR_ARGS                                                                  \
     __global const REAL *X, __global const REAL *Y, __global const REAL *Z,            \
     __global const REAL *NX, __global const REAL *NY, __global const REAL *NZ,         \

@@ -34,7 +34,7 @@
  * Build options: COV_METHOD, ALIGN_NORMALS (0 or 1; 2dcov2, 3dcov), DENSITY, POINT_RADIUS (radius.h), MIN_COUNT and the record
  * columns COL_EIGENVALUES (2, or 3 for 3dcov), COL_K1, COL_K2, COL_DIR1 (3), COL_DIR2 (3),
  * COL_COUNT, COL_STATUS, with their first columns' numbers CIX_<FIELD> and their mask
- * REC_USED (lanes_records.h; clcurv/operators.py).
+ * REC_USED (lanes_records.h; clcurv/ops/registry.py).
  */
 #include "common.h"
 #include "neighbors.h"
@@ -48,7 +48,7 @@
     || !defined(COL_EIGENVALUES) \
     || !defined(COL_K1) || !defined(COL_K2) || !defined(COL_DIR1) || !defined(COL_DIR2) \
     || !defined(COL_COUNT) || !defined(COL_STATUS)
-#error "covariances.cl needs COV_METHOD, ALIGN_NORMALS, MIN_COUNT and its record columns (clcurv/operators.py)"
+#error "covariances.cl needs COV_METHOD, ALIGN_NORMALS, MIN_COUNT and its record columns (clcurv/ops/registry.py)"
 #endif
 
 /* |k1| >= |k2| from 2dcov1's count-normalised eigenvalues (Theorem 1) in the VW lanes,

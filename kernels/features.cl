@@ -1,5 +1,5 @@
 /* features.cl -- the covariance ("dimensionality") features of the balls N_r(p) of every
- * point, at up to four radii in one neighbour walk (clcurv/features.py).
+ * point, at up to four radii in one neighbour walk (clcurv/api/features.py).
  *
  * A sibling of moments.cl: the same weighted PCA (pca.h: PCA_ACCUMULATE, pca_store_sums,
  * pca_decompose, PCA_REFINE_ACCUMULATE), so that its eigenvalues and normals are those of
@@ -15,7 +15,7 @@
  *
  * Eigenvalues: l1 >= l2 >= l3 of the count-normalised covariance sum (q - o)(q - o)^T / n,
  * times n / (n - ddof) (ddof = par.z: 1 gives the sample covariance of jakteristics).
- * Features (clcurv/features.py documents them with their sources):
+ * Features (clcurv/api/features.py documents them with their sources):
  *   EIGENVALUE_SUM l1 + l2 + l3       OMNIVARIANCE cbrt(l1 l2 l3)
  *   EIGENENTROPY -sum li ln li (0 ln 0 = 0)
  *   ANISOTROPY (l1 - l3) / l1         PLANARITY (l2 - l3) / l1    LINEARITY (l1 - l2) / l1
@@ -32,7 +32,7 @@
  * in blocks of REC_BLOCK points (common.h: REC_IN_BLOCKS; records.cl's split with NB);
  * REFINE_L0, DENSITY, MIN_COUNT,
  * and the records' columns: CIX_COUNT, CIX_STATUS, one CIX_<FEATURE> (its first column) per
- * feature wanted and REC_USED their mask (clcurv/features.py, lanes_records.h).
+ * feature wanted and REC_USED their mask (clcurv/api/features.py, lanes_records.h).
  */
 #include "common.h"
 #include "neighbors.h"
@@ -46,7 +46,7 @@
 #if !defined(NR) || NR < 1 || NR > 4 || !defined(REFINE_L0) || !defined(MIN_COUNT) \
     || !defined(CIX_COUNT) || !defined(CIX_STATUS) || !defined(REC_USED) || !defined(REC_BALLS) \
     || !defined(REC_BLOCK)
-#error "features.cl needs NR (1..4), REFINE_L0, MIN_COUNT, REC_BALLS, REC_BLOCK and its record columns (clcurv/features.py)"
+#error "features.cl needs NR (1..4), REFINE_L0, MIN_COUNT, REC_BALLS, REC_BLOCK and its record columns (clcurv/api/features.py)"
 #endif
 
 #if REAL_IS_DOUBLE
@@ -72,7 +72,7 @@ inline IREALV ball_mask(IREALV m, REALV d2, REAL r2)
  * order as their bits do), evaluated on the vector integer units instead of the FP pipes
  * that bound the sums (three balls' kernel ~2 ms faster at 1M points on the Zen 4 EPYC) */
 #define BALL_LESS(d2, r2) (CAT(as_, IREALV)(d2) < (IREALV)CAT(as_, IREAL)(r2))
-/* FEATURES_BUF (the host's choice, clcurv/program.py:features_buffer): chunks of
+/* FEATURES_BUF (the host's choice, clcurv/runtime/program.py:features_buffer): chunks of
  * candidates kept before each ball's sums run over them (features_pca). Each run loads and
  * stores the ball's 10 accumulators: 32 chunks, about a point's whole walk at 30
  * neighbours, halve those moves against 16 (three balls' kernel ~4-8 ms faster at 1M

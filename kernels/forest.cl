@@ -1,9 +1,9 @@
 /* forest.cl -- the minimum spanning forest of the orientation graph (knn.cl) by Boruvka's
  * algorithm, with every point's sign parity relative to
- * its component's root (clcurv/forest.py drives the kernels).
+ * its component's root (clcurv/orient/forest.py drives the kernels).
  *
- * Points are the cloud's sorted points (clcurv/grid.py); "input index" is order[g]. Normals
- * are the sorted SoA columns NX, NY, NZ of clcurv.cloud.upload_sorted, a row of NaN for an
+ * Points are the cloud's sorted points (clcurv/grid/binning.py); "input index" is order[g]. Normals
+ * are the sorted SoA columns NX, NY, NZ of clcurv.grid.cloud.upload_sorted, a row of NaN for an
  * invalid normal (the host sets whole rows).
  *
  * The graph is knn.cl's: nbr[g k + s] and wgt[g k + s] (NONE past a list's end). An edge

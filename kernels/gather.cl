@@ -2,13 +2,13 @@
  * index of sorted point s):
  *   gather_sorted  per-point rows in the input order (user normals) to padded SoA columns
  *                  in the sorted order, the layout the operator kernels read;
- *   to_input, to_sorted  one column from one order to the other (clcurv/knn_radius.py:
+ *   to_input, to_sorted  one column from one order to the other (clcurv/ops/knn_radius.py:
  *                  the k-th distances of one binning as the next binning's known ones). */
 #include "common.h"
 
 /* Sorted SoA columns (padded: entries n .. n + PAD - 1 are 0) of input-order rows: V holds
  * the rows of the input indices [lo, hi) (all of them, or one chunk staged by the host,
- * clcurv/cloud.py:upload_sorted); sorted points whose row is elsewhere are left as they are. */
+ * clcurv/grid/cloud.py:upload_sorted); sorted points whose row is elsewhere are left as they are. */
 __kernel void gather_sorted(__global const REAL *V, __global const uint *order, const uint n,
                             const uint lo, const uint hi,
                             __global REAL *OX, __global REAL *OY, __global REAL *OZ)

@@ -5,7 +5,7 @@
  * middles); ranges[ROW_INDEX(c, j)] = ranges[1 + 9 c + j], j = 0..8: row j = (dz, dy) =
  * (j / 3 - 1, j % 3 - 1) of the block of cell c, i.e. the cells (cx - 1 .. cx + 1, cy + dy,
  * cz + dz), in increasing key order: the row's points [start, end), (0, 0) for an empty
- * row; with middles (cell_ranges' flag; clcurv.cloud.DeviceCloud.with_middles, for the
+ * row; with middles (cell_ranges' flag; clcurv.grid.cloud.DeviceCloud.with_middles, for the
  * pruned walks only), then ranges[MIDDLE_INDEX(ranges, c, j)] = ranges[1 + 9 ncells + 9 c
  * + j]: those of the row's middle cell (cx, cy + dy, cz + dz) (start = end where that cell
  * is empty: the first point after it; (0, 0) for an empty row). The neighbour walk
@@ -15,7 +15,7 @@
  * made the k-NN radius walk, which reads no middle, ~9% slower on PoCL.
  *
  * Both kernels run over blocks of `per_item` consecutive occupied cells, one work-item per
- * block (clcurv.grid.CELLS_PER_ITEM). cell_ranges searches each row in the sorted cell keys
+ * block (clcurv.grid.binning.CELLS_PER_ITEM). cell_ranges searches each row in the sorted cell keys
  * from where it found the same row for the previous cell of the block: the first key
  * (z' ny + y') nx + max(x - 1, 0) of a row is key + const - (x > 0), which does not
  * decrease from one cell to the next (keys grow by >= 1), so the row starts at or after
@@ -75,7 +75,7 @@ inline void key_cell(long k, long nx, long ny, long *ix, long *iy, long *iz)
 }
 
 /* How many of keys[i], .., keys[i + 3] are < k, branch-free: keys holds 4 entries = LONG_MAX
- * after its ncells (clcurv.grid.sentinel_keys), so any i <= ncells may be probed. Keys are
+ * after its ncells (clcurv.grid.binning.sentinel_keys), so any i <= ncells may be probed. Keys are
  * sorted, so when that is below 4 the first index with keys >= k is i plus it. */
 inline uint below4(__global const long *keys, uint i, long k)
 {

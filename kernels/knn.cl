@@ -1,8 +1,8 @@
 /* knn.cl -- the orientation graph: k nearest neighbours with Hoppe-like weights
- * (clcurv/graph.py drives it; its minimum spanning forest is forest.cl's).
+ * (clcurv/orient/graph.py drives it; its minimum spanning forest is forest.cl's).
  *
- * Points are the cloud's sorted points (clcurv/grid.py); "input index" is order[g]. Normals
- * are the sorted SoA columns NX, NY, NZ of clcurv.cloud.upload_sorted, a row of NaN for an
+ * Points are the cloud's sorted points (clcurv/grid/binning.py); "input index" is order[g]. Normals
+ * are the sorted SoA columns NX, NY, NZ of clcurv.grid.cloud.upload_sorted, a row of NaN for an
  * invalid normal (the host sets whole rows).
  *
  * Graph: nbr[g k + s], s < k, the sorted index of the s-th nearest other point with a valid

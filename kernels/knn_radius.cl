@@ -1,10 +1,10 @@
 /* knn_radius.cl -- the squared distance of every point to its K-th nearest point (the point
- * itself the first), on the grid of a DeviceCloud: the k-NN radius (clcurv/knn_radius.py).
+ * itself the first), on the grid of a DeviceCloud: the k-NN radius (clcurv/ops/knn_radius.py).
  *
  * One work-item per sorted point; the same fixed-order walk over the 27 cells as the
  * operators (neighbors.h), the candidates within the reach the host passes (open ball
  * d^2 < cball.x: the cloud's cell c squared, or less, FIRST_REACH c for a tight cloud's
- * first walk, clcurv/knn_radius.py), or with extend within the point's reach (reach2: up
+ * first walk, clcurv/ops/knn_radius.py), or with extend within the point's reach (reach2: up
  * to 1.5 c, the largest ball inside its 27 cells). One walk, vector operations only,
  * keeps lane by lane the KNN_LEVELS smallest d^2 of the lane (chunks merged KNN_BATCH at a
  * time by a min/max network over the KNN_LEVELS vectors, KNN_MERGE) and the lane's count.
@@ -28,37 +28,37 @@
  * points lie within the walk's reach (reach2: the host's, at most c, or with extend up to
  * 1.5 c; the host then walks the cell or bins at a larger one). ball_r2 turns the last
  * binning's d2k into the operators' per-point r^2.
- * Build options: KNN_K (1 .. clcurv.knn_radius.MAX_K); KNN_LEVELS (1 .. 15) the levels kept
- * per lane (clcurv/knn_radius.py:knn_levels; tests: 1 sends nearly every point down the
+ * Build options: KNN_K (1 .. clcurv.ops.knn_radius.MAX_K); KNN_LEVELS (1 .. 15) the levels kept
+ * per lane (clcurv/ops/knn_radius.py:knn_levels; tests: 1 sends nearly every point down the
  * counting path).
  */
 #include "common.h"
 #include "neighbors.h"
 
 #if !defined(KNN_K) || KNN_K < 1
-#error "knn_radius.cl needs KNN_K (clcurv/knn_radius.py)"
+#error "knn_radius.cl needs KNN_K (clcurv/ops/knn_radius.py)"
 #endif
 
 /* KNN_LEVELS, the smallest d^2 kept per lane (4 to 15 vectors: a lane's count per bin fits
- * a nibble, packed_prefix), is the host's choice (clcurv/knn_radius.py:knn_levels): enough
+ * a nibble, packed_prefix), is the host's choice (clcurv/ops/knn_radius.py:knn_levels): enough
  * that few points have a lane holding more of their K nearest than it keeps, since those
  * take the counting path. At K = 30 on the first cell of a 1M uniform sphere: VW = 8,
  * kernel 102 ms with 8 levels, 107 with 10, 125 with 7, 191 with 6; VW = 16 (AVX-512),
  * 144 ms with 4, ~92 with 5, ~83 with 6, ~87 with 7, ~92 with 8 (the same values). */
 #ifndef KNN_LEVELS
-#error "knn_radius.cl needs KNN_LEVELS (clcurv/knn_radius.py:knn_levels)"
+#error "knn_radius.cl needs KNN_LEVELS (clcurv/ops/knn_radius.py:knn_levels)"
 #endif
 #if KNN_LEVELS < 1 || KNN_LEVELS > 15
 #error "KNN_LEVELS must be 1 .. 15"
 #endif
 
 /* KNN_BATCH (>= 1) chunks of candidates are merged into the kept values at once by
- * KNN_MERGE, the host's comparator network (clcurv/knn_radius.py:merge_network): the batch
+ * KNN_MERGE, the host's comparator network (clcurv/ops/knn_radius.py:merge_network): the batch
  * sorted, then an odd-even merge pruned to the KNN_LEVELS smallest, which it leaves
  * sorted. The same values kept as inserting each chunk alone (the KNN_LEVELS smallest of
  * each lane), in fewer operations: 24 min/max per 2 chunks at 8 levels against 30. */
 #if !defined(KNN_BATCH) || KNN_BATCH < 1 || !defined(KNN_MERGE)
-#error "knn_radius.cl needs KNN_BATCH and KNN_MERGE (clcurv/knn_radius.py:program_defines)"
+#error "knn_radius.cl needs KNN_BATCH and KNN_MERGE (clcurv/ops/knn_radius.py:program_defines)"
 #endif
 #define KNN_CE(x, y) { const IREALV lo_ = min(x, y); y = max(x, y); x = lo_; }
 #define KNN_LO(x, y) x = min(x, y);
@@ -288,12 +288,12 @@ inline REAL kth_of_levels(IREALV a[KNN_LEVELS], IREALV lanes, REAL c2, uint need
  * radius of the largest ball around p inside its block of 27 cells, c plus p's distance
  * to the nearest face of its own cell (c to 1.5 c, ~1.125 c on average), less
  * KNN_REACH_SLACK epsilons of c for the coordinates' round-off (KNN_REACH_SLACK, the
- * host's clcurv/knn_radius.py:REACH_SLACK), and never below c: every point within it is a
+ * host's clcurv/ops/knn_radius.py:REACH_SLACK), and never below c: every point within it is a
  * candidate of the walk, so a K-th found within it is exact. On a 1M-point uniform sphere
  * at the first cell (K = 30) the points left for the next level went from 8.6% to 1.8%.
  * As r^2. */
 #ifndef KNN_REACH_SLACK
-#error "knn_radius.cl needs KNN_REACH_SLACK (clcurv/knn_radius.py:program_defines)"
+#error "knn_radius.cl needs KNN_REACH_SLACK (clcurv/ops/knn_radius.py:program_defines)"
 #endif
 #if REAL_IS_DOUBLE
 #define REACH_EPS DBL_EPSILON
@@ -362,7 +362,7 @@ __kernel void kth_distance(__global const REAL *X, __global const REAL *Y,
 
 /* The balls' r^2 (sorted order, padded with PAD zeros) from the k-th d^2 of every point (no
  * point isolated): (sqrt(d^2) + slack)^2 (1 + MARGIN), at least the smallest normal REAL,
- * the operations of clcurv/knn_radius.py:_margin (grow = 1 + MARGIN, exact in REAL; slack
+ * the operations of clcurv/ops/knn_radius.py:_margin (grow = 1 + MARGIN, exact in REAL; slack
  * the grids' round-off of a distance, ROUND_OFF eps of the last level's cell). */
 __kernel void ball_r2(__global const REAL *d2, const uint n, const REAL grow,
                       const REAL slack, __global REAL *r2)

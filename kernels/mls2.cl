@@ -13,7 +13,7 @@
  * dir1, dir2 (= normal x dir1), the fitted unit normal.
  * Build options: REF_NORMALS (0|1: NX, NY, NZ orient v0), DENSITY, GAUSSIAN (par.y = 1 / h^2),
  * MIN_COUNT and the record columns COL_SHIFT (3), COL_K1, COL_K2, COL_DIR1 (3), COL_DIR2 (3),
- * COL_NORMALS (3), COL_COUNT, COL_STATUS (clcurv/operators.py).
+ * COL_NORMALS (3), COL_COUNT, COL_STATUS (clcurv/ops/registry.py).
  */
 #include "common.h"
 #include "neighbors.h"
@@ -25,7 +25,7 @@
 #if !defined(REF_NORMALS) || !defined(MIN_COUNT) || !defined(COL_SHIFT) || !defined(COL_K1) \
     || !defined(COL_K2) || !defined(COL_DIR1) || !defined(COL_DIR2) || !defined(COL_NORMALS) \
     || !defined(COL_COUNT) || !defined(COL_STATUS)
-#error "mls2.cl needs REF_NORMALS, MIN_COUNT and its record columns (clcurv/operators.py)"
+#error "mls2.cl needs REF_NORMALS, MIN_COUNT and its record columns (clcurv/ops/registry.py)"
 #endif
 
 /* Unit eigenvectors (ex, ey) (in the parameter plane) of the VW 2x2 matrices s for their

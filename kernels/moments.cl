@@ -11,7 +11,7 @@
  *                sums of the same walk taken in the anchor's frame (pca.h, PCA_ANCHOR; CN
  *                from anchor.cl), or a second pass where the anchor is missing or too far;
  *                MIN_COUNT and the record columns COL_NORMALS (3), COL_EIGENVALUES (3),
- *                COL_VARIATION, COL_SHIFT (3), COL_COUNT, COL_STATUS (clcurv/operators.py).
+ *                COL_VARIATION, COL_SHIFT (3), COL_COUNT, COL_STATUS (clcurv/ops/registry.py).
  */
 #include "common.h"
 #include "neighbors.h"
@@ -21,7 +21,7 @@
 #if !defined(REFINE_L0) || !defined(MIN_COUNT) || !defined(COL_NORMALS) \
     || !defined(COL_EIGENVALUES) || !defined(COL_VARIATION) || !defined(COL_SHIFT) \
     || !defined(COL_COUNT) || !defined(COL_STATUS)
-#error "moments.cl needs REFINE_L0, MIN_COUNT and its record columns (clcurv/operators.py)"
+#error "moments.cl needs REFINE_L0, MIN_COUNT and its record columns (clcurv/ops/registry.py)"
 #endif
 
 /* Per point: count, PCA normal v0 (unoriented), ascending eigenvalues of the weighted

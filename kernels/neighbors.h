@@ -50,7 +50,7 @@ inline __global const REAL *x_rows(__global const REAL *X, uint co, uint n)
 #error "VW must be 2, 4, 8 or 16"
 #endif
 
-/* ROW_PRUNE (0|1, the host's choice: clcurv/driver.py:row_prune): skip the rows of the
+/* ROW_PRUNE (0|1, the host's choice: clcurv/ops/driver.py:row_prune): skip the rows of the
  * block farther than the ball's radius in y and z (the same sums as walking all 9:
  * tests/test_row_pruning.py). Worth it for a radius well below the cell; at r = cell only
  * corner rows can be skipped, rarely, and the test costs more than it saves. */

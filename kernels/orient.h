@@ -4,7 +4,7 @@
 #include "common.h"
 
 #define NONE 0xffffffffu
-/* longest neighbour list (clcurv/graph.py checks k against it: graph.KMAX) */
+/* longest neighbour list (clcurv/orient/graph.py checks k against it: graph.KMAX) */
 #define KMAX 32
 
 /* a . b with its roundings spelled out (fma is exact then rounded once on every device), so

@@ -31,7 +31,7 @@
 #include "radius.h"
 
 /* status 2 (degenerate) when the middle eigenvalue is at most DEGENERATE_RATIO of the
- * largest: 1e-10 in double (as clcurv/reference.py), 1e-5 in float, where the sums resolve
+ * largest: 1e-10 in double (as clcurv/reference/operators.py), 1e-5 in float, where the sums resolve
  * the second direction of a thinner ball only to a few per cent (docs/methods.md, NaN
  * policy: a wire thinner than ~0.005 r is degenerate in float only) */
 #if REAL_IS_DOUBLE
@@ -87,16 +87,16 @@ typedef struct {
  * mad(a, b, c), which PoCL 3.1 makes a multiply and an add (the flush loop of features.cl's
  * three radii: 30 -> 24 instructions a chunk). */
 #if !defined(PCA_FMA)
-#error "pca.h needs PCA_FMA (0|1, clcurv/program.py: precision_defines)"
+#error "pca.h needs PCA_FMA (0|1, clcurv/runtime/program.py: precision_defines)"
 #elif PCA_FMA
-/* The device has a fused multiply-add (clcurv/program.py: fused_sums): every product sum is
+/* The device has a fused multiply-add (clcurv/runtime/program.py: fused_sums): every product sum is
  * one, spelled out, so that both forms below fuse alike whatever the compiler's reading. */
 #define PCA_MAD(a, b, c) fma(a, b, c)
 #else
 #define PCA_MAD(a, b, c) ((a) * (b) + (c))
 #endif
 #if !defined(MASKED_SUMS)
-#error "pca.h needs MASKED_SUMS (0|1, clcurv/program.py: precision_defines)"
+#error "pca.h needs MASKED_SUMS (0|1, clcurv/runtime/program.py: precision_defines)"
 #elif MASKED_SUMS
 /* MASKED_SUMS (the host's choice for CPU devices with 512-bit vectors, AVX-512): each sum
  * updated only in the lanes of the mask, s = m ? s + d : s, s2 = m ? d_i d_j + s2 : s2, which

@@ -1,5 +1,5 @@
 /* radius.h -- the ball radius of each query point: one radius for the cloud, or with
- * POINT_RADIUS=1 each point's own (the k-NN radius, clcurv/knn_radius.py).
+ * POINT_RADIUS=1 each point's own (the k-NN radius, clcurv/ops/knn_radius.py).
  *
  * Per-point radii reach an operator kernel as squared radii in W (sorted order, padded),
  * the buffer that holds the density weights otherwise: a k-NN ball holds k points by

@@ -3,16 +3,16 @@
  * per point: a scattered store per output array would cost a miss each); this splits the
  * records into contiguous arrays in the same order, one per field, so the host gets ready
  * columns (or scatters a chunk's) without a strided pass over all records per field.
- * With SPLIT_HOST (a CPU device with cl_khr_fp64, clcurv/cloud.py:place_records) the
+ * With SPLIT_HOST (a CPU device with cl_khr_fp64, clcurv/grid/cloud.py:place_records) the
  * arrays are the caller's float64 / int64 host arrays themselves (USE_HOST_PTR): the cast
  * happens here, in the same pass, instead of in a second pass on the host. */
 #include "common.h"
 
-/* Field layout, set by build options (clcurv/cloud.py:fetch_records): NF real fields,
+/* Field layout, set by build options (clcurv/grid/cloud.py:fetch_records): NF real fields,
  * field k = columns S<k> .. S<k> + W<k> - 1 of the record; COL_COUNT (uint bits) and
  * COL_STATUS (a small integer), as REAL16 selectors (common.h). */
 #if !defined(NF) || !defined(COL_COUNT) || !defined(COL_STATUS)
-#error "records.cl needs NF, COL_COUNT and COL_STATUS (clcurv/cloud.py:fetch_records)"
+#error "records.cl needs NF, COL_COUNT and COL_STATUS (clcurv/grid/cloud.py:fetch_records)"
 #endif
 /* With NB: ball REC_BALL's records among those of NB balls in one buffer, in blocks
  * (common.h: REC_IN_BLOCKS; features.cl's REC_BALLS) */

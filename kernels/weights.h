@@ -6,7 +6,7 @@
 #define CLCURV_WEIGHTS_H
 #include "common.h"
 #if !defined(DENSITY) || !defined(GAUSSIAN)
-#error "weights.h needs DENSITY and GAUSSIAN (clcurv/driver.py)"
+#error "weights.h needs DENSITY and GAUSSIAN (clcurv/ops/driver.py)"
 #endif
 
 inline REALV chunk_weights(__global const REAL *W, uint i, REALV dx, REALV dy, REALV dz,

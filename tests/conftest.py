@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from clcurv.device import venv_vendors
+from clcurv.runtime.device import venv_vendors
 
 if not os.environ.get("OCL_ICD_VENDORS") and venv_vendors().is_dir():
     os.environ["OCL_ICD_VENDORS"] = str(venv_vendors())
@@ -52,7 +52,7 @@ NAMES = {d.index: f"{d.index}-{_slug(d)}" for d in _found()}
 def device(request):
     """Every real OpenCL device present; fails (not skips) when there is none."""
     if request.param is None:
-        pytest.fail("no OpenCL device found: " + clcurv.device.APT_HINT)
+        pytest.fail("no OpenCL device found: " + clcurv.runtime.device.APT_HINT)
     return clcurv.get_device(request.param)
 
 
@@ -105,8 +105,8 @@ def worst(values, k=5):
 
 def pytest_configure(config):
     # Tests that build their own kernel sources with pyopencl (test_eig3*.py,
-    # test_kernel_contract.py) bypass clcurv.program.build, which reads the build log and
-    # re-raises its warning lines as clcurv.program.BuildWarning. Intel's CPU runtime logs
+    # test_kernel_contract.py) bypass clcurv.runtime.program.build, which reads the build log and
+    # re-raises its warning lines as clcurv.runtime.program.BuildWarning. Intel's CPU runtime logs
     # every build ("Compilation started", vectoriser remarks), and pyopencl turns any
     # non-empty log into this CompilerWarning: it carries no warning of the compiler.
     config.addinivalue_line(

@@ -40,7 +40,7 @@ def _hwm():
         f.write(kb)
 atexit.register(_hwm)
 sys.argv[0] = "clcurv"
-runpy.run_module("clcurv.cli", run_name="__main__")
+runpy.run_module("clcurv.cli.main", run_name="__main__")
 """
 
 

@@ -16,7 +16,7 @@ import sys
 import numpy as np
 
 import clcurv
-from clcurv.features import FEATURES as FEATURE_NAMES
+from clcurv.api.features import FEATURES as FEATURE_NAMES
 
 R = 0.25          # a power of two: lattice points at multiples of R / 2 lie on cell borders
 K = 6             # neighbours of the k-NN radius
@@ -75,8 +75,8 @@ def _finite(res):
 
 def _small_radius(points, common):
     """A fifth of the cell's radius on a DeviceCloud: the walks that skip rows (ROW_PRUNE,
-    below clcurv.driver.PRUNE_BELOW cells)."""
-    from clcurv.driver import PRUNE_BELOW
+    below clcurv.ops.driver.PRUNE_BELOW cells)."""
+    from clcurv.ops.driver import PRUNE_BELOW
     cloud = clcurv.DeviceCloud(points, R, **common)
     assert R / 5 < PRUNE_BELOW * cloud.cell
     return [clcurv.curvature(cloud, R / 5, method="variation", orient=None),
@@ -130,11 +130,11 @@ def calls(points, precision, device):
 
 def _forest(points, r, common, block=None, chase=None):
     """The orientation graph and its spanning forest with the edge output (which the API
-    does not ask for); ``block`` and ``chase`` shrink clcurv.forest.BLOCK (points per
+    does not ask for); ``block`` and ``chase`` shrink clcurv.orient.forest.BLOCK (points per
     work-item: several blocks on a tiny cloud) and CHASE (hook chains followed link by
     link: 1 forces the pointer-jumping kernel) for the call. Returns the labels."""
-    from clcurv import forest, graph
-    from clcurv.cloud import DeviceCloud
+    from clcurv.orient import forest, graph
+    from clcurv.grid.cloud import DeviceCloud
     saved = forest.BLOCK, forest.CHASE
     forest.BLOCK = block or forest.BLOCK
     forest.CHASE = chase or forest.CHASE

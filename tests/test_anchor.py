@@ -1,4 +1,4 @@
-"""Anchor normals and the one-walk lambda0 (clcurv/anchor.py, kernels/anchor.cl, pca.h).
+"""Anchor normals and the one-walk lambda0 (clcurv/grid/anchor.py, kernels/anchor.cl, pca.h).
 
 * anchor.cl's cell normals against the float64 reference: the same cells have one, and
   they agree up to sign to 1 - |cos| <= 1e-4 where the cell's own covariance separates
@@ -17,10 +17,10 @@ import pyopencl as cl
 import pytest
 
 import clcurv
-from clcurv.anchor import RANK_RATIO, cell_normals, reference_cell_normals
-from clcurv.cloud import DeviceCloud
-from clcurv.driver import run_kernel
-from clcurv.operators import PCA
+from clcurv.grid.anchor import RANK_RATIO, cell_normals, reference_cell_normals
+from clcurv.grid.cloud import DeviceCloud
+from clcurv.ops.driver import run_kernel
+from clcurv.ops.registry import PCA
 
 
 def _anchors(cloud):

@@ -1,9 +1,9 @@
-"""radius 'auto' of a tiled run (clcurv.tiled_job.auto_radius_tiled) beside one far "no data"
+"""radius 'auto' of a tiled run (clcurv.jobs.tiled_job.auto_radius_tiled) beside one far "no data"
 point (issue 47 item 4): the point at (0, 0, 0) stretches the LAS header's box, so the bucket
 grid puts the whole survey in one bucket, which the estimate used to read whole (its memory
 grew with the cloud: a tree of all 200000 points here). Its regions now hold a bounded
 number of points whatever the grid, and the estimate still agrees with the in-memory one
-(clcurv.job.auto_radius).
+(clcurv.jobs.job.auto_radius).
 
 The points held are measured by the k-d trees it builds (cKDTree wrapped with monkeypatch,
 the size of each tree recorded), never by timing: a tree is built per region, and the
@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 import scipy.spatial
 
-from clcurv import tiled_job
+from clcurv.jobs import tiled_job
 from clcurv.io import stream
-from clcurv.job import auto_radius
+from clcurv.jobs.job import auto_radius
 
 laspy = pytest.importorskip("laspy")
 

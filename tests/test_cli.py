@@ -7,7 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from clcurv import cli, io, job
+from clcurv.cli import main as cli
+from clcurv import io
+from clcurv.jobs import job
 from clcurv.data import sample_path
 from conftest import data_path
 
@@ -15,7 +17,7 @@ DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
 
 
 def run(*args):
-    return subprocess.run([sys.executable, "-m", "clcurv.cli", *map(str, args)],
+    return subprocess.run([sys.executable, "-m", "clcurv.cli.main", *map(str, args)],
                           capture_output=True, text=True)
 
 
@@ -135,7 +137,7 @@ def test_bad_arguments_exit_codes(tmp_path, args, code, msg):
 def test_no_opencl_platform_names_the_apt_command(tmp_path):
     import os
     env = dict(os.environ, OCL_ICD_VENDORS=str(tmp_path))
-    p = subprocess.run([sys.executable, "-m", "clcurv.cli", "devices"], capture_output=True,
+    p = subprocess.run([sys.executable, "-m", "clcurv.cli.main", "devices"], capture_output=True,
                        text=True, env=env)
     assert p.returncode == 4 and "apt-get install -y pocl-opencl-icd" in p.stderr
     assert "Traceback" not in p.stderr
@@ -239,7 +241,7 @@ def test_mls2_gaussian_kernel_and_projections_options(tmp_path):
 
 def test_render_up_takes_a_negative_axis_as_written():
     """`--up -z` (docs/methods.md's spelling) is the axis -z, not an unknown option -z."""
-    from clcurv.cli import _glue_negative_axes, build_parser
+    from clcurv.cli.main import _glue_negative_axes, build_parser
     argv = ["render", "a.ply", "--field", "f", "--up", "-z", "-o", "a.png"]
     assert build_parser().parse_args(_glue_negative_axes(argv)).up == "-z"
     argv = ["render", "a.ply", "--field", "f", "--up", "y", "-o", "a.png"]

@@ -21,7 +21,8 @@ import pytest
 
 import clcurv
 from tests.hostile import deadline
-from clcurv import cli, cluster
+from clcurv.cli import main as cli
+from clcurv.tiles import workers as cluster
 
 distributed = pytest.importorskip("distributed")
 

@@ -21,7 +21,7 @@ import pytest
 import clcurv
 from tests.hostile import assert_same_las, las_dims
 from clcurv import io as cio
-from clcurv import tiled
+from clcurv.tiles import engine as tiled
 
 from hostile import run_cli
 

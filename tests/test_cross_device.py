@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 import clcurv
-from clcurv.operators import OPERATORS
+from clcurv.ops.registry import OPERATORS
 
 from conftest import DEVICES, NAMES
 

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 import clcurv
-from clcurv import cli, demo, io
+from clcurv.cli import main as cli, demo
+from clcurv import io
 from clcurv.data import SAMPLE_POINTS, sample_path
 
 DIRS = [f"dir{i}_{a}" for i in "12" for a in "xyz"]
@@ -93,5 +94,5 @@ def test_plain_import_clcurv_gives_io_render_data(tmp_path):
 
 
 def test_demo_does_not_import_the_cli():
-    out = _python("import sys, clcurv.demo; print('clcurv.cli' in sys.modules)")
+    out = _python("import sys, clcurv.cli.demo; print('clcurv.cli.main' in sys.modules)")
     assert out.strip() == "False"

@@ -8,10 +8,10 @@ import warnings
 import pytest
 
 import clcurv
-from clcurv import cli
-from clcurv.device import _default
-from clcurv.operators import program_variants
-from clcurv.program import (BuildError, BuildWarning, _warn_from_log, build, kernels_dir,
+from clcurv.cli import main as cli
+from clcurv.runtime.device import _default
+from clcurv.ops.registry import program_variants
+from clcurv.runtime.program import (BuildError, BuildWarning, _warn_from_log, build, kernels_dir,
                             log_warnings)
 
 from conftest import DEVICES, SIMULATORS
@@ -65,7 +65,7 @@ def test_no_match_lists_devices_and_platforms():
 
 def _record(index, kind, simulator, name="dev"):
     """A DeviceInfo record (data only: the choice logic reads no OpenCL object)."""
-    return clcurv.device.DeviceInfo(index, name, "platform", "vendor", kind, "1", "1.2", True,
+    return clcurv.runtime.device.DeviceInfo(index, name, "platform", "vendor", kind, "1", "1.2", True,
                                     1, 1, 1, 1, 1, simulator=simulator)
 
 
@@ -132,7 +132,7 @@ def test_build_log_warnings_are_raised_and_remarks_dropped(device):
                          "__kernel void k(__global float *a) { a[0] = 1.0f; }").build()
     with pytest.warns(BuildWarning, match="x.cl on .*clcurv-test"):
         _warn_from_log(device, "x.cl", prg)
-    clcurv.program._cache.clear()
+    clcurv.runtime.program._cache.clear()
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         build(device, "grid.cl", {"REAL_IS_DOUBLE": 0, "VW": 8})
@@ -166,8 +166,8 @@ def test_compiler_diagnostic_counts_do_not_reach_stderr():
     only (here a line written to fd 2 directly and a Python one), in order."""
     code = (
         "import os, sys, uuid, warnings, pyopencl as cl\n"
-        "from clcurv.program import _stderr_counts_dropped\n"
-        "from clcurv.device import get_device\n"
+        "from clcurv.runtime.program import _stderr_counts_dropped\n"
+        "from clcurv.runtime.device import get_device\n"
         "dev = get_device()\n"
         "src = f'#warning clcurv-count-test\\n__kernel void k_{uuid.uuid4().hex}"
         "(__global float *a) {{ a[0] = 1.0f; }}'\n"
@@ -194,7 +194,7 @@ def test_build_error_carries_the_log(device):
 
 
 def test_every_kernel_builds_in_both_precisions(device):
-    """Every program clcurv builds (clcurv.operators.program_variants), with every optional
+    """Every program clcurv builds (clcurv.ops.registry.program_variants), with every optional
     branch on, covers every kernel file and builds in float and (where the device has
     fp64) double."""
     variants = program_variants(GRID)

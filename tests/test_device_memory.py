@@ -1,9 +1,9 @@
-"""Clouds too big for the device run in chunks of sorted points (clcurv.cloud.DeviceCloud.plan),
+"""Clouds too big for the device run in chunks of sorted points (clcurv.grid.cloud.DeviceCloud.plan),
 with results bit-identical to the whole-cloud run; only data that must stay whole on the
 device (coordinates, grid, normals, density weights, the scale space's iterates) can make a
 cloud fail, and then the error says how many points fit.
 
-The device's memory is limited with clcurv.cloud.DEVICE_MEMORY (the CLCURV_DEVICE_MEMORY
+The device's memory is limited with clcurv.grid.cloud.DEVICE_MEMORY (the CLCURV_DEVICE_MEMORY
 knob), so a 20k-point cloud is split like a 10M-point one on a small device; the real kernels
 run (no mocks)."""
 import re
@@ -13,8 +13,8 @@ import pyopencl as cl
 import pytest
 
 import clcurv
-from clcurv import cloud as cloud_mod
-from clcurv.cloud import MIN_CHUNK, DeviceCloud, DeviceMemoryError, upload_sorted
+from clcurv.grid import cloud as cloud_mod
+from clcurv.grid.cloud import MIN_CHUNK, DeviceCloud, DeviceMemoryError, upload_sorted
 
 N, R, RADIUS = 20_000, 2.0, 0.2
 #: the chunk the tests force: odd (not a multiple of any vector width VW), and 20000 points
@@ -50,7 +50,7 @@ def assert_bit_identical(a, b):
 
 def assert_chunked(plan, device):
     assert (plan.count, plan.chunk) == (CHUNKS, CHUNK), plan
-    vw = clcurv.program.precision_defines(device, "float")["VW"]
+    vw = clcurv.runtime.program.precision_defines(device, "float")["VW"]
     assert plan.chunk % vw and plan.n % plan.chunk, "a partial last chunk, chunks not k VW"
 
 
@@ -64,7 +64,7 @@ def test_operators_in_chunks_are_bit_identical(device, sphere, budget, method, w
     cloud = DeviceCloud(pts, RADIUS, device=device)
     run = lambda: clcurv.curvature(cloud, RADIUS, method=method, weights=weights, normals=nrm)
     whole = run()
-    plan = cloud.plans[f"kernel_{clcurv.operators.OPERATORS[method].kernel.name}"]
+    plan = cloud.plans[f"kernel_{clcurv.ops.registry.OPERATORS[method].kernel.name}"]
     assert plan.count == 1
     budget(for_chunk(plan))
     parts = run()

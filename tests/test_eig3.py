@@ -26,7 +26,7 @@ import pyopencl as cl
 import pytest
 
 import clcurv
-from clcurv.constants import kernel_defines
+from clcurv._shared.constants import kernel_defines
 from conftest import DEVICES, NAMES
 
 KERNELS = Path(__file__).resolve().parent.parent / "kernels"

@@ -1,5 +1,5 @@
 """clcurv.features: the covariance feature set against jakteristics' compute_features and
-against the float64 reference (clcurv.reference_features), names, status policy."""
+against the float64 reference (clcurv.reference.features), names, status policy."""
 from pathlib import Path
 
 import numpy as np
@@ -7,8 +7,8 @@ import pytest
 
 import clcurv
 from importlib import import_module
-F = import_module("clcurv.features")   # the module; clcurv.features is the function
-from clcurv.constants import DEGENERATE, OK, TOO_FEW
+F = import_module("clcurv.api.features")   # the module; clcurv.features is the function
+from clcurv._shared.constants import DEGENERATE, OK, TOO_FEW
 from conftest import data_path
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -323,13 +323,13 @@ def test_against_reference_float64(device):
 
 @pytest.mark.parametrize("precision,tol", [("float", 2e-5), ("double", 1e-9)])
 def test_against_reference_at_the_gpu_vector_width(device, monkeypatch, precision, tol):
-    # GPUs build the kernels with VW = 4 (clcurv.program.precision_defines), whose records
+    # GPUs build the kernels with VW = 4 (clcurv.runtime.program.precision_defines), whose records
     # are assembled lane by lane (kernels/lanes_records.h), not transposed as at VW = 8
-    import clcurv.cloud
+    import clcurv.grid.cloud
     if precision == "double" and not device.info.fp64:
         pytest.skip("the device has no float64")
-    real = clcurv.cloud.precision_defines
-    monkeypatch.setattr(clcurv.cloud, "precision_defines",
+    real = clcurv.grid.cloud.precision_defines
+    monkeypatch.setattr(clcurv.grid.cloud, "precision_defines",
                         lambda dev, prec: dict(real(dev, prec), VW=4))
     _check_reference(synthetic_scene(3)[::2], 0.12, device, precision, tol)
 
@@ -480,7 +480,7 @@ def test_bad_input_and_status(device):
 def test_cli_features(tmp_path):
     """`clcurv features`: several radii give fields <feature>_r<radius>, equal to the API's
     values; --k adds the per-point radius."""
-    from clcurv.cli import main
+    from clcurv.cli.main import main
     pts = clcurv.shapes.sphere(4000, 1.0, noise=0.005, seed=8)["points"]
     src = tmp_path / "in.ply"
     clcurv.io.write(src, pts)
@@ -512,7 +512,7 @@ def test_cli_features(tmp_path):
 def test_radius_suffixes_are_distinct_and_plain():
     """Field suffixes give the radius back: %g's six digits made 300 and 300.0001 one
     field (one radius's results silently overwritten) and 1e6 a name with '+'."""
-    from clcurv.features import radius_suffix
+    from clcurv.api.features import radius_suffix
     assert [radius_suffix(r) for r in (0.5, 2.0, 1e6, 0.0123456789)] == \
         ["_r0.5", "_r2", "_r1000000", "_r0.0123456789"]
     assert radius_suffix(300) != radius_suffix(300.0001)

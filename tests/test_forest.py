@@ -1,4 +1,4 @@
-"""The device orientation graph and its minimum spanning forest (clcurv.forest), against host
+"""The device orientation graph and its minimum spanning forest (clcurv.orient.forest), against host
 references on the same data: a cKDTree k-NN, float64 weights, and a Kruskal forest (SciPy) on
 the graph the device built, with the same strict edge order."""
 import numpy as np
@@ -7,9 +7,10 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 from scipy.spatial import cKDTree
 
-from clcurv import forest, shapes
-from clcurv.graph import KMAX, knn_graph
-from clcurv.cloud import DeviceCloud
+from clcurv.orient import forest
+from clcurv import shapes
+from clcurv.orient.graph import KMAX, knn_graph
+from clcurv.grid.cloud import DeviceCloud
 
 from conftest import bumpy_surface
 
@@ -281,7 +282,7 @@ def test_k_and_shapes_checked(device):
 
 
 def test_graph_that_does_not_fit_names_what_fits(device, monkeypatch):
-    from clcurv import cloud as cloud_mod
+    from clcurv.grid import cloud as cloud_mod
     s = shapes.sphere(20000, 1.0, seed=15)
     cloud = DeviceCloud(s["points"], 0.05, device=device)
     monkeypatch.setattr(cloud_mod, "DEVICE_MEMORY", cloud.device_bytes + 20000 * 200)

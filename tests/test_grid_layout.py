@@ -1,11 +1,11 @@
-"""Host binning (clcurv/grid.py) and the device cell ranges (kernels/grid.cl) against a
+"""Host binning (clcurv/grid/binning.py) and the device cell ranges (kernels/grid.cl) against a
 brute-force numpy construction."""
 import numpy as np
 import pyopencl as cl
 import pytest
 
-from clcurv import grid as G
-from clcurv.cloud import DeviceCloud
+from clcurv.grid import binning as G
+from clcurv.grid.cloud import DeviceCloud
 
 
 def clouds():

@@ -1,4 +1,4 @@
-"""The host pool of result arrays (clcurv.host_memory): a dropped result's pages are reused,
+"""The host pool of result arrays (clcurv._shared.host_memory): a dropped result's pages are reused,
 never while any view of them is alive, within the hold limit; release and CLCURV_POOL=0."""
 import os
 import pickle
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import clcurv
-from clcurv import host_memory as hm
+from clcurv._shared import host_memory as hm
 
 
 @pytest.fixture

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 import clcurv
-from clcurv import grid as G
-from clcurv.constants import TOO_FEW
-from clcurv.job import auto_radius
-from clcurv.validate import DEVICE_RADIUS_RANGE
+from clcurv.grid import binning as G
+from clcurv._shared.constants import TOO_FEW
+from clcurv.jobs.job import auto_radius
+from clcurv._shared.validate import DEVICE_RADIUS_RANGE
 
 from conftest import worst
 from hostile import assert_clean_failure, run_cli
@@ -75,7 +75,7 @@ def test_extreme_radius_cli_one_line(tmp_path, radius):
 
 
 def test_ball_holding_the_cloud_is_refused_naming_the_count(monkeypatch):
-    """Every point in every ball: a quadratic run. The limit is clcurv.grid.MAX_PAIRS
+    """Every point in every ball: a quadratic run. The limit is clcurv.grid.binning.MAX_PAIRS
     (lowered here to the size of a test cloud)."""
     monkeypatch.setattr(G, "MAX_PAIRS", 1e8)
     with pytest.raises(G.RadiusTooLargeError, match=r"about 20000 points in every ball"):
@@ -149,7 +149,7 @@ def test_auto_radius_on_duplicates():
     distinct = np.random.default_rng(1).normal(size=(500, 3))
     r = auto_radius(np.repeat(distinct, 40, axis=0))
     assert r == auto_radius(distinct)
-    from clcurv.job import UsageError
+    from clcurv.jobs.job import UsageError
     with pytest.raises(UsageError, match="only 20 distinct positions"):
         auto_radius(np.repeat(distinct[:20], 40, axis=0))
 
@@ -189,7 +189,7 @@ def test_results_scale_with_the_cloud_over_the_radius_range(method, precision):
     of length of its unit, to round-off (built-ins such as sqrt and length may round
     differently at other exponents). 2dcov1's 256 / r^6 overflowed float32 below r = 2^-19
     and r^6 above 2^21, and gave k1 = 0 without a word."""
-    from clcurv.operators import OPERATORS
+    from clcurv.ops.registry import OPERATORS
     op = OPERATORS[method]
     pts, r = SPHERE[::5], 0.25                                  # 4000 points, ~60 per ball
     call = dict(method=method, orient="viewpoint", viewpoint=(0, 0, 0), precision=precision)
@@ -269,7 +269,7 @@ def test_device_memory_error_cli_one_line_exit_5(tmp_path):
 
 def test_host_memory_error_is_one_line_exit_5(monkeypatch, capsys):
     """A bare MemoryError (host RAM) gets a sentence instead of an empty message."""
-    from clcurv import cli
+    from clcurv.cli import main as cli
 
     def boom(args, out=print):
         raise MemoryError()

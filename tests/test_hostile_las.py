@@ -471,7 +471,7 @@ def test_a_clashing_extra_dimension_is_replaced_in_memory_and_in_tiles(tmp_path,
     field's own float32 (or integer) dimension: NaN stays NaN and nothing is quantised.
     The in-memory and tiled outputs are the same, and equal the run on the same input
     without the clashing dimensions (the other dimensions, ``keep_me``, kept)."""
-    from clcurv import tiled
+    from clcurv.tiles import engine as tiled
     params = CLASHES[case]
     src = _clash_input(tmp_path / "in.laz", params)
     plain = _clash_input(tmp_path / "plain.laz",
@@ -504,7 +504,7 @@ def test_a_clashing_extra_dimension_is_replaced_in_memory_and_in_tiles(tmp_path,
 def test_the_input_normals_are_kept_as_stored_when_no_normals_are_written(tmp_path):
     """Input normals in scaled int16 extra bytes, no ``normals`` field: the output keeps
     the input's dimensions and their raw values, in memory and in tiles."""
-    from clcurv import tiled
+    from clcurv.tiles import engine as tiled
     rng = np.random.default_rng(3)
 
     def values(name, shape):

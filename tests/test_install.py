@@ -11,8 +11,8 @@ ROOT = Path(__file__).resolve().parent.parent
 
 CHECK = r"""
 import sys, pathlib, clcurv
-from clcurv.operators import program_variants
-from clcurv.program import kernels_dir, build, precision_defines
+from clcurv.ops.registry import program_variants
+from clcurv.runtime.program import kernels_dir, build, precision_defines
 kd = kernels_dir()
 assert str(kd).startswith(sys.argv[1]), f"kernels found at {kd}, not in the installed copy"
 dev = clcurv.get_device()

@@ -9,7 +9,7 @@ import pytest
 
 import clcurv
 import clcurv.io as cio
-from clcurv import tiled
+from clcurv.tiles import engine as tiled
 from clcurv.io._common import Cloud
 
 plyfile = pytest.importorskip("plyfile")
@@ -221,7 +221,7 @@ def test_cli_compute_keeps_colours_and_says_so(tmp_path):
     import subprocess
     import sys
     rec = _colored_ply(tmp_path / "scan.ply", n=5000, normals=True)
-    p = subprocess.run([sys.executable, "-m", "clcurv.cli", "compute", str(tmp_path / "scan.ply"),
+    p = subprocess.run([sys.executable, "-m", "clcurv.cli.main", "compute", str(tmp_path / "scan.ply"),
                         "-o", str(tmp_path / "out.ply"), "--method", "mls2", "--radius", "0.3",
                         "-q"], capture_output=True, text=True)
     assert p.returncode == 0, p.stderr

@@ -1,5 +1,5 @@
 """The contract between the kernels and the host: constants defined once in Python
-(clcurv.constants, the operator registry) and nothing else.
+(clcurv._shared.constants, the operator registry) and nothing else.
 
 - every upper-case identifier a kernel uses is defined in the kernels themselves (macros,
   types), an OpenCL built-in, or provided by the host as a build option;
@@ -13,9 +13,9 @@ import numpy as np
 import pyopencl as cl
 import pytest
 
-from clcurv import constants
-from clcurv.operators import OPERATORS, program_variants
-from clcurv.program import kernels_dir
+from clcurv._shared import constants
+from clcurv.ops.registry import OPERATORS, program_variants
+from clcurv.runtime.program import kernels_dir
 
 # OpenCL C built-ins and keywords that look like macros
 BUILTINS = {"NAN", "INFINITY", "FLT_MAX", "FLT_EPSILON", "FLT_MIN", "DBL_MAX", "DBL_EPSILON",
@@ -79,7 +79,7 @@ def test_no_kernel_redefines_a_host_constant():
 
 @pytest.mark.parametrize("missing", sorted(constants.kernel_defines()))
 def test_build_fails_without_each_host_constant(device, missing):
-    """A kernel file built without one of clcurv.constants' values must not compile."""
+    """A kernel file built without one of clcurv._shared.constants' values must not compile."""
     opts = dict(constants.kernel_defines(), **PRECISION)
     del opts[missing]
     kdir = kernels_dir()
@@ -117,7 +117,8 @@ def test_every_output_is_documented_with_a_unit(name):
 
 
 def test_status_codes_and_minimum_counts_have_one_source():
-    from clcurv import reference, result
+    from clcurv.reference import operators as reference
+    from clcurv.api import result
     assert (result.OK, result.TOO_FEW, result.DEGENERATE, result.SINGULAR) == (
         constants.OK, constants.TOO_FEW, constants.DEGENERATE, constants.SINGULAR)
     assert OPERATORS["mls2"].min_count == constants.MIN_COUNT_MLS2

@@ -1,4 +1,4 @@
-"""The k-NN radius (clcurv.knn_radius, kernels/knn_radius.cl): radii against a k-d tree,
+"""The k-NN radius (clcurv.ops.knn_radius, kernels/knn_radius.cl): radii against a k-d tree,
 balls of k points, each operator's constants at its point's own radius, the 10x
 density-varying sphere, and k > N, duplicates, isolated points."""
 from pathlib import Path
@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 import clcurv
-from clcurv.constants import DEGENERATE, OK, TOO_FEW
-from clcurv.knn_radius import knn_radii
-from clcurv.reference_features import knn_radii as ref_knn_radii
+from clcurv._shared.constants import DEGENERATE, OK, TOO_FEW
+from clcurv.ops.knn_radius import knn_radii
+from clcurv.reference.features import knn_radii as ref_knn_radii
 from conftest import data_path
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"      # when present
@@ -52,8 +52,8 @@ def test_both_kernel_paths_select_the_same_distance(sphere, device, k):
     only when it is at most the smallest largest kept value of those lanes (every value
     below that one is kept), and send the other points down the counting path."""
     from scipy.spatial import cKDTree
-    from clcurv.cloud import DeviceCloud
-    from clcurv.knn_radius import kth_squared
+    from clcurv.grid.cloud import DeviceCloud
+    from clcurv.ops.knn_radius import kth_squared
     pts = sphere[::2]
     ref = cKDTree(pts).query(pts, k)[0][:, -1]
     cloud = DeviceCloud(pts, 1.6 * np.median(ref), device=device)
@@ -74,7 +74,7 @@ def test_merge_network_keeps_the_smallest_sorted(levels):
     positions the ``levels`` smallest of the kept values and the batch, sorted, for batches
     of 1 to 8 (values with many ties, and +inf, the empty slots); a batch of 2 costs 12
     min/max per chunk at 8 levels against 15 for one chunk at a time."""
-    from clcurv.knn_radius import merge_comparators
+    from clcurv.ops.knn_radius import merge_comparators
     rng = np.random.default_rng(levels)
     for batch in range(1, 9):
         net = merge_comparators(levels, batch)
@@ -103,9 +103,9 @@ def test_batched_merge_gives_the_same_distances(sphere, device, monkeypatch, bat
     lane's smallest d^2 as merging each chunk alone does: the same k-th distances, bit for
     bit, with batches of 1, 3 and 5, at the default levels and at 4 (most lanes drop
     values), with and without the extended reach."""
-    import clcurv.knn_radius as kr
+    import clcurv.ops.knn_radius as kr
     from scipy.spatial import cKDTree
-    from clcurv.cloud import DeviceCloud
+    from clcurv.grid.cloud import DeviceCloud
     pts = sphere[::2]
     cloud = DeviceCloud(pts, 1.3 * np.median(cKDTree(pts).query(pts, 30)[0][:, -1]),
                         device=device)
@@ -131,8 +131,8 @@ def test_extended_reach_resolves_more_points_exactly(device):
     the median k-th distance (knn_radii's first cell there) the points left unresolved go
     from ~9% to ~2% (8.6% and 1.8% on a 1M-point sphere)."""
     from scipy.spatial import cKDTree
-    from clcurv.cloud import DeviceCloud
-    from clcurv.knn_radius import kth_squared, reach
+    from clcurv.grid.cloud import DeviceCloud
+    from clcurv.ops.knn_radius import kth_squared, reach
     pts = uniform_sphere(20000)
     ref = cKDTree(pts).query(pts, 30)[0][:, -1]
     cloud = DeviceCloud(pts, 1.13 * np.median(ref), device=device)
@@ -153,9 +153,9 @@ def test_radii_found_beyond_the_first_cell_take_the_next_cells(device, monkeypat
     resolves every point, some beyond its cell, so the operators run on the cloud binned
     ahead at 1.5x that cell (no second walk): radii as the k-d tree's, every one within the
     operators' cell, each ball holding its k points."""
-    import clcurv.knn_radius as kr
+    import clcurv.ops.knn_radius as kr
     from scipy.spatial import cKDTree
-    from clcurv.cloud import DeviceCloud
+    from clcurv.grid.cloud import DeviceCloud
     pts = uniform_sphere(20000)
     ref = cKDTree(pts).query(pts, 30)[0][:, -1]
     monkeypatch.setattr(kr, "FIRST_CELL", 1.5)
@@ -177,8 +177,8 @@ def test_a_narrower_reach_resolves_what_lies_within_it(device, levels):
     from those values (known) gives the full walk's. Also on the counting path
     (levels = 1)."""
     from scipy.spatial import cKDTree
-    from clcurv.cloud import DeviceCloud
-    from clcurv.knn_radius import kth_squared
+    from clcurv.grid.cloud import DeviceCloud
+    from clcurv.ops.knn_radius import kth_squared
     pts = uniform_sphere(20000)
     ref = cKDTree(pts).query(pts, 30)[0][:, -1]
     cloud = DeviceCloud(pts, 1.2 * ref.max(), device=device)
@@ -200,9 +200,9 @@ def test_a_tight_cloud_is_binned_once(device, monkeypatch, first_reach):
     one full walk's of that cloud, bit for bit (the first walk within FIRST_REACH of the
     cell, then the points left: most of them with FIRST_REACH = 0.6), and the k-d tree's;
     each ball holds its k points."""
-    import clcurv.knn_radius as kr
-    from clcurv.grid import bounding_box
-    from clcurv.knn_radius import kth_squared
+    import clcurv.ops.knn_radius as kr
+    from clcurv.grid.binning import bounding_box
+    from clcurv.ops.knn_radius import kth_squared
     if first_reach is not None:
         monkeypatch.setattr(kr, "FIRST_REACH", first_reach)
     pts = uniform_sphere(20000)
@@ -236,8 +236,8 @@ def test_tightness_of_the_density():
     10x its area holding a quarter of the points (a depth image's near object and far
     background: the mean-density cell ~2.5x the median point's radius) is not; nor is the
     Kinect scene of the shared data (c / median 1.9, when present)."""
-    import clcurv.knn_radius as kr
-    from clcurv.grid import bounding_box
+    import clcurv.ops.knn_radius as kr
+    from clcurv.grid.binning import bounding_box
     rng = np.random.default_rng(5)
 
     def tight(p):
@@ -260,8 +260,8 @@ def test_counting_path_with_a_full_gather(sphere, device, k):
     points, whose gather must keep all 64 (the lanes after the last one once overwrote it,
     and those points got their (k+1)-th distance: 39-115 of 20000 points wrong)."""
     from scipy.spatial import cKDTree
-    from clcurv.cloud import DeviceCloud
-    from clcurv.knn_radius import kth_squared
+    from clcurv.grid.cloud import DeviceCloud
+    from clcurv.ops.knn_radius import kth_squared
     pts = sphere[::2]
     ref = cKDTree(pts).query(pts, k)[0][:, -1]
     cloud = DeviceCloud(pts, 0.2353, device=device)
@@ -279,8 +279,8 @@ def test_selection_with_equal_distances(device, k):
     path and a k-d tree give the same k-th distance. k = 128 and 130: either side of the
     bound of first_field's packed comparison (KNN_K <= 128; above it a loop)."""
     from scipy.spatial import cKDTree
-    from clcurv.cloud import DeviceCloud
-    from clcurv.knn_radius import kth_squared
+    from clcurv.grid.cloud import DeviceCloud
+    from clcurv.ops.knn_radius import kth_squared
     g = np.arange(40) * 0.25
     pts = np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
     pts = np.c_[pts, np.zeros(len(pts))]
@@ -300,7 +300,7 @@ def test_rebinned_at_the_largest_radius(device):
     widened by the grid's round-off and MARGIN in its sorted order, and every ball holds its
     k points."""
     import pyopencl as cl
-    from clcurv.knn_radius import MARGIN, ROUND_OFF
+    from clcurv.ops.knn_radius import MARGIN, ROUND_OFF
     x = np.random.default_rng(3).permutation(np.linspace(0.0, 1.0, 3001))
     pts = np.c_[x, 0.5 * x, np.zeros_like(x)]          # (in random order)
     got = knn_radii(pts, 5, device=device)
@@ -425,7 +425,7 @@ def test_levels_kept_per_lane():
     at k = 30 the fastest measured, 8 at VW 8 and 6 at VW 16 (kernels/knn_radius.cl), within
     4 .. 15 (a lane's count per bin fits a nibble), and growing with k."""
     from math import exp, factorial
-    from clcurv.knn_radius import OVERFLOW_RATE, knn_levels
+    from clcurv.ops.knn_radius import OVERFLOW_RATE, knn_levels
     assert knn_levels(30, 8) == 8 and knn_levels(30, 16) == 6
     for vw in (2, 4, 8, 16):
         got = [knn_levels(k, vw) for k in range(1, 257)]
@@ -445,7 +445,7 @@ def test_isolation_cap_is_the_percentile_of_all_radii():
     alone (the unresolved, +inf, are the largest), as soon as the percentile's two order
     statistics are resolved; None before. (The 90th percentile of the resolved radii alone
     is smaller whenever some are unresolved.)"""
-    from clcurv.knn_radius import ISOLATION, _isolation_cap
+    from clcurv.ops.knn_radius import ISOLATION, _isolation_cap
     rng = np.random.default_rng(1)
     for n in (1, 2, 5, 11, 1000, 100001):
         r = np.sort(rng.random(n).astype(np.float32))
@@ -469,7 +469,7 @@ def test_none_isolated_implies_the_cap_holds_every_radius():
     10: a tenth of the radii at the largest, the rest just above or below it / ISOLATION) it
     says so exactly when the cap holds the largest radius with room; and it does not
     when one radius is far out."""
-    from clcurv.knn_radius import ISOLATION, _isolation_cap, _none_isolated
+    from clcurv.ops.knn_radius import ISOLATION, _isolation_cap, _none_isolated
     rng = np.random.default_rng(2)
     said = 0
     for n in (1, 2, 10, 11, 1000, 30001):
@@ -574,7 +574,7 @@ def test_a_far_point_does_not_coarsen_the_first_cell(device):
     point at 1e7, status 0). At 1e3 the far point is isolated and every other radius is the
     k-d tree's; at 1e7 the grid cannot span the cloud: ExtentError, as with a fixed
     radius."""
-    from clcurv.grid import ExtentError
+    from clcurv.grid.binning import ExtentError
     from scipy.spatial import cKDTree
     pts = clcurv.shapes.sphere(400, 0.075, seed=4)["points"]
     for far, fits in ((1e3, True), (1e7, False)):
@@ -596,7 +596,7 @@ def test_orientation_graph_walks_each_points_own_ball(sphere, device):
     """With a k-NN radius of K points the orientation graph (k < K nearest) walks each
     point's own ball (rows beyond it skipped) instead of the grid's largest radius: with
     every normal valid, the same lists and weights bit for bit."""
-    from clcurv.graph import knn_graph
+    from clcurv.orient.graph import knn_graph
     got = knn_radii(sphere, 30, device=device)
     normals = sphere / np.linalg.norm(sphere, axis=1)[:, None]
     r = got.cloud.cell
@@ -616,8 +616,8 @@ def test_pruned_rows_change_no_bit_with_per_point_radii(device, monkeypatch):
              lambda: clcurv.curvature(pts, method="mls2", k=20, orient=None, device=device),
              lambda: clcurv.curvature(pts, method="2dcov1", k=20, device=device))
     pruned = [c() for c in calls]
-    # features.run_features imports it from clcurv.driver at each call
-    monkeypatch.setattr(importlib.import_module("clcurv.driver"), "row_prune",
+    # features.run_features imports it from clcurv.ops.driver at each call
+    monkeypatch.setattr(importlib.import_module("clcurv.ops.driver"), "row_prune",
                         lambda cloud, r, per_point=False: 0)
     for a, c in zip(pruned, calls):
         b = c()

@@ -3,7 +3,7 @@
 are data (issue 47: PCL's PrincipalCurvaturesEstimation uses them as given).
 
 2dcov2 and 3dcov align every neighbour's normal with the query point's (n_i := -n_i where
-<n_i, n> < 0; kernels/covariances.cl's ALIGN_NORMALS, clcurv.reference.covariance_ops's
+<n_i, n> < 0; kernels/covariances.cl's ALIGN_NORMALS, clcurv.reference.operators.covariance_ops's
 ``align``) where clcurv estimates the normals itself (the PCA normals, whatever
 ``orient``), and for the normals you pass only with ``align_normals=True``; 2dcov1 reads
 only the query normal, whose sign changes no eigenvalue (the features become (f_a, -f_b));
@@ -43,9 +43,9 @@ import pytest
 
 import clcurv
 from clcurv import shapes
-from clcurv.cloud import DeviceCloud
-from clcurv.driver import run_kernel
-from clcurv.operators import OPERATORS
+from clcurv.grid.cloud import DeviceCloud
+from clcurv.ops.driver import run_kernel
+from clcurv.ops.registry import OPERATORS
 
 RTOL = 1e-6         # relative to the point's largest value (float32: ~8 ulp)
 MST_RTOL = 1e-5     # the same, when the normals differ by float32 round-off

@@ -1,9 +1,9 @@
 """The two forms of the PCA sums (kernels/pca.h, MASKED_SUMS; the host's choice,
-clcurv.program.masked_sums): each sum updated only in the mask's lanes (s = m ? s + d : s,
+clcurv.runtime.program.masked_sums): each sum updated only in the mask's lanes (s = m ? s + d : s,
 one masked instruction each on AVX-512) or the offsets zeroed outside the mask and added
 to every lane (s += m ? d : 0). A lane outside the mask keeps s in the first, adds +0 to
 it in the second, so every sum, and so every output, is the same bit for bit (the products
-fused alike in both: fma() where the device has one, clcurv.program.fused_sums): checked by
+fused alike in both: fma() where the device has one, clcurv.runtime.program.fused_sums): checked by
 forcing each form on every device, in float and double, for every operator and call that
 sums through pca.h (the moments, MLS2, the scale space, the features at one radius, at
 three radii in one walk and at the k-NN radius)."""
@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 import clcurv
-import clcurv.cloud
-from clcurv.program import fused_sums, masked_sums
+import clcurv.grid.cloud
+from clcurv.runtime.program import fused_sums, masked_sums
 
 
 def _torus():
@@ -51,10 +51,10 @@ def test_both_forms_give_the_same_bits(device, monkeypatch, precision):
     if precision == "double" and not device.info.fp64:
         pytest.skip("device without fp64")
     pts = _torus()
-    real = clcurv.cloud.precision_defines
+    real = clcurv.grid.cloud.precision_defines
     out = {}
     for form in (0, 1):
-        monkeypatch.setattr(clcurv.cloud, "precision_defines",
+        monkeypatch.setattr(clcurv.grid.cloud, "precision_defines",
                             lambda dev, prec, f=form: dict(real(dev, prec), MASKED_SUMS=f))
         out[form] = {name: call() for name, call in _calls(pts, device, precision).items()}
     for name in out[0]:
@@ -67,7 +67,7 @@ def test_both_forms_give_the_same_bits(device, monkeypatch, precision):
 
 def test_choice():
     """Masked sums on CPU devices with 512-bit vectors only."""
-    base = clcurv.device.DeviceInfo(0, "d", "p", "v", "cpu", "1", "1.2", True, 1, 1, 1, 1, 1)
+    base = clcurv.runtime.device.DeviceInfo(0, "d", "p", "v", "cpu", "1", "1.2", True, 1, 1, 1, 1, 1)
     assert masked_sums(dataclasses.replace(base, native_float_width=16)) == 1
     assert masked_sums(dataclasses.replace(base, native_float_width=8)) == 0
     assert masked_sums(dataclasses.replace(base, kind="gpu", native_float_width=16)) == 0
@@ -78,7 +78,7 @@ def test_fused_products_follow_the_device_fp_config():
     """pca.h's products are fma(a, b, c) where the precision's CL_FP_FMA is set, so that
     the two forms fuse alike (Intel's runtime, left to contract a * b + c itself, fused
     them differently in float64); a * b + c elsewhere."""
-    base = clcurv.device.DeviceInfo(0, "d", "p", "v", "cpu", "1", "1.2", True, 1, 1, 1, 1, 1)
+    base = clcurv.runtime.device.DeviceInfo(0, "d", "p", "v", "cpu", "1", "1.2", True, 1, 1, 1, 1, 1)
     fma = dataclasses.replace(base, fma_double=True)
     assert fused_sums(fma, "double") == 1 and fused_sums(fma, "float") == 0
     assert fused_sums(base, "double") == 0

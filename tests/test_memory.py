@@ -1,4 +1,4 @@
-"""The device buffer pool (clcurv/memory.py): buffers a call frees are reused by the next
+"""The device buffer pool (clcurv/runtime/memory.py): buffers a call frees are reused by the next
 call, so no kernel may rely on fresh (zeroed) memory; release_memory gives them back."""
 import os
 import subprocess
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 import clcurv
-from clcurv import memory
-from clcurv.shapes import sphere
+from clcurv.runtime import memory
+from clcurv.data.shapes import sphere
 
 from conftest import bumpy_surface
 
@@ -56,7 +56,7 @@ def test_release_memory_frees_what_the_pool_holds(device):
 
 def test_pool_off_holds_nothing():
     """CLCURV_POOL=0: every buffer is freed when its call ends."""
-    code = ("import clcurv, clcurv.memory as m;"
+    code = ("import clcurv, clcurv.runtime.memory as m;"
             "p = clcurv.shapes.sphere(20000, 1.0)['points'];"
             "clcurv.curvature(p, 0.05, method='variation');"
             "print(m.held_bytes(clcurv.get_device()))")
@@ -70,8 +70,8 @@ def test_pool_off_holds_nothing():
 @pytest.mark.parametrize("scale_space", [0, 2])
 def test_tiled_runs_hold_no_memory_between_tiles(tmp_path, scale_space):
     """A tiled run's memory budget sizes tiles as if every buffer were freed: the pool lets
-    a tile's buffers go when the tile is done (clcurv.tiled.compute_tile, tiled_scale)."""
-    from clcurv import tiled
+    a tile's buffers go when the tile is done (clcurv.tiles.engine.compute_tile, tiled_scale)."""
+    from clcurv.tiles import engine as tiled
     dev = clcurv.get_device()
     pts = clcurv.shapes.aerial_scene(30000, extent=(30.0, 30.0), seed=1)["points"]
     src = tmp_path / "scene.npy"

@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 
 import clcurv
-from clcurv import reference
-from clcurv.cloud import DeviceCloud
-from clcurv.driver import run_kernel
-from clcurv.operators import PCA
+from clcurv.reference import operators as reference
+from clcurv.grid.cloud import DeviceCloud
+from clcurv.ops.driver import run_kernel
+from clcurv.ops.registry import PCA
 
 from conftest import bumpy_surface, worst
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import clcurv
-from clcurv.constants import OK
+from clcurv._shared.constants import OK
 
 RADII = [0.06, 0.1, 0.15]
 
@@ -122,8 +122,8 @@ def test_covariances_pca_of_every_radius_in_one_walk(torus, device, precision):
     points of every status (an isolated point, too few; a collinear cluster, degenerate)."""
     if precision == "double" and not device.info.fp64:
         pytest.skip(f"{device.info.name} has no cl_khr_fp64")
-    from clcurv.api import _Run
-    from clcurv.features import run_features
+    from clcurv.api.curvature import _Run
+    from clcurv.api.features import run_features
     line = np.column_stack([np.linspace(0, 0.05, 12), np.zeros(12), np.zeros(12)]) + [3, 0, 0]
     pts = np.vstack([torus[:20000], [[5.0, 5.0, 5.0]], line])
     cloud = clcurv.DeviceCloud(pts, max(RADII), device=device, precision=precision)
@@ -140,8 +140,8 @@ def test_covariances_walk_the_pca_once(torus, device, monkeypatch):
     """curvature(method='2dcov1', radius=[3 radii]) runs no moments pass (the PCA of the
     three radii is one features walk) and one covariance pass per radius; its results are
     those of the single calls (test_curvature_radius_list)."""
-    import clcurv.driver as driver
-    from clcurv.operators import PCA
+    import clcurv.ops.driver as driver
+    from clcurv.ops.registry import PCA
     runs = []
     real = driver.run_kernel
 
@@ -160,18 +160,18 @@ def test_covariances_walk_the_pca_once(torus, device, monkeypatch):
 @pytest.mark.parametrize("size", [3, 16, 32])
 def test_walk_buffer_size_keeps_the_bits(torus, device, monkeypatch, size):
     """FEATURES_BUF, the chunks the multi-radius walk keeps before each ball's sums run
-    over them (the host's choice per device, clcurv.program.features_buffer), changes how
+    over them (the host's choice per device, clcurv.runtime.program.features_buffer), changes how
     often the sums pause, not their additions or order: the features of three radii and
     the covariance operators' PCA normals are the same bits at any size (3: many partial
     runs a point) as with the device's own."""
-    import clcurv.cloud
-    from clcurv.features import run_features
-    from clcurv.program import features_buffer
+    import clcurv.grid.cloud
+    from clcurv.api.features import run_features
+    from clcurv.runtime.program import features_buffer
     own = clcurv.DeviceCloud(torus, max(RADII), device=device)
     ref = clcurv.features(own, RADII, "all")
     ref_normals = run_features(own, RADII, ("normals",), anchored=False)
-    real = clcurv.cloud.precision_defines
-    monkeypatch.setattr(clcurv.cloud, "precision_defines",
+    real = clcurv.grid.cloud.precision_defines
+    monkeypatch.setattr(clcurv.grid.cloud, "precision_defines",
                         lambda dev, prec: dict(real(dev, prec), FEATURES_BUF=size))
     cloud = clcurv.DeviceCloud(torus, max(RADII), device=device)
     assert cloud.defines["FEATURES_BUF"] == size
@@ -188,7 +188,7 @@ def test_walk_buffer_size_keeps_the_bits(torus, device, monkeypatch, size):
 def test_walk_buffer_choice():
     """32 chunks on CPU devices, 16 on the others (GPUs: private arrays in slow memory)."""
     import dataclasses
-    from clcurv.program import features_buffer
-    base = clcurv.device.DeviceInfo(0, "d", "p", "v", "cpu", "1", "1.2", True, 1, 1, 1, 1, 1)
+    from clcurv.runtime.program import features_buffer
+    base = clcurv.runtime.device.DeviceInfo(0, "d", "p", "v", "cpu", "1", "1.2", True, 1, 1, 1, 1, 1)
     assert features_buffer(base) == 32
     assert features_buffer(dataclasses.replace(base, kind="gpu")) == 16

@@ -60,7 +60,7 @@ def test_scale_space_re_bins_when_a_point_drifted_past_the_margin(device):
     their balls. On a unit sphere at r = 0.6 each MLS1 step moves points by ~0.17 r, well past
     the MARGIN r = 0.1 r allowed between binnings: every step but the last re-bins, as the
     drifts of the float64 iterates say."""
-    from clcurv.smoothing import MARGIN
+    from clcurv.ops.smoothing import MARGIN
     pts = clcurv.shapes.sphere(4000, 1.0, seed=3)["points"]
     r, steps = 0.6, 3
     its, stats = clcurv.scale_space(pts, r, steps, return_iterates=True, return_stats=True,

@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 
 import clcurv
-from clcurv import io, tiled
+from clcurv import io
+from clcurv.tiles import engine as tiled
 from clcurv.io import stream
-from clcurv.tiled_features import features_file
+from clcurv.tiles.features import features_file
 
 R = 1.0
 RUN = dict(method="mls1", orient=None, memory="64GiB")
@@ -208,7 +209,7 @@ def test_tiles_equal_memory_and_the_finite_rows(tmp_path, scene, small_chunks, f
         assert t["tiles"] >= 6
     _same_output(mem, til)
     _same_output(mem, ref)
-    if "dropped" in t:                              # once clcurv.tiled reports it
+    if "dropped" in t:                              # once clcurv.tiles.engine reports it
         assert t["dropped"] == (~keep).sum()
     if "dropped" in m:
         assert m["dropped"] == (~keep).sum()
@@ -242,7 +243,7 @@ def test_features_in_tiles_drop_the_same_rows(tmp_path, scene, small_chunks):
     t = features_file(src, tmp_path / "til.npz", R, memory="64GiB", tile=8.0)
     assert not m["tiled"] and t["tiled"] and m["points"] == t["points"] == keep.sum()
     assert m["dropped"] == (~keep).sum()
-    if "dropped" in t:                              # once clcurv.tiled reports it
+    if "dropped" in t:                              # once clcurv.tiles.engine reports it
         assert t["dropped"] == m["dropped"]
     _same_output(tmp_path / "mem.npz", tmp_path / "til.npz")
 
@@ -265,7 +266,7 @@ def test_a_catalog_drops_each_files_rows(tmp_path, scene, small_chunks):
     out.mkdir()
     s = tiled.curvature_file(paths, out, R, tile=8.0, **RUN)
     assert s["tiled"] and s["points"] == sum(len(k) for k in kept)
-    if "dropped" in s:                              # once clcurv.tiled reports it
+    if "dropped" in s:                              # once clcurv.tiles.engine reports it
         assert s["dropped"] == dropped
     off = 0
     for k, d in zip(kept, s["dst"]):
@@ -290,10 +291,10 @@ def test_the_command_reports_the_dropped_rows(tmp_path, scene):
     r = run_cli("compute", src, "-o", tmp_path / "til.npz", *args, "--tile-size", "8")
     assert r.code == 0, r.stderr
     _same_output(tmp_path / "mem.npz", tmp_path / "til.npz")
-    if "non-finite dropped" in r.stdout:            # once clcurv.tiled_job prints it
+    if "non-finite dropped" in r.stdout:            # once clcurv.jobs.tiled_job prints it
         assert line in r.stdout, r.stdout
     r = run_cli("features", src, "-o", tmp_path / "f.npz", "--radius", "1",
                 "--tile-size", "8", "-q")
     assert r.code == 0, r.stderr
-    if "non-finite dropped" in r.stdout:            # once clcurv.tiled reports it
+    if "non-finite dropped" in r.stdout:            # once clcurv.tiles.engine reports it
         assert f"{n} points ({dropped} non-finite dropped)" in r.stdout, r.stdout

@@ -13,7 +13,7 @@ and pointer-jumping paths), in float and double, and in float with Oclgrind trea
 CPU device (VW 8 and the CPU work-group choices). Each case runs in a subprocess; Oclgrind's
 report goes to a file (``OCLGRIND_LOG``) and ``OCLGRIND_INST_COUNTS=1`` names every kernel
 that ran, so :func:`test_every_kernel_ran` checks that every ``__kernel`` of every program
-of the registry (clcurv.operators.program_variants) ran: a new kernel that no call reaches
+of the registry (clcurv.ops.registry.program_variants) ran: a new kernel that no call reaches
 fails here until tests/oclgrind_run.py reaches it.
 
 Notes on what Oclgrind reports and this test does not treat as a kernel bug:
@@ -50,8 +50,8 @@ from pathlib import Path
 
 import pytest
 
-from clcurv.operators import program_variants
-from clcurv.program import kernels_dir
+from clcurv.ops.registry import program_variants
+from clcurv.runtime.program import kernels_dir
 
 from conftest import SIMULATORS, NAMES
 from oclgrind_run import CASES

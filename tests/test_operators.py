@@ -22,11 +22,12 @@ import numpy as np
 import pytest
 
 import clcurv
-from clcurv import reference, shapes
-from clcurv.cloud import DeviceCloud
-from clcurv.constants import SINGULAR, TOO_FEW
-from clcurv.driver import run_kernel
-from clcurv.operators import OPERATORS
+from clcurv.reference import operators as reference
+from clcurv import shapes
+from clcurv.grid.cloud import DeviceCloud
+from clcurv._shared.constants import SINGULAR, TOO_FEW
+from clcurv.ops.driver import run_kernel
+from clcurv.ops.registry import OPERATORS
 
 
 def device_covariances(cloud, r, normals, method, weights="uniform"):

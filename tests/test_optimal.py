@@ -1,13 +1,13 @@
 """features(..., radius=[...], optimal=True): each point's radius of least eigenentropy of
-its sum-normalised eigenvalues (clcurv.optimal), against the float64 reference's choice,
+its sum-normalised eigenvalues (clcurv.ops.optimal), against the float64 reference's choice,
 bit-identical to single-radius calls at the chosen radii, on a shape whose answer is known,
 and its documented edge cases."""
 import numpy as np
 import pytest
 
 import clcurv
-from clcurv.constants import OK, TOO_FEW
-from clcurv.optimal import choose, eigenentropy_normalised
+from clcurv._shared.constants import OK, TOO_FEW
+from clcurv.ops.optimal import choose, eigenentropy_normalised
 from test_features import synthetic_scene
 
 RADII = [0.1, 0.14, 0.2, 0.28]
@@ -55,7 +55,7 @@ def test_choice_matches_the_float64_reference(scene, device):
 
 
 def _ref_eig(pts, r):
-    v, _, _ = clcurv.reference_features.features(pts, r, ["eigenvalue1", "eigenvalue2",
+    v, _, _ = clcurv.reference.features.features(pts, r, ["eigenvalue1", "eigenvalue2",
                                                           "eigenvalue3"])
     return v["eigenvalue1"], v["eigenvalue2"], v["eigenvalue3"]
 
@@ -119,7 +119,7 @@ def test_edge_cases(device):
 def test_cli_optimal(tmp_path):
     """`clcurv features --optimal`: one set of fields plus optimal_radius, as the API; with
     one radius, exit code 2."""
-    from clcurv.cli import main
+    from clcurv.cli.main import main
     pts = clcurv.shapes.sphere(4000, 1.0, noise=0.005, seed=8)["points"]
     src, out = tmp_path / "in.ply", tmp_path / "out.ply"
     clcurv.io.write(src, pts)

@@ -9,7 +9,8 @@ import pytest
 from scipy.spatial import cKDTree
 
 import clcurv
-from clcurv import orient, shapes
+from clcurv.orient import orientation as orient
+from clcurv import shapes
 from clcurv.data import sample_path
 from conftest import DEVICES
 
@@ -184,7 +185,7 @@ def test_cli_orients_las_up_by_default(tmp_path):
     from conftest import bumpy_surface
     pts = bumpy_surface(5000, seed=4) * 100.0                 # a terrain tile, in metres
     clcurv.io.write(tmp_path / "t.las", pts)
-    from clcurv import cli
+    from clcurv.cli import main as cli
     assert cli.main(["compute", str(tmp_path / "t.las"), "-o", str(tmp_path / "o.ply"),
                      "--method", "mls2", "-q"]) == 0
     out = clcurv.io.read(tmp_path / "o.ply")
@@ -215,6 +216,6 @@ def test_mls2_orients_its_own_normals(device):
 
 
 def test_orient_k_bound_is_the_graph_bound():
-    from clcurv.api import MAX_ORIENT_K
-    from clcurv.graph import KMAX
+    from clcurv.api.curvature import MAX_ORIENT_K
+    from clcurv.orient.graph import KMAX
     assert MAX_ORIENT_K == KMAX

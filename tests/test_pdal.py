@@ -14,7 +14,7 @@ from scipy.spatial import cKDTree
 
 import clcurv
 from bench.pdal_cli import covariance_features, pdal_command, pdal_version
-from clcurv.constants import OK
+from clcurv._shared.constants import OK
 from test_features import AUTZEN, BUNNY, synthetic_scene
 
 CMD, WHY = pdal_command()
@@ -23,7 +23,7 @@ if CMD is None:     # one report line for the module (a skip per test said the s
                 f"filters.covariancefeatures): PDAL cannot be run here: {WHY}",
                 allow_module_level=True)
 
-#: PDAL's name -> clcurv's canonical name (clcurv.features.FEATURES' aliases)
+#: PDAL's name -> clcurv's canonical name (clcurv.api.features.FEATURES' aliases)
 NAMES = {"Linearity": "linearity", "Planarity": "planarity", "Scattering": "sphericity",
          "Verticality": "guinard_verticality", "Omnivariance": "omnivariance",
          "Anisotropy": "anisotropy", "Eigenentropy": "eigenentropy",

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import clcurv
-from clcurv import reference
+from clcurv.reference import operators as reference
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))   # the repo root: bench/
 from bench.targets import COS_TOL  # noqa: E402

@@ -5,8 +5,8 @@ import numpy as np
 import pyopencl as cl
 import pytest
 
-from clcurv.cloud import RECORD, DeviceCloud, fetch_records, upload_sorted
-from clcurv.grid import PAD
+from clcurv.grid.cloud import RECORD, DeviceCloud, fetch_records, upload_sorted
+from clcurv.grid.binning import PAD
 
 LAYOUT = {"a": slice(0, 3), "b": 3, "c": slice(4, 6), "count": 9, "status": 10}
 
@@ -30,7 +30,7 @@ def cloud_and_records(device, precision, n=5000):
 @pytest.mark.parametrize("mapped", [True, False, None])
 def test_fetch_records_splits_fields_exactly(device, precision, mapped):
     """mapped=None: the default, on a CPU device with fp64 the split straight into the host
-    arrays (clcurv.cloud.split_into_host); NaN, infinities, -0 and subnormals included."""
+    arrays (clcurv.grid.cloud.split_into_host); NaN, infinities, -0 and subnormals included."""
     if precision == "double" and not device.info.fp64:
         pytest.skip("device without fp64")
     cloud, rec, buf, counts = cloud_and_records(device, precision)

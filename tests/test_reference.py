@@ -1,4 +1,4 @@
-"""The float64 reference (clcurv.reference) and host orientation (clcurv.orient).
+"""The float64 reference (clcurv.reference.operators) and host orientation (clcurv.orient.orientation).
 
 The reference is the oracle the OpenCL kernels are checked against, so it is itself checked
 here against brute force, the paper's asymptotic limits (Digne & Morel 2013, Theorem 4 and
@@ -8,7 +8,9 @@ OpenCL, no timings (those are ``python -m bench.reference_speed``).
 import numpy as np
 import pytest
 
-from clcurv import orient, reference, shapes
+from clcurv.orient import orientation as orient
+from clcurv.reference import operators as reference
+from clcurv import shapes
 
 GOLDEN = (1 + 5 ** 0.5) / 2
 

@@ -1,9 +1,9 @@
 """The host steps that decide a result's sign and values after the operator: finishing
 (MLS0/MLS1 H and points, MLS2 H and K), MLS2's flip of its own normals, and orientation.
 
-``backend="numpy"`` runs the reference's own versions (clcurv.reference: ``finish``,
+``backend="numpy"`` runs the reference's own versions (clcurv.reference.operators: ``finish``,
 ``orientation_flips``, ``mst_flips``), the OpenCL backend the kernel path's
-(clcurv.operators ``_finish_*`` and ``_flip_mls2``, clcurv.orient). A test comparing the
+(clcurv.ops.registry ``_finish_*`` and ``_flip_mls2``, clcurv.orient.orientation). A test comparing the
 two backends therefore sees a fault of either. Both are also checked here against exact
 values, so that a fault shared by the definitions would show too:
 
@@ -27,8 +27,10 @@ import numpy as np
 import pytest
 
 import clcurv
-from clcurv import orient, reference, shapes
-from clcurv.operators import OPERATORS, _flip_mls2
+from clcurv.orient import orientation as orient
+from clcurv.reference import operators as reference
+from clcurv import shapes
+from clcurv.ops.registry import OPERATORS, _flip_mls2
 
 SIGNED = ("mls0", "mls1", "mls2")
 
@@ -140,8 +142,8 @@ def _run(name, method, **backend):
 
 @pytest.mark.parametrize("name, method", PAIRS)
 def test_numpy_backend_against_exact_values(name, method):
-    """The reference's finishing and orientation (no kernel, no clcurv.operators
-    finishing step, no clcurv.orient)."""
+    """The reference's finishing and orientation (no kernel, no clcurv.ops.registry
+    finishing step, no clcurv.orient.orientation)."""
     res, s = _run(name, method, backend="numpy")
     check_against_exact(res, s, method)
 
@@ -149,7 +151,7 @@ def test_numpy_backend_against_exact_values(name, method):
 @pytest.mark.parametrize("name, method", PAIRS)
 def test_kernel_path_against_exact_values(name, method, device):
     """The kernel path's host steps: the operators' finishing, MLS2's own normals flipped
-    afterwards (_flip_mls2), the device orientation and its signs (clcurv.orient)."""
+    afterwards (_flip_mls2), the device orientation and its signs (clcurv.orient.orientation)."""
     res, s = _run(name, method, device=device)
     check_against_exact(res, s, method)
 
@@ -291,7 +293,7 @@ def test_orientation_flips_by_hand_and_as_the_orient_helpers():
     assert of(p, n, "viewpoint", viewpoint=np.array([1.0, 1, 1])).tolist() == \
         [False, True, True, False, True]
     assert not of(p, n, None).any()
-    # as clcurv.orient's (the kernel path's) on random input, zero products included
+    # as clcurv.orient.orientation's (the kernel path's) on random input, zero products included
     rng = np.random.default_rng(0)
     pts, nrm, rr = rng.normal(size=(3, 500, 3))
     nrm[::50] = np.nan
@@ -333,7 +335,7 @@ MST = {
 def test_mst_flips_face_outward(name):
     """The reference's Hoppe propagation on exact normals of random signs and lengths:
     every normal outward (a cavity's wall towards the cavity, a ball inside it outward),
-    as clcurv.orient's host propagation (the device's twin) decides too."""
+    as clcurv.orient.orientation's host propagation (the device's twin) decides too."""
     make, r = MST[name]
     s = make()
     n = _signed(s, seed=len(name))
@@ -363,7 +365,7 @@ def test_mst_flips_invalid_rows_duplicates_and_tiny_inputs():
 
 @pytest.mark.parametrize("name", ["hollow shell", "shell and ball"])
 def test_normals_of_both_backends_face_outward(name, device):
-    """clcurv.normals: the device orientation (clcurv.orient.flip_on_device) and the
+    """clcurv.normals: the device orientation (clcurv.orient.orientation.flip_on_device) and the
     numpy backend's own (reference.mst_flips), against the exact outward normals."""
     make, r = MST[name]
     s = make()

@@ -1,11 +1,11 @@
 """Float64 references of the normal-covariance operators (2dcov1, 2dcov2, 3dcov) and of MLS2
-(clcurv.reference.covariance_ops, mls2, mls2_iterate; Digne & Morel 2013, operators 1, 2, 3, 7).
+(clcurv.reference.operators.covariance_ops, mls2, mls2_iterate; Digne & Morel 2013, operators 1, 2, 3, 7).
 
 Three kinds of checks, all with fixed seeds and no OpenCL:
 
 * definitions: the vectorised references against direct per-point loops (and, for 2dcov2,
   against PCL's PrincipalCurvaturesEstimation formula), to round-off;
-* the paper's asymptotics on uniform-in-area samples of analytic shapes (clcurv.shapes, exact
+* the paper's asymptotics on uniform-in-area samples of analytic shapes (clcurv.data.shapes, exact
   normals, per-point exact curvatures), aggregated over interior points;
 * status codes and NaN rows.
 
@@ -45,7 +45,8 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from clcurv import reference, shapes
+from clcurv.reference import operators as reference
+from clcurv import shapes
 
 COV = ("2dcov1", "2dcov2", "3dcov")
 FLOATS_COV = ("eigenvalues", "k1", "k2", "dir1", "dir2")

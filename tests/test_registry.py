@@ -1,4 +1,4 @@
-"""Every registered operator (clcurv.operators.OPERATORS) through the public API, kernels
+"""Every registered operator (clcurv.ops.registry.OPERATORS) through the public API, kernels
 against the float64 reference, and the registry's promises (outputs, options, empty
 clouds, the README's methods table, DeviceCloud reuse).
 
@@ -16,7 +16,7 @@ import pytest
 
 import clcurv
 from clcurv import shapes
-from clcurv.operators import METHODS, OPERATORS, methods_table
+from clcurv.ops.registry import METHODS, OPERATORS, methods_table
 
 README = Path(__file__).resolve().parent.parent / "README.md"
 R = 0.2
@@ -102,4 +102,4 @@ def test_device_cloud_is_binned_once_for_several_operators(device, torus):
 
 def test_readme_methods_table_is_the_registry():
     assert methods_table() in README.read_text(), \
-        "README's methods table differs from clcurv.operators.methods_table(): paste it"
+        "README's methods table differs from clcurv.ops.registry.methods_table(): paste it"

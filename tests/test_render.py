@@ -151,7 +151,7 @@ def test_bad_shapes(tmp_path, points, values):
 
 
 def test_signed_fields_come_from_the_registry():
-    from clcurv.operators import signed_file_fields
+    from clcurv.ops.registry import signed_file_fields
     from clcurv.render import SIGNED_FIELDS
     assert signed_file_fields() == {"mean_curvature", "gaussian_curvature", "k1", "k2"}
     assert SIGNED_FIELDS == signed_file_fields() | {"mean", "gaussian", "k1", "k2", "h", "k"}
@@ -272,7 +272,7 @@ def test_cli_render_las_and_up(tmp_path):
     """`clcurv render` on a LAS/LAZ file draws two views (top, oblique); --up y on the same
     file draws the three object views. The Autzen LAZ (tests/data)."""
     tile = AUTZEN
-    from clcurv.cli import main
+    from clcurv.cli.main import main
     attrs = __import__("clcurv").io.read(tile).attributes
     field = "intensity" if "intensity" in attrs else next(iter(attrs))
     out = tmp_path / "a.png"
@@ -308,6 +308,6 @@ def test_colourbar_unit_follows_the_field(tmp_path):
         assert figure(p, v, field=field, dpi=DPI)[1]["label"] == label
     assert figure(p, v, field="mean_curvature", unit="1/mm", dpi=DPI)[1]["label"] == \
         "mean_curvature [1/mm]"
-    from clcurv.cli import build_parser
+    from clcurv.cli.main import build_parser
     args = build_parser().parse_args(["render", "in.ply", "-o", "o.png"])
     assert args.unit == "auto"

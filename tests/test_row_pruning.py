@@ -1,5 +1,5 @@
 """Row pruning of the neighbour walk (kernels/neighbors.h, ROW_PRUNE; the host turns it on
-for radii below clcurv.driver.PRUNE_BELOW cells and for per-point radii): the rows of the
+for radii below clcurv.ops.driver.PRUNE_BELOW cells and for per-point radii): the rows of the
 27-cell block whose slab lies beyond the ball's radius in y and z are skipped, and of a row
 whose first (last) cell lies beyond it in x as well the whole chunks of that first cell
 (the last cell) are left out, from the rows' middle cells (grid.cl, DeviceCloud.with_middles).
@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 
 import clcurv
-from clcurv.cloud import DeviceCloud
-from clcurv.driver import run_kernel
-from clcurv.operators import OPERATORS
+from clcurv.grid.cloud import DeviceCloud
+from clcurv.ops.driver import run_kernel
+from clcurv.ops.registry import OPERATORS
 
-features_mod = importlib.import_module("clcurv.features")
+features_mod = importlib.import_module("clcurv.api.features")
 
 
 def _torus():

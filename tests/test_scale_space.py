@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 import clcurv
-from clcurv import reference, shapes
+from clcurv.reference import operators as reference
+from clcurv import shapes
 
 from conftest import bumpy_surface
 

@@ -1,4 +1,4 @@
-"""The tiled engine (clcurv.tiled): tiles equal the in-memory run bit for bit, every point is
+"""The tiled engine (clcurv.tiles.engine): tiles equal the in-memory run bit for bit, every point is
 written once in input order, a halo too small shows, bad input fails cleanly, and an
 interrupted run resumes."""
 import os
@@ -8,7 +8,8 @@ import pytest
 
 import clcurv
 from tests.hostile import assert_same_las, las_dims
-from clcurv import tiled, tiled_job
+from clcurv.tiles import engine as tiled
+from clcurv.jobs import tiled_job
 from clcurv.io._common import CorruptFileError
 from conftest import data_path
 
@@ -83,7 +84,7 @@ def test_tiles_equal_the_in_memory_run_bit_for_bit(scene, method):
 
 @pytest.mark.parametrize("method", clcurv.METHODS)
 def test_scale_space_tiles_equal_the_in_memory_run_bit_for_bit(scene, method):
-    """Three MLS1 steps in lock step over tiles (clcurv.tiled_scale), then the operator on
+    """Three MLS1 steps in lock step over tiles (clcurv.tiles.scale), then the operator on
     the smoothed cloud: the same bits as the in-memory pipeline, re-binnings included."""
     d, paths, pts = scene
     a, b = d / f"ss_mem_{method}.laz", d / f"ss_til_{method}.laz"
@@ -105,12 +106,13 @@ def _dome(n=30_000, seed=4):
 
 
 def test_the_scale_space_case_re_bins(scene, tmp_path, monkeypatch):
-    """The tiled scale space (clcurv.tiled_scale) re-bins after exactly the steps the
-    in-memory one (clcurv.smoothing) does, and after every step its smoothed cloud (p + d
+    """The tiled scale space (clcurv.tiles.scale) re-bins after exactly the steps the
+    in-memory one (clcurv.ops.smoothing) does, and after every step its smoothed cloud (p + d
     from its state files) is the in-memory iterate, bit for bit. On the dome some steps
     re-bin and some do not; the scene's three steps (test_scale_space_tiles_equal_...)
     re-bin at least once, so that test goes through a re-binning too."""
-    from clcurv import smoothing, tiled_scale
+    from clcurv.ops import smoothing
+    from clcurv.tiles import scale as tiled_scale
     _, stats = clcurv.scale_space(scene[2], R, 3, return_stats=True)
     assert stats["rebins"] >= 1
     pts = _dome()
@@ -206,7 +208,7 @@ def test_a_halo_too_small_changes_the_results(scene, monkeypatch):
 
 @pytest.mark.parametrize("shape", ["torus", "two_spheres"])
 def test_mst_orientation_across_tiles(tmp_path, shape):
-    """Hoppe's MST in tiles (clcurv.tiled_orient): a closed torus (or two disjoint spheres)
+    """Hoppe's MST in tiles (clcurv.tiles.orient): a closed torus (or two disjoint spheres)
     cut into many tiles comes out outward, and agrees with the in-memory MST."""
     s = (clcurv.shapes.torus(60_000, 2.0, 0.7, seed=5) if shape == "torus"
          else clcurv.shapes.two_spheres(60_000, 1.0, 1.0, seed=5))
@@ -238,7 +240,7 @@ def test_mst_normals_of_a_tile_are_aligned_as_in_memory(tmp_path, method, monkey
     given): a tile's MST normals are clcurv's own, so the tiled values are the in-memory
     ones even where a tile's propagation leaves mixed signs (here: a third of the signs
     flipped after each tile's MST)."""
-    from clcurv import tiled_orient
+    from clcurv.tiles import orient as tiled_orient
     s = clcurv.shapes.torus(30_000, 2.0, 0.7, noise=0.01, seed=6)
     src = tmp_path / "c.npy"
     np.save(src, s["points"])
@@ -362,7 +364,7 @@ def test_dask_workers_equal_one_process_and_survive_a_killed_worker(scene, tmp_p
 
 
 def test_which_file_jobs_tile(scene):
-    from clcurv.job import Job
+    from clcurv.jobs.job import Job
     _, paths, _ = scene
     small = Job(paths["laz"], "o.laz", radius=1.0)
     assert not tiled_job.wants_tiles(small)                 # 30k points fit the default budget
@@ -377,7 +379,7 @@ def test_auto_radius_in_tiles_estimates_the_in_memory_one(scene):
     """radius 'auto' of a tiled run samples 16 regions (exact k-NN distances inside
     them); it estimates the whole-cloud sample's median to a few per cent."""
     from clcurv.io import stream
-    from clcurv.job import auto_radius
+    from clcurv.jobs.job import auto_radius
     _, paths, pts = scene
     r_tiled = tiled_job.auto_radius_tiled(stream.open_source(paths["laz"]))
     r_mem = auto_radius(pts)

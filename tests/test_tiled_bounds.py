@@ -9,12 +9,12 @@ import pytest
 
 import clcurv
 from tests.hostile import deadline
-from clcurv import tiling
-from clcurv.buckets import READ_CHUNK, Buckets, bucket_grid
-from clcurv.grid import ExtentError
+from clcurv.tiles import planning as tiling
+from clcurv.tiles.buckets import READ_CHUNK, Buckets, bucket_grid
+from clcurv.grid.binning import ExtentError
 from clcurv.io import stream
-from clcurv.tiled_features import features_file
-from clcurv.tiling import TilingError
+from clcurv.tiles.features import features_file
+from clcurv.tiles.planning import TilingError
 
 SURVEY = np.array([500000.0, 4000000.0, 100.0])       # a projected (UTM-like) survey
 
@@ -193,7 +193,7 @@ def test_mst_orientation_of_a_far_point_in_tiles(tmp_path):
     survey = _survey()
 
     def ids(pts):                   # the ids of the survey's 8 m tiles, the origin at 0
-        tl = tiling.Tiling(clcurv.grid.Frame.covering(np.zeros(3), pts.max(axis=0), 1.0),
+        tl = tiling.Tiling(clcurv.grid.binning.Frame.covering(np.zeros(3), pts.max(axis=0), 1.0),
                            8, 1)
         c = tl.frame.cells_xy(pts) // 8
         return c[:, 0] + tl.shape[0] * c[:, 1], tl.shape[0]
@@ -218,15 +218,15 @@ def test_scale_space_steps_split_or_gather_alike(tmp_path, monkeypatch, factor):
     """A step's tiles read their points from files split once (buckets far larger than the
     tiles: one far point stretches the bucket grid, and every tile would read it whole) or
     gather them from the buckets around them: the in-memory scale space either way."""
-    from clcurv import tiled_scale
+    from clcurv.tiles import scale as tiled_scale
     monkeypatch.setattr(tiled_scale, "GATHER_FACTOR", factor)
     path = tmp_path / "s.npy"
     np.save(path, _survey(3000))
     kw = dict(method="mls1", orient="up", scale_space=2)
     clcurv.curvature_file(path, tmp_path / "mem.npz", 1.0, **kw)
     used = []
-    split = clcurv.buckets.Buckets.split
-    monkeypatch.setattr(clcurv.buckets.Buckets, "split",
+    split = clcurv.tiles.buckets.Buckets.split
+    monkeypatch.setattr(clcurv.tiles.buckets.Buckets, "split",
                         lambda self, *a, **k: used.append(1) or split(self, *a, **k))
     with deadline(60):
         clcurv.curvature_file(path, tmp_path / "tiles.npz", 1.0, tile=6.0, **kw)
@@ -274,7 +274,7 @@ def test_a_bad_tile_size_is_refused_by_the_command(far_cloud, tmp_path, capsys, 
                                                    command):
     """Exit 2 with the reason, before any point is read (was an OverflowError traceback or
     "cannot convert float NaN to integer")."""
-    from clcurv import cli
+    from clcurv.cli import main as cli
     _, path = far_cloud
     with pytest.raises(SystemExit) as done:
         cli.main([command, str(path), "-o", str(tmp_path / "o.npz"), "--radius", "1",

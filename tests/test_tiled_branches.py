@@ -1,9 +1,9 @@
 """Branches of the tiled engine that no other test runs (issue 48, item 4), end to end on
 small clouds: a tiled run with ``viewpoint=``, ``precision="double"`` and MLS2's
-``kernel="gaussian"`` equals the in-memory run bit for bit (as clcurv.tiled promises); an
+``kernel="gaussian"`` equals the in-memory run bit for bit (as clcurv.tiles.engine promises); an
 interrupted features_file resumes to the fresh run's output; on Dask, the scale space's
 steps (step_tile) give the one-process output, and a tile task that fails once is retried
-(clcurv.cluster.RETRIES) with the same output.
+(clcurv.tiles.workers.RETRIES) with the same output.
 
 Each option is also checked to change the result (a run that ignored it would not pass)."""
 import os
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import clcurv
-from clcurv import tiled, tiled_scale
+from clcurv.tiles import engine as tiled, scale as tiled_scale
 
 R = 1.0
 TILE = 8.0                  # about 20 tiles of the 40 m x 31 m scene
@@ -153,13 +153,13 @@ def _fail_once(task, name):
 
 
 def flaky_compute_tile(task, device=None):
-    """clcurv.tiled.compute_tile, failing once per tile (the workers import it here)."""
+    """clcurv.tiles.engine.compute_tile, failing once per tile (the workers import it here)."""
     _fail_once(task, f"tile-{task.t}")
     return _REAL_COMPUTE(task, device)
 
 
 def flaky_step_tile(task):
-    """clcurv.tiled_scale.step_tile, failing once per tile of each step."""
+    """clcurv.tiles.scale.step_tile, failing once per tile of each step."""
     _fail_once(task, f"step{task.step}-{task.t}")
     return _REAL_STEP(task)
 
@@ -196,7 +196,7 @@ def test_a_tile_task_that_fails_once_is_retried_on_dask(scene, one_process, tmp_
     cluster.map_tiles's retries run each again, and the output is the one-process run's.
     (tests/test_tiled_units.py shows the failure reaching the caller with RETRIES = 0.)"""
     pytest.importorskip("distributed")
-    from clcurv import cluster
+    from clcurv.tiles import workers as cluster
     assert cluster.RETRIES >= 1
     monkeypatch.setenv("CLCURV_FORCE_WORKERS", "1")
     monkeypatch.setattr(tiled, "compute_tile", flaky_compute_tile)

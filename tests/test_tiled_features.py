@@ -1,4 +1,4 @@
-"""Covariance features in tiles (clcurv.tiled_features, `clcurv features --tile-size`): the
+"""Covariance features in tiles (clcurv.tiles.features, `clcurv features --tile-size`): the
 output of a tiled run is the in-memory run's, bit for bit (same fields, same order, every
 point once in input order), for one radius, several radii and the optimal neighbourhood;
 the memory budget decides and grows with the fields; what a tiled run cannot do is refused
@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 import clcurv
-from clcurv import tiled_features
-from clcurv.features import canonical_names
-from clcurv.tiling import TILE_BYTES_PER_POINT
+from clcurv.tiles import features as tiled_features
+from clcurv.api.features import canonical_names
+from clcurv.tiles.planning import TILE_BYTES_PER_POINT
 from tests.hostile import run_cli
 from tests.test_tiled import AUTZEN, _assert_same, _dims, _scene, write_scene
 

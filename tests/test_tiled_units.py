@@ -1,10 +1,10 @@
 """Unit tests of the tiled engine's parts (issue 48, item 4), each against an independent
 computation (NumPy by brute force, or values worked out by hand): the buckets and the split
-into tile files (clcurv.buckets), the id windows and the merge (clcurv.tile_results), the
-planning (clcurv.tiling: densest, plan_tiles), the orientation across tiles
-(clcurv.tiled_orient: reconcile, flip_mask, flip_fields), the scale space's state
-(clcurv.tiled_scale: State, init_state, the gather by state) and the Dask plugin and
-retries (clcurv.cluster). No OpenCL device is needed here."""
+into tile files (clcurv.tiles.buckets), the id windows and the merge (clcurv.tiles.results), the
+planning (clcurv.tiles.planning: densest, plan_tiles), the orientation across tiles
+(clcurv.tiles.orient: reconcile, flip_mask, flip_fields), the scale space's state
+(clcurv.tiles.scale: State, init_state, the gather by state) and the Dask plugin and
+retries (clcurv.tiles.workers). No OpenCL device is needed here."""
 import os
 import threading
 
@@ -12,14 +12,15 @@ import numpy as np
 import pytest
 
 import clcurv
-from clcurv import cluster, tile_results, tiled_orient, tiled_scale, tiling
-from clcurv.buckets import READ_CHUNK, Buckets, bucket_grid
-from clcurv.grid import Frame
+from clcurv.tiles import (workers as cluster, results as tile_results, orient as tiled_orient,
+                          scale as tiled_scale, planning as tiling)
+from clcurv.tiles.buckets import READ_CHUNK, Buckets, bucket_grid
+from clcurv.grid.binning import Frame
 from clcurv.io import stream
-from clcurv.orient import MIN_COMPONENT
-from clcurv.tile_results import Windows, partition, tile_file, to_windows, window_points
-from clcurv.tiling import Tiling, TilingError
-from clcurv.workspace import CorruptWorkspace, save_sealed
+from clcurv.orient.orientation import MIN_COMPONENT
+from clcurv.tiles.results import Windows, partition, tile_file, to_windows, window_points
+from clcurv.tiles.planning import Tiling, TilingError
+from clcurv.tiles.workspace import CorruptWorkspace, save_sealed
 
 CELL = 0.5                  # a power of two: (x - o) / CELL is exact, cell edges are exact
 
@@ -356,7 +357,7 @@ def test_partition_with_a_missing_id_or_tile_is_corrupt(tmp_path, monkeypatch):
 
 def _source_buckets(folder, pts, budget):
     """The buckets of pass (1) for an NPY file of ``pts`` and this budget (the grid of
-    :func:`bucket_grid`, as clcurv.tiled._prepare builds it)."""
+    :func:`bucket_grid`, as clcurv.tiles.engine._prepare builds it)."""
     folder.mkdir()
     np.save(folder / "c.npy", pts)
     src = stream.open_source(folder / "c.npy")
@@ -531,7 +532,7 @@ def test_reconcile_flips_the_nodes_of_hand_made_votes():
 def test_flip_mask_turns_every_point_outward_and_small_groups_from_the_centroid():
     """flip_mask with reconcile's flips: every point of the spheres faces out after the
     flip; the small group's points face away from the centroid of all points (as
-    clcurv.orient does in memory); points without a node are never flipped."""
+    clcurv.orient.orientation does in memory); points without a node are never flipped."""
     pts, outward, nl, node = _components()
     sums = [tiled_orient.node_sums(pts, nl, node, ORIGIN)]
     flips, centroid, small = tiled_orient.reconcile(sums, VOTES)
@@ -717,10 +718,10 @@ def test_the_worker_plugin_spreads_the_workers_over_the_gpus(monkeypatch, gpus, 
     """No device asked for: with several GPUs (a simulator is not one), the worker of rank
     k among its host's workers (by address) takes GPU k mod count; one GPU: the default."""
     pytest.importorskip("distributed")
-    import clcurv.device
+    import clcurv.runtime.device
     devs = [_Dev(0, "cpu"), _Dev(9, "gpu", simulator=True)] + \
         [_Dev(10 + g, "gpu") for g in range(gpus)]
-    monkeypatch.setattr(clcurv.device, "devices", lambda: devs)
+    monkeypatch.setattr(clcurv.runtime.device, "devices", lambda: devs)
     monkeypatch.setattr(cluster, "usable_cores", lambda: 2)
     _clean_env(monkeypatch)
     for port, index in want.items():

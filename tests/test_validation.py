@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 import clcurv
-from clcurv.program import PrecisionError, precision_defines
-from clcurv.result import DEGENERATE, TOO_FEW
+from clcurv.runtime.program import PrecisionError, precision_defines
+from clcurv.api.result import DEGENERATE, TOO_FEW
 
 from conftest import bumpy_surface
 
@@ -63,9 +63,9 @@ def test_every_call_refuses_non_finite_points(call, device):
 @pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
 def test_non_finite_points_of_a_device_cloud(value, device):
     """DeviceCloud, host_binning and a binning in a given frame (tiles) find them on the
-    bounding box (clcurv.validate.check_finite_box), with the same message."""
-    from clcurv.cloud import host_binning
-    from clcurv.grid import Frame, bin_points
+    bounding box (clcurv._shared.validate.check_finite_box), with the same message."""
+    from clcurv.grid.cloud import host_binning
+    from clcurv.grid.binning import Frame, bin_points
     pts = bumpy_surface(100, seed=0)
     frame = Frame.covering(pts.min(axis=0) - 1, pts.max(axis=0) + 1, 0.1)
     pts[[3, 7], 1] = value
@@ -222,7 +222,7 @@ def test_huge_bounding_box_is_an_error_not_a_dense_grid(device):
 
 def test_large_lidar_tile_uses_a_sparse_grid(device):
     """A 10 km x 10 km tile at r = 0.5 m: 2e4 x 2e4 cells in x, y, but memory O(N)."""
-    from clcurv.cloud import DeviceCloud
+    from clcurv.grid.cloud import DeviceCloud
     rng = np.random.default_rng(4)
     centres = rng.uniform(0, 10_000, (200, 2))                 # 200 patches of 100 points
     xy = (centres[:, None, :] + rng.uniform(-1, 1, (200, 100, 2))).reshape(-1, 2)
@@ -255,7 +255,7 @@ def test_normals_length_does_not_matter(device):
 def test_bad_normals_of_a_large_cloud_still_raise(device):
     """From api.DEFER_MIN points the normals are checked on a host thread while the cloud
     is binned: their errors must still reach the caller, before any result."""
-    from clcurv.api import DEFER_MIN
+    from clcurv.api.curvature import DEFER_MIN
     pts = bumpy_surface(DEFER_MIN, seed=8)
     nrm = np.tile([0.0, 0.0, 1.0], (DEFER_MIN, 1))
     nrm[123] = np.nan

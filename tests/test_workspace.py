@@ -1,4 +1,4 @@
-"""The tiled run's workspace never lies (clcurv.workspace, clcurv.tiled): it deletes only
+"""The tiled run's workspace never lies (clcurv.tiles.workspace, clcurv.tiles.engine): it deletes only
 what it made, resumes only the same inputs and options, detects every kind of corrupt file
 and recomputes, survives a kill at any stage, and refuses a second run on one output.
 
@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 import clcurv
-from clcurv import tiled
-from clcurv import workspace as wsp
+from clcurv.tiles import engine as tiled
+from clcurv.tiles import workspace as wsp
 from clcurv.io import OutputPathError
 
 laspy = pytest.importorskip("laspy")
@@ -289,7 +289,7 @@ def test_corrupt_mst_records_are_recomputed(inputs, fresh, tmp_path, suffix):
 
 
 def test_window_ids_out_of_range_are_a_corrupt_workspace(tmp_path):
-    from clcurv.tile_results import Windows
+    from clcurv.tiles.results import Windows
     dt = np.dtype([("id", "<i8"), ("v", "<f8")])
     w = Windows(tmp_path, 10, dt)
     rec = np.zeros(10, dt)
@@ -449,7 +449,7 @@ def test_options_fields_and_device_are_refused_before_any_point_is_read(inputs, 
     for kw, exc, msg in bad:
         with pytest.raises(exc, match=msg):
             _run(d / "scene.laz", out, **kw)
-    from clcurv.cli import main                  # --radius auto reads the cloud: not yet
+    from clcurv.cli.main import main                  # --radius auto reads the cloud: not yet
     for extra, code in ((["--fields", "k1"], 2), (["--kernel", "gaussian"], 2),
                         (["--device", "99"], 4)):
         assert main(["compute", str(d / "scene.laz"), "-o", str(out), "--method", "mls1",

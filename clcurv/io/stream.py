@@ -1,4 +1,4 @@
-"""Chunked reading and writing for clouds larger than memory (:mod:`clcurv.tiled`).
+"""Chunked reading and writing for clouds larger than memory (:mod:`clcurv.tiles.engine`).
 
 A *source* yields a file's points in input order, a bounded number at a time:
 

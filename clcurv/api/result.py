@@ -1,0 +1,73 @@
+"""The result object returned by :func:`clcurv.curvature`."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+
+from clcurv._shared.constants import DEGENERATE, OK, SINGULAR, TOO_FEW   # noqa: F401 (the status codes)
+
+
+@dataclass
+class CurvatureResult:
+    """Per-point outputs of one operator, in the input's point order.
+
+    Conventions: normals are unit vectors oriented outward (away from the solid) when an
+    orientation was requested; a surface bending away from its normal has positive
+    curvature (a sphere of radius R has H = 1/R). Lengths are in the points' unit, so
+    curvatures are in 1/length. Points whose ``status`` is not 0 hold NaN in every
+    floating-point output.
+
+    Attributes
+    ----------
+    method, radius, weights : the call's parameters.
+    count : (N,) int64, #N_r(p), the point itself included.
+    status : (N,) uint8, 0 ok, 1 too few neighbours, 2 degenerate, 3 singular fit.
+    normals : (N, 3) float64 unit normals: the PCA normals ('variation', 'mls0', 'mls1'),
+        the normals the operator used (covariance methods), the fitted normals (MLS2).
+    eigenvalues : float64 or None, per method (clcurv.ops.registry lists them):
+        'variation', 'mls0', 'mls1': (N, 3), ascending l0 <= l1 <= l2, of the weighted PCA
+        covariance sum w (q - o)(q - o)^T / sum w (length^2);
+        '2dcov1': (N, 2), descending, of the count-normalised covariance of
+        <d, n>(<d, t1>, <d, t2>) (length^4); '2dcov2': (N, 2), descending, of the tangent
+        projections of the neighbours' unit normals (unitless); '3dcov': (N, 3),
+        descending, of the neighbours' unit normals (unitless); 'mls2': None.
+    variation : (N,) float64 or None, surface variation l0 / (l0 + l1 + l2), in [0, 1/3]
+        (the PCA methods).
+    mean : (N,) float64 or None, signed mean curvature H (1/length).
+    points : (N, 3) float64 or None, the projected positions (MLS0 barycenter, MLS1 point
+        projected on the regression plane, MLS2 projection).
+    k1, k2 : (N,) float64 or None, principal curvatures, k1 >= k2 (1/length): signed for
+        MLS2, magnitudes (>= 0) for 2dcov1, 2dcov2 and 3dcov.
+    dir1, dir2 : (N, 3) float64 or None, unit principal directions (tangent, orthogonal).
+    gaussian : (N,) float64 or None, Gaussian curvature K = k1 k2 (1/length^2), MLS2.
+    """
+    method: str
+    radius: float
+    weights: str
+    count: np.ndarray
+    status: np.ndarray
+    normals: np.ndarray
+    eigenvalues: np.ndarray | None
+    variation: np.ndarray | None
+    mean: np.ndarray | None = None
+    points: np.ndarray | None = None
+    k1: np.ndarray | None = None
+    k2: np.ndarray | None = None
+    dir1: np.ndarray | None = None
+    dir2: np.ndarray | None = None
+    gaussian: np.ndarray | None = None
+    info: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def __len__(self):
+        return len(self.count)
+
+    @property
+    def valid(self):
+        """Boolean mask of the points whose status is 0."""
+        return self.status == OK
+
+    def arrays(self):
+        """The per-point arrays that are present, by name."""
+        return {f.name: getattr(self, f.name) for f in fields(self)
+                if isinstance(getattr(self, f.name), np.ndarray)}

@@ -1,0 +1,3 @@
+"""The operators on a DeviceCloud: the registry of methods, the one host driver of the
+kernels, the scale space, the k-NN radius and the optimal radius. Imports
+:mod:`clcurv.grid`, :mod:`clcurv.runtime`, :mod:`clcurv.reference` and below."""

@@ -1,0 +1,391 @@
+"""The operator registry: one spec per method of :func:`clcurv.curvature`, declared once.
+
+A spec (:class:`Operator`) holds everything the rest of the package needs to know about a
+method: its kernel (:class:`Kernel`: file, entry point, defines, record layout, minimum
+neighbour count), how it uses normals, its outputs (:class:`Output`: result attribute,
+file field names, unit, sign), its float64 reference and the host step that turns the
+kernel's raw fields into the result. :mod:`clcurv.api.curvature`, :mod:`clcurv.cli.main`,
+:mod:`clcurv.render`, the bench, the tests and the README's methods table iterate
+:data:`OPERATORS`; :func:`clcurv.ops.driver.run_kernel` runs any kernel.
+
+Adding an operator: one kernel (``kernels/``, taking ``OPERATOR_ARGS`` and writing its
+record columns ``COL_*``), one reference function (:mod:`clcurv.reference.operators`), one
+:class:`Operator` below, and its analytic test.
+
+Conventions of every output: lengths in the points' unit, curvatures in 1/length, normals
+outward when an orientation was asked for, a surface bending away from its normal has
+positive curvature (a sphere of radius R: k1 = k2 = H = +1/R), k1 >= k2.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Mapping
+
+import numpy as np
+
+from clcurv._shared.constants import MIN_COUNT_MLS2, MIN_COUNT_PCA, OK, record_selector
+
+
+# ------------------------------------------------------------------------------------------
+# spec types
+# ------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Kernel:
+    """One operator kernel: an entry point of a ``kernels/*.cl`` file and its record.
+
+    ``layout`` maps a raw field to its record column (an int) or columns (a slice); it
+    reaches the kernel as ``-D COL_<FIELD>=<REAL16 selector>`` (``s012``), and
+    :func:`clcurv.grid.cloud.fetch_records` reads the record with the same table. Every layout
+    has ``count`` and ``status``.
+    """
+    name: str
+    file: str
+    entry: str
+    layout: Mapping[str, int | slice]
+    min_count: int
+    defines: Mapping[str, int] = field(default_factory=dict)
+    reads_normals: bool = False
+
+    def build_defines(self):
+        """The kernel's build options: its defines, MIN_COUNT and the record columns."""
+        cols = {f"COL_{k.upper()}": record_selector(v) for k, v in self.layout.items()}
+        # the columns' numbers and the mask of those written, for the kernels that store
+        # records from column vectors (kernels/lanes_records.h)
+        cix, used = {}, 0
+        for k, v in self.layout.items():
+            first, width = (v, 1) if isinstance(v, int) else (v.start, v.stop - v.start)
+            cix[f"CIX_{k.upper()}"] = first
+            used |= ((1 << width) - 1) << first
+        return dict(self.defines, MIN_COUNT=self.min_count, **cols, **cix, REC_USED=hex(used))
+
+    def width(self, name):
+        v = self.layout[name]
+        return 1 if isinstance(v, int) else v.stop - v.start
+
+
+@dataclass(frozen=True)
+class Output:
+    """One per-point output of a method: the :class:`~clcurv.api.result.CurvatureResult`
+    attribute ``name`` ((N,) or (N, width) float64), its unit, whether it is signed, and
+    its field name in files (``None``: not written; a width-3 field gets _x, _y, _z)."""
+    name: str
+    width: int
+    unit: str
+    doc: str
+    signed: bool = False
+    file: str | None = None
+
+    def file_fields(self):
+        if self.file is None:
+            return []
+        return [self.file] if self.width == 1 else [f"{self.file}_{a}" for a in "xyz"]
+
+
+@dataclass(frozen=True)
+class Operator:
+    """One method of :func:`clcurv.curvature`.
+
+    ``normals``: how the operator uses normals --
+      'none'   it needs none (its ``normals`` output is oriented only if asked);
+      'sign'   their sign only (orientation of the PCA normal; signed outputs);
+      'values' their values: the normals you pass (normalised), else the PCA normals,
+               oriented when the method is signed (MLS0 alone falls back on its PCA
+               normal). 2dcov2 and 3dcov (option ``align_normals``, the kernel's
+               ALIGN_NORMALS) align each neighbour's normal with the query point's where
+               clcurv estimated the normals itself, so that their values do not depend on
+               the PCA signs; the normals you pass are used as given (then 2dcov2 is
+               PCL's PrincipalCurvaturesEstimation), unless ``align_normals=True``.
+    ``options``: the keyword arguments of :func:`clcurv.curvature` it takes beyond the
+    common ones (others given raise). ``reference(points, r, normals, weights, **options)``
+    returns the same raw fields as the kernel (float64); ``finish(raw, points, r,
+    normals_used, user_normals)`` turns raw fields into result attributes. ``flip(raw,
+    mask)``, for a 'sign' method, turns the raw fields of a run without reference normals
+    into those of the opposite normal where ``mask`` is True, so that the orientation can
+    use the method's own normals afterwards instead of a PCA pass first. ``fields``: the
+    kernel's record fields that ``finish`` reads (None: all), the only ones brought back
+    from the device.
+    """
+    name: str
+    title: str
+    formula: str
+    kernel: Kernel
+    outputs: tuple
+    normals: str
+    finish: Callable
+    reference: Callable
+    options: tuple = ()
+    flip: Callable | None = None
+    fields: tuple | None = None
+
+    @property
+    def signed(self):
+        """True when some output carries the sign of curvature (needs oriented normals)."""
+        return any(o.signed for o in self.outputs)
+
+    @property
+    def min_count(self):
+        return self.kernel.min_count
+
+    def foreign_options(self, given):
+        """The names among ``given`` (option name -> whether the caller set it) that this
+        method does not take, each with the methods that do take it."""
+        return {k: [m for m, op in OPERATORS.items() if k in op.options]
+                for k, v in given.items() if v and k not in self.options}
+
+    def file_fields(self):
+        """File field name -> (output name, column or None), in the output order."""
+        out = {}
+        for o in self.outputs:
+            names = o.file_fields()
+            for c, f in enumerate(names):
+                out[f] = (o.name, c if len(names) > 1 else None)
+        return out
+
+
+# ------------------------------------------------------------------------------------------
+# kernels
+# ------------------------------------------------------------------------------------------
+
+#: the moments kernel: PCA normal, eigenvalues, surface variation, barycenter shift o - p
+PCA = Kernel("moments", "moments.cl", "moments",
+             {"normals": slice(0, 3), "eigenvalues": slice(3, 6), "variation": 6,
+              "shift": slice(7, 10), "count": 10, "status": 11},
+             MIN_COUNT_PCA, {"REFINE_L0": 1})
+
+
+def _cov_kernel(name, code):
+    ne = 3 if code == 3 else 2
+    # ALIGN_NORMALS: 0 uses the neighbours' normals as given, 1 aligns each with the query
+    # point's (kernels/covariances.cl); the host sets it per call (clcurv.api.curvature)
+    return Kernel(name, "covariances.cl", "covariance",
+                  {"eigenvalues": slice(0, ne), "k1": 3, "k2": 4, "dir1": slice(5, 8),
+                   "dir2": slice(8, 11), "count": 11, "status": 12},
+                  MIN_COUNT_PCA, {"COV_METHOD": code, "ALIGN_NORMALS": 0},
+                  reads_normals=True)
+
+
+MLS2 = Kernel("mls2", "mls2.cl", "mls2",
+              {"shift": slice(0, 3), "k1": 3, "k2": 4, "dir1": slice(5, 8),
+               "dir2": slice(8, 11), "normals": slice(11, 14), "count": 14, "status": 15},
+              MIN_COUNT_MLS2, reads_normals=True)
+
+
+# ------------------------------------------------------------------------------------------
+# outputs
+# ------------------------------------------------------------------------------------------
+
+_NORMALS_PCA = Output("normals", 3, "1", "unit PCA normals (eigenvector of the smallest "
+                      "eigenvalue), oriented as `orient` says")
+_EIG_PCA = Output("eigenvalues", 3, "length^2", "eigenvalues l0 <= l1 <= l2 (ascending) of "
+                  "the weighted covariance sum w (q - o)(q - o)^T / sum w")
+_VARIATION = Output("variation", 1, "1", "surface variation l0 / (l0 + l1 + l2), in [0, 1/3]",
+                    file="surface_variation")
+_MEAN = Output("mean", 1, "1/length", "signed mean curvature H", signed=True,
+               file="mean_curvature")
+
+
+def _magnitudes(unit_eig):
+    return (Output("k1", 1, "1/length", "larger curvature magnitude k1 >= k2 >= 0", file="k1"),
+            Output("k2", 1, "1/length", "smaller curvature magnitude", file="k2"),
+            Output("dir1", 3, "1", "unit principal direction of k1 (tangent)", file="dir1"),
+            Output("dir2", 3, "1", "unit principal direction of k2 = normal x dir1",
+                   file="dir2"),
+            Output("eigenvalues", unit_eig[0], unit_eig[1], unit_eig[2]),
+            Output("normals", 3, "1", "the unit normals the operator used (yours, "
+                   "normalised, else the oriented PCA normals)"))
+
+
+# ------------------------------------------------------------------------------------------
+# host finishing steps (raw kernel or reference fields -> result attributes, float64)
+# ------------------------------------------------------------------------------------------
+
+def _pca_common(raw, n):
+    return {"normals": n, "eigenvalues": raw["eigenvalues"], "variation": raw["variation"]}
+
+
+def _finish_variation(raw, pts, r, n, user):
+    return _pca_common(raw, n)
+
+
+def _finish_mls0(raw, pts, r, n, user):
+    shift = raw["shift"]
+    nref = user if user is not None else n
+    mean = -4.0 * np.einsum("ij,ij->i", shift, nref) / (r * r)
+    mean[raw["status"] != OK] = np.nan
+    return dict(_pca_common(raw, n), mean=mean, points=pts + shift)
+
+
+def _finish_mls1(raw, pts, r, n, user):
+    along = np.einsum("ij,ij->i", raw["shift"], n)
+    return dict(_pca_common(raw, n), mean=-4.0 * along / (r * r),
+                points=pts + along[:, None] * n)
+
+
+def _finish_cov(raw, pts, r, n, user):
+    return {k: raw[k] for k in ("k1", "k2", "dir1", "dir2", "eigenvalues")} | {"normals": n}
+
+
+def _flip_mls2(raw, mask):
+    """MLS2's raw fields for the opposite normal where ``mask``: n -> -n, (k1, k2) ->
+    (-k2, -k1) and dir1 <-> dir2 (so that (dir1, dir2, n) stays right-handed: with
+    n x dir1 = dir2, (-n) x dir2 = dir1); the shift (the projection) is unchanged."""
+    m = np.flatnonzero(mask)
+    raw["normals"][m] *= -1
+    k1, k2 = raw["k1"][m], raw["k2"][m]
+    raw["k1"][m], raw["k2"][m] = -k2, -k1
+    d1, d2 = raw["dir1"][m], raw["dir2"][m]
+    raw["dir1"][m], raw["dir2"][m] = d2, d1
+    return raw
+
+
+def _finish_mls2(raw, pts, r, n, user):
+    k1, k2 = raw["k1"], raw["k2"]
+    return {"k1": k1, "k2": k2, "dir1": raw["dir1"], "dir2": raw["dir2"],
+            "normals": raw["normals"], "points": np.add(pts, raw["shift"], out=raw["shift"]),
+            "mean": 0.5 * (k1 + k2), "gaussian": k1 * k2}
+
+
+# ------------------------------------------------------------------------------------------
+# reference adapters (clcurv.reference.operators -> the kernel's raw fields)
+# ------------------------------------------------------------------------------------------
+
+def _ref_moments(points, r, normals, weights):
+    from clcurv.reference import operators as reference
+    return reference.moments(points, r, weights=weights)
+
+
+def _ref_cov(method):
+    def run(points, r, normals, weights, align_normals=False):
+        from clcurv.reference import operators as reference
+        return reference.covariance_ops(points, r, normals, method, weights=weights,
+                                        align=align_normals)
+    run.__name__ = f"_ref_{method}"
+    return run
+
+
+def _ref_mls2(points, r, normals, weights, kernel="ball", h=None):
+    from clcurv.reference import operators as reference
+    if normals is None:
+        raise ValueError("backend='numpy' MLS2 needs oriented normals (orient must not be None)")
+    out = reference.mls2(points, r, normals, weights=weights, kernel=kernel, h=h)
+    out["shift"] = out.pop("points") - points
+    return out
+
+
+# ------------------------------------------------------------------------------------------
+# the registry
+# ------------------------------------------------------------------------------------------
+
+def _cov(name, code, title, formula, eig_unit, eig_doc):
+    k = _cov_kernel(name, code)
+    # 2dcov1 reads p's normal alone: aligning its neighbours' would change nothing
+    return Operator(name, title, formula, k, _magnitudes((k.width("eigenvalues"), eig_unit,
+                                                         eig_doc)),
+                    "values", _finish_cov, _ref_cov(name),
+                    options=("align_normals",) if code != 1 else ())
+
+
+OPERATORS = {op.name: op for op in (
+    Operator("variation", "surface variation l0/(l0+l1+l2) (Pauly)",
+             "Theorem 4: r^2/16((k1^2+k2^2)/2 - k1k2/3)", PCA,
+             (_VARIATION, _NORMALS_PCA, _EIG_PCA), "none", _finish_variation, _ref_moments,
+             fields=("normals", "eigenvalues", "variation")),
+    Operator("mls0", "barycenter shift", "H = 4<p - o, n>/r^2 (Lemma 2)", PCA,
+             (_MEAN, Output("points", 3, "length", "the barycenter o of the ball"),
+              _VARIATION, _NORMALS_PCA, _EIG_PCA), "values", _finish_mls0, _ref_moments),
+    Operator("mls1", "projection on the PCA plane", "H = 4<p - p', n>/r^2 (Theorem 5)", PCA,
+             (_MEAN, Output("points", 3, "length", "p', p projected on the PCA regression "
+                            "plane"), _VARIATION, _NORMALS_PCA, _EIG_PCA),
+             "sign", _finish_mls1, _ref_moments),
+    _cov("2dcov1", 1, "covariance of <d, n>(<d, t1>, <d, t2>) (Berkmann & Caelli)",
+         "Theorem 1", "length^4", "eigenvalues (descending) of the count-normalised "
+         "covariance of <d, n>(<d, t1>, <d, t2>), d = q - p"),
+    _cov("2dcov2", 2, "covariance of the neighbours' normals projected on the tangent plane "
+         "(PCL)", "Theorem 2", "1", "eigenvalues (descending) of the count-normalised "
+         "covariance of the neighbours' unit normals projected on the tangent plane (PCL's "
+         "pc1, pc2)"),
+    _cov("3dcov", 3, "covariance of the neighbours' normals", "Theorem 3", "1",
+         "eigenvalues (descending) of the count-normalised covariance of the neighbours' "
+         "unit normals"),
+    Operator("mls2", "weighted quadric fit in the PCA frame; shape operator",
+             "operator 7, a fourth-order projection", MLS2,
+             (_MEAN, Output("gaussian", 1, "1/length^2", "Gaussian curvature K = k1 k2",
+                            signed=True, file="gaussian_curvature"),
+              Output("k1", 1, "1/length", "signed principal curvature, k1 >= k2", signed=True,
+                     file="k1"),
+              Output("k2", 1, "1/length", "signed principal curvature", signed=True,
+                     file="k2"),
+              Output("dir1", 3, "1", "unit principal direction of k1 (tangent)", file="dir1"),
+              Output("dir2", 3, "1", "unit principal direction of k2 = normal x dir1",
+                     file="dir2"),
+              Output("normals", 3, "1", "unit normals of the fitted quadric at the "
+                     "projection, oriented as `orient` says"),
+              Output("points", 3, "length", "the MLS2 projection of p")),
+             "sign", _finish_mls2, _ref_mls2, options=("kernel", "h", "projections"),
+             flip=_flip_mls2),
+)}
+
+#: the method names, in the registry's order
+METHODS = tuple(OPERATORS)
+
+#: per-point fields every result has, beside the operator's outputs
+COMMON_FILE_FIELDS = ("neighbours", "status")
+
+
+def signed_file_fields():
+    """File field names that some operator writes signed (a diverging colour map)."""
+    return frozenset(f for op in OPERATORS.values() for o in op.outputs if o.signed
+                     for f in o.file_fields())
+
+
+def methods_table():
+    """The README's methods table (markdown), generated from the registry."""
+    rows = ["| method | operator (Digne & Morel) | outputs | signed | min. neighbours |",
+            "|---|---|---|---|---|"]
+    for op in OPERATORS.values():
+        outs = ", ".join(f"`{o.name}`" for o in op.outputs)
+        rows.append(f"| `\"{op.name}\"` | {op.title}; {op.formula} | {outs} | "
+                    f"{'yes' if op.signed else 'no'} | {op.min_count} |")
+    return "\n".join(rows)
+
+
+def program_variants(precision_defines):
+    """(file, defines) of every program clcurv builds on a device with
+    ``precision_defines`` (clcurv.runtime.program.precision_defines): each operator kernel (with
+    every optional branch switched on) and the support kernels. The tests build them all."""
+    base = dict(precision_defines)
+    out = [(f, base) for f in ("grid.cl", "density.cl", "gather.cl", "knn.cl", "forest.cl",
+                               "anchor.cl")]
+    out.append(("scale_space.cl", dict(base, DENSITY=1, GAUSSIAN=0)))
+    layout = MLS2.build_defines()
+    split = dict(base, NF=6, COL_COUNT=layout["COL_COUNT"], COL_STATUS=layout["COL_STATUS"],
+                 **{f"{a}{k}": 1 for k in range(6) for a in "SW"})
+    out.append(("records.cl", dict(split, SPLIT_HOST=0)))
+    balls = dict(NB=4, REC_BALL=3, REC_BLOCK=128)     # features.cl's REC_BALLS
+    out.append(("records.cl", dict(split, SPLIT_HOST=0, **balls)))
+    if base.get("REAL_IS_DOUBLE"):      # the split into float64 host arrays needs fp64
+        out.append(("records.cl", dict(split, SPLIT_HOST=1)))
+        out.append(("records.cl", dict(split, SPLIT_HOST=1, **balls)))
+    for k in {op.kernel.name: op.kernel for op in OPERATORS.values()}.values():
+        gaussian = any("kernel" in op.options for op in OPERATORS.values() if op.kernel is k)
+        on = {d: 1 for d in ("ALIGN_NORMALS",) if d in k.defines}
+        out.append((k.file, dict(base, **k.build_defines(), DENSITY=1, GAUSSIAN=int(gaussian),
+                                 REF_NORMALS=int(k.reads_normals), POINT_RADIUS=0,
+                                 ROW_PRUNE=1) | on))
+        # the k-NN radius (kernels/radius.h): per-point balls, which exclude DENSITY
+        out.append((k.file, dict(base, **k.build_defines(), DENSITY=0, GAUSSIAN=0,
+                                 REF_NORMALS=int(k.reads_normals), POINT_RADIUS=1)))
+    from clcurv.api.features import FEATURES, layouts, program_defines
+    for group in layouts(tuple(FEATURES)):               # clcurv.features: every column
+        out.append(("features.cl", dict(base, **program_defines(group, 4))))
+        out.append(("features.cl", dict(base, **program_defines(group, 4,
+                                                                one_buffer=True))))
+        out.append(("features.cl", dict(base, **program_defines(group, 1, True))))
+    # the covariance operators' PCA normals of several radii (clcurv.api.curvature._radius_list)
+    out.append(("features.cl", dict(base, **program_defines(layouts(("normals",))[0], 4,
+                                                             anchored=False))))
+    from clcurv.ops.knn_radius import knn_levels, program_defines as knn_program_defines
+    out.append(("knn_radius.cl",
+                dict(base, **knn_program_defines(30, knn_levels(30, int(base["VW"]))))))
+    return out

@@ -1,0 +1,3 @@
+"""Large clouds in tiles: planning, buckets on disk, the workspace, the engine, workers (Dask),
+and the tiled scale space, orientation and features. Imports :mod:`clcurv.api`,
+:mod:`clcurv.io` and below."""

@@ -1,0 +1,790 @@
+"""Out-of-core operators: a cloud larger than memory in tiles with an exact halo.
+
+    clcurv.curvature_file("survey.laz", "out.laz", 3.0, method="mls2", memory="2GiB")
+    clcurv compute survey.laz -o out.laz --radius 3 --memory 2GiB [--tile-size 500]
+
+What a tiled run computes is what the in-memory run (:func:`clcurv.curvature` on the whole
+cloud) computes, bit for bit on the same device. How:
+
+* **One frame.** Every tile bins its points in the grid frame of the whole cloud
+  (:class:`clcurv.grid.binning.Frame`: the origin at the cloud's minimum corner, cells of the
+  radius), so a point's float32 cell-relative coordinates, its cell key and its place
+  among the points of its cell are those of the in-memory run; a tile's points are kept in
+  input order (global id), as the in-memory run's stable binning keeps them.
+* **Tiles are blocks of cells.** A tile is ``size x size`` cells in x and y (all of z), and
+  owns the points of its cells: half-open bounds on the global grid, so every point has
+  exactly one owner (lidR's chunks are the model; a point on a tile edge belongs to the
+  tile whose cell holds it, as in the in-memory binning).
+* **An exact halo, in whole cells.** The kernels walk the 27 cells around a point's cell as
+  9 runs of consecutive points in a fixed order, several at a time (neighbors.h): the
+  floating-point sums are those of the in-memory run only when every one of those cells is
+  complete. So a tile reads ``halo`` more cells around its own, ``halo`` = the number of
+  neighbourhood passes that feed each other (:func:`halo_cells`): 1 for an operator on the
+  points alone, 2 when it reads its neighbours' PCA normals (2dcov1, 2dcov2, 3dcov without
+  normals from the file), twice that with density weights (a weight is a neighbour count).
+  A distance halo of the radius is not enough: a missing cell two radii away shifts the
+  vector lanes of the sums (tests/test_tiled.py shows the difference).
+* **Orientation.** Normals from the file, a viewpoint, "up" (or a direction) and no
+  orientation are decided point by point, so they are exact in tiles. Hoppe's MST
+  propagation (``orient="mst"``, and ``"auto"`` of a signed method on a cloud without
+  normals that is not LAS/LAZ) runs per tile with its halo; tiles then agree by votes on
+  the points they share and each global component is turned outward by its own vote
+  (:mod:`clcurv.tiles.orient`). The result agrees with the in-memory MST on closed shapes
+  (tests: a torus and two spheres cut into dozens of tiles, 100% agreement), though not bit
+  for bit: a component's propagation tree differs near tile borders.
+* **Scale space.** ``scale_space=N`` runs the N MLS1 steps in lock step over tiles
+  (:mod:`clcurv.tiles.scale`): bit for bit the in-memory steps, re-binnings included.
+* **Features.** :func:`clcurv.features_file` runs the covariance features on this engine
+  (:mod:`clcurv.tiles.features`: cells of the largest radius, a halo of one cell).
+* **Not tiled:** ``projections`` and the projected positions (refused with a message),
+  ascii PLY and the text formats. Input: LAS/LAZ, NPY, binary PLY, or a list of such files
+  read as one cloud (a catalog: one output per input file); output: LAS/LAZ (from LAS/LAZ
+  input), NPZ, binary PLY. ``radius="auto"`` of the CLI job is estimated from regions
+  (:mod:`clcurv.jobs.tiled_job`).
+
+Passes and files. (1) The input is read once in chunks (:mod:`clcurv.io.stream`) and each
+point is appended, with its global id, to an on-disk bucket of a coarse 2-D grid
+(:mod:`clcurv.tiles.buckets`; files opened per write, so their number is not bounded by the
+open-file limit); the exact bounds are taken on the way. (1b) The buckets are split into
+one input file per tile: its points and halo, each flagged as owned or not. (2) Each tile
+reads its file, runs the operator on a :class:`clcurv.DeviceCloud` in the global frame, and
+writes its own points' fields with their global ids to a tile file. (3) The tile files are
+regrouped by windows of consecutive ids (:mod:`clcurv.tiles.results`; every point checked
+present once) and the output is written in input order, a window at a time (LAS/LAZ: the
+input's header, scales, offsets, VLRs and records kept, the fields as extra bytes),
+atomically (:func:`clcurv.io.atomic_output`). The workspace (buckets, tile files, windows,
+the manifest) is a folder the run makes, locks and checks (:mod:`clcurv.tiles.workspace`,
+docs/workspace.md): a run interrupted or killed is resumed by the same command (finished
+tiles are skipped) only when its inputs' content and options are the same and every file
+passes its count and CRC check; the folder is removed at the end, on bad input and on a full
+disk.
+
+Memory: peak RSS is about the baseline (interpreter, OpenCL) plus the largest tile (its
+core and halo) times :data:`TILE_BYTES_PER_POINT`, whatever the size of the cloud; the
+tile size comes from the budget (``memory=``) and the density measured in pass (1).
+"""
+from __future__ import annotations
+
+import errno
+import json
+import os
+import shutil
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from clcurv import io
+from clcurv.tiles import orient as tiled_orient
+from clcurv.tiles import workspace as wsp
+from clcurv.tiles.buckets import READ_CHUNK, Buckets, bucket_grid
+from clcurv.grid.binning import Frame
+from clcurv.io import stream
+from clcurv._shared.constants import TOO_FEW
+from clcurv.tiles.results import Windows, partition, tile_dtype, tile_file
+from clcurv.tiles.planning import (AUTO_CAP, TILE_BYTES_PER_POINT, Tiling, TilingError,
+                                   budget_of, check_tile_size, fits_memory, halo_cells,
+                                   parse_memory, plan_tiles)
+from clcurv.ops.registry import METHODS, OPERATORS
+from clcurv._shared.validate import as_radius, choice, device_radius
+
+
+def worker_budget(budget, workers, client):
+    """The budget of one tile: :func:`clcurv.tiles.workers.worker_budget` (a LocalCluster's
+    workers share the run's budget; a Dask client's each have it)."""
+    if client is None and not workers:
+        return budget
+    from clcurv.tiles.workers import worker_budget as per_worker
+    return per_worker(budget, workers, client)
+
+
+# --------------------------------------------------------------------------- memory
+
+
+# --------------------------------------------------------------------------- geometry
+
+
+# --------------------------------------------------------------------------- buckets
+
+
+# --------------------------------------------------------------------------- planning
+
+
+# --------------------------------------------------------------------------- the run
+
+@dataclass
+class _Params:
+    method: str
+    radius: float
+    weights: str
+    orient: object
+    viewpoint: object
+    kernel: object
+    h: object
+    device: object
+    precision: str
+    ignore_normals: bool
+    scale_space: int = 0
+    orient_k: int = 10
+    #: what the tiles compute (clcurv.tiles.features.FeatureParams: "features")
+    kind = "curvature"
+
+    def halo(self, file_normals):
+        """Cells of halo of this run's tiles (:func:`halo_cells`)."""
+        return halo_cells(self.method, self.weights, file_normals)
+
+    def orientation(self, src, file_normals):
+        return _orientation(self, src, file_normals)
+
+    def specs(self, wanted):
+        return _wanted_specs(self, wanted)
+
+    def bytes_per_point(self):
+        """Peak host bytes per point of a tile (its points with their halo)."""
+        return TILE_BYTES_PER_POINT
+
+    def key(self):
+        d = dict(self.__dict__)
+        d["orient"] = (np.asarray(d["orient"]).tolist()
+                       if d["orient"] is not None and not isinstance(d["orient"], str)
+                       else d["orient"])
+        d["viewpoint"] = None if d["viewpoint"] is None else list(map(float, d["viewpoint"]))
+        d["device"] = None if d["device"] is None else str(d["device"])
+        return d
+
+
+def _orientation(params, src, file_normals):
+    """The API orient of a tile run, or TilingError for one that needs the whole cloud."""
+    op = OPERATORS[params.method]
+    how = params.orient
+    if isinstance(how, str) and how == "auto":
+        if source_aerial(src) and params.viewpoint is None and not file_normals:
+            return "up"                      # as clcurv.jobs.job.orientation: PDAL's always_up
+        if file_normals:
+            return "auto"
+        if params.viewpoint is not None:
+            return "auto"
+        if not op.signed:
+            return "auto"
+        how = "mst"
+    return how
+
+
+def source_aerial(src):
+    return src.format in ("las", "laz")
+
+
+def workspace(dst, workdir):
+    """The workspace folder of a run writing ``dst`` (a path, or a catalog's list of
+    paths): :func:`clcurv.tiles.workspace.folder`."""
+    return wsp.folder(dst, workdir)
+
+
+def _source_key(src):
+    """The resume key of the input(s): content hashes and point counts."""
+    parts = src.parts if isinstance(src, stream.Catalog) else [src]
+    keys = wsp.source_key([p.path for p in parts])
+    for k, p in zip(keys, parts):
+        k["n"] = int(p.n)
+    return keys
+
+
+def _field_specs(method, precision, want_normals):
+    """(name, width, dtype) of the stored fields, as clcurv.jobs.job.result_fields names them."""
+    op = OPERATORS[method]
+    real = np.float64
+    specs = [(name, None, real) for name in op.file_fields()]
+    specs += [("neighbours", None, np.int32), ("status", None, np.uint8)]
+    if want_normals:
+        specs.append(("normals", 3, np.float64))     # as the in-memory run writes them
+    return specs
+
+
+def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient="auto",
+                   viewpoint=None, kernel=None, h=None, scale_space=0, projections=0,
+                   memory="auto", tile=None, workdir=None, fields=None,
+                   ignore_normals=False, device=None, precision="float", progress=None,
+                   out=None, client=None, workers=None):
+    """Run ``method`` on the cloud of file ``src`` and write ``dst``, in tiles when the cloud
+    does not fit the memory budget (see the module docstring).
+
+    Parameters
+    ----------
+    src, dst : path
+        Input LAS/LAZ or NPY; output LAS/LAZ (only from LAS/LAZ input: header and records
+        kept) or NPZ. Non-tiled runs (the cloud fits) go through :func:`clcurv.jobs.job.run` and
+        take every format it takes.
+    radius : float
+        Ball radius in the file's unit.
+    method, weights, orient, viewpoint, kernel, h, device, precision
+        As :func:`clcurv.curvature`; ``orient='auto'`` of a signed method without normals
+        in the file or a viewpoint is MST propagation, which a tiled run refuses (use
+        'up' for aerial data).
+    memory : 'auto', int or str
+        Host memory budget ('auto': half the available RAM). The run tiles when about
+        N x IN_MEMORY_BYTES_PER_POINT exceeds it, or when ``tile`` is given.
+    tile : float, optional
+        Tile side in the file's unit (default: from the budget).
+    workdir : path, optional
+        Workspace folder (default: beside ``dst``); kept between an interrupted run and
+        the same command run again (finished tiles are skipped), removed at the end.
+    fields : list of str, optional
+        The fields to write (as ``clcurv compute --fields``); default all and the normals.
+    progress : callable(done, total, points) or None
+        Called after each tile.
+    client : dask.distributed.Client, optional
+        Run the tiles on this cluster (:mod:`clcurv.tiles.workers`; the workspace must be on a
+        file system the workers share).
+    workers : int, optional
+        Run the tiles on a LocalCluster of this many worker processes.
+    out : callable(str) or None
+        Receives one line per stage (the CLI prints them).
+
+    Returns
+    -------
+    dict
+        ``tiled`` (bool), ``tiles``, ``points``, ``halo`` (cells), ``times`` (seconds per
+        stage), ``status`` counts, ``dst``.
+    """
+    say = out or (lambda s: None)
+    choice(method, "method", METHODS)
+    r = as_radius(radius)
+    catalog = isinstance(src, (list, tuple))
+    if catalog:
+        source = stream.Catalog(src)
+        dst = catalog_outputs(source, dst)
+    else:
+        dst = io.check_output(dst)
+        io.check_not_input(dst, src)        # as the CLI: a mesh's faces are never lost
+        source = stream.open_source(src)
+    tile = check_tile_size(tile)                    # before any point is read
+    budget = budget_of(memory)
+    if int(projections):
+        raise TilingError("a tiled run does not take projections yet (iterated MLS2 moves "
+                          "the points across tiles): run them in memory")
+    if int(scale_space) < 0:
+        raise ValueError(f"scale_space must be >= 0, got {scale_space}")
+    check_tiled_outputs(dst if catalog else [dst], source)
+    params = _Params(method, r, weights, orient, viewpoint, kernel, h, device, precision,
+                     bool(ignore_normals), int(scale_space))
+    if not catalog and tile is None and fits_memory(source.n, budget) and client is None \
+            and not workers:
+        summary = _in_memory(src, dst, params, fields, say)
+        summary["dropped"] = int(getattr(source, "dropped", 0))
+        return summary
+    check_params(params, fields, local=client is None and not workers)
+    wsp.check_workdir(workdir)
+    budget = worker_budget(budget, workers, client)
+    return run_tiles(source, dst, params, budget, tile, workspace(dst, workdir), fields,
+                     progress, say, client, workers)
+
+
+def check_params(params, fields, local=True):
+    """Every check of a tiled run's options that can be made before a point is read: the
+    field names, the radius for the precision, and the options of the method: the API's
+    own checks, run on a small synthetic cloud; on this process's device (a run here: its
+    precision and kernels too), else with the NumPy reference (the workers' devices)."""
+    params.specs(fields)                                  # unknown field names
+    device_radius(params.radius, params.precision)
+    if params.kind != "curvature":
+        if local:
+            _worker_device(params.device)
+        return
+    from clcurv.api.curvature import curvature
+    u = np.random.default_rng(0).normal(size=(64, 3))
+    pts = u / np.linalg.norm(u, axis=1)[:, None] * params.radius
+    how = params.orient
+    if isinstance(how, str) and how == "auto" and params.viewpoint is None:
+        how = "up"
+    given = isinstance(how, str) and how == "normals"           # the file's, in the run
+    where = ({"device": _worker_device(params.device)} if local else {"backend": "numpy"})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        curvature(pts, params.radius, method=params.method, weights=params.weights,
+                  orient=how, viewpoint=params.viewpoint, kernel=params.kernel, h=params.h,
+                  precision=params.precision, normals=pts if given else None, **where)
+
+
+def check_tiled_outputs(dsts, source):
+    """TilingError unless a tiled run can write every path of ``dsts`` from ``source``."""
+    for d in dsts:
+        ext = d.suffix.lower()
+        if ext not in stream.STREAM_WRITES:
+            raise TilingError(f"{d}: a tiled run writes {', '.join(stream.STREAM_WRITES)}")
+        if ext in (".las", ".laz") and source.format not in ("las", "laz"):
+            raise TilingError(f"{d}: a tiled run writes LAS/LAZ from LAS/LAZ input only (it "
+                              "keeps the input's header); write .npz")
+
+
+def catalog_outputs(source, dst):
+    """The output path of every file of a catalog: ``dst`` (an existing folder) / the
+    input's name (an NPY input's as .npz, a COPC one's as .laz: the output is a plain LAZ);
+    never an input itself."""
+    folder = Path(dst)
+    if not folder.is_dir():
+        raise TilingError(f"{dst}: the output of a catalog (several input files) is an "
+                          "existing folder, one output file per input")
+    outs = []
+    inputs = {Path(p).resolve() for p in source.paths}
+    for p in source.paths:
+        p = Path(p)
+        name = (p.stem + ".npz" if p.suffix.lower() == ".npy"
+                else p.name[:-len(".copc.laz")] + ".laz"     # a plain LAZ: not COPC
+                if p.name.lower().endswith(".copc.laz") else p.name)
+        out = folder / name
+        if out.resolve() in inputs:
+            raise TilingError(f"{out} would replace the input file of that name: choose "
+                              "another output folder")
+        outs.append(io.check_output(out))
+    if len({o.resolve() for o in outs}) != len(outs):
+        raise TilingError("two input files have the same name: their outputs would collide")
+    return outs
+
+
+def _manifest(source, params, budget, tile, wanted, client, workers):
+    """The resume key: the inputs' content, every option that changes a byte of the
+    output (the fields written among them), the code, and the device of a local run."""
+    device = None
+    if client is None and not workers:
+        info = _worker_device(params.device).info
+        device = [info.platform, info.name, info.driver]
+    return {"source": _source_key(source), "params": params.key(),
+            "fields": sorted(wanted) if wanted else None, "code": wsp.code_key(),
+            "tile": None if tile is None else float(tile),
+            "budget": budget if tile is None else None, "device": device,
+            "dask": bool(client is not None or workers)}
+
+
+def _prepare(space, want, source, params, budget, say, check_disk=None):
+    """Pass (1), or its state from an interrupted run with the same key ``want``
+    (``check_disk()`` is called before a fresh pass)."""
+    have = space.manifest()
+    if have and have.get("key") == want and have.get("buckets"):
+        say(f"resuming from {space.path}")
+        b = Buckets.from_state(space / "buckets", have["buckets"])
+        return b, have, False
+    if have is not None or (space / "buckets").exists():
+        say(f"{space.path}: left by a run of other inputs or options; starting afresh")
+    space.clear()
+    if check_disk is not None:
+        check_disk()
+    (space / "buckets").mkdir()
+    target = max(budget // params.bytes_per_point(), 1)
+    origin, side, shape = bucket_grid(source, target)
+    b = Buckets(space / "buckets", origin, side, shape, source.has_normals)
+    for start, xyz, nrm in source.chunks(READ_CHUNK):
+        b.add(start, xyz, nrm)
+    if source.n == 0:
+        raise TilingError(f"{source.path}: no points")
+    state = {"key": want, "buckets": b.state()}
+    space.write_manifest(state)
+    return b, state, True
+
+
+def run_tiles(source, dst, params, budget, tile, ws, wanted, progress, say, client=None,
+              workers=None):
+    """Passes (1) to (3) of a tiled run of ``params`` (:class:`_Params`, or
+    clcurv.tiles.features.FeatureParams: the tiles' computation, halo, fields and budget per
+    point) from ``source`` to ``dst``, in the workspace folder ``ws``
+    (:mod:`clcurv.tiles.workspace`: claimed and locked for the run); the summary dict.
+
+    What is left behind: nothing after a success; nothing after bad input or options, or a
+    full disk (the same command cannot succeed as it is); the workspace after an
+    interruption or any other failure, for the same command to resume. A workspace file
+    that fails its check is recomputed: the run starts afresh once."""
+    want = _manifest(source, params, budget, tile, wanted, client, workers)
+    with wsp.claim(ws, dst) as space:
+        try:
+            for attempt in (0, 1):
+                try:
+                    summary = _run_tiles(space, want, source, dst, params, budget, tile,
+                                         wanted, progress, say, client, workers)
+                    break
+                except wsp.CorruptWorkspace as exc:
+                    if attempt:
+                        raise wsp.WorkspaceError(
+                            f"the workspace {space.path} failed its checks twice ({exc}): "
+                            "is another program writing there, or the disk failing?") from exc
+                    say(f"{exc}: recomputing from the start")
+                    space.clear()
+        except Exception as exc:
+            if _no_space(exc) and "needs about" in str(exc):
+                space.remove()          # the check before the run: says it already
+                raise
+            if _no_space(exc):
+                space.remove()
+                raise OSError(errno.ENOSPC, f"no space left on the device of {space.path} "
+                              f"or {Path(dst[0] if isinstance(dst, list) else dst).parent}: "
+                              f"a tiled run of {source.n} points needs about "
+                              f"{_gib(disk_need(source, params, wanted))} GiB of workspace "
+                              "besides its output (workdir= puts the workspace on another "
+                              "disk)") from exc
+            if isinstance(exc, (io.ReadError, ValueError, TilingError)):
+                space.remove()      # bad input or options: nothing to resume from
+            raise
+        space.remove()
+    return summary
+
+
+def _no_space(exc):
+    """Is ``exc`` (or what it was raised from) a full disk (ENOSPC, EDQUOT)?"""
+    while exc is not None:
+        if getattr(exc, "errno", None) in (errno.ENOSPC, errno.EDQUOT):
+            return True
+        exc = exc.__cause__
+    return False
+
+
+def _gib(n):
+    return f"{n / 2**30:.2g}"
+
+
+def disk_need(source, params, wanted):
+    """Bytes of workspace a tiled run of ``source`` needs at its peak, about: the buckets
+    and the tiles' inputs (the points twice, with a halo), then the tiles' results and
+    their windows (the fields twice)."""
+    point = 8 + 24 + (24 if source.has_normals else 0)
+    fields = 8 + sum(np.dtype(dt).itemsize * (w or 1) for _, w, dt in params.specs(wanted))
+    return int(source.n * (point * 2.3 + fields * 2))
+
+
+def check_disk(space, source, params, wanted, say):
+    """OSError (ENOSPC) before the run when the workspace's disk has less room than the run
+    needs (:func:`disk_need`); the need said either way."""
+    need = disk_need(source, params, wanted)
+    free = shutil.disk_usage(space.path).free
+    say(f"workspace {space.path}: about {_gib(need)} GiB at its peak ({_gib(free)} GiB free)")
+    if free < need:
+        raise OSError(errno.ENOSPC, f"{space.path}: a tiled run of {source.n} points needs "
+                      f"about {_gib(need)} GiB of workspace, and its disk has {_gib(free)} "
+                      "GiB free: free some space, or give workdir= (--workdir) on another "
+                      "disk")
+
+
+def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress, say,
+               client, workers):
+    times = {}
+    t0 = time.perf_counter()
+    ws = space.path
+    specs = params.specs(wanted)
+    stored = _stored_specs(params, specs)
+    if source.n == 0:                   # as the in-memory run: an empty output
+        windows = Windows(ws / "windows", 0, tile_dtype(stored))
+        _write_output(dst, source, windows, specs)
+        return _summary(params, 0, 0, 0, source, times, windows, dst)
+    buckets, state, fresh = _prepare(space, want, source, params, budget, say,
+                                     lambda: check_disk(space, source, params, wanted, say))
+    times["bucketing"] = time.perf_counter() - t0
+    file_normals = (buckets.normals_finite and "n" in buckets.dtype.names
+                    and not params.ignore_normals)
+    how = params.orientation(source, file_normals)
+    halo = params.halo(file_normals)
+    smoothed = None
+    if params.scale_space:
+        from clcurv.tiles.scale import run_steps
+        t_s = time.perf_counter()
+        wsp._remove(ws / "parts")            # an interrupted run's steps: made again
+        smoothed = run_steps(ws, buckets, params, params.scale_space, budget,
+                             lambda tasks: _execute(tasks, client, workers, step=True),
+                             tile=tile)
+        times["scale space"] = time.perf_counter() - t_s
+        frame = Frame.covering(*smoothed.box, params.radius)
+        tiling = plan_tiles(buckets, params.radius, halo, budget, tile, frame=frame)
+    else:
+        tiling = plan_tiles(buckets, params.radius, halo, budget, tile,
+                            bytes_per_point=params.bytes_per_point())
+    (ws / "tiles").mkdir(exist_ok=True)
+    t_split = time.perf_counter()
+    sums = _split(space, buckets, tiling, smoothed)
+    times["splitting"] = time.perf_counter() - t_split
+    tiles = tiling.occupied(sums)       # never range(tiling.count): see Tiling.occupied
+    say(f"{source.n} points in {len(tiles)} tile(s) of {tiling.size} x {tiling.size} "
+        f"cells of {tiling.frame.cell:.6g} (halo {halo} cell(s)), budget "
+        f"{budget / 2**20:.0f} MiB")
+    mst = isinstance(how, str) and how == "mst"
+    todo = [(rank, t) for rank, t in enumerate(tiles) if not _tile_done(ws, t, mst, say)]
+    skipped = len(tiles) - len(todo)
+    tasks = [TileTask(str(ws), t, tiling, state["buckets"], params, how, file_normals,
+                      stored, smoothed, sums.get(str(t)), rank) for rank, t in todo]
+    t1 = time.perf_counter()
+    computed, finished = 0, skipped
+    for _, owned in _execute(tasks, client, workers):
+        computed += owned
+        finished += 1
+        _trim()
+        if progress is not None:
+            progress(finished, len(tiles), computed)
+    times["tiles"] = time.perf_counter() - t1
+    t2 = time.perf_counter()
+    windows = partition(ws, source.n, tiles, stored, mst)
+    if mst:
+        tiled_orient.reconcile_windows(ws, windows, tiles, params.method)
+    _trim()
+    times["merging"] = time.perf_counter() - t2
+    t3 = time.perf_counter()
+    _write_output(dst, source, windows, specs)
+    times["writing"] = time.perf_counter() - t3
+    return _summary(params, len(tiles), skipped, tiling.size, source, times, windows, dst,
+                    halo)
+
+
+def _stored_specs(params, specs):
+    """The fields the tiles store: those written, and a curvature run's status always (the
+    summary's counts and the small-radius warning need it)."""
+    if params.kind != "curvature" or any(n == "status" for n, _, _ in specs):
+        return specs
+    return list(specs) + [("status", None, np.uint8)]
+
+
+def _summary(params, tiles, skipped, size, source, times, windows, dst, halo=0):
+    """The summary dict of a tiled run; warns, as the in-memory run does, when most points
+    have too few neighbours."""
+    status = windows.status.tolist() if params.kind == "curvature" else None
+    if status is not None:
+        few, total = status[TOO_FEW], sum(status)
+        need = OPERATORS[params.method].min_count
+        if few > total // 2:
+            warnings.warn(f"{few} of {total} points have fewer than {need} neighbours "
+                          f"within radius {params.radius}: their outputs are NaN; the "
+                          "radius is probably too small", RuntimeWarning, stacklevel=5)
+    return {"tiled": True, "tiles": tiles, "skipped": skipped, "tile_cells": size,
+            "halo": halo, "points": source.n, "dropped": int(getattr(source, "dropped", 0)),
+            "times": times, "status": status, "dst": dst}
+
+
+def _tile_done(ws, t, mst, say):
+    """Is tile t's result in the workspace and sound (its files pass their checks)? One
+    that fails is removed, and computed again."""
+    base = tile_file(ws, t)
+    paths = [base] + ([base.with_suffix(".halo.npy"), base.with_suffix(".nodes.npy")]
+                      if mst else [])
+    if not base.exists():
+        return False
+    if all(wsp.is_sound(p) for p in paths):
+        return True
+    say(f"{base}: fails its check; computing tile {t} again")
+    for p in paths:
+        wsp._remove(p)
+    return False
+
+
+def _split(space, buckets, tiling, smoothed):
+    """Pass (1b), once per run: the tiles' input files and their sums (a resumed run reuses
+    them when their record of sums, ``tiles_in.json``, is sound and of this tiling)."""
+    record = space / "tiles_in.json"
+    key = {"size": tiling.size, "halo": tiling.halo, "count": tiling.count,
+           "origin": list(map(float, tiling.frame.origin)), "cell": tiling.frame.cell}
+    try:
+        have = json.loads(record.read_text())
+        if have.get("key") == key and have.get("sum") == wsp._digest(
+                json.dumps(have["sums"], sort_keys=True).encode()):
+            return have["sums"]
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
+    wsp._remove(record)
+    folder = space / "tiles_in"
+    wsp._remove(folder)
+    sums = buckets.split(tiling, folder, state=smoothed)
+    wsp._write_text(record, json.dumps({"key": key, "sums": sums, "sum": wsp._digest(
+        json.dumps(sums, sort_keys=True).encode())}))
+    return sums
+
+
+def _trim():
+    """Give the heap's free pages back to the system (glibc keeps them after a tile's
+    large temporaries, and the next pass would run on top of them)."""
+    try:
+        import ctypes
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
+def _wanted_specs(params, wanted):
+    want_normals = not wanted or "normals" in wanted
+    specs = _field_specs(params.method, params.precision, want_normals)
+    if wanted:
+        names = {s[0] for s in specs} | {"normals"}
+        unknown = sorted(set(wanted) - names)
+        if unknown:
+            raise ValueError(f"unknown field(s) {', '.join(unknown)} for method "
+                             f"{params.method}; available: {', '.join(sorted(names))}")
+        specs = [s for s in specs if s[0] in wanted]
+    return specs
+
+
+def _in_memory(src, dst, params, fields, say):
+    """The cloud fits: the in-memory file job (clcurv.jobs.job.run)."""
+    from clcurv.jobs.job import Job, run
+    orient = params.orient
+    if not isinstance(orient, str) and orient is not None:
+        raise TilingError("a direction orient= is for tiled runs and the API; the file job "
+                          "takes 'auto', 'mst', 'up' or None")
+    job = Job(src, dst, method=params.method, radius=params.radius, weights=params.weights,
+              kernel=params.kernel, h=params.h, device=params.device,
+              precision=params.precision, fields=fields, viewpoint=params.viewpoint,
+              orient="none" if orient is None else orient,
+              ignore_normals=params.ignore_normals, scale_space=params.scale_space,
+              quiet=True)
+    t0 = time.perf_counter()
+    done = run(job, out=lambda line: None)
+    return {"tiled": False, "tiles": 1, "halo": 0, "points": len(done.points),
+            "times": {"in memory": time.perf_counter() - t0},
+            "status": np.bincount(done.result.status, minlength=4).tolist(), "dst": dst}
+
+
+@dataclass
+class TileTask:
+    """What a worker needs to compute one tile (small: no arrays; the worker reads the
+    buckets from the workspace, on a file system it shares with the client)."""
+    ws: str
+    t: int
+    tiling: Tiling
+    buckets: dict
+    params: _Params
+    how: object
+    file_normals: bool
+    specs: list
+    smoothed: object = None      # clcurv.tiles.scale.State after a scale space
+    expect: object = None        # (count, CRC-32) of its input file (clcurv.tiles.workspace)
+    rank: int = 0                # its place among the run's tiles (< 2^31: MST node ids)
+
+
+def compute_tile(task, device=None):
+    """Compute tile ``task.t`` and write its own points' fields (with their global ids) to
+    the workspace, atomically; returns (t, points owned)."""
+    from clcurv.api.curvature import curvature
+    from clcurv.grid.cloud import DeviceCloud
+    from clcurv.jobs.job import result_fields
+    from clcurv.runtime.memory import release_memory
+    params, tiling = task.params, task.tiling
+    buckets = Buckets.from_state(Path(task.ws) / "buckets", task.buckets)
+    rec = buckets.read_tile(Path(task.ws) / "tiles_in", task.t, state=task.smoothed,
+                            expect=task.expect)
+    pos = rec["p"] if task.smoothed is None or not len(rec) else task.smoothed.key(rec)
+    own = rec["own"].astype(bool)
+    mst = isinstance(task.how, str) and task.how == "mst"
+    out = np.empty(int(own.sum()), tile_dtype(task.specs, mst))
+    if len(out):
+        if device is None:
+            device = _worker_device(params.device)
+        cloud = DeviceCloud(pos, params.radius, device=device,
+                            precision=params.precision, frame=tiling.frame)
+        if params.kind == "features":           # clcurv.tiles.features.FeatureParams
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                f = params.tile_fields(cloud)
+        else:
+            normals, how = (rec["n"] if task.file_normals else None), task.how
+            extra = {}
+            if mst:
+                nl, node = tiled_orient.orient_tile(cloud, params.radius, params.orient_k,
+                                                    task.rank, tiling.frame.origin)
+                normals = np.where(node[:, None] >= 0, nl, (0.0, 0.0, 1.0))
+                how = "normals"
+                if "align_normals" in OPERATORS[params.method].options:
+                    extra["align_normals"] = True   # clcurv's own normals, as in memory
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)   # per tile; summed at the end
+                res = curvature(cloud, params.radius, method=params.method,
+                                weights=params.weights, normals=normals, orient=how,
+                                viewpoint=params.viewpoint, kernel=params.kernel, h=params.h,
+                                **extra)
+            f = result_fields(res)
+            f["normals"] = res.normals
+        out["id"] = rec["id"][own]
+        for name, _, _ in task.specs:
+            out[name] = f[name][own]
+        del cloud               # its device buffers back to the pool, which lets them go:
+        release_memory(device)  # the memory budget sizes tiles as if all were freed
+    if mst and len(out):        # the MST records first: a tile is done when its result is
+        _mst_records(task, out, own, pos, nl, node, rec["id"])
+    elif mst:
+        _mst_records(task, out, np.zeros(0, bool), np.empty((0, 3)), np.empty((0, 3)),
+                     np.empty(0, np.int64), np.empty(0, np.int64))
+    wsp.save_sealed(tile_file(task.ws, task.t), out)
+    return task.t, len(out)
+
+
+def _mst_records(task, out, own, pos, nl, node, ids):
+    """The MST fields of a tile's own records, its halo records and its node sums."""
+    o = np.asarray(task.tiling.frame.origin)
+    if len(out):
+        out["node"], out["nl"] = node[own], nl[own]
+        out["pd"] = np.einsum("ij,ij->i", np.nan_to_num(nl[own]), pos[own] - o)
+    halo = ~own & (node >= 0)
+    h = np.empty(int(halo.sum()), tiled_orient.HALO_DTYPE)
+    h["id"], h["node"], h["nl"] = ids[halo], node[halo], nl[halo]
+    base = tile_file(task.ws, task.t)
+    for suffix, arr in ((".halo.npy", h), (".nodes.npy", tiled_orient.node_sums(
+            pos[own], nl[own], node[own], o) if len(out) else
+            np.empty(0, tiled_orient.SUMS_DTYPE))):
+        wsp.save_sealed(base.with_suffix(suffix), arr)
+
+
+_DEVICES = {}
+
+
+def _worker_device(spec):
+    """The device of this process (one OpenCL context per process): the one the Dask
+    worker plugin chose (:class:`ClcurvWorker`), else ``spec``."""
+    try:
+        from distributed import get_worker
+        chosen = getattr(get_worker(), "clcurv_device", None)
+    except (ImportError, ValueError):
+        chosen = None
+    key = chosen if chosen is not None else spec
+    if key not in _DEVICES:
+        from clcurv.runtime.device import get_device
+        _DEVICES[key] = get_device(key)
+    return _DEVICES[key]
+
+
+def _execute(tasks, client, workers, step=False):
+    """fn(task) of every task as it finishes (fn: compute_tile, or the scale space's
+    step_tile when ``step``): in this process, on a Dask ``client``, or on a LocalCluster
+    of ``workers`` processes started (and closed) here."""
+    if step:
+        from clcurv.tiles.scale import step_tile as fn
+    else:
+        fn = compute_tile
+    if client is None and not workers:
+        for task in tasks:
+            yield fn(task)
+        return
+    from clcurv.tiles import workers as cluster
+    yield from cluster.map_tiles(fn, tasks, client=client, workers=workers)
+
+
+def _write_output(dst, source, windows, specs):
+    """Pass (3b): the output in input order, a window at a time, atomically (a catalog:
+    one output per input file, each with its own points)."""
+    if isinstance(source, stream.Catalog):
+        for part, off, d in zip(source.parts, source.offsets, dst):
+            rows = (lambda o: lambda a, b: windows.rows(o + a, o + b))(int(off))
+            _write_one(d, part, rows, part.n, specs, windows.size)
+        return
+    _write_one(dst, source, windows.rows, windows.n, specs, windows.size)
+
+
+def _write_one(dst, source, rows, n, specs, chunk=READ_CHUNK):
+    """One output file, ``chunk`` points at a time (a window's: wide records, fewer)."""
+    names = [name for name, _, _ in specs]
+    with io.atomic_output(dst) as tmp:
+        if dst.suffix.lower() in (".las", ".laz"):
+            stream.write_las(tmp, source, names, rows, chunk=chunk)
+        elif dst.suffix.lower() == ".ply":
+            stream.write_ply(tmp, source, names, rows, n,
+                             {name: (width, dtype) for name, width, dtype in specs},
+                             chunk=chunk)
+        else:
+            stream.write_npz(tmp, source, names, rows, n,
+                             {name: (width, dtype) for name, width, dtype in specs},
+                             chunk=chunk)
+
+
+# --------------------------------------------------------------------------- the file job
+
+
