@@ -160,7 +160,7 @@ def test_the_command_takes_only_a_positive_worker_count(tmp_path, capsys):
 _CLIENT = textwrap.dedent("""
     import os, sys, time
     if __name__ == "__main__":
-        from clcurv import cluster
+        from clcurv.tiles import workers as cluster
         lc, client = cluster.local_cluster(2)
         print(" ".join(map(str, client.run(os.getpid).values())), flush=True)
         time.sleep(600)

@@ -306,7 +306,7 @@ _KILLER = textwrap.dedent("""
     import os, signal, sys
     sys.path.insert(0, {root!r})
     import clcurv
-    from clcurv import buckets, tile_results, tiled, workspace
+    from clcurv.tiles import buckets, results as tile_results, engine as tiled, workspace
     stage, k = sys.argv[1], int(sys.argv[2])
     calls = [0]
 
