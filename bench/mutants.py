@@ -387,7 +387,7 @@ def test_files(repo):
 # running the suite
 # ------------------------------------------------------------------------------------------
 
-_OUTCOME = re.compile(r"^(FAILED|ERROR) (\S+)(?: - (.*))?$")
+_OUTCOME = re.compile(r"^(FAILED|ERROR) (.+?)(?: - (.*))?$")        # ids may hold spaces
 
 
 def run_pytest(repo, args, timeout, workers):
