@@ -8,12 +8,12 @@ Device memory: what every point's neighbours read stays whole on the device (coo
 grid; per run the reference normals and density weights; the scale space's iterates); what
 is per point only (output records, the normals' staging rows, drift) goes through chunks of
 points. :meth:`DeviceCloud.plan` sizes the chunks from the device's global memory and max
-allocation (queried at every plan, :func:`device_limits`) minus what the cloud holds, one
-chunk when everything fits. ``DEVICE_MEMORY`` / ``CLCURV_DEVICE_MEMORY`` caps the budget.
+allocation (queried at every plan, :func:`clcurv.runtime.limits.device_limits`) minus what
+the cloud holds, one chunk when everything fits. ``DEVICE_MEMORY`` / ``CLCURV_DEVICE_MEMORY``
+(:mod:`clcurv.runtime.limits`) caps the budget.
 """
 from __future__ import annotations
 
-import os
 import time
 from dataclasses import dataclass
 
@@ -23,18 +23,12 @@ from clcurv._shared.constants import PAD, RECORD_WIDTH as RECORD, record_selecto
 from clcurv.runtime.device import get_device
 from clcurv._shared.host_threads import host_pool
 from clcurv._shared.host_memory import empty as host_empty
+from clcurv.runtime.limits import device_limits
 from clcurv.runtime.memory import buffer as device_buffer, release_memory
 from clcurv.grid.binning import CELLS_PER_ITEM, bin_points, check_pairs, sentinel_keys
 from clcurv.runtime.program import build, launch, local_size, precision_defines
 from clcurv._shared.validate import as_points, as_radius, device_radius
 
-#: Use at most this many bytes of device memory (None: what the device reports). A knob for
-#: tests and for leaving room to other users of the device; the environment variable
-#: ``CLCURV_DEVICE_MEMORY`` (bytes) sets it when this is None. Read at every plan.
-DEVICE_MEMORY = None
-#: Fraction of the device's reported global memory that clcurv plans to use (drivers, other
-#: contexts and allocation granularity take some); not applied to DEVICE_MEMORY.
-HEADROOM = 0.9
 #: Fewest points of a chunk: a budget that leaves room for fewer is refused.
 MIN_CHUNK = 1024
 #: Bytes of one row of a cell's 27-cell block (kernels/grid.cl: the index range of the row's
@@ -46,33 +40,6 @@ RANGE_BYTES = 8
 class DeviceMemoryError(MemoryError):
     """The data that must stay on the device does not fit it (or the DEVICE_MEMORY cap);
     the message says how many points would fit."""
-
-
-@dataclass(frozen=True)
-class Limits:
-    """What clcurv may use of one device now: ``budget`` bytes in all, ``max_alloc`` per
-    buffer, and what they come from (for messages)."""
-    budget: int
-    max_alloc: int
-    source: str
-
-
-def device_limits(device):
-    """The :class:`Limits` of ``device``, queried now (PoCL reports different values within
-    one boot, so nothing is cached) and capped by DEVICE_MEMORY / CLCURV_DEVICE_MEMORY."""
-    dev = device.cl_device
-    total, alloc = int(dev.global_mem_size), int(dev.max_mem_alloc_size)
-    source = (f"{device.info.name}: global memory {total / 2**20:.0f} MiB, max single "
-              f"allocation {alloc / 2**20:.0f} MiB")
-    budget = int(total * HEADROOM)
-    cap = DEVICE_MEMORY if DEVICE_MEMORY is not None else os.environ.get("CLCURV_DEVICE_MEMORY")
-    if cap not in (None, ""):
-        cap = int(cap)
-        if cap < budget:
-            budget = cap
-            source += f", capped at {cap} bytes (CLCURV_DEVICE_MEMORY, clcurv.grid.cloud.DEVICE_MEMORY)"
-        alloc = min(alloc, cap)
-    return Limits(budget, alloc, source)
 
 
 @dataclass(frozen=True)
@@ -121,8 +88,9 @@ class DeviceCloud:
 
     Device memory: the coordinates, the grid (and per run the reference normals, density
     weights) stay whole on the device; the operators' outputs go through chunks of sorted
-    points sized by :meth:`plan` from the device's limits (:func:`device_limits`), so a
-    cloud too big for the device at once still runs. :class:`DeviceMemoryError` is raised
+    points sized by :meth:`plan` from the device's limits
+    (:func:`~clcurv.runtime.limits.device_limits`), so a cloud too big for the device at
+    once still runs. :class:`DeviceMemoryError` is raised
     only when the whole-cloud data does not fit; its message says how many points would.
     ``device_bytes`` is what the cloud holds on the device; ``plans`` the last
     :class:`Plan` of every stage run on it.

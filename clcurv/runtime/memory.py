@@ -13,7 +13,8 @@ allocators do: a freed buffer goes back to the pool and the next request of a si
 What that means for a user:
   - memory the last calls used stays allocated after they return (for a 1M-point call,
     ~150-300 MB), up to :func:`hold_limit` (a quarter of clcurv's device budget,
-    :func:`clcurv.grid.cloud.device_limits`); beyond that the pool lets go of what it holds;
+    :func:`clcurv.runtime.limits.device_limits`); beyond that the pool lets go of what it
+    holds;
   - :func:`release_memory` gives it back now; ``CLCURV_POOL=0`` in the environment (read
     when a device's pool is made) turns holding off: every buffer is then freed at once;
   - a stage that has to run in chunks (the device is short of memory,
@@ -30,9 +31,11 @@ from __future__ import annotations
 import os
 import threading
 
+from clcurv.runtime.limits import device_limits
+
 _POOLS, _LOCK = {}, threading.Lock()
-#: The fraction of the device budget (clcurv.grid.cloud.device_limits) the pool may hold
-#: unused between calls.
+#: The fraction of the device budget (clcurv.runtime.limits.device_limits) the pool may
+#: hold unused between calls.
 HOLD_FRACTION = 0.25
 #: Debugging: when set (a float32 value, e.g. NaN), every buffer is filled with it before it
 #: is handed out, as glibc's MALLOC_PERTURB_ does; tests/test_memory.py uses NaN to show that
@@ -57,7 +60,6 @@ def _pool(device):
 
 def hold_limit(device):
     """Bytes the pool of ``device`` may hold unused."""
-    from clcurv.grid.cloud import device_limits
     return int(device_limits(device).budget * HOLD_FRACTION)
 
 
