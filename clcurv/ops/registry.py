@@ -24,6 +24,7 @@ from typing import Callable, Mapping
 import numpy as np
 
 from clcurv._shared.constants import MIN_COUNT_MLS2, MIN_COUNT_PCA, OK, record_selector
+from clcurv.runtime.program import build, local_size, precision_defines
 
 
 # ------------------------------------------------------------------------------------------
@@ -389,3 +390,23 @@ def program_variants(precision_defines):
     out.append(("knn_radius.cl",
                 dict(base, **knn_program_defines(30, knn_levels(30, int(base["VW"]))))))
     return out
+
+
+def tuning(device, precision="float"):
+    """The device-dependent choices clcurv makes on ``device``, for reports: ``VW`` (points
+    per work-item: 8 on CPU devices, whose compilers vectorise a work-item's explicit
+    vectors, else 4; from the device type query), ``MASKED_SUMS``
+    (:func:`clcurv.runtime.program.masked_sums`), ``PCA_FMA``
+    (:func:`~clcurv.runtime.program.fused_sums`), ``FEATURES_BUF``
+    (:func:`~clcurv.runtime.program.features_buffer`) and ``work_group``, the work-group
+    size :func:`~clcurv.runtime.program.local_size` gives every kernel of
+    :func:`program_variants` (queried: the kernel's maximum and preferred multiple on this
+    device, capped at launch's default 128). Some calls pass a smaller cap
+    (clcurv.orient.graph.CPU_GROUP: knn_graph on CPU devices)."""
+    base = precision_defines(device, precision)
+    sizes = {}
+    for file, defines in program_variants(base):
+        for k in build(device, file, defines).program.all_kernels():
+            sizes[k.function_name] = local_size(device, k)
+    return {"VW": base["VW"], "MASKED_SUMS": base["MASKED_SUMS"], "PCA_FMA": base["PCA_FMA"],
+            "FEATURES_BUF": base["FEATURES_BUF"], "work_group": sizes}
