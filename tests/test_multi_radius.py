@@ -123,7 +123,7 @@ def test_covariances_pca_of_every_radius_in_one_walk(torus, device, precision):
     if precision == "double" and not device.info.fp64:
         pytest.skip(f"{device.info.name} has no cl_khr_fp64")
     from clcurv.api.curvature import _Run
-    from clcurv.api.features import run_features
+    from clcurv.ops.features import run_features
     line = np.column_stack([np.linspace(0, 0.05, 12), np.zeros(12), np.zeros(12)]) + [3, 0, 0]
     pts = np.vstack([torus[:20000], [[5.0, 5.0, 5.0]], line])
     cloud = clcurv.DeviceCloud(pts, max(RADII), device=device, precision=precision)
@@ -165,7 +165,7 @@ def test_walk_buffer_size_keeps_the_bits(torus, device, monkeypatch, size):
     the covariance operators' PCA normals are the same bits at any size (3: many partial
     runs a point) as with the device's own."""
     import clcurv.grid.cloud
-    from clcurv.api.features import run_features
+    from clcurv.ops.features import run_features
     from clcurv.runtime.program import features_buffer
     own = clcurv.DeviceCloud(torus, max(RADII), device=device)
     ref = clcurv.features(own, RADII, "all")

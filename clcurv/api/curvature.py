@@ -9,6 +9,7 @@ import numpy as np
 
 from clcurv.orient import orientation as _orient
 from clcurv._shared.constants import TOO_FEW
+from clcurv.ops.features import run_features
 from clcurv.ops.registry import METHODS, OPERATORS, PCA
 from clcurv.api.result import CurvatureResult
 from clcurv.grid.binning import ExtentError, bin_points, check_pairs
@@ -555,7 +556,6 @@ def _radius_list(op, points, radius, kw):
     if not one_walk or op.name == "variation":
         return [curvature(points if cloud is None else cloud, r, method=op.name, **kw)
                 for r in radii]
-    from clcurv.api.features import run_features
     for r in radii:
         cloud.check_radius(r)
     raws = {r: {"normals": v["normals"], "count": c, "status": s}
@@ -570,7 +570,6 @@ def _radius_list(op, points, radius, kw):
 
 def _variation_list(op, cloud, radii):
     """'variation' at every radius of a list from one walk of the features kernel."""
-    from clcurv.api.features import run_features
     names = ("eigenvalue3", "eigenvalue2", "eigenvalue1", "surface_variation", "normals")
     out = []
     for r, (vals, count, status) in zip(radii, run_features(cloud, radii, names)):

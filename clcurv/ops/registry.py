@@ -24,6 +24,9 @@ from typing import Callable, Mapping
 import numpy as np
 
 from clcurv._shared.constants import MIN_COUNT_MLS2, MIN_COUNT_PCA, OK, record_selector
+from clcurv.ops.features import FEATURES, layouts, program_defines
+from clcurv.ops.knn_radius import knn_levels, program_defines as knn_program_defines
+from clcurv.reference import operators as reference
 from clcurv.runtime.program import build, local_size, precision_defines
 
 
@@ -252,13 +255,11 @@ def _finish_mls2(raw, pts, r, n, user):
 # ------------------------------------------------------------------------------------------
 
 def _ref_moments(points, r, normals, weights):
-    from clcurv.reference import operators as reference
     return reference.moments(points, r, weights=weights)
 
 
 def _ref_cov(method):
     def run(points, r, normals, weights, align_normals=False):
-        from clcurv.reference import operators as reference
         return reference.covariance_ops(points, r, normals, method, weights=weights,
                                         align=align_normals)
     run.__name__ = f"_ref_{method}"
@@ -266,7 +267,6 @@ def _ref_cov(method):
 
 
 def _ref_mls2(points, r, normals, weights, kernel="ball", h=None):
-    from clcurv.reference import operators as reference
     if normals is None:
         raise ValueError("backend='numpy' MLS2 needs oriented normals (orient must not be None)")
     out = reference.mls2(points, r, normals, weights=weights, kernel=kernel, h=h)
@@ -377,7 +377,6 @@ def program_variants(precision_defines):
         # the k-NN radius (kernels/radius.h): per-point balls, which exclude DENSITY
         out.append((k.file, dict(base, **k.build_defines(), DENSITY=0, GAUSSIAN=0,
                                  REF_NORMALS=int(k.reads_normals), POINT_RADIUS=1)))
-    from clcurv.api.features import FEATURES, layouts, program_defines
     for group in layouts(tuple(FEATURES)):               # clcurv.features: every column
         out.append(("features.cl", dict(base, **program_defines(group, 4))))
         out.append(("features.cl", dict(base, **program_defines(group, 4,
@@ -386,7 +385,6 @@ def program_variants(precision_defines):
     # the covariance operators' PCA normals of several radii (clcurv.api.curvature._radius_list)
     out.append(("features.cl", dict(base, **program_defines(layouts(("normals",))[0], 4,
                                                              anchored=False))))
-    from clcurv.ops.knn_radius import knn_levels, program_defines as knn_program_defines
     out.append(("knn_radius.cl",
                 dict(base, **knn_program_defines(30, knn_levels(30, int(base["VW"]))))))
     return out
