@@ -54,7 +54,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from clcurv._shared.constants import MIN_COUNT_PCA, TOO_FEW
+from clcurv._shared.validate import as_points, choice
+from clcurv.api.inputs import as_radii, cloud_points, orient_spec, parse_knn
+from clcurv.api.result import empty_columns, warn_sparse
+from clcurv.grid.cloud import DeviceCloud
+from clcurv.ops import optimal as opt
 from clcurv.ops.features import FEATURES, run_features
+from clcurv.ops.knn_radius import check_k, knn_radii
+from clcurv.reference import features as ref
 
 __all__ = ["features", "FeatureResult", "FEATURES", "DEFAULT_FEATURES", "canonical_names"]
 
@@ -207,19 +214,6 @@ def radius_suffix(r):
     return "_r" + np.format_float_positional(float(r), trim="-")
 
 
-def as_radii(radius):
-    """(list of float radii, multi) from a number or a sequence of numbers."""
-    from clcurv._shared.validate import as_radius
-    if np.ndim(radius) == 0:
-        return [as_radius(radius)], False
-    radii = [as_radius(r) for r in np.asarray(radius, dtype=object).reshape(-1)]
-    if not radii:
-        raise ValueError("radius must be a number or a non-empty list of numbers")
-    if len(set(radii)) != len(radii):
-        raise ValueError(f"radius lists must not repeat a radius, got {radius!r}")
-    return radii, True
-
-
 def features(points, radius=None, features=DEFAULT_FEATURES, *, k=None, ddof=0, orient=None,
              optimal=False, device=None, precision="float", backend="opencl"):
     """Covariance features of the ball N_r(p) = {q : |q - p| < r} of every point.
@@ -269,21 +263,19 @@ def features(points, radius=None, features=DEFAULT_FEATURES, *, k=None, ddof=0, 
     >>> bool(np.nanmedian(f["planarity"]) > 0.9)
     True
     """
-    from clcurv.api.curvature import _cloud_points, _orient_spec
-    from clcurv._shared.validate import as_points, choice
     choice(backend, "backend", ("opencl", "numpy"))
     choice(ddof, "ddof", (0, 1))
     names = canonical_names(DEFAULT_FEATURES if features is None else features)
     if not names:
         raise ValueError("features must name at least one feature")
-    up = None if orient is None else _orient_spec(orient)
+    up = None if orient is None else orient_spec(orient)
     if isinstance(up, str):
         raise ValueError(f"orient must be None, 'up' or a direction, got {orient!r}")
-    points, cloud = _cloud_points(points)
+    points, cloud = cloud_points(points)
     # finiteness: the OpenCL path checks it on the binning's bounding box (one pass fewer)
     pts = as_points(points, finite=backend != "opencl")
     if isinstance(radius, str):
-        k = _parse_knn(radius, k)
+        k = parse_knn(radius, k)
         radius = None
     if k is not None:
         if radius is not None:
@@ -291,7 +283,7 @@ def features(points, radius=None, features=DEFAULT_FEATURES, *, k=None, ddof=0, 
         if optimal:
             raise ValueError("optimal=True chooses among a list of radii, not with k")
         res = _finish(_knn_features(pts, k, names, ddof, device, precision, backend), up)
-        _warn_sparse(res)
+        warn_sparse(res.status, res.radius, MIN_COUNT_PCA, k, "features")
         return res
     if radius is None:
         raise ValueError("features needs radius= (a number, a list of numbers or 'knn:K') "
@@ -303,16 +295,14 @@ def features(points, radius=None, features=DEFAULT_FEATURES, *, k=None, ddof=0, 
                              f"got radius={radius!r}")
         res = _optimal_features(pts, cloud, sorted(radii), names, ddof, device, precision,
                                 backend)
-        _warn_sparse(res)
+        warn_sparse(res.status, res.radius, MIN_COUNT_PCA, None, "features")
         return _finish(res, up)
     if len(pts) == 0:
         out = [empty_features(names, r, ddof) for r in radii]
     elif backend == "numpy":
-        from clcurv.reference import features as ref
         out = [FeatureResult(r, *ref.features(pts, r, names, ddof=ddof), ddof=ddof)
                for r in radii]
     else:
-        from clcurv.grid.cloud import DeviceCloud
         if cloud is None:
             cloud = DeviceCloud(pts, max(radii), device=device, precision=precision)
         for r in radii:
@@ -321,29 +311,15 @@ def features(points, radius=None, features=DEFAULT_FEATURES, *, k=None, ddof=0, 
                for r, (v, c, s) in zip(radii, run_features(cloud, radii, names, ddof))]
     out = [_finish(f, up) for f in out]
     for f in out:
-        _warn_sparse(f)
+        warn_sparse(f.status, f.radius, MIN_COUNT_PCA, None, "features")
     return out if multi else out[0]
 
 
-def _parse_knn(spec, k):
-    if not spec.startswith("knn:"):
-        raise TypeError(f"radius must be a number (or a list of numbers, or 'knn:K'), got "
-                        f"{spec!r}")
-    if k is not None:
-        raise ValueError("give either radius='knn:K' or k=, not both")
-    try:
-        return int(spec[4:])
-    except ValueError:
-        raise ValueError(f"radius='knn:K' needs an integer K, got {spec!r}") from None
-
-
 def _knn_features(pts, k, names, ddof, device, precision, backend):
-    from clcurv.ops.knn_radius import check_k, knn_radii
     if len(pts) == 0:
         return empty_features(names, np.empty(0), ddof)
     check_k(k, len(pts))
     if backend == "numpy":
-        from clcurv.reference import features as ref
         r = ref.knn_radii(pts, k)        # the closed ball of radius d_k: k points
         return FeatureResult(r, *ref.features(pts, r * (1 + 1e-12), names, ddof=ddof),
                              ddof=ddof, info={"k": k})
@@ -357,7 +333,6 @@ def _knn_features(pts, k, names, ddof, device, precision, backend):
 
 def _optimal_features(pts, cloud, radii, names, ddof, device, precision, backend):
     """The FeatureResult of features(optimal=True) (clcurv.ops.optimal) for sorted ``radii``."""
-    from clcurv.ops import optimal as opt
     if len(pts) == 0:
         res = empty_features(names, np.empty(0), ddof)
         res.info.update(radii=radii, optimal_index=np.empty(0, np.intp))
@@ -366,7 +341,6 @@ def _optimal_features(pts, cloud, radii, names, ddof, device, precision, backend
         vals, count, status, radius, idx = opt.reference_optimal_features(pts, radii, names,
                                                                           ddof)
     else:
-        from clcurv.grid.cloud import DeviceCloud
         if cloud is None:
             cloud = DeviceCloud(pts, radii[-1], device=device, precision=precision)
         for r in radii:
@@ -384,21 +358,7 @@ def _finish(res, up):
     return res
 
 
-def _warn_sparse(res):
-    import warnings
-    few = int(np.count_nonzero(res.status == TOO_FEW))
-    if few > len(res.status) // 2:
-        k = res.info.get("k")
-        where = (f"radius {res.radius}: their features are NaN; the radius is probably too "
-                 "small" if np.ndim(res.radius) == 0 else
-                 "their own radius (per point): their features are NaN" if k is None else
-                 f"their k-NN radius (k = {k}): their features are NaN; k must be at least "
-                 f"{MIN_COUNT_PCA}")
-        warnings.warn(f"{few} of {len(res.status)} points have fewer than {MIN_COUNT_PCA} "
-                      f"neighbours within {where}", RuntimeWarning, stacklevel=3)
-
-
 def empty_features(names, radius, ddof):
-    vals = {n: np.empty((0, FEATURES[n].width) if FEATURES[n].width > 1 else 0)
-            for n in names}
+    """The FeatureResult of ``names`` for no points."""
+    vals = empty_columns((n, FEATURES[n].width) for n in names)
     return FeatureResult(radius, vals, np.empty(0, np.int64), np.empty(0, np.uint8), ddof)

@@ -30,6 +30,7 @@ from clcurv.jobs import job
 from clcurv.runtime.device import APT_HINT, NoDeviceError, devices
 from clcurv.jobs.job import UsageError
 from clcurv.api.features import DEFAULT_FEATURES as FEATURE_NAMES
+from clcurv.api.inputs import parse_knn
 from clcurv.ops.registry import METHODS
 from clcurv.runtime.program import BuildError, PrecisionError
 from clcurv.tiles.workspace import WorkspaceError
@@ -41,14 +42,13 @@ EXIT_INTERRUPTED = 130
 def _knn_alias(args, default):
     """``--radius knn:K``, the API's spelling (``radius="knn:K"``), as ``--k K``: args.k set,
     args.radius back to ``default``."""
-    from clcurv.api.features import _parse_knn
     spec = args.radius
     if not (isinstance(spec, str) and spec.strip().lower().startswith("knn:")):
         return
     if args.k is not None:
         raise UsageError("give --radius knn:K or --k K, not both")
     try:
-        args.k = _parse_knn(spec.strip().lower(), None)
+        args.k = parse_knn(spec.strip().lower(), None)
     except ValueError:
         raise UsageError(f"--radius knn:K needs an integer K, got {spec!r}") from None
     args.radius = default
