@@ -414,8 +414,9 @@ def split_records(cloud, rec, layout, n, mapped=None, balls=None):
 
 def empty_fields(layout, n):
     """Host arrays (uninitialised) for the fields of ``layout`` for ``n`` points, in the
-    types :func:`fetch_records` returns; large ones from the pool of
-    :mod:`clcurv._shared.host_memory` (the pages of results the caller dropped)."""
+    types :func:`place_records` writes (float64, count int64, status uint8); large ones
+    from the pool of :mod:`clcurv._shared.host_memory` (the pages of results the caller
+    dropped)."""
     return {name: host_empty(shape, dtype) for name, shape, dtype in _fields(layout, n)}
 
 
@@ -466,18 +467,6 @@ def place_records(cloud, rec, layout, out, first, stop, chunked, mapped=None, ba
     def put(h):
         out[h[0]][at] = h[1]          # the cast, and in a chunk the scatter (no GIL held)
     list(host_pool().map(put, host))
-
-
-def fetch_records(cloud, rec, layout, mapped=None):
-    """The fields of the records ``rec`` (one per point, input order) as host arrays.
-
-    ``layout`` maps a name to a record column or a slice of columns, and must name 'count'
-    (stored as uint bits) and 'status' (a small integer). Real fields come back as float64
-    (N,) or (N, width) arrays, 'count' as int64 and 'status' as uint8.
-    """
-    out = empty_fields(layout, cloud.n)
-    place_records(cloud, rec, layout, out, 0, cloud.n, False, mapped)
-    return out
 
 
 def upload_point_r2(cloud, r2_sorted):

@@ -311,22 +311,6 @@ def merge_network(levels, batch):
                    for i, j, kind in merge_comparators(levels, batch))
 
 
-def kth_squared(cloud, k, known=None, levels=None, extend=False, reach=None):
-    """The squared distance to the k-th nearest point within the cloud's cell (device
-    values as float64, input order; +inf where fewer than k points lie within it), or with
-    ``extend`` within each point's reach (:func:`reach`). Points with a finite ``known``
-    value (input order) keep it and are not walked. ``levels`` overrides the d^2 values the
-    kernel keeps per vector lane (KNN_LEVELS; tests: 1 sends nearly every point down the
-    kernel's counting path, which must give the same values). ``reach`` (at most the cell;
-    not with ``extend``) narrows the walk's ball: +inf where fewer than k points lie within
-    it."""
-    order = cloud.grid.order
-    prev = None if known is None else known[order].astype(cloud.dtype)
-    res = np.empty(cloud.n)
-    res[order] = _kth_fetch(cloud, _kth_launch(cloud, k, prev, levels, extend, reach))
-    return res
-
-
 def reach(cloud):
     """Each point's extended reach in a walk of ``cloud`` (input order, float64, a bound
     slightly below knn_radius.cl:reach2's): the cell plus the point's distance to the
@@ -340,10 +324,16 @@ def reach(cloud):
 
 
 def _kth_launch(cloud, k, prev=None, levels=None, extend=False, reach=None):
-    """Enqueue and flush knn_radius.cl on ``cloud`` (see :func:`kth_squared`, in the
-    cloud's sorted order; ``prev`` a host array or a device buffer; ``reach`` the walk's
-    radius, at most the cell, which it is by default); returns the output buffer for
-    :func:`_kth_fetch`. The device works while the host goes on."""
+    """Enqueue and flush knn_radius.cl on ``cloud``: the squared distance to the k-th
+    nearest point within the cloud's cell (device precision, the cloud's sorted order; +inf
+    where fewer than k points lie within it), or with ``extend`` within each point's reach
+    (:func:`reach`). Points with a finite ``prev`` value (sorted order; a host array or a
+    device buffer) keep it and are not walked. ``levels`` overrides the d^2 values the
+    kernel keeps per vector lane (KNN_LEVELS; tests: 1 sends nearly every point down the
+    kernel's counting path, which must give the same values). ``reach`` (at most the cell,
+    which it is by default; not with ``extend``) narrows the walk's ball: +inf where fewer
+    than k points lie within it. Returns the output buffer for :func:`_kth_fetch`; the
+    device works while the host goes on."""
     import pyopencl as cl
     from clcurv.runtime.program import launch
     prg = _program(cloud, k, levels)

@@ -5,8 +5,9 @@ method: its kernel (:class:`Kernel`: file, entry point, defines, record layout, 
 neighbour count), how it uses normals, its outputs (:class:`Output`: result attribute,
 file field names, unit, sign), its float64 reference and the host step that turns the
 kernel's raw fields into the result. :mod:`clcurv.api.curvature`, :mod:`clcurv.cli.main`,
-:mod:`clcurv.render`, the bench, the tests and the README's methods table iterate
-:data:`OPERATORS`; :func:`clcurv.ops.driver.run_kernel` runs any kernel.
+:mod:`clcurv.render`, the bench, the tests and the README's methods table
+(tests/test_registry.py) iterate :data:`OPERATORS`; :func:`clcurv.ops.driver.run_kernel`
+runs any kernel.
 
 Adding an operator: one kernel (``kernels/``, taking ``OPERATOR_ARGS`` and writing its
 record columns ``COL_*``), one reference function (:mod:`clcurv.reference.operators`), one
@@ -40,7 +41,7 @@ class Kernel:
 
     ``layout`` maps a raw field to its record column (an int) or columns (a slice); it
     reaches the kernel as ``-D COL_<FIELD>=<REAL16 selector>`` (``s012``), and
-    :func:`clcurv.grid.cloud.fetch_records` reads the record with the same table. Every layout
+    :func:`clcurv.grid.cloud.split_records` reads the record with the same table. Every layout
     has ``count`` and ``status``.
     """
     name: str
@@ -338,17 +339,6 @@ def signed_file_fields():
     """File field names that some operator writes signed (a diverging colour map)."""
     return frozenset(f for op in OPERATORS.values() for o in op.outputs if o.signed
                      for f in o.file_fields())
-
-
-def methods_table():
-    """The README's methods table (markdown), generated from the registry."""
-    rows = ["| method | operator (Digne & Morel) | outputs | signed | min. neighbours |",
-            "|---|---|---|---|---|"]
-    for op in OPERATORS.values():
-        outs = ", ".join(f"`{o.name}`" for o in op.outputs)
-        rows.append(f"| `\"{op.name}\"` | {op.title}; {op.formula} | {outs} | "
-                    f"{'yes' if op.signed else 'no'} | {op.min_count} |")
-    return "\n".join(rows)
 
 
 def program_variants(precision_defines):

@@ -63,12 +63,6 @@ def hold_limit(device):
     return int(device_limits(device).budget * HOLD_FRACTION)
 
 
-def held_bytes(device):
-    """Bytes the pool of ``device`` holds unused (0 for a simulator)."""
-    pool = _pool(device)
-    return 0 if pool is None else int(pool.managed_bytes - pool.active_bytes)
-
-
 def buffer(device, nbytes):
     """A READ_WRITE device buffer of at least ``nbytes`` bytes (>= 1) on ``device`` (a
     clcurv.runtime.device.Device), from its pool (see the module docstring). Its content is
