@@ -18,6 +18,8 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+import pyopencl as cl
+import pyopencl.cltypes as ct
 
 from clcurv._shared.constants import PAD, RECORD_WIDTH as RECORD, record_selector
 from clcurv.runtime.device import get_device
@@ -98,7 +100,6 @@ class DeviceCloud:
 
     def __init__(self, points, cell, *, device=None, precision="float", frame=None,
                  binned=None):
-        import pyopencl as cl
         if binned is not None:                  # host_binning's result: no binning here
             points, cell, precision = binned.points, binned.cell, binned.precision
         # finiteness: checked on the binning's bounding box (grid.bin_points)
@@ -171,7 +172,6 @@ class DeviceCloud:
         clcurv.orient.graph); 72 more bytes per occupied cell on the device."""
         if self.middles:
             return self.ranges
-        import pyopencl as cl
         g = self.grid
         cells = max(g.ncells, 1)
         rows = 9 * RANGE_BYTES * cells
@@ -273,7 +273,6 @@ class DeviceCloud:
 
     def ball(self, radius):
         """The kernels' REAL2 geometry (r^2, cell) (neighbors.h)."""
-        import pyopencl.cltypes as ct
         make = ct.make_double2 if self.dtype == np.float64 else ct.make_float2
         return make(radius * radius, self.cell)
 
@@ -310,7 +309,6 @@ def upload_sorted(cloud, values):
     cloud's sorted order and precision (cast on the host, gathered on the device). The rows
     go through a staging buffer in chunks of input indices when the device lacks room for
     all of them (stage ``upload_normals`` of :meth:`DeviceCloud.plan`)."""
-    import pyopencl as cl
     values = np.asarray(values)
     item = np.dtype(cloud.dtype).itemsize
     plan = cloud.plan("upload_normals", 3 * item, reserve=3 * item,
@@ -344,7 +342,6 @@ def record_bytes(cloud, layout):
 def _host_array(cloud, buf, shape, dtype, mapped=None):
     """``buf`` on the host: mapped (zero-copy) on a CPU device, copied otherwise (``mapped``
     overrides the choice)."""
-    import pyopencl as cl
     q = cloud.device.queue
     if cloud.device.info.kind == "cpu" if mapped is None else mapped:
         arr, ev = cl.enqueue_map_buffer(q, buf, cl.map_flags.READ, 0, shape, dtype)
@@ -427,7 +424,6 @@ def split_into_host(cloud, rec, layout, out, balls=None):
     and a cast on the host (6 of the 14 ms of a 1M-point variation call's records on PoCL).
     For CPU devices with cl_khr_fp64 (:func:`splits_into_host`); the same values as
     :func:`split_records` and the host's cast, bit for bit (tests/test_records.py)."""
-    import pyopencl as cl
     fields = _fields(layout, cloud.n)
     real = fields[:-2]
     prg = _split_program(cloud, layout, real, True, balls)
@@ -472,7 +468,6 @@ def place_records(cloud, rec, layout, out, first, stop, chunked, mapped=None, ba
 def upload_point_r2(cloud, r2_sorted):
     """Per-point squared radii (``cloud``'s sorted order; radius.h's POINT_RADIUS: the k-NN
     radius, the optimal neighbourhood) as a device buffer padded with PAD zeros."""
-    import pyopencl as cl
     host = np.zeros(cloud.n + PAD, cloud.dtype)
     host[:cloud.n] = r2_sorted
     return cl.Buffer(cloud.device.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,

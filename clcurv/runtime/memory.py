@@ -31,6 +31,12 @@ from __future__ import annotations
 import os
 import threading
 
+import numpy as np
+import pyopencl as cl
+import pyopencl.tools as clt
+
+from clcurv._shared import host_memory
+from clcurv.runtime.device import get_device
 from clcurv.runtime.limits import device_limits
 
 _POOLS, _LOCK = {}, threading.Lock()
@@ -50,7 +56,6 @@ def _pool(device):
     with _LOCK:
         pool = _POOLS.get(id(device))
         if pool is None:
-            import pyopencl.tools as clt
             pool = clt.MemoryPool(clt.ImmediateAllocator(device.queue))
             if os.environ.get("CLCURV_POOL", "1").strip() == "0":
                 pool.stop_holding()
@@ -67,7 +72,6 @@ def buffer(device, nbytes):
     """A READ_WRITE device buffer of at least ``nbytes`` bytes (>= 1) on ``device`` (a
     clcurv.runtime.device.Device), from its pool (see the module docstring). Its content is
     undefined."""
-    import pyopencl as cl
     nbytes = max(int(nbytes), 1)
     pool = _pool(device)
     if pool is None:
@@ -77,7 +81,6 @@ def buffer(device, nbytes):
             pool.free_held()
         buf = pool.allocate(nbytes)
     if FILL is not None:
-        import numpy as np
         size = buf.size - buf.size % 4
         if size:
             cl.enqueue_fill_buffer(device.queue, buf, np.float32(FILL), 0, size)
@@ -90,8 +93,6 @@ def release_memory(device=None):
     blocks of dropped result arrays (:mod:`clcurv._shared.host_memory`). Buffers and arrays in use
     (a live :class:`~clcurv.grid.cloud.DeviceCloud`, a result) are not touched. Returns the
     bytes freed."""
-    from clcurv.runtime.device import get_device
-    from clcurv._shared import host_memory
     with _LOCK:
         pools = list(_POOLS.values()) if device is None else \
             [p for p in [_POOLS.get(id(get_device(device)))] if p is not None]

@@ -35,6 +35,8 @@ import threading
 import warnings
 from pathlib import Path
 
+import pyopencl as cl
+
 from clcurv._shared.constants import kernel_defines
 
 
@@ -126,7 +128,6 @@ def build(device, filename, defines=None):
     Not thread-safe to *launch* kernels of one program from several threads at once
     (kernel arguments are per kernel object); building is.
     """
-    import pyopencl as cl
     defines = dict(kernel_defines(), **(defines or {}))
     key = (device.context.int_ptr, filename, tuple(sorted(defines.items())))
     with _lock:
@@ -202,7 +203,6 @@ def log_warnings(log):
 def _warn_from_log(device, filename, program):
     """Raise a :class:`BuildWarning` with the build log's warning/error lines
     (:func:`log_warnings`), if any."""
-    import pyopencl as cl
     try:
         log = program.get_build_info(device.cl_device, cl.program_build_info.LOG) or ""
     except cl.Error:
@@ -216,7 +216,6 @@ def _warn_from_log(device, filename, program):
 def local_size(device, kernel, limit=128):
     """A work-group size for ``kernel`` on ``device``, queried, never assumed: the largest
     multiple of the preferred size multiple that is <= min(limit, kernel max)."""
-    import pyopencl as cl
     dev = device.cl_device
     kmax = kernel.get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE, dev)
     mult = kernel.get_work_group_info(
