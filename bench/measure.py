@@ -9,7 +9,7 @@ import math
 import clcurv
 from clcurv.grid.cloud import DeviceCloud
 from clcurv.ops.driver import run_kernel
-from clcurv.ops.registry import OPERATORS, PCA
+from clcurv.ops.registry import OPERATORS, PCA, tuning
 
 from .accuracy import check_against_reference, check_ops, check_scale_space
 from .harness import cap_interior, log, paired, run_python, timed, timeit
@@ -188,7 +188,6 @@ def clcurv_label(index, cid):
 
 
 def device_record(info):
-    from clcurv.runtime.program import tuning
     return {"index": info.index, "name": info.name, "platform": info.platform, "kind": info.kind,
             "driver": info.driver, "version": info.version, "compute_units": info.compute_units,
             "tuning": tuning(clcurv.get_device(info.index))}

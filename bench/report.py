@@ -349,8 +349,8 @@ LEAD_NOTE = (
 
 
 def tuning_text(d):
-    """'VW 8, masked sums, work-groups 128' (clcurv.runtime.program.tuning: chosen per device from
-    queries)."""
+    """'VW 8, masked sums, work-groups 128' (clcurv.ops.registry.tuning: chosen per device
+    from queries)."""
     t = d.get("tuning")
     if not t:
         return "tuning not recorded"

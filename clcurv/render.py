@@ -55,6 +55,7 @@ from pathlib import Path
 
 import numpy as np
 
+from clcurv.api.features import FEATURES
 from clcurv.io import atomic_output, check_output
 from clcurv.ops.registry import OPERATORS, signed_file_fields
 
@@ -89,7 +90,6 @@ def field_unit(name):
     a ``_r<radius>`` suffix, e.g. ``"length^2"`` for ``eigenvalue_sum``), ``""`` for a
     dimensionless field (planarity, directions, counts, statuses), None for a name clcurv
     does not write (a field of another tool: its unit is unknown)."""
-    from clcurv.api.features import FEATURES
     for op in OPERATORS.values():
         for o in op.outputs:
             if name in o.file_fields() or name == o.name:
@@ -136,7 +136,7 @@ class MissingMatplotlibError(ImportError):
 
 
 def _import_matplotlib():
-    try:
+    try:   # here, not at the top: matplotlib is an optional extra (clcurv[render])
         import matplotlib  # noqa: F401
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
@@ -380,7 +380,7 @@ def figure(points, values, *, field="mean_curvature", unit="auto", signed=None,
     max_points = int(max_points)
 
     matplotlib, Figure, FigureCanvasAgg = _import_matplotlib()
-    from matplotlib.colors import Normalize
+    from matplotlib.colors import Normalize     # the optional extra, found just above
     from matplotlib.cm import ScalarMappable
 
     # --- colour scale from all finite values (before subsampling) ---------------------------

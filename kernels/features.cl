@@ -32,7 +32,7 @@
  * in blocks of REC_BLOCK points (common.h: REC_IN_BLOCKS; records.cl's split with NB);
  * REFINE_L0, DENSITY, MIN_COUNT,
  * and the records' columns: CIX_COUNT, CIX_STATUS, one CIX_<FEATURE> (its first column) per
- * feature wanted and REC_USED their mask (clcurv/api/features.py, lanes_records.h).
+ * feature wanted and REC_USED their mask (clcurv/ops/features.py, lanes_records.h).
  */
 #include "common.h"
 #include "neighbors.h"
@@ -46,7 +46,7 @@
 #if !defined(NR) || NR < 1 || NR > 4 || !defined(REFINE_L0) || !defined(MIN_COUNT) \
     || !defined(CIX_COUNT) || !defined(CIX_STATUS) || !defined(REC_USED) || !defined(REC_BALLS) \
     || !defined(REC_BLOCK)
-#error "features.cl needs NR (1..4), REFINE_L0, MIN_COUNT, REC_BALLS, REC_BLOCK and its record columns (clcurv/api/features.py)"
+#error "features.cl needs NR (1..4), REFINE_L0, MIN_COUNT, REC_BALLS, REC_BLOCK and its record columns (clcurv/ops/features.py)"
 #endif
 
 #if REAL_IS_DOUBLE

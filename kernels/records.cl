@@ -8,11 +8,11 @@
  * happens here, in the same pass, instead of in a second pass on the host. */
 #include "common.h"
 
-/* Field layout, set by build options (clcurv/grid/cloud.py:fetch_records): NF real fields,
+/* Field layout, set by build options (clcurv/grid/cloud.py:split_records): NF real fields,
  * field k = columns S<k> .. S<k> + W<k> - 1 of the record; COL_COUNT (uint bits) and
  * COL_STATUS (a small integer), as REAL16 selectors (common.h). */
 #if !defined(NF) || !defined(COL_COUNT) || !defined(COL_STATUS)
-#error "records.cl needs NF, COL_COUNT and COL_STATUS (clcurv/grid/cloud.py:fetch_records)"
+#error "records.cl needs NF, COL_COUNT and COL_STATUS (clcurv/grid/cloud.py:split_records)"
 #endif
 /* With NB: ball REC_BALL's records among those of NB balls in one buffer, in blocks
  * (common.h: REC_IN_BLOCKS; features.cl's REC_BALLS) */

@@ -17,10 +17,44 @@ import pyopencl as cl
 import pytest
 
 import clcurv
-from clcurv.grid.anchor import RANK_RATIO, cell_normals, reference_cell_normals
+from clcurv.grid.anchor import cell_normals
 from clcurv.grid.cloud import DeviceCloud
 from clcurv.ops.driver import run_kernel
 from clcurv.ops.registry import PCA
+
+
+#: fewest points of a cell whose anchor comes from its own points (kernels/anchor.cl:
+#: ANCHOR_MIN_POINTS)
+MIN_POINTS = 6
+#: the anchor's rank test: l1 > RANK_RATIO l2 (kernels/anchor.cl)
+RANK_RATIO = 1e-3
+
+
+def reference_cell_normals(grid, points):
+    """The anchors of :func:`cell_normals`, float64 NumPy, for a :class:`clcurv.grid.binning.Grid`
+    of ``points`` (N, 3) (input order): (ncells, 3) unit normals, zero rows where there is
+    none, and (ncells, 3) the ascending eigenvalues of the points used (zero for fewer
+    than 3), to tell borderline and ill-conditioned cells.
+    Same rules as the kernel: the cell's points, or with fewer than MIN_POINTS those of the
+    row of three cells along x; at least 3 points and l1 > RANK_RATIO l2."""
+    pos = np.asarray(points, np.float64)[grid.order]
+    nx, ny, _ = grid.dims
+    keys, start = grid.keys, grid.cell_start.astype(np.int64)
+    a, b = start[:-1].copy(), start[1:].copy()
+    few = b - a < MIN_POINTS
+    ix, row = keys % nx, keys - keys % nx
+    lo = np.searchsorted(keys, row + np.maximum(ix - 1, 0))
+    hi = np.searchsorted(keys, row + np.minimum(ix + 1, nx - 1), side="right")
+    a[few], b[few] = start[lo[few]], start[hi[few]]
+    out, eig = np.zeros((len(keys), 3)), np.zeros((len(keys), 3))
+    for c in range(len(keys)):
+        q = pos[a[c]:b[c]]
+        if len(q) < 3:
+            continue
+        eig[c], v = np.linalg.eigh(np.cov(q.T, bias=True))
+        if eig[c, 1] > RANK_RATIO * eig[c, 2]:
+            out[c] = v[:, 0]
+    return out, eig
 
 
 def _anchors(cloud):

@@ -3,9 +3,9 @@ with results bit-identical to the whole-cloud run; only data that must stay whol
 device (coordinates, grid, normals, density weights, the scale space's iterates) can make a
 cloud fail, and then the error says how many points fit.
 
-The device's memory is limited with clcurv.grid.cloud.DEVICE_MEMORY (the CLCURV_DEVICE_MEMORY
-knob), so a 20k-point cloud is split like a 10M-point one on a small device; the real kernels
-run (no mocks)."""
+The device's memory is limited with clcurv.runtime.limits.DEVICE_MEMORY (the
+CLCURV_DEVICE_MEMORY knob), so a 20k-point cloud is split like a 10M-point one on a small
+device; the real kernels run (no mocks)."""
 import re
 
 import numpy as np
@@ -14,6 +14,7 @@ import pytest
 
 import clcurv
 from clcurv.grid import cloud as cloud_mod
+from clcurv.runtime import limits
 from clcurv.grid.cloud import MIN_CHUNK, DeviceCloud, DeviceMemoryError, upload_sorted
 
 N, R, RADIUS = 20_000, 2.0, 0.2
@@ -33,7 +34,7 @@ def sphere():
 def budget(monkeypatch):
     """set(bytes): limit the device memory clcurv uses (None: the device's own limits)."""
     monkeypatch.delenv("CLCURV_DEVICE_MEMORY", raising=False)
-    return lambda nbytes: monkeypatch.setattr(cloud_mod, "DEVICE_MEMORY", nbytes)
+    return lambda nbytes: monkeypatch.setattr(limits, "DEVICE_MEMORY", nbytes)
 
 
 def for_chunk(plan, chunk=CHUNK):
@@ -206,7 +207,7 @@ def test_the_environment_variable_limits_device_memory(device, sphere, monkeypat
     cloud = DeviceCloud(pts, RADIUS, device=device)
     clcurv.normals(cloud, RADIUS, orient=None)
     plan = cloud.plans["kernel_moments"]
-    monkeypatch.setattr(cloud_mod, "DEVICE_MEMORY", None)
+    monkeypatch.setattr(limits, "DEVICE_MEMORY", None)
     monkeypatch.setenv("CLCURV_DEVICE_MEMORY", str(for_chunk(plan)))
     clcurv.normals(cloud, RADIUS, orient=None)
     assert cloud.plans["kernel_moments"].chunk == CHUNK

@@ -9,6 +9,7 @@ import clcurv
 from importlib import import_module
 F = import_module("clcurv.api.features")   # the module; clcurv.features is the function
 from clcurv._shared.constants import DEGENERATE, OK, TOO_FEW
+from clcurv.ops.features import layouts
 from conftest import data_path
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -454,7 +455,7 @@ def test_more_than_one_record(device):
     asking for each half alone."""
     pts = clcurv.shapes.sphere(5000, 1.0, noise=0.01, seed=2)["points"]
     everything = clcurv.features(pts, 0.15, "all", device=device)
-    assert len(F.layouts(tuple(F.FEATURES))) == 2
+    assert len(layouts(tuple(F.FEATURES))) == 2
     for name in ("density", "normals", "eigenvalue3", "planarity"):
         alone = clcurv.features(pts, 0.15, [name], device=device)
         np.testing.assert_array_equal(alone[name], everything[name])

@@ -283,9 +283,10 @@ def test_k_and_shapes_checked(device):
 
 def test_graph_that_does_not_fit_names_what_fits(device, monkeypatch):
     from clcurv.grid import cloud as cloud_mod
+    from clcurv.runtime import limits
     s = shapes.sphere(20000, 1.0, seed=15)
     cloud = DeviceCloud(s["points"], 0.05, device=device)
-    monkeypatch.setattr(cloud_mod, "DEVICE_MEMORY", cloud.device_bytes + 20000 * 200)
+    monkeypatch.setattr(limits, "DEVICE_MEMORY", cloud.device_bytes + 20000 * 200)
     with pytest.raises(cloud_mod.DeviceMemoryError, match=r"about \d+ points of this cloud fit"):
         knn_graph(cloud, 0.05, s["normals"], 10)
 

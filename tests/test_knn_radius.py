@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import clcurv
+import clcurv.ops.knn_radius as kr
 from clcurv._shared.constants import DEGENERATE, OK, TOO_FEW
 from clcurv.ops.knn_radius import knn_radii
 from clcurv.reference.features import knn_radii as ref_knn_radii
@@ -26,6 +27,19 @@ def sphere_10x(n, R=1.0, seed=0):
     phi = rng.uniform(0, 2 * np.pi, n)
     s = np.sqrt(np.maximum(R * R - z * z, 0))
     return np.c_[s * np.cos(phi), s * np.sin(phi), z]
+
+
+def kth_squared(cloud, k, known=None, levels=None, extend=False, reach=None):
+    """The squared distance to the k-th nearest point within the cloud's cell (device
+    values as float64, input order; +inf where fewer than k points lie within it), or with
+    ``extend`` within each point's reach (clcurv.ops.knn_radius.reach): knn_radius.cl run
+    once (``known``, input order: the points with a finite value keep it; ``levels`` and
+    ``reach``: as clcurv.ops.knn_radius._kth_launch)."""
+    order = cloud.grid.order
+    prev = None if known is None else known[order].astype(cloud.dtype)
+    res = np.empty(cloud.n)
+    res[order] = kr._kth_fetch(cloud, kr._kth_launch(cloud, k, prev, levels, extend, reach))
+    return res
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +67,6 @@ def test_both_kernel_paths_select_the_same_distance(sphere, device, k):
     below that one is kept), and send the other points down the counting path."""
     from scipy.spatial import cKDTree
     from clcurv.grid.cloud import DeviceCloud
-    from clcurv.ops.knn_radius import kth_squared
     pts = sphere[::2]
     ref = cKDTree(pts).query(pts, k)[0][:, -1]
     cloud = DeviceCloud(pts, 1.6 * np.median(ref), device=device)
@@ -103,17 +116,16 @@ def test_batched_merge_gives_the_same_distances(sphere, device, monkeypatch, bat
     lane's smallest d^2 as merging each chunk alone does: the same k-th distances, bit for
     bit, with batches of 1, 3 and 5, at the default levels and at 4 (most lanes drop
     values), with and without the extended reach."""
-    import clcurv.ops.knn_radius as kr
     from scipy.spatial import cKDTree
     from clcurv.grid.cloud import DeviceCloud
     pts = sphere[::2]
     cloud = DeviceCloud(pts, 1.3 * np.median(cKDTree(pts).query(pts, 30)[0][:, -1]),
                         device=device)
     runs = [(30, None, False), (30, 4, False), (30, None, True), (7, 4, True)]
-    want = [kr.kth_squared(cloud, k, levels=lv, extend=e) for k, lv, e in runs]
+    want = [kth_squared(cloud, k, levels=lv, extend=e) for k, lv, e in runs]
     monkeypatch.setattr(kr, "KNN_BATCH", batch)
     for w, (k, lv, e) in zip(want, runs):
-        np.testing.assert_array_equal(kr.kth_squared(cloud, k, levels=lv, extend=e), w)
+        np.testing.assert_array_equal(kth_squared(cloud, k, levels=lv, extend=e), w)
 
 
 def uniform_sphere(n, seed=3):
@@ -132,7 +144,7 @@ def test_extended_reach_resolves_more_points_exactly(device):
     from ~9% to ~2% (8.6% and 1.8% on a 1M-point sphere)."""
     from scipy.spatial import cKDTree
     from clcurv.grid.cloud import DeviceCloud
-    from clcurv.ops.knn_radius import kth_squared, reach
+    from clcurv.ops.knn_radius import reach
     pts = uniform_sphere(20000)
     ref = cKDTree(pts).query(pts, 30)[0][:, -1]
     cloud = DeviceCloud(pts, 1.13 * np.median(ref), device=device)
@@ -153,7 +165,6 @@ def test_radii_found_beyond_the_first_cell_take_the_next_cells(device, monkeypat
     resolves every point, some beyond its cell, so the operators run on the cloud binned
     ahead at 1.5x that cell (no second walk): radii as the k-d tree's, every one within the
     operators' cell, each ball holding its k points."""
-    import clcurv.ops.knn_radius as kr
     from scipy.spatial import cKDTree
     from clcurv.grid.cloud import DeviceCloud
     pts = uniform_sphere(20000)
@@ -178,7 +189,6 @@ def test_a_narrower_reach_resolves_what_lies_within_it(device, levels):
     (levels = 1)."""
     from scipy.spatial import cKDTree
     from clcurv.grid.cloud import DeviceCloud
-    from clcurv.ops.knn_radius import kth_squared
     pts = uniform_sphere(20000)
     ref = cKDTree(pts).query(pts, 30)[0][:, -1]
     cloud = DeviceCloud(pts, 1.2 * ref.max(), device=device)
@@ -200,9 +210,7 @@ def test_a_tight_cloud_is_binned_once(device, monkeypatch, first_reach):
     one full walk's of that cloud, bit for bit (the first walk within FIRST_REACH of the
     cell, then the points left: most of them with FIRST_REACH = 0.6), and the k-d tree's;
     each ball holds its k points."""
-    import clcurv.ops.knn_radius as kr
     from clcurv.grid.binning import bounding_box
-    from clcurv.ops.knn_radius import kth_squared
     if first_reach is not None:
         monkeypatch.setattr(kr, "FIRST_REACH", first_reach)
     pts = uniform_sphere(20000)
@@ -236,7 +244,6 @@ def test_tightness_of_the_density():
     10x its area holding a quarter of the points (a depth image's near object and far
     background: the mean-density cell ~2.5x the median point's radius) is not; nor is the
     Kinect scene of the shared data (c / median 1.9, when present)."""
-    import clcurv.ops.knn_radius as kr
     from clcurv.grid.binning import bounding_box
     rng = np.random.default_rng(5)
 
@@ -261,7 +268,6 @@ def test_counting_path_with_a_full_gather(sphere, device, k):
     and those points got their (k+1)-th distance: 39-115 of 20000 points wrong)."""
     from scipy.spatial import cKDTree
     from clcurv.grid.cloud import DeviceCloud
-    from clcurv.ops.knn_radius import kth_squared
     pts = sphere[::2]
     ref = cKDTree(pts).query(pts, k)[0][:, -1]
     cloud = DeviceCloud(pts, 0.2353, device=device)
@@ -280,7 +286,6 @@ def test_selection_with_equal_distances(device, k):
     bound of first_field's packed comparison (KNN_K <= 128; above it a loop)."""
     from scipy.spatial import cKDTree
     from clcurv.grid.cloud import DeviceCloud
-    from clcurv.ops.knn_radius import kth_squared
     g = np.arange(40) * 0.25
     pts = np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
     pts = np.c_[pts, np.zeros(len(pts))]
@@ -616,9 +621,10 @@ def test_pruned_rows_change_no_bit_with_per_point_radii(device, monkeypatch):
              lambda: clcurv.curvature(pts, method="mls2", k=20, orient=None, device=device),
              lambda: clcurv.curvature(pts, method="2dcov1", k=20, device=device))
     pruned = [c() for c in calls]
-    # features.run_features imports it from clcurv.ops.driver at each call
-    monkeypatch.setattr(importlib.import_module("clcurv.ops.driver"), "row_prune",
-                        lambda cloud, r, per_point=False: 0)
+    # the operators' driver and the features' run (which imports it from the driver)
+    for module in ("clcurv.ops.driver", "clcurv.ops.features"):
+        monkeypatch.setattr(importlib.import_module(module), "row_prune",
+                            lambda cloud, r, per_point=False: 0)
     for a, c in zip(pruned, calls):
         b = c()
         arrays = (a.values, b.values) if hasattr(a, "values") else (a.arrays(), b.arrays())

@@ -123,7 +123,7 @@ def test_covariances_pca_of_every_radius_in_one_walk(torus, device, precision):
     if precision == "double" and not device.info.fp64:
         pytest.skip(f"{device.info.name} has no cl_khr_fp64")
     from clcurv.api.curvature import _Run
-    from clcurv.api.features import run_features
+    from clcurv.ops.features import run_features
     line = np.column_stack([np.linspace(0, 0.05, 12), np.zeros(12), np.zeros(12)]) + [3, 0, 0]
     pts = np.vstack([torus[:20000], [[5.0, 5.0, 5.0]], line])
     cloud = clcurv.DeviceCloud(pts, max(RADII), device=device, precision=precision)
@@ -140,15 +140,16 @@ def test_covariances_walk_the_pca_once(torus, device, monkeypatch):
     """curvature(method='2dcov1', radius=[3 radii]) runs no moments pass (the PCA of the
     three radii is one features walk) and one covariance pass per radius; its results are
     those of the single calls (test_curvature_radius_list)."""
-    import clcurv.ops.driver as driver
+    import importlib
     from clcurv.ops.registry import PCA
+    api = importlib.import_module("clcurv.api.curvature")   # the driver as the API calls it
     runs = []
-    real = driver.run_kernel
+    real = api.run_kernel
 
     def spy(kernel, *args, **kw):
         runs.append(kernel.name)
         return real(kernel, *args, **kw)
-    monkeypatch.setattr(driver, "run_kernel", spy)
+    monkeypatch.setattr(api, "run_kernel", spy)
     cloud = clcurv.DeviceCloud(torus, max(RADII), device=device)
     clcurv.curvature(cloud, RADII, method="2dcov1", orient=None)
     assert runs.count(PCA.name) == 0 and runs.count("2dcov1") == 3, runs
@@ -165,7 +166,7 @@ def test_walk_buffer_size_keeps_the_bits(torus, device, monkeypatch, size):
     the covariance operators' PCA normals are the same bits at any size (3: many partial
     runs a point) as with the device's own."""
     import clcurv.grid.cloud
-    from clcurv.api.features import run_features
+    from clcurv.ops.features import run_features
     from clcurv.runtime.program import features_buffer
     own = clcurv.DeviceCloud(torus, max(RADII), device=device)
     ref = clcurv.features(own, RADII, "all")

@@ -5,10 +5,23 @@ import numpy as np
 import pyopencl as cl
 import pytest
 
-from clcurv.grid.cloud import RECORD, DeviceCloud, fetch_records, upload_sorted
+from clcurv.grid.cloud import RECORD, DeviceCloud, empty_fields, place_records, upload_sorted
 from clcurv.grid.binning import PAD
 
 LAYOUT = {"a": slice(0, 3), "b": 3, "c": slice(4, 6), "count": 9, "status": 10}
+
+
+def fetch_records(cloud, rec, layout, mapped=None):
+    """The fields of the records ``rec`` (one per point, input order) as host arrays, as
+    the operators' driver brings them back (clcurv.grid.cloud.place_records, one chunk).
+
+    ``layout`` maps a name to a record column or a slice of columns, and must name 'count'
+    (stored as uint bits) and 'status' (a small integer). Real fields come back as float64
+    (N,) or (N, width) arrays, 'count' as int64 and 'status' as uint8.
+    """
+    out = empty_fields(layout, cloud.n)
+    place_records(cloud, rec, layout, out, 0, cloud.n, False, mapped)
+    return out
 
 
 def cloud_and_records(device, precision, n=5000):

@@ -16,7 +16,7 @@ import pytest
 
 import clcurv
 from clcurv import shapes
-from clcurv.ops.registry import METHODS, OPERATORS, methods_table
+from clcurv.ops.registry import METHODS, OPERATORS
 
 README = Path(__file__).resolve().parent.parent / "README.md"
 R = 0.2
@@ -100,6 +100,17 @@ def test_device_cloud_is_binned_once_for_several_operators(device, torus):
         clcurv.curvature(cloud, 2 * R, method="variation")
 
 
+def methods_table():
+    """The README's methods table (markdown), generated from the registry."""
+    rows = ["| method | operator (Digne & Morel) | outputs | signed | min. neighbours |",
+            "|---|---|---|---|---|"]
+    for op in OPERATORS.values():
+        outs = ", ".join(f"`{o.name}`" for o in op.outputs)
+        rows.append(f"| `\"{op.name}\"` | {op.title}; {op.formula} | {outs} | "
+                    f"{'yes' if op.signed else 'no'} | {op.min_count} |")
+    return "\n".join(rows)
+
+
 def test_readme_methods_table_is_the_registry():
     assert methods_table() in README.read_text(), \
-        "README's methods table differs from clcurv.ops.registry.methods_table(): paste it"
+        "README's methods table differs from tests/test_registry.py's methods_table(): paste it"

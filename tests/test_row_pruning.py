@@ -19,7 +19,7 @@ from clcurv.grid.cloud import DeviceCloud
 from clcurv.ops.driver import run_kernel
 from clcurv.ops.registry import OPERATORS
 
-features_mod = importlib.import_module("clcurv.api.features")
+features_mod = importlib.import_module("clcurv.ops.features")
 
 
 def _torus():

@@ -3,19 +3,25 @@ numpy out, input order preserved)."""
 from __future__ import annotations
 
 import contextvars
-import warnings
 
 import numpy as np
 
-from clcurv.orient import orientation as _orient
 from clcurv._shared.constants import TOO_FEW
-from clcurv.ops.registry import METHODS, OPERATORS, PCA
-from clcurv.api.result import CurvatureResult
-from clcurv.grid.binning import ExtentError, bin_points, check_pairs
+from clcurv._shared.host_threads import host_pool
 from clcurv._shared.validate import (as_count, as_normals, as_points, as_radius, as_viewpoint,
                                      choice, device_radius)
+from clcurv.api.inputs import as_radii, cloud_points, orient_spec, parse_knn
+from clcurv.api.result import CurvatureResult, empty_columns, warn_sparse
+from clcurv.grid.binning import ExtentError, bin_points, check_pairs
+from clcurv.grid.cloud import DeviceCloud
+from clcurv.ops.driver import run_kernel
+from clcurv.ops.features import run_features
+from clcurv.ops.knn_radius import knn_radii
+from clcurv.ops.registry import METHODS, OPERATORS, PCA
+from clcurv.ops.smoothing import scale_space as smooth
+from clcurv.orient import orientation as _orient
+from clcurv.reference import operators as reference
 
-ORIENTS = ("auto", "mst", "viewpoint", "normals", "up", None)   # or a direction (3 floats)
 #: largest ``orient_k`` (the device graph's longest neighbour list, clcurv.orient.graph.KMAX):
 #: Hoppe's graph needs about 10; more only costs time and memory
 MAX_ORIENT_K = 32
@@ -38,7 +44,6 @@ class _Run:
         self.point_r2 = None if knn is None else knn.r2_sorted
         self.knn_k = None if knn is None else knn.k
         if backend == "opencl":                # DeviceCloud checks the radius and the pairs
-            from clcurv.grid.cloud import DeviceCloud
             self.cloud = cloud if cloud is not None else DeviceCloud(
                 points, radius, device=device, precision=precision)
             self.cloud.check_radius(radius)
@@ -61,7 +66,6 @@ class _Run:
             if align is not None:
                 opts["align_normals"] = align
             return op.reference(self.points, self.radius, normals, weights, **opts)
-        from clcurv.ops.driver import run_kernel
         if kernel == "gaussian" and h is None:
             h = self.radius / 2
         return run_kernel(op.kernel, self.cloud, self.radius, normals=normals, weights=weights,
@@ -73,8 +77,7 @@ class _Run:
         """Flip mask of Hoppe's propagation over the ``k``-nearest-neighbour graph within the
         radius: on the device (the same graph and forest), or the float64 reference."""
         if self.cloud is None:              # the reference's own propagation
-            from clcurv.reference.operators import mst_flips
-            return mst_flips(self.points, normals, k=k, radius=self.radius)
+            return reference.mst_flips(self.points, normals, k=k, radius=self.radius)
         # a k-NN ball of K points holds each point's k < K nearest: the orientation graph
         # walks that ball, not the grid's largest radius
         own = self.point_r2 if self.knn_k is not None and k < self.knn_k else None
@@ -83,26 +86,16 @@ class _Run:
     def pca_normals(self, weights):
         """Unoriented PCA normals (and count, status) only: the orientation pass."""
         if self.cloud is None:
-            from clcurv.reference import operators as reference
             return reference.moments(self.points, self.radius, weights=weights)
         given = _PCA_GIVEN.get()
         if (given is not None and given["cloud"] is self.cloud and weights == "uniform"
                 and self.point_r2 is None and self.radius in given["raws"]):
             return given["raws"][self.radius]
-        from clcurv.ops.driver import run_kernel
         return run_kernel(PCA, self.cloud, self.radius, weights=weights, fields=("normals",),
                           defines={"REFINE_L0": 0}, point_r2=self.point_r2)
 
 
 DEFER_MIN = 100_000     # from this size, user normals are checked while the cloud is binned
-
-
-def _cloud_points(points):
-    """(points, DeviceCloud or None): a DeviceCloud is accepted for its points and binning."""
-    from clcurv.grid.cloud import DeviceCloud
-    if isinstance(points, DeviceCloud):
-        return points.points, points
-    return points, None
 
 
 def _inputs(points, radius, weights, backend, orient, normals, viewpoint, orient_k, unit=True,
@@ -113,7 +106,7 @@ def _inputs(points, radius, weights, backend, orient, normals, viewpoint, orient
     :func:`_resolved` gives the array or raises the check's error."""
     choice(weights, "weights", ("uniform", "density"))
     choice(backend, "backend", ("opencl", "numpy"))
-    orient = _orient_spec(orient)
+    orient = orient_spec(orient)
     as_count(orient_k, "orient_k", MAX_ORIENT_K)
     # on the OpenCL backend the binning checks finiteness on its bounding box (every path
     # bins before it reads a coordinate), with the same message: no extra pass here
@@ -124,7 +117,6 @@ def _inputs(points, radius, weights, backend, orient, normals, viewpoint, orient
     ref = None
     if normals is not None:
         if defer and backend == "opencl" and len(pts) >= DEFER_MIN:
-            from clcurv._shared.host_threads import host_pool
             ref = host_pool().submit(as_normals, normals, len(pts), unit)
         else:
             ref = as_normals(normals, len(pts), unit)
@@ -135,19 +127,6 @@ def _inputs(points, radius, weights, backend, orient, normals, viewpoint, orient
 def _resolved(normals):
     """The normals of :func:`_inputs`, waiting for a deferred check."""
     return normals.result() if hasattr(normals, "result") else normals
-
-
-def _orient_spec(orient):
-    """``orient`` checked: one of :data:`ORIENTS`, or a direction as a unit float64 (3,)
-    array ("up" is (0, 0, 1))."""
-    if orient is None or isinstance(orient, str):
-        choice(orient, "orient", ORIENTS)
-        return np.array([0.0, 0.0, 1.0]) if orient == "up" else orient
-    d = np.asarray(orient, dtype=np.float64).reshape(-1)
-    if d.shape != (3,) or not np.isfinite(d).all() or not np.any(d):
-        raise ValueError(f"orient must be one of {', '.join(map(repr, ORIENTS))} or a "
-                         f"nonzero direction of 3 finite numbers, got {orient!r}")
-    return d / np.linalg.norm(d)
 
 
 def _orientation(orient, normals, viewpoint, signed=True):
@@ -171,8 +150,7 @@ def _orientation(orient, normals, viewpoint, signed=True):
 def _flip(run, n, how, normals, viewpoint, k):
     """Flip mask of the normals ``n`` of ``run``'s points for the orientation ``how``."""
     if run.cloud is None:                   # backend='numpy': the reference's own flips
-        from clcurv.reference.operators import orientation_flips
-        return orientation_flips(run.points, n, how, normals, viewpoint, k, run.radius)
+        return reference.orientation_flips(run.points, n, how, normals, viewpoint, k, run.radius)
     if isinstance(how, np.ndarray):
         return _orient.flip_to_reference(n, how)
     if how == "normals":
@@ -182,17 +160,6 @@ def _flip(run, n, how, normals, viewpoint, k):
     if how == "mst":
         return run.mst_flips(n, k)
     return np.zeros(len(n), dtype=bool)
-
-
-def _warn_sparse(status, radius, need, k=None):
-    """RuntimeWarning when most points have too few neighbours (``k``: a k-NN radius)."""
-    few = np.count_nonzero(status == TOO_FEW)
-    if few > len(status) // 2:
-        where = (f"radius {radius}: their outputs are NaN; the radius is probably too small"
-                 if k is None else f"their k-NN radius (k = {k}): their outputs are NaN; "
-                 f"k must be at least {need}")
-        warnings.warn(f"{few} of {len(status)} points have fewer than {need} neighbours within "
-                      f"{where}", RuntimeWarning, stacklevel=3)
 
 
 def _oriented(run, raw, how, ref_normals, vp, k):
@@ -209,11 +176,6 @@ def _result(op, r, weights, count, status, attrs):
     return CurvatureResult(op.name, r, weights, np.asarray(count, dtype=np.int64),
                            np.asarray(status, dtype=np.uint8), attrs.pop("normals"),
                            attrs.pop("eigenvalues", None), attrs.pop("variation", None), **attrs)
-
-
-def _empty(op, r, weights):
-    attrs = {o.name: np.empty((0,) if o.width == 1 else (0, o.width)) for o in op.outputs}
-    return _result(op, r, weights, np.empty(0), np.empty(0), attrs)
 
 
 def _check_options(op, kernel, h, projections, align_normals=None):
@@ -376,7 +338,7 @@ def curvature(points, radius=None, *, method="mls1", weights="uniform", normals=
                            precision, backend)
         points = knn.cloud
     kernel, h, projections = _check_options(op, kernel, h, projections, align_normals)
-    points, cloud = _cloud_points(points)
+    points, cloud = cloud_points(points)
     pts, r, ref_normals, vp, how = _inputs(points, radius, weights, backend, orient, normals,
                                            viewpoint, orient_k, unit=op.normals == "values",
                                            defer=True, signed=op.signed)
@@ -386,12 +348,12 @@ def curvature(points, radius=None, *, method="mls1", weights="uniform", normals=
     if len(pts) == 0 or scale_space or projections:
         ref_normals = _resolved(ref_normals)
     if len(pts) == 0:
-        return _empty(op, r, weights)
+        return _result(op, r, weights, np.empty(0), np.empty(0),
+                       empty_columns((o.name, o.width) for o in op.outputs))
     same = dict(method=method, weights=weights, viewpoint=vp, orient_k=orient_k, device=device,
                 precision=precision, backend=backend, align_normals=align_normals)
     mls = dict(kernel=kernel if "kernel" in op.options else None, h=h)
     if scale_space:
-        from clcurv.ops.smoothing import scale_space as smooth
         smoothed = smooth(pts, r, scale_space, weights=weights, device=device,
                           precision=precision, backend=backend)
         res = curvature(smoothed, r, normals=ref_normals, orient=orient,
@@ -437,10 +399,9 @@ def curvature(points, radius=None, *, method="mls1", weights="uniform", normals=
     if knn is not None:                 # each point's own radius in the constants
         r = knn.radius
         raw["status"][knn.isolated] = TOO_FEW
-    _warn_sparse(raw["status"], r, op.min_count, None if knn is None else knn.k)
+    warn_sparse(raw["status"], r, op.min_count, None if knn is None else knn.k)
     if run.cloud is None:               # backend='numpy': the reference's own finishing
-        from clcurv.reference.operators import finish
-        attrs = finish(op.name, raw, pts, r, use, ref_normals)
+        attrs = reference.finish(op.name, raw, pts, r, use, ref_normals)
     else:
         attrs = op.finish(raw, pts, r, use, ref_normals)
     res = _result(op, r, weights, raw["count"], raw["status"], attrs)
@@ -464,7 +425,7 @@ def project(points, radius, *, projections=1, method="mls2", weights="uniform", 
     :func:`clcurv.scale_space` (MLS1) to smooth.
     """
     choice(method, "method", ("mls2",))
-    points, _ = _cloud_points(points)
+    points, _ = cloud_points(points)
     projections = int(projections)
     if projections < 0:
         raise ValueError(f"projections must be >= 0, got {projections}")
@@ -510,7 +471,7 @@ def normals(points, radius=None, *, weights="uniform", normals=None, orient="aut
     if k is not None or isinstance(radius, str):
         knn, radius = _knn(points, radius, k, weights, None, 0, 0, device, precision, backend)
         points = knn.cloud
-    points, cloud = _cloud_points(points)
+    points, cloud = cloud_points(points)
     pts, r, ref_normals, vp, how = _inputs(points, radius, weights, backend, orient, normals,
                                            viewpoint, orient_k, unit=False)  # they only orient
     if len(pts) == 0:
@@ -519,7 +480,7 @@ def normals(points, radius=None, *, weights="uniform", normals=None, orient="aut
     raw = run.pca_normals(weights)
     if knn is not None:     # the warning's radius (isolated points: r^2 = 0, NaN normals)
         r = knn.radius
-    _warn_sparse(raw["status"], r, PCA.min_count, None if knn is None else knn.k)
+    warn_sparse(raw["status"], r, PCA.min_count, None if knn is None else knn.k)
     return _oriented(run, raw, how, ref_normals, vp, orient_k)
 
 
@@ -537,14 +498,12 @@ def _radius_list(op, points, radius, kw):
     PCA normals from it (built as the moments kernel's normals pass, so the same bits), then
     orient them and run their covariance pass once per radius. Other cases run once per
     radius."""
-    from clcurv.api.features import as_radii
     if op.name not in MULTI_RADIUS_METHODS:
         raise ValueError(f"a list of radii is for methods {', '.join(MULTI_RADIUS_METHODS)} "
                          f"(and clcurv.features), not {op.name!r}")
     radii, _ = as_radii(radius)
-    points, cloud = _cloud_points(points)
+    points, cloud = cloud_points(points)
     if kw["backend"] == "opencl" and cloud is None and len(as_points(points)):
-        from clcurv.grid.cloud import DeviceCloud
         cloud = DeviceCloud(points, max(radii), device=kw["device"], precision=kw["precision"])
     one_walk = (cloud is not None and kw["weights"] == "uniform" and kw["normals"] is None
                 and not kw["scale_space"])
@@ -555,7 +514,6 @@ def _radius_list(op, points, radius, kw):
     if not one_walk or op.name == "variation":
         return [curvature(points if cloud is None else cloud, r, method=op.name, **kw)
                 for r in radii]
-    from clcurv.api.features import run_features
     for r in radii:
         cloud.check_radius(r)
     raws = {r: {"normals": v["normals"], "count": c, "status": s}
@@ -570,11 +528,10 @@ def _radius_list(op, points, radius, kw):
 
 def _variation_list(op, cloud, radii):
     """'variation' at every radius of a list from one walk of the features kernel."""
-    from clcurv.api.features import run_features
     names = ("eigenvalue3", "eigenvalue2", "eigenvalue1", "surface_variation", "normals")
     out = []
     for r, (vals, count, status) in zip(radii, run_features(cloud, radii, names)):
-        _warn_sparse(status, r, op.min_count)
+        warn_sparse(status, r, op.min_count)
         eig = np.stack([vals[n] for n in names[:3]], axis=1)
         res = _result(op, r, "uniform", count, status,
                       {"normals": vals["normals"], "eigenvalues": eig,
@@ -587,10 +544,8 @@ def _variation_list(op, cloud, radii):
 def _knn(points, radius, k, weights, kernel, scale_space, projections, device, precision,
          backend):
     """(KnnRadii, the largest radius) of a k-NN radius call (radius='knn:K' or k=K)."""
-    from clcurv.api.features import _parse_knn
-    from clcurv.ops.knn_radius import knn_radii
     if isinstance(radius, str):
-        k = _parse_knn(radius, k)
+        k = parse_knn(radius, k)
     elif radius is not None:
         raise ValueError("give either radius or k (or radius='knn:K'), not both")
     for bad, what in ((weights == "density", "weights='density' (every ball holds k points, "
@@ -599,6 +554,6 @@ def _knn(points, radius, k, weights, kernel, scale_space, projections, device, p
                       (projections, "projections"), (backend == "numpy", "backend='numpy'")):
         if bad:
             raise ValueError(f"a k-NN radius does not combine with {what}")
-    points, _ = _cloud_points(points)
+    points, _ = cloud_points(points)
     knn = knn_radii(points, k, device=device, precision=precision)
     return knn, knn.cloud.cell

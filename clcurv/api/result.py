@@ -1,6 +1,9 @@
-"""The result object returned by :func:`clcurv.curvature`."""
+"""The result object returned by :func:`clcurv.curvature`, and what the results of
+:func:`clcurv.curvature`, :func:`clcurv.normals` and :func:`clcurv.features` share: the
+warning of sparse balls, the columns of an empty cloud."""
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field, fields
 
 import numpy as np
@@ -71,3 +74,25 @@ class CurvatureResult:
         """The per-point arrays that are present, by name."""
         return {f.name: getattr(self, f.name) for f in fields(self)
                 if isinstance(getattr(self, f.name), np.ndarray)}
+
+
+def warn_sparse(status, radius, need, k=None, what="outputs"):
+    """RuntimeWarning when most points have fewer than ``need`` neighbours (``status``
+    TOO_FEW) within ``radius`` (a number; an array: each point's own radius) or the k-NN
+    radius of ``k``; ``what``: the results that are then NaN. The warning names the caller
+    of this function's caller (the user's call of a public function)."""
+    few = int(np.count_nonzero(status == TOO_FEW))
+    if few > len(status) // 2:
+        where = (f"radius {radius}: their {what} are NaN; the radius is probably too small"
+                 if np.ndim(radius) == 0 else
+                 f"their own radius (per point): their {what} are NaN" if k is None else
+                 f"their k-NN radius (k = {k}): their {what} are NaN; k must be at least "
+                 f"{need}")
+        warnings.warn(f"{few} of {len(status)} points have fewer than {need} neighbours within "
+                      f"{where}", RuntimeWarning, stacklevel=3)
+
+
+def empty_columns(widths):
+    """{name: empty float64 array} for (name, width) pairs: (0,) for width 1, else
+    (0, width): the values of a result of no points."""
+    return {name: np.empty((0,) if width == 1 else (0, width)) for name, width in widths}

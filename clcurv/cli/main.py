@@ -30,8 +30,14 @@ from clcurv.jobs import job
 from clcurv.runtime.device import APT_HINT, NoDeviceError, devices
 from clcurv.jobs.job import UsageError
 from clcurv.api.features import DEFAULT_FEATURES as FEATURE_NAMES
+from clcurv.api.inputs import parse_knn
 from clcurv.ops.registry import METHODS
 from clcurv.runtime.program import BuildError, PrecisionError
+from clcurv.jobs.tiled_job import tile_session
+from clcurv.render import check_image_output, render
+from clcurv.tiles.features import features_file
+from clcurv.tiles.planning import TilingError, check_tile_size
+from clcurv.tiles.workers import CONNECT_TIMEOUT, FORCE_WORKERS
 from clcurv.tiles.workspace import WorkspaceError
 
 EXIT_ERROR, EXIT_USAGE, EXIT_IO, EXIT_DEVICE, EXIT_MEMORY = 1, 2, 3, 4, 5
@@ -41,14 +47,13 @@ EXIT_INTERRUPTED = 130
 def _knn_alias(args, default):
     """``--radius knn:K``, the API's spelling (``radius="knn:K"``), as ``--k K``: args.k set,
     args.radius back to ``default``."""
-    from clcurv.api.features import _parse_knn
     spec = args.radius
     if not (isinstance(spec, str) and spec.strip().lower().startswith("knn:")):
         return
     if args.k is not None:
         raise UsageError("give --radius knn:K or --k K, not both")
     try:
-        args.k = _parse_knn(spec.strip().lower(), None)
+        args.k = parse_knn(spec.strip().lower(), None)
     except ValueError:
         raise UsageError(f"--radius knn:K needs an integer K, got {spec!r}") from None
     args.radius = default
@@ -62,7 +67,6 @@ def compute(args, out=print):
 
 def render_cmd(args, out=print):
     """``clcurv render``: PNG of a file's points coloured by one of its fields."""
-    from clcurv.render import check_image_output, render
     check_image_output(args.output)         # before reading: never a picture over a cloud
     cloud = io.read(args.input)
     values = cloud.attributes.get(args.field)
@@ -82,9 +86,6 @@ def features_cmd(args, out=print):
     (``--optimal``, plus an ``optimal_radius`` field), written with the input's points
     (LAS/LAZ: header kept); in tiles when the cloud does not fit ``--memory`` (or with
     ``--tile-size``, ``--workers``, ``--scheduler``), with the same output."""
-    from clcurv.tiles.features import features_file
-    from clcurv.jobs.tiled_job import tile_session
-    from clcurv.tiles.planning import TilingError
     inputs = args.input if len(args.input) > 1 else args.input[0]
     _knn_alias(args, None)
     if (args.radius is None) == (args.k is None):
@@ -202,8 +203,6 @@ def _tile_options(c):
                    help="host memory budget, e.g. 2GiB (default auto: half the available "
                    "RAM, at most 512 MiB). LAS/LAZ/NPY input that does not fit runs in tiles "
                    "with an exact halo (same results as in memory), output LAS/LAZ/NPZ")
-    from clcurv.tiles.workers import CONNECT_TIMEOUT, FORCE_WORKERS
-    from clcurv.tiles.planning import TilingError, check_tile_size
 
     def tile_size(text):                # a finite length > 0, refused before any work
         try:

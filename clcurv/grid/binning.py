@@ -319,7 +319,7 @@ def _dims(points, lo, hi, cell):
         return tuple(int(d) for d in span)
     raise ExtentError(f"the points span {_fmt(hi - lo)} (from {_fmt(lo)} to {_fmt(hi)}): "
                       f"{box:.3g} cells of size {cell:.6g}, more than the 2^62 a grid key "
-                      f"holds. {_outlier(points, lo, hi)}Drop far outliers and \"no data\" "
+                      f"holds. {_outlier(points)}Drop far outliers and \"no data\" "
                       "values, use a larger radius, or split the cloud into tiles")
 
 
@@ -327,7 +327,7 @@ def _fmt(v):
     return "(" + ", ".join(f"{x:.6g}" for x in v) + ")"
 
 
-def _outlier(points, lo, hi):
+def _outlier(points):
     """A sentence naming the point farthest from the median (only on the error path)."""
     med = np.median(points, axis=0)
     far = int(np.argmax(np.max(np.abs(points - med), axis=1)))

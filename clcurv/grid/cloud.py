@@ -8,33 +8,29 @@ Device memory: what every point's neighbours read stays whole on the device (coo
 grid; per run the reference normals and density weights; the scale space's iterates); what
 is per point only (output records, the normals' staging rows, drift) goes through chunks of
 points. :meth:`DeviceCloud.plan` sizes the chunks from the device's global memory and max
-allocation (queried at every plan, :func:`device_limits`) minus what the cloud holds, one
-chunk when everything fits. ``DEVICE_MEMORY`` / ``CLCURV_DEVICE_MEMORY`` caps the budget.
+allocation (queried at every plan, :func:`clcurv.runtime.limits.device_limits`) minus what
+the cloud holds, one chunk when everything fits. ``DEVICE_MEMORY`` / ``CLCURV_DEVICE_MEMORY``
+(:mod:`clcurv.runtime.limits`) caps the budget.
 """
 from __future__ import annotations
 
-import os
 import time
 from dataclasses import dataclass
 
 import numpy as np
+import pyopencl as cl
+import pyopencl.cltypes as ct
 
 from clcurv._shared.constants import PAD, RECORD_WIDTH as RECORD, record_selector
 from clcurv.runtime.device import get_device
 from clcurv._shared.host_threads import host_pool
 from clcurv._shared.host_memory import empty as host_empty
+from clcurv.runtime.limits import device_limits
 from clcurv.runtime.memory import buffer as device_buffer, release_memory
 from clcurv.grid.binning import CELLS_PER_ITEM, bin_points, check_pairs, sentinel_keys
 from clcurv.runtime.program import build, launch, local_size, precision_defines
 from clcurv._shared.validate import as_points, as_radius, device_radius
 
-#: Use at most this many bytes of device memory (None: what the device reports). A knob for
-#: tests and for leaving room to other users of the device; the environment variable
-#: ``CLCURV_DEVICE_MEMORY`` (bytes) sets it when this is None. Read at every plan.
-DEVICE_MEMORY = None
-#: Fraction of the device's reported global memory that clcurv plans to use (drivers, other
-#: contexts and allocation granularity take some); not applied to DEVICE_MEMORY.
-HEADROOM = 0.9
 #: Fewest points of a chunk: a budget that leaves room for fewer is refused.
 MIN_CHUNK = 1024
 #: Bytes of one row of a cell's 27-cell block (kernels/grid.cl: the index range of the row's
@@ -46,33 +42,6 @@ RANGE_BYTES = 8
 class DeviceMemoryError(MemoryError):
     """The data that must stay on the device does not fit it (or the DEVICE_MEMORY cap);
     the message says how many points would fit."""
-
-
-@dataclass(frozen=True)
-class Limits:
-    """What clcurv may use of one device now: ``budget`` bytes in all, ``max_alloc`` per
-    buffer, and what they come from (for messages)."""
-    budget: int
-    max_alloc: int
-    source: str
-
-
-def device_limits(device):
-    """The :class:`Limits` of ``device``, queried now (PoCL reports different values within
-    one boot, so nothing is cached) and capped by DEVICE_MEMORY / CLCURV_DEVICE_MEMORY."""
-    dev = device.cl_device
-    total, alloc = int(dev.global_mem_size), int(dev.max_mem_alloc_size)
-    source = (f"{device.info.name}: global memory {total / 2**20:.0f} MiB, max single "
-              f"allocation {alloc / 2**20:.0f} MiB")
-    budget = int(total * HEADROOM)
-    cap = DEVICE_MEMORY if DEVICE_MEMORY is not None else os.environ.get("CLCURV_DEVICE_MEMORY")
-    if cap not in (None, ""):
-        cap = int(cap)
-        if cap < budget:
-            budget = cap
-            source += f", capped at {cap} bytes (CLCURV_DEVICE_MEMORY, clcurv.grid.cloud.DEVICE_MEMORY)"
-        alloc = min(alloc, cap)
-    return Limits(budget, alloc, source)
 
 
 @dataclass(frozen=True)
@@ -121,8 +90,9 @@ class DeviceCloud:
 
     Device memory: the coordinates, the grid (and per run the reference normals, density
     weights) stay whole on the device; the operators' outputs go through chunks of sorted
-    points sized by :meth:`plan` from the device's limits (:func:`device_limits`), so a
-    cloud too big for the device at once still runs. :class:`DeviceMemoryError` is raised
+    points sized by :meth:`plan` from the device's limits
+    (:func:`~clcurv.runtime.limits.device_limits`), so a cloud too big for the device at
+    once still runs. :class:`DeviceMemoryError` is raised
     only when the whole-cloud data does not fit; its message says how many points would.
     ``device_bytes`` is what the cloud holds on the device; ``plans`` the last
     :class:`Plan` of every stage run on it.
@@ -130,7 +100,6 @@ class DeviceCloud:
 
     def __init__(self, points, cell, *, device=None, precision="float", frame=None,
                  binned=None):
-        import pyopencl as cl
         if binned is not None:                  # host_binning's result: no binning here
             points, cell, precision = binned.points, binned.cell, binned.precision
         # finiteness: checked on the binning's bounding box (grid.bin_points)
@@ -203,7 +172,6 @@ class DeviceCloud:
         clcurv.orient.graph); 72 more bytes per occupied cell on the device."""
         if self.middles:
             return self.ranges
-        import pyopencl as cl
         g = self.grid
         cells = max(g.ncells, 1)
         rows = 9 * RANGE_BYTES * cells
@@ -305,7 +273,6 @@ class DeviceCloud:
 
     def ball(self, radius):
         """The kernels' REAL2 geometry (r^2, cell) (neighbors.h)."""
-        import pyopencl.cltypes as ct
         make = ct.make_double2 if self.dtype == np.float64 else ct.make_float2
         return make(radius * radius, self.cell)
 
@@ -342,7 +309,6 @@ def upload_sorted(cloud, values):
     cloud's sorted order and precision (cast on the host, gathered on the device). The rows
     go through a staging buffer in chunks of input indices when the device lacks room for
     all of them (stage ``upload_normals`` of :meth:`DeviceCloud.plan`)."""
-    import pyopencl as cl
     values = np.asarray(values)
     item = np.dtype(cloud.dtype).itemsize
     plan = cloud.plan("upload_normals", 3 * item, reserve=3 * item,
@@ -376,7 +342,6 @@ def record_bytes(cloud, layout):
 def _host_array(cloud, buf, shape, dtype, mapped=None):
     """``buf`` on the host: mapped (zero-copy) on a CPU device, copied otherwise (``mapped``
     overrides the choice)."""
-    import pyopencl as cl
     q = cloud.device.queue
     if cloud.device.info.kind == "cpu" if mapped is None else mapped:
         arr, ev = cl.enqueue_map_buffer(q, buf, cl.map_flags.READ, 0, shape, dtype)
@@ -446,8 +411,9 @@ def split_records(cloud, rec, layout, n, mapped=None, balls=None):
 
 def empty_fields(layout, n):
     """Host arrays (uninitialised) for the fields of ``layout`` for ``n`` points, in the
-    types :func:`fetch_records` returns; large ones from the pool of
-    :mod:`clcurv._shared.host_memory` (the pages of results the caller dropped)."""
+    types :func:`place_records` writes (float64, count int64, status uint8); large ones
+    from the pool of :mod:`clcurv._shared.host_memory` (the pages of results the caller
+    dropped)."""
     return {name: host_empty(shape, dtype) for name, shape, dtype in _fields(layout, n)}
 
 
@@ -458,7 +424,6 @@ def split_into_host(cloud, rec, layout, out, balls=None):
     and a cast on the host (6 of the 14 ms of a 1M-point variation call's records on PoCL).
     For CPU devices with cl_khr_fp64 (:func:`splits_into_host`); the same values as
     :func:`split_records` and the host's cast, bit for bit (tests/test_records.py)."""
-    import pyopencl as cl
     fields = _fields(layout, cloud.n)
     real = fields[:-2]
     prg = _split_program(cloud, layout, real, True, balls)
@@ -500,22 +465,9 @@ def place_records(cloud, rec, layout, out, first, stop, chunked, mapped=None, ba
     list(host_pool().map(put, host))
 
 
-def fetch_records(cloud, rec, layout, mapped=None):
-    """The fields of the records ``rec`` (one per point, input order) as host arrays.
-
-    ``layout`` maps a name to a record column or a slice of columns, and must name 'count'
-    (stored as uint bits) and 'status' (a small integer). Real fields come back as float64
-    (N,) or (N, width) arrays, 'count' as int64 and 'status' as uint8.
-    """
-    out = empty_fields(layout, cloud.n)
-    place_records(cloud, rec, layout, out, 0, cloud.n, False, mapped)
-    return out
-
-
 def upload_point_r2(cloud, r2_sorted):
     """Per-point squared radii (``cloud``'s sorted order; radius.h's POINT_RADIUS: the k-NN
     radius, the optimal neighbourhood) as a device buffer padded with PAD zeros."""
-    import pyopencl as cl
     host = np.zeros(cloud.n + PAD, cloud.dtype)
     host[:cloud.n] = r2_sorted
     return cl.Buffer(cloud.device.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,

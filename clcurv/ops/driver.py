@@ -19,6 +19,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import pyopencl.cltypes as ct
 
 from clcurv.grid.anchor import cell_normals
 from clcurv.grid.cloud import (empty_fields, place_records, record_buffer, record_bytes,
@@ -60,7 +61,6 @@ def row_prune(cloud, r, per_point=False):
 
 def _par(cloud, r, h):
     """The kernels' REAL4 ``par`` = (r, 1 / h^2 or 0, 0, 0)."""
-    import pyopencl.cltypes as ct
     make = ct.make_double4 if cloud.dtype == np.float64 else ct.make_float4
     return make(r, 0.0 if h is None else 1.0 / (h * h), 0.0, 0.0)
 

@@ -71,15 +71,22 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
+import pyopencl as cl
+from scipy.spatial import cKDTree
 
 from clcurv._shared.constants import PAD
-from clcurv.grid.binning import bounding_box
 from clcurv._shared.host_memory import empty as host_empty
-from clcurv.runtime.memory import buffer as device_buffer
 from clcurv._shared.validate import as_points, check_finite_box
+from clcurv.grid.binning import bounding_box
+from clcurv.grid.cloud import DeviceCloud, host_binning, upload_point_r2
+from clcurv.orient.graph import knn_defines
+from clcurv.runtime.memory import buffer as device_buffer
+from clcurv.runtime.program import build, launch
 
 #: largest k (the kernel keeps k distances per work-item in private memory)
 MAX_K = 256
@@ -222,7 +229,6 @@ def _tight(sub, k, n, c):
     one, and :func:`knn_radii` bins it once, at GROWTH c (see there). Not tight where most
     points are much denser than the mean (a depth image's sparse background inflates the
     area: the Kinect scene of the shared data, 1.9x)."""
-    from scipy.spatial import cKDTree
     t = sub[::max(len(sub) // TIGHT_SAMPLE, 1)]
     if len(t) <= 4 * TIGHT_K:
         return False
@@ -311,22 +317,6 @@ def merge_network(levels, batch):
                    for i, j, kind in merge_comparators(levels, batch))
 
 
-def kth_squared(cloud, k, known=None, levels=None, extend=False, reach=None):
-    """The squared distance to the k-th nearest point within the cloud's cell (device
-    values as float64, input order; +inf where fewer than k points lie within it), or with
-    ``extend`` within each point's reach (:func:`reach`). Points with a finite ``known``
-    value (input order) keep it and are not walked. ``levels`` overrides the d^2 values the
-    kernel keeps per vector lane (KNN_LEVELS; tests: 1 sends nearly every point down the
-    kernel's counting path, which must give the same values). ``reach`` (at most the cell;
-    not with ``extend``) narrows the walk's ball: +inf where fewer than k points lie within
-    it."""
-    order = cloud.grid.order
-    prev = None if known is None else known[order].astype(cloud.dtype)
-    res = np.empty(cloud.n)
-    res[order] = _kth_fetch(cloud, _kth_launch(cloud, k, prev, levels, extend, reach))
-    return res
-
-
 def reach(cloud):
     """Each point's extended reach in a walk of ``cloud`` (input order, float64, a bound
     slightly below knn_radius.cl:reach2's): the cell plus the point's distance to the
@@ -340,12 +330,16 @@ def reach(cloud):
 
 
 def _kth_launch(cloud, k, prev=None, levels=None, extend=False, reach=None):
-    """Enqueue and flush knn_radius.cl on ``cloud`` (see :func:`kth_squared`, in the
-    cloud's sorted order; ``prev`` a host array or a device buffer; ``reach`` the walk's
-    radius, at most the cell, which it is by default); returns the output buffer for
-    :func:`_kth_fetch`. The device works while the host goes on."""
-    import pyopencl as cl
-    from clcurv.runtime.program import launch
+    """Enqueue and flush knn_radius.cl on ``cloud``: the squared distance to the k-th
+    nearest point within the cloud's cell (device precision, the cloud's sorted order; +inf
+    where fewer than k points lie within it), or with ``extend`` within each point's reach
+    (:func:`reach`). Points with a finite ``prev`` value (sorted order; a host array or a
+    device buffer) keep it and are not walked. ``levels`` overrides the d^2 values the
+    kernel keeps per vector lane (KNN_LEVELS; tests: 1 sends nearly every point down the
+    kernel's counting path, which must give the same values). ``reach`` (at most the cell,
+    which it is by default; not with ``extend``) narrows the walk's ball: +inf where fewer
+    than k points lie within it. Returns the output buffer for :func:`_kth_fetch`; the
+    device works while the host goes on."""
     prg = _program(cloud, k, levels)
     mf, ctx, q = cl.mem_flags, cloud.device.context, cloud.device.queue
     nbytes = cloud.n * np.dtype(cloud.dtype).itemsize
@@ -368,8 +362,6 @@ def _kth_launch(cloud, k, prev=None, levels=None, extend=False, reach=None):
 def _program(cloud, k, levels=None):
     """knn_radius.cl for ``k`` on ``cloud``'s device: VW the native width on a CPU (16 with
     AVX-512, clcurv.orient.graph.knn_defines), KNN_LEVELS :func:`knn_levels` unless ``levels``."""
-    from clcurv.orient.graph import knn_defines
-    from clcurv.runtime.program import build
     opts = knn_defines(cloud)
     lv = int(knn_levels(k, int(opts["VW"])) if levels is None else levels)
     opts.update(program_defines(k, lv))
@@ -386,7 +378,6 @@ def program_defines(k, levels, batch=None):
 
 def _kth_fetch(cloud, out):
     """The result of :func:`_kth_launch` on the host (waits for the kernel)."""
-    import pyopencl as cl
     host = host_empty(cloud.n, cloud.dtype)         # pooled pages (clcurv._shared.host_memory)
     cl.enqueue_copy(cloud.device.queue, host, out)
     return host
@@ -394,7 +385,6 @@ def _kth_fetch(cloud, out):
 
 def knn_radii(points, k, *, device=None, precision="float"):
     """The :class:`KnnRadii` of ``points`` for ``k`` (see the module notes)."""
-    from clcurv.grid.cloud import DeviceCloud, host_binning
     pts = as_points(points, finite=False)      # checked on the bounding box
     t0 = time.perf_counter()
     k = check_k(k, len(pts))
@@ -509,14 +499,12 @@ def _some_isolated(pts, box, cloud, c, d2, ok, cap, levels):
         cloud = _rebin(pts, box, top, cloud)
         levels.append(cloud.cell)
         r2 = r2_in[cloud.grid.order]
-    from clcurv.grid.cloud import upload_point_r2
     return radius, iso_in, cloud, upload_point_r2(cloud, r2)
 
 
 def _rebin(pts, box, cell, cloud):
     """The operators' cloud binned again at ``cell`` (the largest radius), on ``cloud``'s
     device and precision; ``box``: the points' bounding box, known already."""
-    from clcurv.grid.cloud import DeviceCloud, host_binning
     return DeviceCloud(None, None, device=cloud.device,
                        binned=host_binning(pts, cell, precision=cloud.precision, box=box))
 
@@ -532,8 +520,6 @@ def _bin_ahead(pts, c, precision, box):
     DeviceCloud(binned=)) stay on the calling thread (a second thread's OpenCL calls crashed
     Oclgrind). An error surfaces where the level is used, as it would have there."""
     global _HOST
-    from concurrent.futures import ThreadPoolExecutor
-    from clcurv.grid.cloud import host_binning
     if _HOST is None:
         _HOST = ThreadPoolExecutor(1, thread_name_prefix="clcurv-knn-bin")
     # on one core: the main thread's binning of the first level uses both meanwhile (with
@@ -552,7 +538,6 @@ def _to_level(cloud, spec, device, out, d2):
     """(cloud, cell, out, d2) moved to the level binned ahead (``spec``): its DeviceCloud,
     and the k-th d^2 of ``cloud``'s sorted order (``out`` on the device, ``d2`` on the
     host) in its sorted order."""
-    from clcurv.grid.cloud import DeviceCloud
     wide = DeviceCloud(None, None, binned=spec[1].result(), device=device)
     moved = _permute(wide, _permute(cloud, out, True), False)
     # done before the caller lets go of ``cloud``: a CPU device reads its host arrays in
@@ -630,7 +615,6 @@ def _warn_round_off(cell, slack, radius):
     if not few > ROUND_OFF_SHARE * len(radius):
         return
     live = radius[np.isfinite(radius) & (radius > 0)]
-    import warnings
     warnings.warn(f"k-NN radius: {few} of {len(radius)} points have a radius below "
                   f"{float(slack) / ROUND_OFF_WARN:.3g} (the smallest {float(live.min()):.3g}), "
                   f"far below the grid's cell {cell:.3g} that the sparsest points set: the "
@@ -643,7 +627,6 @@ def _warn_round_off(cell, slack, radius):
 def _permute(cloud, buf, to_input):
     """A one-column device buffer of ``cloud``'s points in the other order (gather.cl):
     sorted to input order (``to_input``), or input to sorted order (padded with PAD zeros)."""
-    from clcurv.runtime.program import build, launch
     prg = build(cloud.device, "gather.cl", cloud.defines)
     item = np.dtype(cloud.dtype).itemsize
     out = device_buffer(cloud.device, (cloud.n + (0 if to_input else PAD)) * item)
@@ -656,7 +639,6 @@ def _ball_r2(cloud, k, d2_sorted, slack):
     """The per-point r^2 (knn_radius.cl:ball_r2, :func:`_margin` on the device) of the k-th
     d^2 in ``cloud``'s sorted order (a device buffer, no point isolated), ``slack`` the
     grid's round-off (:func:`_slack`): a padded device buffer."""
-    from clcurv.runtime.program import launch
     prg = _program(cloud, k)
     out = device_buffer(cloud.device, (cloud.n + PAD) * np.dtype(cloud.dtype).itemsize)
     launch(cloud.device, prg.ball_r2, cloud.n + PAD, d2_sorted, np.uint32(cloud.n),

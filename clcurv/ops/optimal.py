@@ -32,6 +32,9 @@ from __future__ import annotations
 import numpy as np
 
 from clcurv._shared.constants import OK
+from clcurv.grid.cloud import upload_point_r2
+from clcurv.ops.features import run_features
+from clcurv.reference import features as ref
 
 #: the eigenvalue columns the criterion needs
 EIGEN = ("eigenvalue1", "eigenvalue2", "eigenvalue3")
@@ -66,8 +69,6 @@ def optimal_features(cloud, radii, names, ddof=0):
     """(values, count, status, radius per point, chosen index) of ``names`` at each point's
     optimal radius among ``radii`` (sorted ascending, at least 2) on ``cloud`` (a
     DeviceCloud whose cell is >= the largest): see the module notes. Input order."""
-    from clcurv.grid.cloud import upload_point_r2
-    from clcurv.api.features import run_features
     radii = [float(r) for r in radii]
     cand = run_features(cloud, radii, list(EIGEN), ddof)
     ent = np.stack([eigenentropy_normalised(*(v[n] for n in EIGEN)) for v, _, _ in cand])
@@ -82,7 +83,6 @@ def optimal_features(cloud, radii, names, ddof=0):
 def reference_optimal_features(points, radii, names, ddof=0):
     """:func:`optimal_features` by the float64 reference (clcurv.reference.features at each
     of the sorted ``radii``, the same criterion and choice), for the tests."""
-    from clcurv.reference import features as ref
     need = list(dict.fromkeys(list(names) + list(EIGEN)))
     cand = [ref.features(points, r, need, ddof=ddof) for r in radii]
     ent = np.stack([eigenentropy_normalised(*(v[n] for n in EIGEN)) for v, _, _ in cand])

@@ -5,8 +5,9 @@ method: its kernel (:class:`Kernel`: file, entry point, defines, record layout, 
 neighbour count), how it uses normals, its outputs (:class:`Output`: result attribute,
 file field names, unit, sign), its float64 reference and the host step that turns the
 kernel's raw fields into the result. :mod:`clcurv.api.curvature`, :mod:`clcurv.cli.main`,
-:mod:`clcurv.render`, the bench, the tests and the README's methods table iterate
-:data:`OPERATORS`; :func:`clcurv.ops.driver.run_kernel` runs any kernel.
+:mod:`clcurv.render`, the bench, the tests and the README's methods table
+(tests/test_registry.py) iterate :data:`OPERATORS`; :func:`clcurv.ops.driver.run_kernel`
+runs any kernel.
 
 Adding an operator: one kernel (``kernels/``, taking ``OPERATOR_ARGS`` and writing its
 record columns ``COL_*``), one reference function (:mod:`clcurv.reference.operators`), one
@@ -24,6 +25,10 @@ from typing import Callable, Mapping
 import numpy as np
 
 from clcurv._shared.constants import MIN_COUNT_MLS2, MIN_COUNT_PCA, OK, record_selector
+from clcurv.ops.features import FEATURES, layouts, program_defines
+from clcurv.ops.knn_radius import knn_levels, program_defines as knn_program_defines
+from clcurv.reference import operators as reference
+from clcurv.runtime.program import build, local_size, precision_defines
 
 
 # ------------------------------------------------------------------------------------------
@@ -36,7 +41,7 @@ class Kernel:
 
     ``layout`` maps a raw field to its record column (an int) or columns (a slice); it
     reaches the kernel as ``-D COL_<FIELD>=<REAL16 selector>`` (``s012``), and
-    :func:`clcurv.grid.cloud.fetch_records` reads the record with the same table. Every layout
+    :func:`clcurv.grid.cloud.split_records` reads the record with the same table. Every layout
     has ``count`` and ``status``.
     """
     name: str
@@ -251,13 +256,11 @@ def _finish_mls2(raw, pts, r, n, user):
 # ------------------------------------------------------------------------------------------
 
 def _ref_moments(points, r, normals, weights):
-    from clcurv.reference import operators as reference
     return reference.moments(points, r, weights=weights)
 
 
 def _ref_cov(method):
     def run(points, r, normals, weights, align_normals=False):
-        from clcurv.reference import operators as reference
         return reference.covariance_ops(points, r, normals, method, weights=weights,
                                         align=align_normals)
     run.__name__ = f"_ref_{method}"
@@ -265,7 +268,6 @@ def _ref_cov(method):
 
 
 def _ref_mls2(points, r, normals, weights, kernel="ball", h=None):
-    from clcurv.reference import operators as reference
     if normals is None:
         raise ValueError("backend='numpy' MLS2 needs oriented normals (orient must not be None)")
     out = reference.mls2(points, r, normals, weights=weights, kernel=kernel, h=h)
@@ -339,17 +341,6 @@ def signed_file_fields():
                      for f in o.file_fields())
 
 
-def methods_table():
-    """The README's methods table (markdown), generated from the registry."""
-    rows = ["| method | operator (Digne & Morel) | outputs | signed | min. neighbours |",
-            "|---|---|---|---|---|"]
-    for op in OPERATORS.values():
-        outs = ", ".join(f"`{o.name}`" for o in op.outputs)
-        rows.append(f"| `\"{op.name}\"` | {op.title}; {op.formula} | {outs} | "
-                    f"{'yes' if op.signed else 'no'} | {op.min_count} |")
-    return "\n".join(rows)
-
-
 def program_variants(precision_defines):
     """(file, defines) of every program clcurv builds on a device with
     ``precision_defines`` (clcurv.runtime.program.precision_defines): each operator kernel (with
@@ -376,7 +367,6 @@ def program_variants(precision_defines):
         # the k-NN radius (kernels/radius.h): per-point balls, which exclude DENSITY
         out.append((k.file, dict(base, **k.build_defines(), DENSITY=0, GAUSSIAN=0,
                                  REF_NORMALS=int(k.reads_normals), POINT_RADIUS=1)))
-    from clcurv.api.features import FEATURES, layouts, program_defines
     for group in layouts(tuple(FEATURES)):               # clcurv.features: every column
         out.append(("features.cl", dict(base, **program_defines(group, 4))))
         out.append(("features.cl", dict(base, **program_defines(group, 4,
@@ -385,7 +375,26 @@ def program_variants(precision_defines):
     # the covariance operators' PCA normals of several radii (clcurv.api.curvature._radius_list)
     out.append(("features.cl", dict(base, **program_defines(layouts(("normals",))[0], 4,
                                                              anchored=False))))
-    from clcurv.ops.knn_radius import knn_levels, program_defines as knn_program_defines
     out.append(("knn_radius.cl",
                 dict(base, **knn_program_defines(30, knn_levels(30, int(base["VW"]))))))
     return out
+
+
+def tuning(device, precision="float"):
+    """The device-dependent choices clcurv makes on ``device``, for reports: ``VW`` (points
+    per work-item: 8 on CPU devices, whose compilers vectorise a work-item's explicit
+    vectors, else 4; from the device type query), ``MASKED_SUMS``
+    (:func:`clcurv.runtime.program.masked_sums`), ``PCA_FMA``
+    (:func:`~clcurv.runtime.program.fused_sums`), ``FEATURES_BUF``
+    (:func:`~clcurv.runtime.program.features_buffer`) and ``work_group``, the work-group
+    size :func:`~clcurv.runtime.program.local_size` gives every kernel of
+    :func:`program_variants` (queried: the kernel's maximum and preferred multiple on this
+    device, capped at launch's default 128). Some calls pass a smaller cap
+    (clcurv.orient.graph.CPU_GROUP: knn_graph on CPU devices)."""
+    base = precision_defines(device, precision)
+    sizes = {}
+    for file, defines in program_variants(base):
+        for k in build(device, file, defines).program.all_kernels():
+            sizes[k.function_name] = local_size(device, k)
+    return {"VW": base["VW"], "MASKED_SUMS": base["MASKED_SUMS"], "PCA_FMA": base["PCA_FMA"],
+            "FEATURES_BUF": base["FEATURES_BUF"], "work_group": sizes}

@@ -14,9 +14,11 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import pyopencl as cl
 
 from clcurv.grid.cloud import DeviceCloud
 from clcurv._shared.constants import PAD
+from clcurv.reference import operators as reference
 from clcurv.runtime.memory import buffer as device_buffer
 from clcurv.runtime.program import batches, build, launch
 from clcurv._shared.validate import as_points, as_radius, choice
@@ -26,7 +28,6 @@ BLOCK = 256         # drift values reduced per work-item
 
 
 def _buffers(cloud, host_arrays):
-    import pyopencl as cl
     mf = cl.mem_flags
     return [cl.Buffer(cloud.device.context, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=a)
             for a in host_arrays]
@@ -34,7 +35,6 @@ def _buffers(cloud, host_arrays):
 
 def _copies(cloud, buffers):
     """Device copies of device buffers."""
-    import pyopencl as cl
     out = []
     for b in buffers:
         out.append(device_buffer(cloud.device, b.size))
@@ -75,7 +75,6 @@ class DeviceState:
         """Set the iterate from ``iterate`` = (ping (N, 5): x in its 3 alignments, y, z as
         the device holds them, or None for the binned positions; displacement (N, 3)),
         rows in the input order of the cloud; ``d`` gets the displacement."""
-        import pyopencl as cl
         c, g = self.cloud, self.cloud.grid
         ping, disp = iterate
         for k in range(3):
@@ -94,7 +93,6 @@ class DeviceState:
     def iterate(self):
         """(ping (N, 5), displacement (N, 3)) of the current iterate in the device's
         precision, input order: what :meth:`_load` takes back (clcurv.tiles.scale)."""
-        import pyopencl as cl
         c, g = self.cloud, self.cloud.grid
         q, m = c.device.queue, g.n + PAD
         x = np.empty(3 * m, c.dtype)
@@ -115,7 +113,6 @@ class DeviceState:
 
     def displacement(self):
         """Accumulated displacement from the input, (N, 3) float64 in input order."""
-        import pyopencl as cl
         c = self.cloud
         out = np.empty((c.n, 3))
         for k in range(3):
@@ -127,7 +124,6 @@ class DeviceState:
     def step(self, radius, density, drifts=None):
         """One MLS1 iteration; returns the largest drift from the binned positions
         (``drifts``, an (N,) array, also gets every point's, input order)."""
-        import pyopencl as cl
         c = self.cloud
         n, r2 = np.uint32(c.n), c.ball(radius)
         defines = dict(c.defines, DENSITY=int(density), GAUSSIAN=0)
@@ -202,8 +198,7 @@ def scale_space(points, radius, steps, *, weights="uniform", return_iterates=Fal
     stats = {}
     done = (lambda out: (out, stats)) if return_stats else (lambda out: out)
     if backend == "numpy":
-        from clcurv.reference.operators import scale_space as ref
-        its = ref(pts, r, steps, weights=weights)
+        its = reference.scale_space(pts, r, steps, weights=weights)
         return done(its if return_iterates else its[-1])
     iterates = [pts.copy()]
     if len(pts) == 0 or steps == 0:

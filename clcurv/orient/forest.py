@@ -20,6 +20,7 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+import pyopencl as cl
 
 from clcurv.runtime.memory import buffer as device_buffer
 from clcurv.runtime.program import build, launch
@@ -123,7 +124,6 @@ def spanning_forest(cloud, graph, edges=True):
     -------
     Forest
     """
-    import pyopencl as cl
     if graph.cloud is not cloud:
         raise ValueError("the graph was built on another DeviceCloud")
     n, k, dev = cloud.n, graph.k, cloud.device

@@ -15,6 +15,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+import pyopencl as cl
 
 from clcurv.grid.cloud import DeviceMemoryError, upload_sorted
 from clcurv.runtime.memory import buffer as device_buffer
@@ -101,7 +102,6 @@ class Graph:
     timings: dict = field(default_factory=dict)
 
     def _sorted(self, buf, dtype):
-        import pyopencl as cl
         out = np.empty((self.cloud.n, self.k), dtype)
         cl.enqueue_copy(self.cloud.device.queue, out, buf)
         return out

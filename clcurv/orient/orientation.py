@@ -49,11 +49,15 @@ the winding check reads subsamples). Nothing in stage 3 needs neighbours.
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import (breadth_first_order, connected_components,
                                   minimum_spanning_tree)
 from scipy.spatial import cKDTree
+
+from clcurv.orient import forest, graph as knn
 
 __all__ = [
     "flip_to_reference",
@@ -435,8 +439,6 @@ def flip_on_device(cloud, normals, radius, k=10, point_r2=None):
     False. Stage times go to ``cloud.timings`` (orient_graph, orient_forest,
     orient_signs). ``point_r2``: each point's own ball for the graph
     (:func:`clcurv.orient.graph.knn_graph`)."""
-    import time
-    from clcurv.orient import forest, graph as knn
     n = _as_vectors(normals, "normals")
     t0 = time.perf_counter()
     graph = knn.knn_graph(cloud, radius, n, k, point_r2)

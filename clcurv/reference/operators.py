@@ -80,6 +80,9 @@ from __future__ import annotations
 from functools import cached_property
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import (breadth_first_order, connected_components,
+                                  minimum_spanning_tree)
 from scipy.spatial import cKDTree
 
 from clcurv._shared.constants import (DEGENERATE, MIN_COUNT_MLS2, MIN_COUNT_PCA, OK, SINGULAR,
@@ -954,7 +957,6 @@ def _mst_graph(p, u, k, radius):
     nearest other points closer than ``radius`` (None: any distance), weight
     ``1 - |u_i . u_j| + |e . u_i| |e . u_j| + MST_EDGE_EPS`` (``e`` the unit offset, 0 for
     coincident points)."""
-    from scipy.sparse import coo_matrix
     m = len(p)
     kk = min(k, m - 1)
     bound = np.inf if radius is None else float(radius)
@@ -983,8 +985,6 @@ def _propagated(u, tree, labels, ncomp):
     """The unit normals ``u`` made consistent along the spanning forest ``tree``: from each
     component's first point, breadth first, a normal is negated where it points against
     its parent's (already propagated) normal (Hoppe 1992)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import breadth_first_order
     m = len(u)
     t = tree.tocoo()
     roots = np.unique(labels, return_index=True)[1]      # the first point of each component
@@ -1034,7 +1034,6 @@ def mst_flips(points, normals, k=10, radius=None):
        cavity, i.e. its sign of step 4 is reversed. Inside means: the nearest point of
        those larger components has a normal pointing away from it.
     """
-    from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
     p_all = np.asarray(points, dtype=np.float64)
     n_all = np.asarray(normals, dtype=np.float64)
     flip = np.zeros(len(p_all), dtype=bool)

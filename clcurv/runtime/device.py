@@ -31,6 +31,8 @@ from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
+import pyopencl as cl
+
 APT_HINT = ("no OpenCL platform found; on Debian/Ubuntu install PoCL with: "
             "apt-get install -y pocl-opencl-icd ocl-icd-libopencl1")
 
@@ -106,17 +108,8 @@ class DeviceList(list):
                                if venv.is_dir() and os.path.realpath(venv) not in read else [])
 
 
-def _cl():
-    try:
-        import pyopencl as cl
-    except ImportError as exc:  # pragma: no cover - dependency declared in pyproject
-        raise NoDeviceError("pyopencl is not installed: pip install pyopencl") from exc
-    return cl
-
-
 @lru_cache(maxsize=None)
 def _all_devices():
-    cl = _cl()
     try:
         platforms = cl.get_platforms()
     except cl.Error:
@@ -131,7 +124,6 @@ def _all_devices():
 
 
 def _kind(dev):
-    cl = _cl()
     if dev.type & cl.device_type.GPU:
         return "gpu"
     if dev.type & cl.device_type.CPU:
@@ -144,14 +136,12 @@ def _kind(dev):
 def _is_simulator(platform, dev):
     """A simulator or emulator: named so, or claiming to be a CPU and a GPU at once
     (Oclgrind sets every device-type bit)."""
-    cl = _cl()
     names = f"{platform.name} {platform.vendor} {dev.name}".lower()
     both = dev.type & cl.device_type.CPU and dev.type & cl.device_type.GPU
     return bool(both) or any(w in names for w in SIMULATOR_WORDS)
 
 
 def _info(index, platform, dev) -> DeviceInfo:
-    cl = _cl()
     return DeviceInfo(
         index=index, name=dev.name.strip(), platform=platform.name.strip(),
         vendor=dev.vendor.strip(), kind=_kind(dev), driver=dev.driver_version,
@@ -171,13 +161,9 @@ def vendor_dirs():
     or ``/etc/OpenCL/vendors``, and the pyopencl wheel's own ``pyopencl/.libs``."""
     env = os.environ.get("OCL_ICD_VENDORS")
     dirs = [Path(env) if env else Path("/etc/OpenCL/vendors")]
-    try:
-        import pyopencl
-        bundled = Path(pyopencl.__file__).parent / ".libs"
-        if bundled.is_dir():
-            dirs.append(bundled)
-    except ImportError:  # pragma: no cover - dependency declared in pyproject
-        pass
+    bundled = Path(cl.__file__).parent / ".libs"
+    if bundled.is_dir():
+        dirs.append(bundled)
     return dirs
 
 
@@ -349,7 +335,6 @@ class Device:
     """An OpenCL context and in-order queue on one device, created once per device."""
 
     def __init__(self, index):
-        cl = _cl()
         _, dev = _all_devices()[index]
         self.info = _infos()[index]
         self.cl_device = dev

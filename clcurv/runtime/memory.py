@@ -13,7 +13,8 @@ allocators do: a freed buffer goes back to the pool and the next request of a si
 What that means for a user:
   - memory the last calls used stays allocated after they return (for a 1M-point call,
     ~150-300 MB), up to :func:`hold_limit` (a quarter of clcurv's device budget,
-    :func:`clcurv.grid.cloud.device_limits`); beyond that the pool lets go of what it holds;
+    :func:`clcurv.runtime.limits.device_limits`); beyond that the pool lets go of what it
+    holds;
   - :func:`release_memory` gives it back now; ``CLCURV_POOL=0`` in the environment (read
     when a device's pool is made) turns holding off: every buffer is then freed at once;
   - a stage that has to run in chunks (the device is short of memory,
@@ -30,9 +31,17 @@ from __future__ import annotations
 import os
 import threading
 
+import numpy as np
+import pyopencl as cl
+import pyopencl.tools as clt
+
+from clcurv._shared import host_memory
+from clcurv.runtime.device import get_device
+from clcurv.runtime.limits import device_limits
+
 _POOLS, _LOCK = {}, threading.Lock()
-#: The fraction of the device budget (clcurv.grid.cloud.device_limits) the pool may hold
-#: unused between calls.
+#: The fraction of the device budget (clcurv.runtime.limits.device_limits) the pool may
+#: hold unused between calls.
 HOLD_FRACTION = 0.25
 #: Debugging: when set (a float32 value, e.g. NaN), every buffer is filled with it before it
 #: is handed out, as glibc's MALLOC_PERTURB_ does; tests/test_memory.py uses NaN to show that
@@ -47,7 +56,6 @@ def _pool(device):
     with _LOCK:
         pool = _POOLS.get(id(device))
         if pool is None:
-            import pyopencl.tools as clt
             pool = clt.MemoryPool(clt.ImmediateAllocator(device.queue))
             if os.environ.get("CLCURV_POOL", "1").strip() == "0":
                 pool.stop_holding()
@@ -57,21 +65,13 @@ def _pool(device):
 
 def hold_limit(device):
     """Bytes the pool of ``device`` may hold unused."""
-    from clcurv.grid.cloud import device_limits
     return int(device_limits(device).budget * HOLD_FRACTION)
-
-
-def held_bytes(device):
-    """Bytes the pool of ``device`` holds unused (0 for a simulator)."""
-    pool = _pool(device)
-    return 0 if pool is None else int(pool.managed_bytes - pool.active_bytes)
 
 
 def buffer(device, nbytes):
     """A READ_WRITE device buffer of at least ``nbytes`` bytes (>= 1) on ``device`` (a
     clcurv.runtime.device.Device), from its pool (see the module docstring). Its content is
     undefined."""
-    import pyopencl as cl
     nbytes = max(int(nbytes), 1)
     pool = _pool(device)
     if pool is None:
@@ -81,7 +81,6 @@ def buffer(device, nbytes):
             pool.free_held()
         buf = pool.allocate(nbytes)
     if FILL is not None:
-        import numpy as np
         size = buf.size - buf.size % 4
         if size:
             cl.enqueue_fill_buffer(device.queue, buf, np.float32(FILL), 0, size)
@@ -94,8 +93,6 @@ def release_memory(device=None):
     blocks of dropped result arrays (:mod:`clcurv._shared.host_memory`). Buffers and arrays in use
     (a live :class:`~clcurv.grid.cloud.DeviceCloud`, a result) are not touched. Returns the
     bytes freed."""
-    from clcurv.runtime.device import get_device
-    from clcurv._shared import host_memory
     with _LOCK:
         pools = list(_POOLS.values()) if device is None else \
             [p for p in [_POOLS.get(id(get_device(device)))] if p is not None]

@@ -35,6 +35,8 @@ import threading
 import warnings
 from pathlib import Path
 
+import pyopencl as cl
+
 from clcurv._shared.constants import kernel_defines
 
 
@@ -65,8 +67,8 @@ _lock = threading.Lock()
 
 def precision_defines(device, precision):
     """``-D`` options for ``precision`` ('float' or 'double') on ``device``, and the
-    device-dependent choices of the kernels: VW (:func:`tuning`), MASKED_SUMS
-    (:func:`masked_sums`), PCA_FMA (:func:`fused_sums`) and FEATURES_BUF
+    device-dependent choices of the kernels: VW (:func:`clcurv.ops.registry.tuning`),
+    MASKED_SUMS (:func:`masked_sums`), PCA_FMA (:func:`fused_sums`) and FEATURES_BUF
     (:func:`features_buffer`)."""
     if precision not in ("float", "double"):
         raise ValueError(f"precision must be 'float' or 'double', got {precision!r}")
@@ -126,7 +128,6 @@ def build(device, filename, defines=None):
     Not thread-safe to *launch* kernels of one program from several threads at once
     (kernel arguments are per kernel object); building is.
     """
-    import pyopencl as cl
     defines = dict(kernel_defines(), **(defines or {}))
     key = (device.context.int_ptr, filename, tuple(sorted(defines.items())))
     with _lock:
@@ -202,7 +203,6 @@ def log_warnings(log):
 def _warn_from_log(device, filename, program):
     """Raise a :class:`BuildWarning` with the build log's warning/error lines
     (:func:`log_warnings`), if any."""
-    import pyopencl as cl
     try:
         log = program.get_build_info(device.cl_device, cl.program_build_info.LOG) or ""
     except cl.Error:
@@ -216,31 +216,12 @@ def _warn_from_log(device, filename, program):
 def local_size(device, kernel, limit=128):
     """A work-group size for ``kernel`` on ``device``, queried, never assumed: the largest
     multiple of the preferred size multiple that is <= min(limit, kernel max)."""
-    import pyopencl as cl
     dev = device.cl_device
     kmax = kernel.get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE, dev)
     mult = kernel.get_work_group_info(
         cl.kernel_work_group_info.PREFERRED_WORK_GROUP_SIZE_MULTIPLE, dev)
     top = max(1, min(limit, kmax))
     return max(1, (top // mult) * mult) if mult <= top else top
-
-
-def tuning(device, precision="float"):
-    """The device-dependent choices clcurv makes on ``device``, for reports: ``VW`` (points
-    per work-item: 8 on CPU devices, whose compilers vectorise a work-item's explicit
-    vectors, else 4; from the device type query), ``MASKED_SUMS`` (:func:`masked_sums`),
-    ``PCA_FMA`` (:func:`fused_sums`), ``FEATURES_BUF`` (:func:`features_buffer`) and ``work_group``, the work-group size
-    :func:`local_size` gives every kernel of the registry's programs (queried: the kernel's
-    maximum and preferred multiple on this device, capped at launch's default 128). Some
-    calls pass a smaller cap (clcurv.orient.graph.CPU_GROUP: knn_graph on CPU devices)."""
-    from clcurv.ops.registry import program_variants
-    base = precision_defines(device, precision)
-    sizes = {}
-    for file, defines in program_variants(base):
-        for k in build(device, file, defines).program.all_kernels():
-            sizes[k.function_name] = local_size(device, k)
-    return {"VW": base["VW"], "MASKED_SUMS": base["MASKED_SUMS"], "PCA_FMA": base["PCA_FMA"],
-            "FEATURES_BUF": base["FEATURES_BUF"], "work_group": sizes}
 
 
 def batches(n, defines):
