@@ -10,7 +10,7 @@ import pytest
 import clcurv
 import clcurv.io as cio
 from clcurv.tiles import engine as tiled
-from clcurv.io._common import Cloud
+from clcurv.io.common import Cloud
 
 plyfile = pytest.importorskip("plyfile")
 laspy = pytest.importorskip("laspy")

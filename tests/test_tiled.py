@@ -10,7 +10,7 @@ import clcurv
 from tests.hostile import assert_same_las, las_dims
 from clcurv.tiles import engine as tiled
 from clcurv.jobs import tiled_job
-from clcurv.io._common import CorruptFileError
+from clcurv.io.common import CorruptFileError
 from conftest import data_path
 
 laspy = pytest.importorskip("laspy")
