@@ -43,6 +43,9 @@ from pathlib import Path
 
 import numpy as np
 
+from clcurv._shared.version import __version__
+from clcurv.runtime.program import kernels_dir
+
 #: the file that marks a folder as a clcurv workspace
 TAG = "CLCURV-WORKSPACE"
 #: what a run makes in its workspace (and removes; nothing else is touched)
@@ -309,8 +312,6 @@ def code_key():
     """The clcurv version and a hash of the kernels' sources: results of other code are
     never resumed."""
     if not _CODE:
-        from clcurv import __version__
-        from clcurv.runtime.program import kernels_dir
         h = hashlib.blake2b(digest_size=16)
         for p in sorted(kernels_dir().glob("*")):
             if p.suffix in (".cl", ".h"):
