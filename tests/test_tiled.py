@@ -153,7 +153,7 @@ def test_the_scale_space_case_re_bins(scene, tmp_path, monkeypatch):
         smoothed.append(cur)
         return out
 
-    monkeypatch.setattr(tiled_scale, "_apply", spy)     # (it keeps its box on the name)
+    monkeypatch.setattr(tiled_scale, "_apply", spy)
     til = tiled.curvature_file(path, tmp_path / "dome_out.las", R, method="variation",
                                scale_space=5, tile=12.0, memory="64GiB")
     assert til["tiled"] and til["tiles"] >= 9

@@ -65,6 +65,7 @@ tile size comes from the budget (``memory=``) and the density measured in pass (
 """
 from __future__ import annotations
 
+import ctypes
 import errno
 import json
 import os
@@ -77,13 +78,20 @@ from pathlib import Path
 import numpy as np
 
 from clcurv import io
+from clcurv.api.curvature import curvature
+from clcurv.grid.cloud import DeviceCloud
+from clcurv.runtime.memory import release_memory
 from clcurv.tiles import orient as tiled_orient
+from clcurv.tiles import scale as tiled_scale
+from clcurv.tiles import workers as cluster
 from clcurv.tiles import workspace as wsp
 from clcurv.tiles.buckets import READ_CHUNK, Buckets, bucket_grid
 from clcurv.grid.binning import Frame
 from clcurv.io import stream
 from clcurv._shared.constants import TOO_FEW
-from clcurv.tiles.results import Windows, partition, tile_dtype, tile_file
+from clcurv.tiles.results import Windows, partition, tile_dtype
+from clcurv.tiles.workers import worker_device
+from clcurv.tiles.workspace import tile_file
 from clcurv.tiles.planning import (AUTO_CAP, TILE_BYTES_PER_POINT, Tiling, TilingError,
                                    budget_of, check_tile_size, fits_memory, halo_cells,
                                    parse_memory, plan_tiles)
@@ -96,20 +104,7 @@ def worker_budget(budget, workers, client):
     workers share the run's budget; a Dask client's each have it)."""
     if client is None and not workers:
         return budget
-    from clcurv.tiles.workers import worker_budget as per_worker
-    return per_worker(budget, workers, client)
-
-
-# --------------------------------------------------------------------------- memory
-
-
-# --------------------------------------------------------------------------- geometry
-
-
-# --------------------------------------------------------------------------- buckets
-
-
-# --------------------------------------------------------------------------- planning
+    return cluster.worker_budget(budget, workers, client)
 
 
 # --------------------------------------------------------------------------- the run
@@ -191,7 +186,7 @@ def _source_key(src):
     return keys
 
 
-def _field_specs(method, precision, want_normals):
+def _field_specs(method, want_normals):
     """(name, width, dtype) of the stored fields, as clcurv.jobs.job.result_fields names them."""
     op = OPERATORS[method]
     real = np.float64
@@ -290,16 +285,15 @@ def check_params(params, fields, local=True):
     device_radius(params.radius, params.precision)
     if params.kind != "curvature":
         if local:
-            _worker_device(params.device)
+            worker_device(params.device)
         return
-    from clcurv.api.curvature import curvature
     u = np.random.default_rng(0).normal(size=(64, 3))
     pts = u / np.linalg.norm(u, axis=1)[:, None] * params.radius
     how = params.orient
     if isinstance(how, str) and how == "auto" and params.viewpoint is None:
         how = "up"
     given = isinstance(how, str) and how == "normals"           # the file's, in the run
-    where = ({"device": _worker_device(params.device)} if local else {"backend": "numpy"})
+    where = ({"device": worker_device(params.device)} if local else {"backend": "numpy"})
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         curvature(pts, params.radius, method=params.method, weights=params.weights,
@@ -348,7 +342,7 @@ def _manifest(source, params, budget, tile, wanted, client, workers):
     output (the fields written among them), the code, and the device of a local run."""
     device = None
     if client is None and not workers:
-        info = _worker_device(params.device).info
+        info = worker_device(params.device).info
         device = [info.platform, info.name, info.driver]
     return {"source": _source_key(source), "params": params.key(),
             "fields": sorted(wanted) if wanted else None, "code": wsp.code_key(),
@@ -483,10 +477,9 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
     halo = params.halo(file_normals)
     smoothed = None
     if params.scale_space:
-        from clcurv.tiles.scale import run_steps
         t_s = time.perf_counter()
-        wsp._remove(ws / "parts")            # an interrupted run's steps: made again
-        smoothed = run_steps(ws, buckets, params, params.scale_space, budget,
+        wsp.remove(ws / "parts")            # an interrupted run's steps: made again
+        smoothed = tiled_scale.run_steps(ws, buckets, params, params.scale_space, budget,
                              lambda tasks: _execute(tasks, client, workers, step=True),
                              tile=tile)
         times["scale space"] = time.perf_counter() - t_s
@@ -566,7 +559,7 @@ def _tile_done(ws, t, mst, say):
         return True
     say(f"{base}: fails its check; computing tile {t} again")
     for p in paths:
-        wsp._remove(p)
+        wsp.remove(p)
     return False
 
 
@@ -578,16 +571,16 @@ def _split(space, buckets, tiling, smoothed):
            "origin": list(map(float, tiling.frame.origin)), "cell": tiling.frame.cell}
     try:
         have = json.loads(record.read_text())
-        if have.get("key") == key and have.get("sum") == wsp._digest(
+        if have.get("key") == key and have.get("sum") == wsp.digest(
                 json.dumps(have["sums"], sort_keys=True).encode()):
             return have["sums"]
     except (OSError, ValueError, KeyError, TypeError):
         pass
-    wsp._remove(record)
+    wsp.remove(record)
     folder = space / "tiles_in"
-    wsp._remove(folder)
+    wsp.remove(folder)
     sums = buckets.split(tiling, folder, state=smoothed)
-    wsp._write_text(record, json.dumps({"key": key, "sums": sums, "sum": wsp._digest(
+    wsp.write_text(record, json.dumps({"key": key, "sums": sums, "sum": wsp.digest(
         json.dumps(sums, sort_keys=True).encode())}))
     return sums
 
@@ -596,7 +589,6 @@ def _trim():
     """Give the heap's free pages back to the system (glibc keeps them after a tile's
     large temporaries, and the next pass would run on top of them)."""
     try:
-        import ctypes
         ctypes.CDLL("libc.so.6").malloc_trim(0)
     except (OSError, AttributeError):
         pass
@@ -604,7 +596,7 @@ def _trim():
 
 def _wanted_specs(params, wanted):
     want_normals = not wanted or "normals" in wanted
-    specs = _field_specs(params.method, params.precision, want_normals)
+    specs = _field_specs(params.method, want_normals)
     if wanted:
         names = {s[0] for s in specs} | {"normals"}
         unknown = sorted(set(wanted) - names)
@@ -655,10 +647,7 @@ class TileTask:
 def compute_tile(task, device=None):
     """Compute tile ``task.t`` and write its own points' fields (with their global ids) to
     the workspace, atomically; returns (t, points owned)."""
-    from clcurv.api.curvature import curvature
-    from clcurv.grid.cloud import DeviceCloud
     from clcurv.jobs.job import result_fields
-    from clcurv.runtime.memory import release_memory
     params, tiling = task.params, task.tiling
     buckets = Buckets.from_state(Path(task.ws) / "buckets", task.buckets)
     rec = buckets.read_tile(Path(task.ws) / "tiles_in", task.t, state=task.smoothed,
@@ -669,7 +658,7 @@ def compute_tile(task, device=None):
     out = np.empty(int(own.sum()), tile_dtype(task.specs, mst))
     if len(out):
         if device is None:
-            device = _worker_device(params.device)
+            device = worker_device(params.device)
         cloud = DeviceCloud(pos, params.radius, device=device,
                             precision=params.precision, frame=tiling.frame)
         if params.kind == "features":           # clcurv.tiles.features.FeatureParams
@@ -681,7 +670,7 @@ def compute_tile(task, device=None):
             extra = {}
             if mst:
                 nl, node = tiled_orient.orient_tile(cloud, params.radius, params.orient_k,
-                                                    task.rank, tiling.frame.origin)
+                                                    task.rank)
                 normals = np.where(node[:, None] >= 0, nl, (0.0, 0.0, 1.0))
                 how = "normals"
                 if "align_normals" in OPERATORS[params.method].options:
@@ -724,37 +713,15 @@ def _mst_records(task, out, own, pos, nl, node, ids):
         wsp.save_sealed(base.with_suffix(suffix), arr)
 
 
-_DEVICES = {}
-
-
-def _worker_device(spec):
-    """The device of this process (one OpenCL context per process): the one the Dask
-    worker plugin chose (:class:`ClcurvWorker`), else ``spec``."""
-    try:
-        from distributed import get_worker
-        chosen = getattr(get_worker(), "clcurv_device", None)
-    except (ImportError, ValueError):
-        chosen = None
-    key = chosen if chosen is not None else spec
-    if key not in _DEVICES:
-        from clcurv.runtime.device import get_device
-        _DEVICES[key] = get_device(key)
-    return _DEVICES[key]
-
-
 def _execute(tasks, client, workers, step=False):
     """fn(task) of every task as it finishes (fn: compute_tile, or the scale space's
     step_tile when ``step``): in this process, on a Dask ``client``, or on a LocalCluster
     of ``workers`` processes started (and closed) here."""
-    if step:
-        from clcurv.tiles.scale import step_tile as fn
-    else:
-        fn = compute_tile
+    fn = tiled_scale.step_tile if step else compute_tile
     if client is None and not workers:
         for task in tasks:
             yield fn(task)
         return
-    from clcurv.tiles import workers as cluster
     yield from cluster.map_tiles(fn, tasks, client=client, workers=workers)
 
 
