@@ -8,8 +8,7 @@ from clcurv.api.curvature import curvature, normals, project
 from clcurv.api.features import features, FeatureResult
 from clcurv.ops.registry import METHODS, OPERATORS
 from clcurv.ops.smoothing import scale_space
-from clcurv.tiles.engine import curvature_file
-from clcurv.tiles.features import features_file
+from clcurv.jobs.job import curvature_file, features_file
 from clcurv.grid.cloud import DeviceCloud
 from clcurv.runtime.memory import release_memory
 from clcurv.runtime.device import devices, get_device, NoDeviceError
