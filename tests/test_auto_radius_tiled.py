@@ -52,7 +52,8 @@ def _write(path, pts):
 
 
 def _trees(monkeypatch):
-    """The sizes of the cKDTrees built from now on (scipy.spatial.cKDTree wrapped)."""
+    """The sizes of the cKDTrees that auto_radius_tiled builds from now on (its
+    scipy.spatial.cKDTree wrapped)."""
     sizes = []
     real = scipy.spatial.cKDTree
 
@@ -60,7 +61,7 @@ def _trees(monkeypatch):
         sizes.append(len(data))
         return real(data, *args, **kwargs)
 
-    monkeypatch.setattr(scipy.spatial, "cKDTree", recorded)
+    monkeypatch.setattr(tiled_job, "cKDTree", recorded)
     return sizes
 
 

@@ -15,6 +15,7 @@ import textwrap
 import threading
 import time
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -159,6 +160,7 @@ def test_the_command_takes_only_a_positive_worker_count(tmp_path, capsys):
 
 _CLIENT = textwrap.dedent("""
     import os, sys, time
+    sys.path.insert(0, {root!r})                # this checkout's clcurv
     if __name__ == "__main__":
         from clcurv.tiles import workers as cluster
         lc, client = cluster.local_cluster(2)
@@ -179,7 +181,7 @@ def _alive(pid):
 def test_workers_die_with_a_client_killed_by_sigkill(tmp_path):
     """An OOM kill of the client (SIGKILL, nothing runs in it) leaves no worker process."""
     script = tmp_path / "client.py"
-    script.write_text(_CLIENT)
+    script.write_text(_CLIENT.format(root=str(Path(clcurv.__file__).resolve().parent.parent)))
     env = dict(os.environ, **{cluster.FORCE_WORKERS: "1"})        # 2 workers on any machine
     proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE,
                             stderr=subprocess.DEVNULL, text=True, env=env)

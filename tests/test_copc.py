@@ -21,7 +21,6 @@ import pytest
 import clcurv
 from tests.hostile import assert_same_las, las_dims
 from clcurv import io as cio
-from clcurv.tiles import engine as tiled
 
 from hostile import run_cli
 
@@ -203,8 +202,8 @@ def test_copc_runs_equal_the_plain_laz_runs(files, method, tile):
     d, src, plain, _, pts, order = files
     tag = f"{method}_{tile}"
     a, b = d / f"copc_{tag}.laz", d / f"plain_{tag}.laz"
-    ra = tiled.curvature_file(src, a, R, method=method, tile=tile, memory="64GiB")
-    rb = tiled.curvature_file(plain, b, R, method=method, tile=tile, memory="64GiB")
+    ra = clcurv.curvature_file(src, a, R, method=method, tile=tile, memory="64GiB")
+    rb = clcurv.curvature_file(plain, b, R, method=method, tile=tile, memory="64GiB")
     assert ra["tiled"] == rb["tiled"] == (tile is not None)
     assert_plain(a)
     assert_same(a, b)
@@ -217,8 +216,8 @@ def test_copc_runs_equal_the_plain_laz_runs(files, method, tile):
 def test_tiled_copc_equals_in_memory_copc(files):
     d, src, _, _, _, _ = files
     a, b = d / "mem_t.laz", d / "til_t.laz"
-    tiled.curvature_file(src, a, R, method="mls1", memory="64GiB")
-    tiled.curvature_file(src, b, R, method="mls1", tile=6.0, memory="64GiB")
+    clcurv.curvature_file(src, a, R, method="mls1", memory="64GiB")
+    clcurv.curvature_file(src, b, R, method="mls1", tile=6.0, memory="64GiB")
     assert_same(a, b)
 
 
@@ -227,10 +226,10 @@ def test_each_value_goes_to_its_point(files):
     computation): each point's values agree to 1e-4, matched by its index (gps_time)."""
     d, src, _, given, pts, order = files
     a, b = d / "order_copc.laz", d / "order_given.laz"
-    tiled.curvature_file(src, a, R, method="mls1", fields=["mean_curvature", "status"],
-                         memory="64GiB")
-    tiled.curvature_file(given, b, R, method="mls1", fields=["mean_curvature", "status"],
-                         memory="64GiB")
+    clcurv.curvature_file(src, a, R, method="mls1", fields=["mean_curvature", "status"],
+                          memory="64GiB")
+    clcurv.curvature_file(given, b, R, method="mls1", fields=["mean_curvature", "status"],
+                          memory="64GiB")
     _, da = _dims(a)
     _, db = _dims(b)
     assert np.array_equal(db["gps_time"], np.arange(len(pts)))
@@ -262,7 +261,7 @@ def test_output_named_copc_laz_is_plain_laz(files, tmp_path):
     """clcurv writes no COPC: an output named .copc.laz is a plain LAZ (documented)."""
     _, src, plain, _, _, _ = files
     a = tmp_path / "out.copc.laz"
-    tiled.curvature_file(src, a, R, method="mls1", fields=["mean_curvature"], memory="64GiB")
+    clcurv.curvature_file(src, a, R, method="mls1", fields=["mean_curvature"], memory="64GiB")
     assert_plain(a)
 
 
@@ -283,8 +282,8 @@ def test_evlrs_that_can_be_written_are_kept_in_memory_and_in_tiles(tmp_path):
     outs = []
     for tile in (None, 8.0):
         out = tmp_path / f"out_{tile}.laz"
-        tiled.curvature_file(src, out, R, method="mls1", fields=["mean_curvature"], tile=tile,
-                             memory="64GiB")
+        clcurv.curvature_file(src, out, R, method="mls1", fields=["mean_curvature"], tile=tile,
+                              memory="64GiB")
         back = laspy.read(str(out))
         assert [(v.user_id, v.record_id, v.record_data) for v in back.header.evlrs] == \
             [("clcurv_test", 8, b"evlr data" * 100)], tile
@@ -315,9 +314,9 @@ def test_a_catalog_names_the_output_of_a_copc_file_laz(files, tmp_path):
     far.write(str(tmp_path / "far.laz"))
     folder = tmp_path / "out"
     folder.mkdir()
-    tiled.curvature_file([str(src), str(tmp_path / "far.laz")], folder, R, method="mls1")
+    clcurv.curvature_file([str(src), str(tmp_path / "far.laz")], folder, R, method="mls1")
     assert sorted(os.listdir(folder)) == ["far.laz", "survey.laz"]
     assert_plain(folder / "survey.laz")
     ref = tmp_path / "ref.laz"
-    tiled.curvature_file(src, ref, R, method="mls1", tile=8.0)
+    clcurv.curvature_file(src, ref, R, method="mls1", tile=8.0)
     assert_same(folder / "survey.laz", ref)       # the far file: the same grid frame

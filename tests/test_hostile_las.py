@@ -471,7 +471,7 @@ def test_a_clashing_extra_dimension_is_replaced_in_memory_and_in_tiles(tmp_path,
     field's own float32 (or integer) dimension: NaN stays NaN and nothing is quantised.
     The in-memory and tiled outputs are the same, and equal the run on the same input
     without the clashing dimensions (the other dimensions, ``keep_me``, kept)."""
-    from clcurv.tiles import engine as tiled
+    from clcurv.jobs.job import curvature_file
     params = CLASHES[case]
     src = _clash_input(tmp_path / "in.laz", params)
     plain = _clash_input(tmp_path / "plain.laz",
@@ -480,8 +480,8 @@ def test_a_clashing_extra_dimension_is_replaced_in_memory_and_in_tiles(tmp_path,
     outs = {}
     for name, inp, tile in (("mem", src, None), ("til", src, 7.0), ("ref", plain, None)):
         outs[name] = tmp_path / f"{name}.laz"
-        tiled.curvature_file(inp, outs[name], R_CLASH, method="mls1", fields=fields,
-                             orient="up", ignore_normals=True, tile=tile, memory="64GiB")
+        curvature_file(inp, outs[name], R_CLASH, method="mls1", fields=fields,
+                       orient="up", ignore_normals=True, tile=tile, memory="64GiB")
     las, mem = _dims(outs["mem"])
     _, til = _dims(outs["til"])
     _, ref = _dims(outs["ref"])
@@ -504,7 +504,7 @@ def test_a_clashing_extra_dimension_is_replaced_in_memory_and_in_tiles(tmp_path,
 def test_the_input_normals_are_kept_as_stored_when_no_normals_are_written(tmp_path):
     """Input normals in scaled int16 extra bytes, no ``normals`` field: the output keeps
     the input's dimensions and their raw values, in memory and in tiles."""
-    from clcurv.tiles import engine as tiled
+    from clcurv.jobs.job import curvature_file
     rng = np.random.default_rng(3)
 
     def values(name, shape):
@@ -515,8 +515,8 @@ def test_the_input_normals_are_kept_as_stored_when_no_normals_are_written(tmp_pa
     outs = []
     for tile in (None, 7.0):
         out = tmp_path / f"o{tile}.laz"
-        tiled.curvature_file(src, out, R_CLASH, method="mls1", orient="up",
-                             fields=["mean_curvature"], tile=tile, memory="64GiB")
+        curvature_file(src, out, R_CLASH, method="mls1", orient="up",
+                       fields=["mean_curvature"], tile=tile, memory="64GiB")
         outs.append(out)
     a, da = _dims(outs[0])
     _, db = _dims(outs[1])

@@ -111,7 +111,7 @@ def test_lzf_python_matches_c_extension():
     pos = raw.index(b"DATA binary_compressed\n") + len(b"DATA binary_compressed\n")
     csize, usize = struct.unpack_from("<II", raw, pos)
     comp = raw[pos + 8:pos + 8 + csize]
-    assert cio._lzf_decompress_py(comp, usize) == lzf.decompress(comp, usize)
+    assert cio.pcd.lzf_decompress_py(comp, usize) == lzf.decompress(comp, usize)
 
 
 def test_las_coordinates_equal_laspy_scaled_values():
@@ -458,13 +458,13 @@ def test_lzf_back_references():
     expect = b"ab" + b"ababababa"
     expect += (expect * 2)[:12]
     expect += expect[-1:] * 3
-    assert cio._lzf_decompress_py(stream, len(expect)) == expect
+    assert cio.pcd.lzf_decompress_py(stream, len(expect)) == expect
     assert cio.lzf_decompress(stream, len(expect)) == expect
     for bad in (stream[:-1], bytes([(1 << 5), 5]), bytes([5]) + b"ab"):
         with pytest.raises(ValueError):
-            cio._lzf_decompress_py(bad, len(expect))
+            cio.pcd.lzf_decompress_py(bad, len(expect))
     with pytest.raises(ValueError):
-        cio._lzf_decompress_py(stream, len(expect) + 1)
+        cio.pcd.lzf_decompress_py(stream, len(expect) + 1)
 
 
 # ------------------------------------------------------------------ text and NumPy rules

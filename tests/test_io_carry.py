@@ -9,8 +9,7 @@ import pytest
 
 import clcurv
 import clcurv.io as cio
-from clcurv.tiles import engine as tiled
-from clcurv.io._common import Cloud
+from clcurv.io.common import Cloud
 
 plyfile = pytest.importorskip("plyfile")
 laspy = pytest.importorskip("laspy")
@@ -176,8 +175,8 @@ def test_tiled_output_keeps_the_same_attributes(tmp_path, out):
     one does (the same names, dtypes, order and values; PLY byte for byte)."""
     src = _las_with_attributes(tmp_path / "in.las")
     for name, tile in (("mem", None), ("til", 1.5)):
-        tiled.curvature_file(src, tmp_path / f"{name}.{out}", 0.15, method="2dcov1",
-                             tile=tile, memory="64GiB", fields=["k1"])
+        clcurv.curvature_file(src, tmp_path / f"{name}.{out}", 0.15, method="2dcov1",
+                              tile=tile, memory="64GiB", fields=["k1"])
     _same_output(tmp_path / f"mem.{out}", tmp_path / f"til.{out}")
     back = cio.read(tmp_path / f"til.{out}")
     las = laspy.read(str(src))
@@ -193,9 +192,9 @@ def test_tiled_ply_in_ply_out_keeps_colours(tmp_path):
     go to the output, in tiles as in memory."""
     rec = _colored_ply(tmp_path / "in.ply", n=20_000, normals=True)
     for name, tile in (("mem", None), ("til", 1.5)):
-        tiled.curvature_file(tmp_path / "in.ply", tmp_path / f"{name}.ply", 0.15,
-                             method="2dcov1", tile=tile, memory="64GiB",
-                             fields=["k1"])
+        clcurv.curvature_file(tmp_path / "in.ply", tmp_path / f"{name}.ply", 0.15,
+                              method="2dcov1", tile=tile, memory="64GiB",
+                              fields=["k1"])
     assert (tmp_path / "mem.ply").read_bytes() == (tmp_path / "til.ply").read_bytes()
     back = cio.read(tmp_path / "til.ply")
     np.testing.assert_array_equal(back.attributes["red"], rec["red"])
@@ -207,8 +206,8 @@ def test_tiled_npy_columns_carried(tmp_path):
     table = np.column_stack([s["points"], np.arange(20_000) * 0.25]).astype(np.float32)
     np.save(tmp_path / "in.npy", table)
     for name, tile in (("mem", None), ("til", 1.5)):
-        tiled.curvature_file(tmp_path / "in.npy", tmp_path / f"{name}.npz", 0.15,
-                             method="2dcov1", tile=tile, memory="64GiB")
+        clcurv.curvature_file(tmp_path / "in.npy", tmp_path / f"{name}.npz", 0.15,
+                              method="2dcov1", tile=tile, memory="64GiB")
     _same_output(tmp_path / "mem.npz", tmp_path / "til.npz")
     z = np.load(tmp_path / "til.npz")
     assert z["col3"].dtype == np.float64                 # as clcurv.io.read has it

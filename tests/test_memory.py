@@ -78,13 +78,12 @@ def test_pool_off_holds_nothing():
 def test_tiled_runs_hold_no_memory_between_tiles(tmp_path, scale_space):
     """A tiled run's memory budget sizes tiles as if every buffer were freed: the pool lets
     a tile's buffers go when the tile is done (clcurv.tiles.engine.compute_tile, tiled_scale)."""
-    from clcurv.tiles import engine as tiled
     dev = clcurv.get_device()
     pts = clcurv.shapes.aerial_scene(30000, extent=(30.0, 30.0), seed=1)["points"]
     src = tmp_path / "scene.npy"
     np.save(src, pts)
     clcurv.release_memory(dev)
-    out = tiled.curvature_file(src, tmp_path / "out.npz", 1.0, method="variation",
-                               scale_space=scale_space, tile=8.0, memory="64GiB")
+    out = clcurv.curvature_file(src, tmp_path / "out.npz", 1.0, method="variation",
+                                scale_space=scale_space, tile=8.0, memory="64GiB")
     assert out["tiled"] and out["tiles"] >= 9
     assert held_bytes(dev) == 0

@@ -11,7 +11,7 @@ import clcurv
 from clcurv import io
 from clcurv.tiles import engine as tiled
 from clcurv.io import stream
-from clcurv.tiles.features import features_file
+from clcurv.jobs.job import features_file
 
 R = 1.0
 RUN = dict(method="mls1", orient=None, memory="64GiB")
@@ -200,9 +200,9 @@ def test_tiles_equal_memory_and_the_finite_rows(tmp_path, scene, small_chunks, f
     ref_in = _finite_copy(src, tmp_path / f"finite.{fmt}", keep)
     ext = ".npz" if fmt == "npy" else ".ply"
     mem, til, ref = (tmp_path / f"{k}{ext}" for k in ("mem", "til", "ref"))
-    m = tiled.curvature_file(src, mem, R, **RUN)
-    t = tiled.curvature_file(src, til, R, tile=8.0, **RUN)
-    tiled.curvature_file(ref_in, ref, R, **RUN)
+    m = clcurv.curvature_file(src, mem, R, **RUN)
+    t = clcurv.curvature_file(src, til, R, tile=8.0, **RUN)
+    clcurv.curvature_file(ref_in, ref, R, **RUN)
     assert not m["tiled"] and t["tiled"]
     assert m["points"] == t["points"] == keep.sum()
     if where != "all":
@@ -230,7 +230,7 @@ def test_every_row_non_finite_gives_the_empty_output(tmp_path):
             for name, src, tile in (("e_mem", empty, None), ("e_til", empty, 8.0),
                                     ("b_mem", bad, None), ("b_til", bad, 8.0)):
                 outs[name] = tmp_path / f"{fmt}_{name}{ext}"
-                s = tiled.curvature_file(src, outs[name], R, tile=tile, **RUN)
+                s = clcurv.curvature_file(src, outs[name], R, tile=tile, **RUN)
                 assert s["points"] == 0
             for name in ("e_til", "b_mem", "b_til"):
                 _same_output(outs["e_mem"], outs[name])
@@ -260,11 +260,11 @@ def test_a_catalog_drops_each_files_rows(tmp_path, scene, small_chunks):
     assert len(kept[1]) == 0 and dropped == 512 + 1700 + 80
     whole = tmp_path / "whole.npy"
     np.save(whole, np.concatenate(kept))
-    tiled.curvature_file(whole, tmp_path / "whole.npz", R, **RUN)
+    clcurv.curvature_file(whole, tmp_path / "whole.npz", R, **RUN)
     ref = np.load(tmp_path / "whole.npz")
     out = tmp_path / "out"
     out.mkdir()
-    s = tiled.curvature_file(paths, out, R, tile=8.0, **RUN)
+    s = clcurv.curvature_file(paths, out, R, tile=8.0, **RUN)
     assert s["tiled"] and s["points"] == sum(len(k) for k in kept)
     if "dropped" in s:                              # once clcurv.tiles.engine reports it
         assert s["dropped"] == dropped

@@ -10,7 +10,8 @@ import clcurv
 from tests.hostile import assert_same_las, las_dims
 from clcurv.tiles import engine as tiled
 from clcurv.jobs import tiled_job
-from clcurv.io._common import CorruptFileError
+from clcurv.tiles import planning
+from clcurv.io.common import CorruptFileError
 from conftest import data_path
 
 laspy = pytest.importorskip("laspy")
@@ -69,10 +70,10 @@ _dims, _assert_same = las_dims, assert_same_las
 @pytest.mark.parametrize("method", clcurv.METHODS)
 def test_tiles_equal_the_in_memory_run_bit_for_bit(scene, method):
     d, paths, pts = scene
-    mem = tiled.curvature_file(paths["laz"], d / f"mem_{method}.laz", R, method=method,
-                               memory="64GiB")
-    til = tiled.curvature_file(paths["laz"], d / f"til_{method}.laz", R, method=method,
-                               tile=8.0, memory="64GiB")
+    mem = clcurv.curvature_file(paths["laz"], d / f"mem_{method}.laz", R, method=method,
+                                memory="64GiB")
+    til = clcurv.curvature_file(paths["laz"], d / f"til_{method}.laz", R, method=method,
+                                tile=8.0, memory="64GiB")
     assert not mem["tiled"] and til["tiled"] and til["tiles"] >= 20
     assert til["halo"] == tiled.halo_cells(method)
     _assert_same(d / f"mem_{method}.laz", d / f"til_{method}.laz")
@@ -88,9 +89,9 @@ def test_scale_space_tiles_equal_the_in_memory_run_bit_for_bit(scene, method):
     the smoothed cloud: the same bits as the in-memory pipeline, re-binnings included."""
     d, paths, pts = scene
     a, b = d / f"ss_mem_{method}.laz", d / f"ss_til_{method}.laz"
-    tiled.curvature_file(paths["laz"], a, R, method=method, scale_space=3, memory="64GiB")
-    til = tiled.curvature_file(paths["laz"], b, R, method=method, scale_space=3, tile=12.0,
-                               memory="64GiB")
+    clcurv.curvature_file(paths["laz"], a, R, method=method, scale_space=3, memory="64GiB")
+    til = clcurv.curvature_file(paths["laz"], b, R, method=method, scale_space=3, tile=12.0,
+                                memory="64GiB")
     assert til["tiled"] and til["tiles"] >= 9
     _assert_same(a, b)
 
@@ -153,9 +154,9 @@ def test_the_scale_space_case_re_bins(scene, tmp_path, monkeypatch):
         smoothed.append(cur)
         return out
 
-    monkeypatch.setattr(tiled_scale, "_apply", spy)     # (it keeps its box on the name)
-    til = tiled.curvature_file(path, tmp_path / "dome_out.las", R, method="variation",
-                               scale_space=5, tile=12.0, memory="64GiB")
+    monkeypatch.setattr(tiled_scale, "_apply", spy)
+    til = clcurv.curvature_file(path, tmp_path / "dome_out.las", R, method="variation",
+                                scale_space=5, tile=12.0, memory="64GiB")
     assert til["tiled"] and til["tiles"] >= 9
     assert til_rebins == mem_rebins
     assert len(smoothed) == 5
@@ -166,8 +167,8 @@ def test_the_scale_space_case_re_bins(scene, tmp_path, monkeypatch):
 def test_density_weights_and_las_output_tile_exactly(scene):
     d, paths, _ = scene
     for name, tile in (("mem", None), ("til", 6.0)):
-        tiled.curvature_file(paths["las"], d / f"{name}_dens.las", R, method="2dcov2",
-                             weights="density", tile=tile, memory="64GiB")
+        clcurv.curvature_file(paths["las"], d / f"{name}_dens.las", R, method="2dcov2",
+                              weights="density", tile=tile, memory="64GiB")
     assert tiled.halo_cells("2dcov2", "density") == 4
     _assert_same(d / "mem_dens.las", d / "til_dens.las")
 
@@ -179,8 +180,8 @@ def test_npy_with_normals_to_npz(tmp_path):
     np.save(src, arr)
     out = {}
     for name, tile in (("mem", None), ("til", 1.0)):
-        summary = tiled.curvature_file(src, tmp_path / f"{name}.npz", 0.15, method="3dcov",
-                                       tile=tile, memory="64GiB")
+        summary = clcurv.curvature_file(src, tmp_path / f"{name}.npz", 0.15, method="3dcov",
+                                        tile=tile, memory="64GiB")
         out[name] = np.load(tmp_path / f"{name}.npz")
     assert summary["halo"] == 1          # normals from the file: no PCA pass to feed
     assert sorted(out["mem"].files) == sorted(out["til"].files)
@@ -195,11 +196,11 @@ def test_a_halo_too_small_changes_the_results(scene, monkeypatch):
     """Negative control: with the halo forced to 0 cells (a distance halo of nothing), the
     tiles' border points lose neighbours and their values change."""
     d, paths, _ = scene
-    tiled.curvature_file(paths["laz"], d / "ref_var.laz", R, method="variation",
-                         memory="64GiB")
+    clcurv.curvature_file(paths["laz"], d / "ref_var.laz", R, method="variation",
+                          memory="64GiB")
     monkeypatch.setattr(tiled, "halo_cells", lambda *a, **k: 0)
-    tiled.curvature_file(paths["laz"], d / "bad_var.laz", R, method="variation", tile=8.0,
-                         memory="64GiB")
+    clcurv.curvature_file(paths["laz"], d / "bad_var.laz", R, method="variation", tile=8.0,
+                          memory="64GiB")
     _, a = _dims(d / "ref_var.laz")
     _, b = _dims(d / "bad_var.laz")
     changed = np.mean(a["neighbours"] != b["neighbours"])
@@ -217,8 +218,8 @@ def test_mst_orientation_across_tiles(tmp_path, shape):
     r = 0.12 if shape == "torus" else 0.08
     out = {}
     for name, tile in (("mem", None), ("til", 0.9)):
-        summary = tiled.curvature_file(src, tmp_path / f"{name}.npz", r, method="mls2",
-                                       tile=tile, memory="64GiB")
+        summary = clcurv.curvature_file(src, tmp_path / f"{name}.npz", r, method="mls2",
+                                        tile=tile, memory="64GiB")
         out[name] = np.load(tmp_path / f"{name}.npz")
     assert summary["tiles"] >= 8
     na, nb = out["mem"]["normals"], out["til"]["normals"]
@@ -253,8 +254,8 @@ def test_mst_normals_of_a_tile_are_aligned_as_in_memory(tmp_path, method, monkey
     monkeypatch.setattr(tiled_orient, "orient_tile", mixed)
     out = {}
     for name, tile in (("mem", None), ("til", 0.9)):
-        tiled.curvature_file(src, tmp_path / f"{name}.npz", 0.15, method=method,
-                             orient="mst", tile=tile, memory="64GiB")
+        clcurv.curvature_file(src, tmp_path / f"{name}.npz", 0.15, method=method,
+                              orient="mst", tile=tile, memory="64GiB")
         out[name] = np.load(tmp_path / f"{name}.npz")
     for f in ("k1", "k2"):
         a, b = out["mem"][f], out["til"][f]
@@ -272,13 +273,13 @@ def test_bad_input_fails_cleanly(scene, tmp_path):
     data = paths["laz"].read_bytes()
     cut.write_bytes(data[: len(data) * 2 // 3])
     with pytest.raises(CorruptFileError):
-        tiled.curvature_file(cut, out, R, method="variation", tile=8.0)
+        clcurv.curvature_file(cut, out, R, method="variation", tile=8.0)
     # a tile smaller than its halo
     with pytest.raises(tiled.TilingError, match="smaller than the halo"):
-        tiled.curvature_file(paths["laz"], out, R, method="3dcov", tile=1.5)
+        clcurv.curvature_file(paths["laz"], out, R, method="3dcov", tile=1.5)
     # a budget too small for one tile
     with pytest.raises(tiled.TilingError, match="too small for one tile"):
-        tiled.curvature_file(paths["laz"], out, R, method="variation", memory="200KB")
+        clcurv.curvature_file(paths["laz"], out, R, method="variation", memory="200KB")
     assert out.read_bytes() == b"previous result"        # never destroyed
     # no partial output, no temporary, no workspace left behind
     assert sorted(os.listdir(tmp_path)) == ["cut.laz", "out.laz"]
@@ -287,33 +288,33 @@ def test_bad_input_fails_cleanly(scene, tmp_path):
 def test_an_interrupted_run_resumes(scene, tmp_path):
     _, paths, _ = scene
     ref = tmp_path / "ref.laz"
-    tiled.curvature_file(paths["laz"], ref, R, method="mls1", memory="64GiB")
+    clcurv.curvature_file(paths["laz"], ref, R, method="mls1", memory="64GiB")
     out = tmp_path / "out.laz"
 
     def stop_after_5(done, total, points):
         if done == 5:
             raise KeyboardInterrupt
     with pytest.raises(KeyboardInterrupt):
-        tiled.curvature_file(paths["laz"], out, R, method="mls1", tile=8.0,
-                             progress=stop_after_5)
+        clcurv.curvature_file(paths["laz"], out, R, method="mls1", tile=8.0,
+                              progress=stop_after_5)
     assert not out.exists()
     ws = tiled.workspace(out, None)
     assert len(os.listdir(ws / "tiles")) == 5
-    summary = tiled.curvature_file(paths["laz"], out, R, method="mls1", tile=8.0)
+    summary = clcurv.curvature_file(paths["laz"], out, R, method="mls1", tile=8.0)
     assert summary["skipped"] == 5
     assert not ws.exists()                                 # cleaned at the end
     _assert_same(ref, out)
 
 
 def test_memory_budget_decides(tmp_path):
-    assert tiled.parse_memory("2GiB") == 2 << 30
-    assert tiled.parse_memory("500MB") == 500_000_000
-    assert tiled.parse_memory(4096) == 4096
+    assert planning.parse_memory("2GiB") == 2 << 30
+    assert planning.parse_memory("500MB") == 500_000_000
+    assert planning.parse_memory(4096) == 4096
     for bad in ("-1G", "lots", 0):
         with pytest.raises(ValueError):
-            tiled.parse_memory(bad)
-    assert tiled.fits_memory(1000, 10 ** 9)
-    assert not tiled.fits_memory(10 ** 9, 1 << 30)
+            planning.parse_memory(bad)
+    assert planning.fits_memory(1000, 10 ** 9)
+    assert not planning.fits_memory(10 ** 9, 1 << 30)
 
 
 def test_cli_tiles_equal_the_cli_in_memory(scene, tmp_path):
@@ -337,8 +338,8 @@ def test_dask_workers_equal_one_process_and_survive_a_killed_worker(scene, tmp_p
     distributed = pytest.importorskip("distributed")
     _, paths, _ = scene
     one, two, killed = (tmp_path / f"{k}.laz" for k in ("one", "two", "killed"))
-    tiled.curvature_file(paths["laz"], one, R, method="mls2", tile=8.0)
-    summary = tiled.curvature_file(paths["laz"], two, R, method="mls2", tile=8.0, workers=2)
+    clcurv.curvature_file(paths["laz"], one, R, method="mls2", tile=8.0)
+    summary = clcurv.curvature_file(paths["laz"], two, R, method="mls2", tile=8.0, workers=2)
     assert summary["tiled"] and summary["tiles"] >= 20
     assert one.read_bytes() == two.read_bytes()
 
@@ -354,8 +355,8 @@ def test_dask_workers_equal_one_process_and_survive_a_killed_worker(scene, tmp_p
             if done >= 3 and not state["killed"]:
                 state["killed"] = True
                 os.kill(victim, signal.SIGKILL)             # its nanny starts another
-        tiled.curvature_file(paths["laz"], killed, R, method="mls2", tile=8.0,
-                             client=client, progress=kill_once)
+        clcurv.curvature_file(paths["laz"], killed, R, method="mls2", tile=8.0,
+                              client=client, progress=kill_once)
     finally:
         client.close()
         cluster.close()
@@ -364,15 +365,15 @@ def test_dask_workers_equal_one_process_and_survive_a_killed_worker(scene, tmp_p
 
 
 def test_which_file_jobs_tile(scene):
-    from clcurv.jobs.job import Job
+    from clcurv.jobs.job import Job, wants_tiles
     _, paths, _ = scene
     small = Job(paths["laz"], "o.laz", radius=1.0)
-    assert not tiled_job.wants_tiles(small)                 # 30k points fit the default budget
-    assert tiled_job.wants_tiles(Job(paths["laz"], "o.laz", radius=1.0, memory="4MiB"))
-    assert tiled_job.wants_tiles(Job(paths["laz"], "o.laz", radius=1.0, tile_size=8.0))
-    assert not tiled_job.wants_tiles(Job(paths["laz"], "o.ply", radius=1.0, memory="4MiB",
-                                     positions="projected"))   # only in memory, and fits
-    assert tiled.budget_of("auto") <= tiled.AUTO_CAP
+    assert not wants_tiles(small)                           # 30k points fit the default budget
+    assert wants_tiles(Job(paths["laz"], "o.laz", radius=1.0, memory="4MiB"))
+    assert wants_tiles(Job(paths["laz"], "o.laz", radius=1.0, tile_size=8.0))
+    assert not wants_tiles(Job(paths["laz"], "o.ply", radius=1.0, memory="4MiB",
+                               positions="projected"))   # only in memory, and fits
+    assert planning.budget_of("auto") <= planning.AUTO_CAP
 
 
 def test_auto_radius_in_tiles_estimates_the_in_memory_one(scene):
@@ -409,8 +410,8 @@ def test_a_catalog_of_files_equals_one_file(scene, tmp_path):
     outdir = tmp_path / "out"
     outdir.mkdir()
     ref = tmp_path / "ref.las"
-    tiled.curvature_file(whole, ref, R, method="mls2", memory="64GiB")
-    summary = tiled.curvature_file(parts, outdir, R, method="mls2", tile=8.0)
+    clcurv.curvature_file(whole, ref, R, method="mls2", memory="64GiB")
+    summary = clcurv.curvature_file(parts, outdir, R, method="mls2", tile=8.0)
     assert summary["tiled"] and summary["points"] == len(pts)
     _, r = _dims(ref)
     start = 0
@@ -422,7 +423,7 @@ def test_a_catalog_of_files_equals_one_file(scene, tmp_path):
         start += m
     assert start == len(pts)
     with pytest.raises(tiled.TilingError, match="replace the input"):
-        tiled.curvature_file(parts, tmp_path, R, method="mls2", tile=8.0)
+        clcurv.curvature_file(parts, tmp_path, R, method="mls2", tile=8.0)
 
 
 def test_binary_ply_in_and_out_byte_for_byte(tmp_path):
@@ -430,14 +431,14 @@ def test_binary_ply_in_and_out_byte_for_byte(tmp_path):
     src = tmp_path / "t.ply"
     clcurv.io.write(src, s["points"], normals=s["normals"])        # binary PLY
     for name, tile in (("mem", None), ("til", 1.0)):
-        tiled.curvature_file(src, tmp_path / f"{name}.ply", 0.15, method="2dcov2",
-                             tile=tile, memory="64GiB")
+        clcurv.curvature_file(src, tmp_path / f"{name}.ply", 0.15, method="2dcov2",
+                              tile=tile, memory="64GiB")
     assert (tmp_path / "mem.ply").read_bytes() == (tmp_path / "til.ply").read_bytes()
     ascii_ply = tmp_path / "a.ply"
     ascii_ply.write_text("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\n"
                          "property float y\nproperty float z\nend_header\n0 0 0\n")
     with pytest.raises(clcurv.io.ReadError, match="binary PLY"):
-        tiled.curvature_file(ascii_ply, tmp_path / "o.ply", 0.1, tile=1.0)
+        clcurv.curvature_file(ascii_ply, tmp_path / "o.ply", 0.1, tile=1.0)
 
 
 AUTZEN = str(data_path("laspy_autzen_trim.laz"))      # shipped in tests/data too
@@ -448,7 +449,7 @@ def test_a_real_aerial_scan_tiles_exactly(tmp_path):
     """The Autzen LAZ (110k points, feet, radius 6 for ~30 neighbours), two scale-space
     steps then MLS2 in 100-ft tiles: the in-memory output, bit for bit."""
     a, b = tmp_path / "mem.laz", tmp_path / "til.laz"
-    tiled.curvature_file(AUTZEN, a, 6.0, method="mls2", scale_space=2, memory="64GiB")
-    s = tiled.curvature_file(AUTZEN, b, 6.0, method="mls2", scale_space=2, tile=100.0)
+    clcurv.curvature_file(AUTZEN, a, 6.0, method="mls2", scale_space=2, memory="64GiB")
+    s = clcurv.curvature_file(AUTZEN, b, 6.0, method="mls2", scale_space=2, tile=100.0)
     assert s["tiles"] >= 50
     _assert_same(a, b)

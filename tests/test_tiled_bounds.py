@@ -13,7 +13,7 @@ from clcurv.tiles import planning as tiling
 from clcurv.tiles.buckets import READ_CHUNK, Buckets, bucket_grid
 from clcurv.grid.binning import ExtentError
 from clcurv.io import stream
-from clcurv.tiles.features import features_file
+from clcurv.jobs.job import features_file
 from clcurv.tiles.planning import TilingError
 
 SURVEY = np.array([500000.0, 4000000.0, 100.0])       # a projected (UTM-like) survey

@@ -718,10 +718,9 @@ def test_the_worker_plugin_spreads_the_workers_over_the_gpus(monkeypatch, gpus, 
     """No device asked for: with several GPUs (a simulator is not one), the worker of rank
     k among its host's workers (by address) takes GPU k mod count; one GPU: the default."""
     pytest.importorskip("distributed")
-    import clcurv.runtime.device
     devs = [_Dev(0, "cpu"), _Dev(9, "gpu", simulator=True)] + \
         [_Dev(10 + g, "gpu") for g in range(gpus)]
-    monkeypatch.setattr(clcurv.runtime.device, "devices", lambda: devs)
+    monkeypatch.setattr(cluster, "devices", lambda: devs)
     monkeypatch.setattr(cluster, "usable_cores", lambda: 2)
     _clean_env(monkeypatch)
     for port, index in want.items():

@@ -49,7 +49,7 @@ def inputs(tmp_path_factory):
 def _run(src, dst, **kw):
     kw.setdefault("tile", TILE)
     kw.setdefault("method", "mls1")
-    return tiled.curvature_file(src, dst, R, **kw)
+    return clcurv.curvature_file(src, dst, R, **kw)
 
 
 def _same(a, b):
@@ -147,7 +147,7 @@ def test_the_api_refuses_to_write_a_mesh_over_itself(tmp_path):
     before = mesh.read_bytes()
     for kw in ({"tile": TILE}, {}):
         with pytest.raises(OutputPathError, match="faces"):
-            tiled.curvature_file(mesh, mesh, R, method="mls1", **kw)
+            clcurv.curvature_file(mesh, mesh, R, method="mls1", **kw)
     assert mesh.read_bytes() == before
     assert sorted(os.listdir(tmp_path)) == ["mesh.ply"]
 
@@ -306,7 +306,7 @@ _KILLER = textwrap.dedent("""
     import os, signal, sys
     sys.path.insert(0, {root!r})
     import clcurv
-    from clcurv.tiles import buckets, results as tile_results, engine as tiled, workspace
+    from clcurv.tiles import buckets, engine as tiled, results as tile_results, workspace
     stage, k = sys.argv[1], int(sys.argv[2])
     calls = [0]
 
@@ -341,7 +341,7 @@ _KILLER = textwrap.dedent("""
             tick()
             return out
         tile_results.Windows.rows = rows_then_kill
-    tiled.curvature_file(sys.argv[3], sys.argv[4], 1.0, method="mls1", tile=8.0)
+    clcurv.curvature_file(sys.argv[3], sys.argv[4], 1.0, method="mls1", tile=8.0)
     print("finished")
 """)
 
@@ -422,8 +422,8 @@ def test_two_catalogs_into_one_folder_have_their_own_workspaces(inputs, tmp_path
     ws_two = tiled.workspace([folder / "c.npz", folder / "e.npz"], None)
     assert ws_one != ws_two
     _interrupt(one, folder, after=3, outputs=[folder / "a.npz", folder / "b.npz"])
-    tiled.curvature_file(two, folder, R, method="mls1", tile=TILE)   # not poisoned
-    summary = tiled.curvature_file(one, folder, R, method="mls1", tile=TILE)
+    clcurv.curvature_file(two, folder, R, method="mls1", tile=TILE)   # not poisoned
+    summary = clcurv.curvature_file(one, folder, R, method="mls1", tile=TILE)
     assert summary["skipped"] == 3
     assert sorted(os.listdir(folder)) == ["a.npz", "b.npz", "c.npz", "e.npz"]
 
@@ -460,8 +460,8 @@ def test_options_fields_and_device_are_refused_before_any_point_is_read(inputs, 
 def test_an_empty_input_gives_an_empty_output_in_tiles_as_in_memory(tmp_path):
     hdr = laspy.LasHeader(point_format=3, version="1.2")
     laspy.LasData(hdr).write(str(tmp_path / "empty.las"))
-    a = tiled.curvature_file(tmp_path / "empty.las", tmp_path / "a.las", R)
-    b = tiled.curvature_file(tmp_path / "empty.las", tmp_path / "b.las", R, tile=TILE)
+    a = clcurv.curvature_file(tmp_path / "empty.las", tmp_path / "a.las", R)
+    b = clcurv.curvature_file(tmp_path / "empty.las", tmp_path / "b.las", R, tile=TILE)
     assert not a["tiled"] and b["tiled"] and a["points"] == b["points"] == 0
     _same(tmp_path / "a.las", tmp_path / "b.las")
 
@@ -472,11 +472,11 @@ def test_a_catalog_with_an_empty_file_writes_every_output(inputs, tmp_path):
     np.save(tmp_path / "empty.npy", np.empty((0, 3)))
     folder = tmp_path / "out"
     folder.mkdir()
-    tiled.curvature_file([str(tmp_path / "full.npy"), str(tmp_path / "empty.npy")], folder,
-                         R, method="mls1", orient=None)
+    clcurv.curvature_file([str(tmp_path / "full.npy"), str(tmp_path / "empty.npy")], folder,
+                          R, method="mls1", orient=None)
     ref = tmp_path / "ref.npz"
-    tiled.curvature_file(tmp_path / "full.npy", ref, R, method="mls1", tile=TILE,
-                         orient=None)
+    clcurv.curvature_file(tmp_path / "full.npy", ref, R, method="mls1", tile=TILE,
+                          orient=None)
     _same(folder / "full.npz", ref)
     with np.load(folder / "empty.npz") as z:
         assert all(len(z[k]) == 0 for k in z.files) and "mean_curvature" in z.files
@@ -486,8 +486,8 @@ def test_a_radius_too_small_warns_in_tiles_as_in_memory(inputs, tmp_path):
     d, _ = inputs
     for kw in ({}, {"tile": TILE}):
         with pytest.warns(RuntimeWarning, match="fewer than .* neighbours"):
-            tiled.curvature_file(d / "scene.laz", tmp_path / "x.laz", 0.01, method="mls1",
-                                 **kw)
+            clcurv.curvature_file(d / "scene.laz", tmp_path / "x.laz", 0.01, method="mls1",
+                                  **kw)
 
 
 def test_the_tiled_summary_says_status_only_when_known(inputs, tmp_path):

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import threading
+from concurrent.futures import ThreadPoolExecutor
 
 _POOL, _LOCK = None, threading.Lock()
 
@@ -23,7 +24,6 @@ def host_pool():
     global _POOL
     with _LOCK:
         if _POOL is None:
-            from concurrent.futures import ThreadPoolExecutor
             _POOL = ThreadPoolExecutor(max_workers=min(4, cores()),
                                        thread_name_prefix="clcurv-host")
     return _POOL

@@ -45,7 +45,7 @@ One module per format, reader and writer together, each documenting what it read
 writes: :mod:`~clcurv.io.ply`, :mod:`~clcurv.io.pcd`, :mod:`~clcurv.io.las` (LAS and LAZ),
 :mod:`~clcurv.io.text` (XYZ/TXT/CSV...), :mod:`~clcurv.io.npy` (NPY and NPZ). Each declares
 itself as ``FORMAT = Format(reads={ext: description}, read=..., writes={...}, write=...)``
-(:class:`clcurv.io._common.Format`); :data:`FORMATS` lists them, and the extension tables
+(:class:`clcurv.io.common.Format`); :data:`FORMATS` lists them, and the extension tables
 :data:`READ_FORMATS` and :data:`WRITE_FORMATS` are built from it. Adding a format is one
 module and one entry in :data:`FORMATS`.
 """
@@ -60,11 +60,11 @@ import warnings
 from pathlib import Path
 
 from . import carry, las, npy, pcd, ply, text
-from ._common import (Cloud, CorruptFileError, MissingDependencyError, MissingFileError,
-                      ReadError, UnknownFormatError, WriteError, _check_fields,
-                      _check_normals, _check_points)
+from .common import (Cloud, CorruptFileError, MissingDependencyError, MissingFileError,
+                     ReadError, UnknownFormatError, WriteError, check_fields,
+                     check_normals, check_points)
 from .las import LAZ_HINT  # noqa: F401  (kept importable from clcurv.io)
-from .pcd import _lzf_decompress_py, lzf_decompress  # noqa: F401
+from .pcd import lzf_decompress  # noqa: F401
 
 __all__ = ["Cloud", "read", "write", "check_output", "atomic_output", "lzf_decompress",
            "ReadError", "MissingFileError", "UnknownFormatError", "CorruptFileError",
@@ -235,14 +235,14 @@ def write(path, points, fields=None, normals=None, like=None):
     :mod:`clcurv.io.ply`, :mod:`clcurv.io.las`, :mod:`clcurv.io.text`, :mod:`clcurv.io.npy`.
     """
     path = check_output(path)
-    pts = _check_points(path, points)
-    normals = _check_normals(path, normals, len(pts))
-    fields = _check_fields(path, fields, len(pts))
+    pts = check_points(path, points)
+    normals = check_normals(path, normals, len(pts))
+    fields = check_fields(path, fields, len(pts))
     kind = _CARRIES[path.suffix.lower()]
     carried = {}
     if kind is not None:
         carried, normals = carry.from_like(path, like, len(pts), fields, normals, kind)
-        normals = _check_normals(path, normals, len(pts))
+        normals = check_normals(path, normals, len(pts))
     with atomic_output(path) as tmp, warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         _WRITERS[path.suffix.lower()][1](tmp, pts, fields, normals, like, carried)

@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._common import _RESERVED, Cloud, WriteError
+from .common import RESERVED, Cloud, WriteError
 
 #: output kinds of :func:`plan`: PLY, text (CSV/TXT/XYZ), NPZ, and LAS/LAZ extra bytes (from
 #: an input of another format: clcurv.io.las)
@@ -95,7 +95,7 @@ def _safe_name(name, kind, reserved):
     if not (out[0].isalpha() or out[0] == "_"):
         out = "_" + out
     limit = _NAME_LIMIT.get(kind)
-    if out.lower() in _RESERVED or out.lower() in reserved:
+    if out.lower() in RESERVED or out.lower() in reserved:
         return _fit(out, "_input", limit)
     return _fit(out, "", limit)
 

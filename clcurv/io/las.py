@@ -60,7 +60,7 @@ the precision kept; PLY and NPZ keep float64).
 
 Each field is added as an extra-bytes dimension (float32, or its integer type; names of at
 most 32 characters) through ``laspy.ExtraBytesParams``, described ``clcurv``. A field named
-like a dimension of a LAS ``like`` (:func:`_extra_dims`):
+like a dimension of a LAS ``like`` (:func:`extra_dims`):
 
 * an extra-bytes dimension (e.g. ``mean_curvature`` stored by another tool as a scaled
   integer, an array, another type): *replaced* by the field's own dimension (float32 or its
@@ -87,17 +87,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._common import (Cloud, CorruptFileError, Format, MissingDependencyError, WriteError,
-                      _int_as, _native, _split_named)
+from . import carry
+from .common import (CorruptFileError, Format, MissingDependencyError, WriteError,
+                     find_triple, int_as, native, split_names, split_named)
 
 LAZ_HINT = 'pip install "laspy[lazrs]"'
 _INTS = [np.dtype(t) for t in ("u1", "i1", "u2", "i2", "u4", "i4", "u8", "i8")]
 
 
-def _import_laspy(path, laz):
+def import_laspy(path, laz):
     hint = LAZ_HINT if laz else 'pip install laspy (or "laspy[lazrs]" for LAZ)'
     try:
-        import laspy
+        import laspy        # here: LAS/LAZ only need it, and LAZ one of its backends
     except ImportError:
         raise MissingDependencyError(f"{path}: LAS/LAZ needs the laspy package: {hint}"
                                      ) from None
@@ -107,7 +108,7 @@ def _import_laspy(path, laz):
     return laspy
 
 
-def _is_laz(path):
+def is_laz(path):
     return path.suffix.lower() == ".laz"
 
 
@@ -129,7 +130,7 @@ _LAZ_TRUSTED_RATIO = 64
 
 @dataclass(frozen=True)
 class _Layout:
-    """What the public header block says, checked against the file size by :func:`_layout`."""
+    """What the public header block says, checked against the file size by :func:`read_layout`."""
 
     size: int
     version: str
@@ -140,7 +141,7 @@ class _Layout:
     count: int
 
 
-def _layout(path):
+def read_layout(path):
     """Parse and check the header, the (E)VLR headers and, for LAS, the point data's size.
 
     Raises CorruptFileError naming the claimed value and what the file holds, before laspy
@@ -297,7 +298,7 @@ def _read_points(laspy, path, layout):
     """The LasData of ``path``, decoded in bounded steps and exactly ``layout.count`` points.
 
     The records array is allocated for the header's count when the file can hold it (LAS,
-    checked by :func:`_layout`), else (LAZ) for at most :data:`_LAZ_TRUSTED_RATIO` times the
+    checked by :func:`read_layout`), else (LAZ) for at most :data:`_LAZ_TRUSTED_RATIO` times the
     file size and grown as decoded points arrive; data ending early is a CorruptFileError.
     """
     count, rec = layout.count, layout.record_length
@@ -360,8 +361,8 @@ def _decodable(laspy, path, start, stop):
 
 
 def read(path):
-    layout = _layout(path)
-    laspy = _import_laspy(path, layout.compressed)
+    layout = read_layout(path)
+    laspy = import_laspy(path, layout.compressed)
     try:
         las = _read_points(laspy, path, layout)
     except laspy.LaspyException as exc:
@@ -372,10 +373,10 @@ def read(path):
     points = np.column_stack([np.asarray(las.x, dtype=np.float64),
                               np.asarray(las.y, dtype=np.float64),
                               np.asarray(las.z, dtype=np.float64)])
-    columns = {n: _native(np.asarray(las[n])) for n in las.point_format.dimension_names
+    columns = {n: native(np.asarray(las[n])) for n in las.point_format.dimension_names
                if n not in ("X", "Y", "Z")}
-    return _split_named(path, "laz" if layout.compressed else "las", columns, las.header,
-                        points=points)
+    return split_named(path, "laz" if layout.compressed else "las", columns, las.header,
+                       points=points)
 
 
 # --------------------------------------------------------------------------- write
@@ -478,7 +479,6 @@ _RGB = ("red", "green", "blue")
 def _rgb(attributes):
     """The names of an integer red, green, blue triple of 8- or 16-bit unsigned values in
     ``attributes`` (case-insensitive), or None."""
-    from ._common import find_triple
     found = find_triple(list(attributes), _RGB)
     if found is None:
         return None
@@ -493,8 +493,7 @@ def carried_plan(path, like, fields):
     attributes as extra bytes). An 8- or 16-bit red, green, blue triple fills the RGB of
     point format 7 (8-bit values times 257); an attribute named like a dimension of the
     point format takes the suffix ``_input``."""
-    from . import carry
-    import laspy
+    import laspy            # here: laspy is needed for LAS/LAZ only (import_laspy)
     rgb = _rgb(like.attributes)
     fmt = 7 if rgb else 6
     rest = {k: v for k, v in like.attributes.items() if not rgb or k not in rgb}
@@ -523,7 +522,7 @@ def output_header(header):
     """A copy of the input's LAS header for an output: every VLR and EVLR kept except COPC's
     (user id ``copc``: the octree of a COPC input, which the output does not have) and any
     other record laspy cannot write. The output is a plain LAS/LAZ, never COPC."""
-    from laspy.vlrs.vlrlist import VLRList
+    from laspy.vlrs.vlrlist import VLRList      # here: laspy for LAS/LAZ only
     out = copy.deepcopy(header)
     out.vlrs = VLRList([v for v in out.vlrs if _writable(v)])
     if out.evlrs is not None:
@@ -534,7 +533,6 @@ def output_header(header):
 def _target_header(laspy, path, pts, like, fields):
     """(header, attributes to copy, their extra-bytes dtypes, normals to use when none are
     given) for the output."""
-    from . import carry
     carry.check_like(path, like, len(pts))
     if like is None:
         return _fresh_header(laspy, path, pts), {}, {}, None
@@ -582,7 +580,7 @@ def _field_dtype(path, name, a, dtypes=None):
     a = np.asarray(a)
     if a.dtype.kind == "f":
         return np.dtype("f4"), "clcurv"
-    return _int_as(path, name, a, _INTS), "clcurv"
+    return int_as(path, name, a, _INTS), "clcurv"
 
 
 def _holds_as_is(info, dt):
@@ -592,7 +590,7 @@ def _holds_as_is(info, dt):
             and info.dtype is not None and np.dtype(info.dtype) == dt)
 
 
-def _extra_dims(laspy, path, columns, header, dtypes=None):
+def extra_dims(laspy, path, columns, header, dtypes=None):
     """Make ``header`` (the output's, modified in place) hold the columns; returns the names
     of the extra-bytes dimensions created for them, whose raw values are the values.
 
@@ -656,7 +654,7 @@ def check_fits(path, point_format, name, a):
                          "rename the field, or write another format")
 
 
-def _is_bitfield(point_format, name):
+def is_bitfield(point_format, name):
     return getattr(point_format.dimension_by_name(name).kind, "name", "") == "BitField"
 
 
@@ -668,7 +666,7 @@ def _store(laspy, path, las, header, values):
     try:
         for name, a in values.items():
             if name in las.point_format.dimension_names:
-                las[name] = np.asarray(a).astype(np.int64) if _is_bitfield(
+                las[name] = np.asarray(a).astype(np.int64) if is_bitfield(
                     las.point_format, name) else a
     except (ValueError, OverflowError, laspy.LaspyException) as exc:
         raise WriteError(f"{path}: cannot store field {name!r} in LAS point format "
@@ -677,13 +675,12 @@ def _store(laspy, path, las, header, values):
 
 def _normal_names(header):
     """The names of the normal triple of a LAS header's dimensions (as clcurv.io.read)."""
-    from ._common import split_names
     dims = [n for n in header.point_format.dimension_names if n not in ("X", "Y", "Z")]
     return split_names(dims, xyz=False)[1]
 
 
 def write(path, pts, fields, normals, like, carried):
-    laspy = _import_laspy(path, _is_laz(path))
+    laspy = import_laspy(path, is_laz(path))
     if not np.isfinite(pts).all():
         raise WriteError(f"{path}: LAS cannot store NaN/Inf coordinates "
                          f"({int((~np.isfinite(pts).all(axis=1)).sum())} rows)")
@@ -703,7 +700,7 @@ def write(path, pts, fields, normals, like, carried):
         columns = {"nx": nrm[:, 0], "ny": nrm[:, 1], "nz": nrm[:, 2], **columns}
     if dtypes:                      # carried from a non-LAS like: extra bytes, first
         columns = {**{k: keep[k] for k in dtypes}, **columns}
-    _extra_dims(laspy, path, columns, header, dtypes)
+    extra_dims(laspy, path, columns, header, dtypes)
     las = laspy.LasData(header, points=laspy.ScaleAwarePointRecord.zeros(len(pts),
                                                                           header=header))
     las.X, las.Y, las.Z = (ints[:, i].astype(np.int32) for i in range(3))

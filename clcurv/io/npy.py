@@ -25,8 +25,8 @@ import zipfile
 
 import numpy as np
 
-from ._common import (CorruptFileError, Format, WriteError, _check_claim, _finish,
-                      _split_named, _split_positional, _struct_columns)
+from .common import (CorruptFileError, Format, WriteError, check_claim, finish,
+                     split_named, split_positional, struct_columns)
 
 
 # --------------------------------------------------------------------------- read
@@ -45,7 +45,7 @@ def _npy_header(fp):
     return shape, dtype
 
 
-def _check_npy(path, fp, have, what="NPY"):
+def check_npy(path, fp, have, what="NPY"):
     """CorruptFileError unless the ``have`` bytes after the NPY header at ``fp`` hold the
     array its header claims (checked before NumPy allocates the array from the shape)."""
     shape, dtype = _npy_header(fp)
@@ -56,22 +56,22 @@ def _check_npy(path, fp, have, what="NPY"):
     if any(d < 0 for d in shape) or (count and not dtype.itemsize):
         raise CorruptFileError(f"{path}: the header claims {claim}, which is not an array "
                                "(negative dimension or zero-byte items)")
-    _check_claim(path, claim, count * dtype.itemsize, have - fp.tell())
+    check_claim(path, claim, count * dtype.itemsize, have - fp.tell())
 
 
 def _read_npy(path):
     with open(path, "rb") as fp:
-        _check_npy(path, fp, path.stat().st_size)
+        check_npy(path, fp, path.stat().st_size)
     a = np.load(path, allow_pickle=False)
     if a.dtype.names:
         if a.ndim != 1:
             raise CorruptFileError(f"{path}: expected a 1-D structured array, got shape "
                                    f"{a.shape}")
-        return _split_named(path, "npy", _struct_columns(a))
+        return split_named(path, "npy", struct_columns(a))
     if a.dtype.kind not in "fiu" or a.ndim != 2 or a.shape[1] < 3:
         raise CorruptFileError(f"{path}: expected an (N, 3) or (N, >=3) numeric array, got "
                                f"shape {a.shape} dtype {a.dtype}")
-    return _split_positional(path, "npy", a.astype(np.float64))
+    return split_positional(path, "npy", a.astype(np.float64))
 
 
 def _check_member(path, zf, info, size):
@@ -82,13 +82,13 @@ def _check_member(path, zf, info, size):
     if ratio is None:
         raise CorruptFileError(f"{path}: member {name!r} uses zip compression method "
                                f"{info.compress_type}; NPZ members are stored or deflated")
-    _check_claim(path, f"member {name!r} of {info.compress_size} compressed bytes",
-                 info.compress_size, size, exact=False)
-    _check_claim(path, f"member {name!r} of {info.file_size} bytes ({ratio}:1 at most)",
-                 -(-info.file_size // ratio), info.compress_size, exact=False)
+    check_claim(path, f"member {name!r} of {info.compress_size} compressed bytes",
+                info.compress_size, size, exact=False)
+    check_claim(path, f"member {name!r} of {info.file_size} bytes ({ratio}:1 at most)",
+                -(-info.file_size // ratio), info.compress_size, exact=False)
     if name.endswith(".npy"):
         with zf.open(info) as fp:
-            _check_npy(path, fp, info.file_size, what=f"member {name!r} of")
+            check_npy(path, fp, info.file_size, what=f"member {name!r} of")
 
 
 def _check_npz(path):
@@ -114,7 +114,7 @@ def _read_npz(path):
                                f"{(n, 3)}")
     attributes = {k: v for k, v in arrays.items() if v.ndim >= 1 and len(v) == n}
     extra = {k: v for k, v in arrays.items() if k not in attributes}
-    return _finish(path, "npz", pts, normals, attributes, extra or None)
+    return finish(path, "npz", pts, normals, attributes, extra or None)
 
 
 def read(path):

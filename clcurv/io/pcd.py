@@ -22,8 +22,8 @@ import struct
 
 import numpy as np
 
-from ._common import (CorruptFileError, Format, _check_claim, _native, _quiet, _split_named,
-                      _struct_columns)
+from .common import (CorruptFileError, Format, check_claim, native, quiet, split_named,
+                     struct_columns)
 
 _TYPES = {("F", 4): "<f4", ("F", 8): "<f8", ("U", 1): "u1", ("U", 2): "<u2",
           ("U", 4): "<u4", ("U", 8): "<u8", ("I", 1): "i1", ("I", 2): "<i2",
@@ -139,7 +139,7 @@ def _ascii_columns(raw, pos, h, specs, dtype, path):
     packed = {n for n, f, s, c in zip(h["_names"], h["fields"], h["size"], h["count"])
               if f in ("rgb", "rgba") and s == 4 and c == 1}
     text_dtype = np.dtype([(n, "f8") if n in packed else (n, dtype[n]) for n in dtype.names])
-    with _quiet():  # loadtxt warns on an empty body
+    with quiet():  # loadtxt warns on an empty body
         text = raw[pos:].decode("ascii", errors="replace")  # '#' comments may be latin-1
         rows = np.loadtxt(io.StringIO(text), dtype=text_dtype,
                           comments="#", ndmin=1, max_rows=npts)
@@ -152,13 +152,13 @@ def _ascii_columns(raw, pos, h, specs, dtype, path):
         raise CorruptFileError(f"{path}: the ascii PCD data ends inside its last line "
                                "(truncated?): the last point may be cut short; if "
                                "the file is whole, end it with a newline")
-    return {n: _ascii_packed_color(rows[n]) if n in packed else _native(rows[n])
+    return {n: _ascii_packed_color(rows[n]) if n in packed else native(rows[n])
             for n, _, _ in specs}
 
 
 def _binary_columns(raw, pos, h, specs, dtype, path):
     npts = h["points"]
-    return _struct_columns(np.frombuffer(raw, dtype=dtype, count=npts, offset=pos))
+    return struct_columns(np.frombuffer(raw, dtype=dtype, count=npts, offset=pos))
 
 
 def _lzf_payload(raw, pos, npts, itemsize, path):
@@ -171,9 +171,9 @@ def _lzf_payload(raw, pos, npts, itemsize, path):
         raise CorruptFileError(f"{path}: binary_compressed PCD uncompressed size {usize} != "
                                f"{need} expected for POINTS {npts} of {itemsize} bytes")
     comp = raw[pos + 8:pos + 8 + csize]
-    _check_claim(path, f"{csize} bytes of LZF data", csize, len(comp))
-    _check_claim(path, f"POINTS {npts} = {usize} bytes compressed by LZF (at most "
-                 f"{LZF_MAX_RATIO}:1)", -(-usize // LZF_MAX_RATIO), csize, exact=False)
+    check_claim(path, f"{csize} bytes of LZF data", csize, len(comp))
+    check_claim(path, f"POINTS {npts} = {usize} bytes compressed by LZF (at most "
+                f"{LZF_MAX_RATIO}:1)", -(-usize // LZF_MAX_RATIO), csize, exact=False)
     try:
         return lzf_decompress(comp, usize)
     except ValueError as exc:
@@ -188,7 +188,7 @@ def _compressed_columns(raw, pos, h, specs, dtype, path):
     out, off = {}, 0
     for n, t, c in specs:
         dt = np.dtype(t) if c == 1 else np.dtype((t, (c,)))
-        out[n] = _native(np.frombuffer(buf, dtype=dt, count=npts, offset=off))
+        out[n] = native(np.frombuffer(buf, dtype=dt, count=npts, offset=off))
         off += npts * dt.itemsize
     return out
 
@@ -207,15 +207,15 @@ def _check_body(raw, pos, h, path):
     point = (f"POINTS {npts} of {itemsize} bytes (SIZE {' '.join(map(str, h['size']))} x "
              f"COUNT {' '.join(map(str, h['count']))})")
     if h["data"] == "ascii":
-        _check_claim(path, f"POINTS {npts} of {values} values (COUNT "
-                     f"{' '.join(map(str, h['count']))})", 2 * npts * values - 1, have,
-                     exact=False)
+        check_claim(path, f"POINTS {npts} of {values} values (COUNT "
+                    f"{' '.join(map(str, h['count']))})", 2 * npts * values - 1, have,
+                    exact=False)
     elif h["data"] == "binary":
-        _check_claim(path, point, npts * itemsize, have)
+        check_claim(path, point, npts * itemsize, have)
     else:
-        _check_claim(path, f"{point} = {npts * itemsize} bytes compressed by LZF (at most "
-                     f"{LZF_MAX_RATIO}:1)", 8 + -(-npts * itemsize // LZF_MAX_RATIO), have,
-                     exact=False)
+        check_claim(path, f"{point} = {npts * itemsize} bytes compressed by LZF (at most "
+                    f"{LZF_MAX_RATIO}:1)", 8 + -(-npts * itemsize // LZF_MAX_RATIO), have,
+                    exact=False)
 
 
 def _columns(raw, pos, h, path):
@@ -252,7 +252,7 @@ def read(path):
             continue
         columns[name] = a
     header = {k: v for k, v in h.items() if not k.startswith("_")}
-    return _split_named(path, "pcd", columns, header)
+    return split_named(path, "pcd", columns, header)
 
 
 # --------------------------------------------------------------------------- LZF
@@ -286,9 +286,9 @@ def lzf_decompress(data, size):
             raise ValueError(f"{len(data)} compressed bytes for an empty output")
         return b""
     try:
-        import lzf
+        import lzf          # optional (python-lzf): the pure-Python decoder without it
     except ImportError:
-        return _lzf_decompress_py(data, size)
+        return lzf_decompress_py(data, size)
     out = lzf.decompress(bytes(data), size)
     if out is None or len(out) != size:
         raise ValueError(f"LZF data does not decompress to {size} bytes")
@@ -302,7 +302,7 @@ def _check_expansion(data, size):
                          f"(LZF expands {LZF_MAX_RATIO}:1 at most)")
 
 
-def _lzf_decompress_py(data, size):
+def lzf_decompress_py(data, size):
     """Pure-Python LZF decoder (see :func:`lzf_decompress`)."""
     _check_expansion(data, size)
     src = bytes(data)

@@ -5,7 +5,7 @@ Reading
 Only the ``vertex`` element is read; other elements (faces, range grids, triangle strips)
 are skipped and list properties of the vertex are ignored, but their rows must be in the
 file: a file cut anywhere is a CorruptFileError, never a cloud read as whole (binary rows
-after the vertices are measured, :func:`_check_binary_rest`). ``x y z`` are the points,
+after the vertices are measured, :func:`check_binary_rest`). ``x y z`` are the points,
 ``nx ny nz`` or ``normal_x normal_y normal_z`` (case-insensitive) the normals, every other
 scalar property an attribute in its file dtype. ``Cloud.header`` is a dict: ``format``,
 ``elements`` (name -> count), ``comments`` and ``obj_info``.
@@ -31,24 +31,25 @@ import io
 import re
 
 import numpy as np
+import plyfile
 
-from ._common import (CorruptFileError, Format, _check_claim, _int_as, _quiet, _split_named,
-                      _struct_columns)
+from .common import (CorruptFileError, Format, check_claim, int_as, quiet, split_named,
+                     struct_columns)
 
-_TYPES = {"char": "i1", "uchar": "u1", "int8": "i1", "uint8": "u1", "short": "i2",
-          "ushort": "u2", "int16": "i2", "uint16": "u2", "int": "i4", "uint": "u4",
-          "int32": "i4", "uint32": "u4", "float": "f4", "float32": "f4",
-          "double": "f8", "float64": "f8"}
+TYPES = {"char": "i1", "uchar": "u1", "int8": "i1", "uint8": "u1", "short": "i2",
+         "ushort": "u2", "int16": "i2", "uint16": "u2", "int": "i4", "uint": "u4",
+         "int32": "i4", "uint32": "u4", "float": "f4", "float32": "f4",
+         "double": "f8", "float64": "f8"}
 _INTS = [np.dtype(t) for t in ("i1", "u1", "i2", "u2", "i4", "u4")]
 #: bytes of each type name plyfile accepts (its aliases i1 ... f8 included)
-_SIZES = {**{name: np.dtype(t).itemsize for name, t in _TYPES.items()},
+_SIZES = {**{name: np.dtype(t).itemsize for name, t in TYPES.items()},
           **{t: np.dtype(t).itemsize for t in ("i1", "u1", "i2", "u2", "i4", "u4", "f4",
                                                 "f8")}}
 
 
 # --------------------------------------------------------------------------- read
 
-def _parse_header(raw, path):
+def parse_header(raw, path):
     """Parse a PLY header: (format, preamble lines, [[name, count, lines]], body offset)."""
     m = re.search(rb"end_header[ \t]*\r?\n", raw[:1 << 20])
     if not raw.startswith(b"ply") or m is None:
@@ -99,8 +100,8 @@ def _check_elements(path, fmt, elements, have):
     bytes after the header (checked before plyfile allocates every element)."""
     need = sum(count * _min_row_bytes(block, fmt) for _, count, block in elements)
     claim = "elements " + ", ".join(f"{name} {count}" for name, count, _ in elements)
-    _check_claim(path, claim, need - 1 if fmt == "ascii" and need else need, have,
-                 exact=False)
+    check_claim(path, claim, need - 1 if fmt == "ascii" and need else need, have,
+                exact=False)
 
 
 def _ascii_header(raw, start):
@@ -121,16 +122,16 @@ def _preamble_values(preamble, keyword):
 def _binary_vertices(raw, start, n, props, fmt, path, later=()):
     """The vertex rows of a binary PLY whose first element is the vertex element with
     scalar properties; ``later``: the elements after it ([name, count, header lines]), whose
-    rows must be in the file too (:func:`_check_binary_rest`)."""
+    rows must be in the file too (:func:`check_binary_rest`)."""
     order = "<" if fmt == "binary_little_endian" else ">"
-    dtype = np.dtype([(p[2], order + _TYPES[p[1]]) for p in props])
-    _check_claim(path, f"{n} vertices of {dtype.itemsize} bytes", n * dtype.itemsize,
-                 len(raw) - start)
-    _check_binary_rest(path, raw, start, start + n * dtype.itemsize, later, order)
-    return _struct_columns(np.frombuffer(raw, dtype=dtype, count=n, offset=start))
+    dtype = np.dtype([(p[2], order + TYPES[p[1]]) for p in props])
+    check_claim(path, f"{n} vertices of {dtype.itemsize} bytes", n * dtype.itemsize,
+                len(raw) - start)
+    check_binary_rest(path, raw, start, start + n * dtype.itemsize, later, order)
+    return struct_columns(np.frombuffer(raw, dtype=dtype, count=n, offset=start))
 
 
-def _check_binary_rest(path, raw, start, at, elements, order, whole=True):
+def check_binary_rest(path, raw, start, at, elements, order, whole=True):
     """CorruptFileError unless the binary rows of ``elements`` fit in ``raw`` from byte
     ``at``: a file cut inside its faces read as whole before. A row of scalars has a fixed
     size; a row with one list (faces: ``list uchar int vertex_indices``) is measured when
@@ -144,18 +145,18 @@ def _check_binary_rest(path, raw, start, at, elements, order, whole=True):
         if not count:
             continue
         if any(len(p) != (5 if p[1:2] == ["list"] else 3) for p in props) or len(lists) > 1 \
-                or any(t not in _TYPES for p in props for t in
+                or any(t not in TYPES for p in props for t in
                        (p[2:4] if p[1:2] == ["list"] else p[1:2])):
             return _check_by_plyfile(path, raw, start) if whole else None
-        sizes = [np.dtype(_TYPES[p[1]]).itemsize for p in props if p[1:2] != ["list"]]
+        sizes = [np.dtype(TYPES[p[1]]).itemsize for p in props if p[1:2] != ["list"]]
         exact = True
         if not lists:
             need = count * sum(sizes)
         else:
             i = lists[0]
-            head = sum(np.dtype(_TYPES[p[1]]).itemsize for p in props[:i])
-            ctype = np.dtype(order + _TYPES[props[i][2]])
-            item = np.dtype(_TYPES[props[i][3]]).itemsize
+            head = sum(np.dtype(TYPES[p[1]]).itemsize for p in props[:i])
+            ctype = np.dtype(order + TYPES[props[i][2]])
+            item = np.dtype(TYPES[props[i][3]]).itemsize
             exact = at + head + ctype.itemsize <= len(raw)
             if not exact:
                 need = head + ctype.itemsize         # not even the first length is there
@@ -169,16 +170,15 @@ def _check_binary_rest(path, raw, start, at, elements, order, whole=True):
                 if not (lens == first).all():
                     return _check_by_plyfile(path, raw, start) if whole else None
                 need = count * row
-        _check_claim(path, f"elements {name} {count} (after the vertices)", need,
-                     len(raw) - at, exact=exact)
+        check_claim(path, f"elements {name} {count} (after the vertices)", need,
+                    len(raw) - at, exact=exact)
         at += need
 
 
 def _check_by_plyfile(path, raw, start):
     """Read the whole file with plyfile, which raises on rows missing from it."""
-    import plyfile
     try:
-        with _quiet():
+        with quiet():
             plyfile.PlyData.read(io.BytesIO(_ascii_header(raw, start)))
     except Exception as exc:  # noqa: BLE001 - plyfile's errors for a short file vary
         raise CorruptFileError(f"{path}: the rows after the vertices cannot be read "
@@ -187,18 +187,18 @@ def _check_by_plyfile(path, raw, start):
 
 def _ascii_vertices(raw, start, n, props, path, later=0):
     """One vertex per line (``later``: the rows of the elements after the vertices)."""
-    dtype = np.dtype([(p[2], _TYPES[p[1]]) for p in props])
+    dtype = np.dtype([(p[2], TYPES[p[1]]) for p in props])
     # each value takes a digit and a separator: bound the rows before loadtxt allocates them
-    _check_claim(path, f"{n} vertices of {len(props)} values", 2 * n * len(props) - 1,
-                 len(raw) - start, exact=False)
+    check_claim(path, f"{n} vertices of {len(props)} values", 2 * n * len(props) - 1,
+                len(raw) - start, exact=False)
     _check_ascii_lines(path, raw, start, n, later)
-    with _quiet():  # loadtxt warns on an empty body
+    with quiet():  # loadtxt warns on an empty body
         v = np.loadtxt(io.StringIO(raw[start:].decode("ascii", errors="replace")),
                        dtype=dtype, ndmin=1, max_rows=n, comments=None)
     if len(v) != n:
         raise CorruptFileError(f"{path}: PLY header says {n} vertices but the ascii data "
                                f"has {len(v)} lines")
-    return _struct_columns(v)
+    return struct_columns(v)
 
 
 def _check_ascii_lines(path, raw, start, n, later):
@@ -222,8 +222,7 @@ def _check_ascii_lines(path, raw, start, n, later):
 
 def _vertex_columns(raw, path):
     """Columns of the PLY vertex element and the header dict (see the module docstring)."""
-    import plyfile
-    fmt, preamble, elements, start = _parse_header(raw, path)
+    fmt, preamble, elements, start = parse_header(raw, path)
     counts = {e[0]: e[1] for e in elements}
     header = {"format": fmt, "elements": counts,
               "comments": _preamble_values(preamble, "comment"),
@@ -234,26 +233,26 @@ def _vertex_columns(raw, path):
     _, n, block = elements[0]
     props = [ln.split() for ln in block[1:]]
     simple = elements[0][0] == "vertex" and all(
-        len(p) == 3 and p[1] in _TYPES for p in props)
+        len(p) == 3 and p[1] in TYPES for p in props)
     if simple and fmt != "ascii":
         return _binary_vertices(raw, start, n, props, fmt, path, elements[1:]), header
     if simple:
         return _ascii_vertices(raw, start, n, props, path,
                                sum(e[1] for e in elements[1:])), header
     _check_elements(path, fmt, elements, len(raw) - start)
-    with _quiet():  # plyfile warns on empty ascii elements
+    with quiet():  # plyfile warns on empty ascii elements
         ply = plyfile.PlyData.read(io.BytesIO(_ascii_header(raw, start)))
-    return _struct_columns(ply["vertex"].data), header
+    return struct_columns(ply["vertex"].data), header
 
 
 def read(path):
     columns, header = _vertex_columns(path.read_bytes(), path)
-    return _split_named(path, "ply", columns, header)
+    return split_named(path, "ply", columns, header)
 
 
 # --------------------------------------------------------------------------- write
 
-def _vertex_dtype(path, fields, with_normals, carried=None):
+def vertex_dtype(path, fields, with_normals, carried=None):
     """The vertex record: x y z double, nx ny nz float, the carried attributes in their
     dtype (clcurv.io.carry), the fields (float, or their integer type)."""
     spec = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
@@ -261,14 +260,13 @@ def _vertex_dtype(path, fields, with_normals, carried=None):
         spec += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
     spec += [(name, np.dtype(a.dtype).newbyteorder("<")) for name, a in (carried or {}).items()]
     for name, a in fields.items():
-        dt = np.dtype("<f4") if a.dtype.kind == "f" else _int_as(path, name, a, _INTS)
+        dt = np.dtype("<f4") if a.dtype.kind == "f" else int_as(path, name, a, _INTS)
         spec.append((name, dt.newbyteorder("<")))
     return spec
 
 
 def write(path, pts, fields, normals, like, carried):
-    import plyfile
-    rec = np.empty(len(pts), dtype=_vertex_dtype(path, fields, normals is not None, carried))
+    rec = np.empty(len(pts), dtype=vertex_dtype(path, fields, normals is not None, carried))
     rec["x"], rec["y"], rec["z"] = pts.T
     if normals is not None:
         rec["nx"], rec["ny"], rec["nz"] = np.asarray(normals, dtype=np.float64).T

@@ -34,13 +34,17 @@ the records of a range of points, and write them chunk by chunk, in input order.
 """
 from __future__ import annotations
 
+import mmap
+import zipfile
 from pathlib import Path
 
 import numpy as np
+import plyfile
 
-from ._common import (CorruptFileError, UnknownFormatError, _looks_like_normals, _native,
-                      split_names)
-from .carry import specs_of as carry_specs
+from . import carry, las, ply
+from .common import (CorruptFileError, MissingFileError, UnknownFormatError, check_claim,
+                     looks_like_normals, native, split_names)
+from .npy import check_npy
 
 #: formats a tiled run reads and writes
 STREAM_READS = (".las", ".laz", ".npy", ".ply")
@@ -53,7 +57,6 @@ def open_source(path):
     """The chunked source of ``path`` (:class:`LasSource` or :class:`NpySource`)."""
     path = Path(path)
     if not path.exists():
-        from ._common import MissingFileError
         raise MissingFileError(f"{path}: no such file")
     ext = path.suffix.lower()
     if ext in (".las", ".laz"):
@@ -106,10 +109,9 @@ class LasSource:
     dropped = 0
 
     def __init__(self, path):
-        from . import las
         self.path = path
-        self.layout = las._layout(path)          # header checked against the file size
-        self.laspy = las._import_laspy(path, self.layout.compressed)
+        self.layout = las.read_layout(path)          # header checked against the file size
+        self.laspy = las.import_laspy(path, self.layout.compressed)
         self.format = "laz" if self.layout.compressed else "las"
         self.n = self.layout.count
         with self.laspy.open(str(path)) as f:
@@ -125,7 +127,7 @@ class LasSource:
         if not self.n:
             return {}
         for _, _, _, attrs in self.chunks(1, attributes=True):
-            return carry_specs(attrs)
+            return carry.specs_of(attrs)
 
     def bounds_hint(self):
         """The header's (mins, maxs): a hint only, never trusted for correctness."""
@@ -149,7 +151,7 @@ class LasSource:
                         nrm = np.column_stack([np.asarray(rec[k], np.float64)
                                                for k in self.nrm])
                     if attributes:
-                        yield start, xyz, nrm, {k: _native(np.asarray(rec[k]))
+                        yield start, xyz, nrm, {k: native(np.asarray(rec[k]))
                                                 for k in self.attributes}
                     else:
                         yield start, xyz, nrm
@@ -234,10 +236,9 @@ class NpySource:
     ``n`` the count of rows with finite x, y, z (the others are left out: ``dropped``)."""
 
     def __init__(self, path):
-        from .npy import _check_npy
         self.path, self.format = path, "npy"
         with open(path, "rb") as fp:
-            _check_npy(path, fp, path.stat().st_size)
+            check_npy(path, fp, path.stat().st_size)
         a = np.load(path, mmap_mode="r", allow_pickle=False)
         if a.dtype.names or a.dtype.kind not in "fiu" or a.ndim != 2 or a.shape[1] < 3:
             raise CorruptFileError(f"{path}: a tiled run reads an (N, >= 3) numeric NPY "
@@ -265,7 +266,7 @@ class NpySource:
                     fin = np.isfinite(nrm).all(axis=1)
                     if fin.any():
                         state["seen"] = True
-                        state["unit"] = _looks_like_normals(nrm[fin])
+                        state["unit"] = looks_like_normals(nrm[fin])
                 yield block[:, :3]
         self.n, self.dropped, self._box = _scan_blocks(blocks())
         self.has_normals = six and state["unit"] and state["seen"]
@@ -317,29 +318,26 @@ class PlySource:
     others are left out: ``dropped``)."""
 
     def __init__(self, path):
-        from . import ply
         self.path, self.format = path, "ply"
         with open(path, "rb") as f:
             head = f.read(1 << 20)
-        fmt, _, elements, start = ply._parse_header(head, path)
+        fmt, _, elements, start = ply.parse_header(head, path)
         ok = elements and elements[0][0] == "vertex" and fmt != "ascii"
         props = [ln.split() for ln in elements[0][2][1:]] if elements else []
-        if not ok or not all(len(p) == 3 and p[1] in ply._TYPES for p in props):
+        if not ok or not all(len(p) == 3 and p[1] in ply.TYPES for p in props):
             raise UnknownFormatError(
                 f"{path}: a tiled run reads binary PLY whose first element is the vertex "
                 "element with scalar properties only (this one is "
                 f"{fmt}{'' if ok else ', another layout'}); convert it, or run in memory")
         order = "<" if fmt == "binary_little_endian" else ">"
-        self.dtype = np.dtype([(p[2], order + ply._TYPES[p[1]]) for p in props])
+        self.dtype = np.dtype([(p[2], order + ply.TYPES[p[1]]) for p in props])
         self.rows, self.offset = elements[0][1], start
-        from ._common import _check_claim
-        _check_claim(path, f"{self.rows} vertices of {self.dtype.itemsize} bytes",
-                     self.rows * self.dtype.itemsize, path.stat().st_size - start)
+        check_claim(path, f"{self.rows} vertices of {self.dtype.itemsize} bytes",
+                    self.rows * self.dtype.itemsize, path.stat().st_size - start)
         if len(elements) > 1:               # the rows after the vertices, as io.read checks
-            import mmap
             with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as m:
-                ply._check_binary_rest(path, m, start, start + self.rows * self.dtype.itemsize,
-                                       elements[1:], order, whole=False)
+                ply.check_binary_rest(path, m, start, start + self.rows * self.dtype.itemsize,
+                                      elements[1:], order, whole=False)
         self.xyz, self.nrm, self.attributes = split_names(self.dtype.names)  # as io.read
         if self.xyz is None:
             raise CorruptFileError(f"{path}: the vertex element has no x, y and z")
@@ -382,7 +380,7 @@ class PlySource:
                     rec, xyz = rec[keep], np.ascontiguousarray(xyz[keep])
                 nrm = (np.column_stack([rec[k].astype(np.float64) for k in self.nrm])
                        if self.has_normals else None)
-                attrs = ({k: _native(rec[k]) for k in self.attributes} if attributes
+                attrs = ({k: native(rec[k]) for k in self.attributes} if attributes
                          else None)
                 yield xyz, nrm, attrs
         for start, xyz, nrm, attrs in _regroup(blocks(), size, self.n, self.path):
@@ -397,13 +395,12 @@ def write_las(path, src, names, rows, chunk=1_000_000):
     read) with the fields ``names`` added as extra-bytes dimensions; ``"normals"`` becomes
     ``nx ny nz``. The header and dimensions follow the rules of the in-memory writer
     (:func:`clcurv.io.las.output_header`: a COPC input's VLRs and EVLRs left out, a plain
-    LAS/LAZ written; :func:`clcurv.io.las._extra_dims`: float32 for real fields, a field
+    LAS/LAZ written; :func:`clcurv.io.las.extra_dims`: float32 for real fields, a field
     replacing an extra-bytes dimension of its name, one stored in a standard dimension must
     fit it), so both outputs are the same. ``rows(start, stop)`` gives the structured
     records (one field per name) of the points start..stop-1. Written chunk by chunk in
     input order."""
-    from . import las
-    laspy = las._import_laspy(path, las._is_laz(path))
+    laspy = las.import_laspy(path, las.is_laz(path))
     header = las.output_header(src.header)
 
     def columns(rec):
@@ -414,7 +411,7 @@ def write_las(path, src, names, rows, chunk=1_000_000):
             else:
                 out[name] = rec[name]
         return out
-    added = las._extra_dims(laspy, path, columns(rows(0, min(1, src.n))), header)
+    added = las.extra_dims(laspy, path, columns(rows(0, min(1, src.n))), header)
     dims = set(header.point_format.dimension_names)
     evlrs = header.evlrs if header.version.minor >= 4 else None
     with laspy.open(str(src.path)) as reader, \
@@ -430,7 +427,7 @@ def write_las(path, src, names, rows, chunk=1_000_000):
                 elif name in dims:
                     las.check_fits(path, header.point_format, name, a)
                     out[name] = (np.asarray(a).astype(np.int64)
-                                 if las._is_bitfield(header.point_format, name) else a)
+                                 if las.is_bitfield(header.point_format, name) else a)
             writer.write_points(out)
             start += m
         if evlrs:                                     # as LasData.write does in memory
@@ -459,7 +456,6 @@ def _carried(path, src, names, kind):
     whether the source's normals are written as the input's, the source's attribute specs):
     what clcurv.io.write does with like= in memory (clcurv.io.carry), so that both outputs
     are the same."""
-    from . import carry
     fields = [k for k in names if k != "normals"]
     specs = src.attribute_specs()             # a LAS source decodes a point for them
     plan = carry.plan(path, specs, fields, kind)
@@ -468,7 +464,6 @@ def _carried(path, src, names, kind):
 
 def _chunk_rows(src, names, rows, chunk, plan, own_normals, path):
     """(start, xyz, normals to write or None, carried columns, records) of each chunk."""
-    from . import carry
     for start, xyz, nrm, attrs in src.chunks(chunk, attributes=True):
         rec = rows(start, start + len(xyz))
         normals = rec["normals"] if "normals" in names else nrm if own_normals else None
@@ -480,7 +475,6 @@ def write_npz(path, src, names, rows, n, specs, chunk=1_000_000):
     :mod:`clcurv.io.npy` writes) from the points of ``src`` and the records
     ``rows(start, stop)``, in one pass over the points: each member goes first to a raw
     file beside ``path``, then into the (uncompressed, ZIP64) archive."""
-    import zipfile
     folder = Path(path).parent
     plan, own_normals, attr_specs = _carried(path, src, names, "npz")
     fields = [k for k in names if k != "normals"]
@@ -531,13 +525,11 @@ def write_ply(path, src, names, rows, n, specs, chunk=1_000_000):
     input's attributes, then the fields) from the points of ``src`` and the records
     ``rows(start, stop)``, chunk by chunk: the header from plyfile for the same vertex
     layout, the rows after it."""
-    import plyfile
-    from . import ply
     plan, own_normals, _ = _carried(path, src, names, "ply")
     fields = {k: np.empty(0, np.dtype(specs[k][1])) for k in names if k != "normals"}
     carried = {c.name: np.empty(0, c.dtype) for c in plan}
     with_normals = "normals" in names or own_normals
-    dtype = np.dtype(ply._vertex_dtype(path, fields, with_normals, carried))
+    dtype = np.dtype(ply.vertex_dtype(path, fields, with_normals, carried))
     el = plyfile.PlyElement.describe(np.empty(0, dtype), "vertex")
     header = plyfile.PlyData([el], text=False, byte_order="<",
                              comments=["written by clcurv"]).header

@@ -27,7 +27,7 @@ import re
 
 import numpy as np
 
-from ._common import CorruptFileError, Format, _quiet, _split_named, _split_positional
+from .common import CorruptFileError, Format, quiet, split_named, split_positional
 
 _COMMENTS = ("#", "//")
 #: a leading UTF-8 BOM (Excel's CSV) is dropped; a non-UTF-8 byte (a latin-1 comment)
@@ -77,7 +77,7 @@ def _load(path, names, skip, first_data):
             raise CorruptFileError(f"{path}: no data (expected lines of x y z ...)")
         return np.empty((0, len(names)))
     delim = "," if "," in first_data else (";" if ";" in first_data else None)
-    with _quiet(), open(path, "r", **_OPEN) as f:
+    with quiet(), open(path, "r", **_OPEN) as f:
         return np.loadtxt(f, dtype=np.float64, delimiter=delim, skiprows=skip,
                           comments=list(_COMMENTS), ndmin=2)
 
@@ -86,13 +86,13 @@ def read(path):
     names, skip, first_data = _scan(path)
     table = _load(path, names, skip, first_data)
     if names is None:
-        return _split_positional(path, "text", table)
+        return split_positional(path, "text", table)
     if table.shape[1] != len(names):
         raise CorruptFileError(f"{path}: header names {len(names)} columns {names} but the "
                                f"data has {table.shape[1]}")
     if len(set(names)) != len(names):
         raise CorruptFileError(f"{path}: header has duplicate column names {names}")
-    return _split_named(path, "text", {n: table[:, j] for j, n in enumerate(names)})
+    return split_named(path, "text", {n: table[:, j] for j, n in enumerate(names)})
 
 
 # --------------------------------------------------------------------------- write

@@ -1,5 +1,13 @@
-"""The file job behind ``clcurv compute`` and ``clcurv demo``: read a cloud, pick the radius,
-smooth it by the MLS1 scale space, run one operator, write the fields, print a summary.
+"""The runs from files to files, and the one place that decides whether a run is made in
+memory or in tiles (:func:`in_tiles`); the tiles (:mod:`clcurv.tiles`) never decide, and
+never call back here.
+
+* :class:`Job` and :func:`run`, the file job behind ``clcurv compute`` and ``clcurv demo``:
+  read a cloud, pick the radius, smooth it by the MLS1 scale space, run one operator, write
+  the fields, print a summary; in tiles (:func:`run_tiled`) when :func:`wants_tiles` says.
+* :func:`curvature_file` and :func:`features_file` (``clcurv.curvature_file``,
+  ``clcurv.features_file``, ``clcurv features``): an operator or the covariance features of
+  a file, in memory when the cloud fits the memory budget, else in tiles.
 
     from clcurv.jobs.job import Job, run
     done = run(Job("in.ply", "out.ply", method="mls2", scale_space=3))
@@ -24,15 +32,28 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
+from scipy.spatial import cKDTree
+from tqdm import tqdm
 
 from clcurv import io
 from clcurv.api.curvature import curvature
-from clcurv.runtime.device import get_device
-from clcurv.ops.registry import OPERATORS
+from clcurv.api.features import DEFAULT_FEATURES, as_radii, canonical_names
+from clcurv.api.features import features as compute_features
 from clcurv.api.result import CurvatureResult
+from clcurv.io import stream
+from clcurv.jobs.tiled_job import auto_radius_tiled, tile_session
+from clcurv.ops.registry import METHODS, OPERATORS
 from clcurv.ops.smoothing import scale_space
+from clcurv.runtime.device import get_device
+from clcurv.tiles import engine as tiled
+from clcurv.tiles.engine import CurvatureParams, curvature_fields
+from clcurv.tiles.features import FeatureParams, file_fields
+from clcurv.tiles.planning import (AUTO_FRACTION, TilingError, available_memory, budget_of,
+                                   check_tile_size, fits_memory)
+from clcurv._shared.validate import as_radius, choice
 
-__all__ = ["Job", "Done", "UsageError", "run", "auto_radius", "result_fields"]
+__all__ = ["Job", "Done", "UsageError", "run", "auto_radius", "result_fields",
+           "curvature_file", "features_file"]
 
 #: neighbours aimed at by ``radius="auto"``
 AUTO_NEIGHBOURS = 30
@@ -84,7 +105,7 @@ class Job:
         """The job of an ``argparse.Namespace`` with the same attribute names."""
         kw = {f.name: getattr(args, f.name) for f in fields(cls) if hasattr(args, f.name)}
         if isinstance(kw.get("input"), list) and len(kw["input"]) == 1:
-            kw["input"] = kw["input"][0]            # several: a catalog (clcurv.tiles.engine)
+            kw["input"] = kw["input"][0]            # several: a catalog (in tiles)
         return cls(**kw)
 
 
@@ -121,7 +142,6 @@ class Stages:
 
 
 def _bar(name, total):
-    from tqdm import tqdm
     return tqdm(total=total, desc=f"{name:<14}", leave=True, file=sys.stderr,
                 bar_format="{desc} {bar} {n_fmt}/{total_fmt} [{elapsed}]")
 
@@ -131,7 +151,6 @@ def auto_radius(points, k=AUTO_NEIGHBOURS, sample=5000, seed=0):
     random subsample of ``sample`` points (``seed``), of the distance to the k-th nearest
     other point. When that median is 0 (most points have k exact duplicates), the same
     over the distinct positions; UsageError when there are at most ``k`` of them."""
-    from scipy.spatial import cKDTree
     if len(points) <= k:
         raise UsageError(f"--radius auto needs more than {k} points, the cloud has {len(points)}")
     rng = np.random.default_rng(seed)
@@ -185,19 +204,11 @@ def check_options(job):
 
 def result_fields(res, wanted=None):
     """The per-point fields of ``res`` to write, name -> (N,) array, named as
-    CloudCompare/MeshLab scalar fields: the operator's file fields in the registry's order
-    (:meth:`clcurv.ops.registry.Operator.file_fields`; float64, curvatures in 1/length,
-    directions as ``dirI_x, _y, _z``), then ``neighbours`` (int32, #N_r(p), the point
-    itself included) and ``status`` (uint8, 0 ok). ``wanted``: keep only these names
-    (``"normals"`` is allowed and written apart)."""
-    f = {}
-    for name, (attr, col) in OPERATORS[res.method].file_fields().items():
-        a = getattr(res, attr)
-        f[name] = a if col is None else a[:, col]
-    if np.ndim(res.radius):                  # a k-NN radius: each point's
-        f["knn_radius"] = np.asarray(res.radius, dtype=np.float64)
-    f["neighbours"] = res.count.astype(np.int32)
-    f["status"] = res.status.astype(np.uint8)
+    CloudCompare/MeshLab scalar fields (:func:`clcurv.tiles.engine.curvature_fields`: the
+    operator's file fields in the registry's order, then ``neighbours`` and ``status``).
+    ``wanted``: keep only these names (``"normals"`` is allowed and written apart);
+    UsageError for another name."""
+    f = curvature_fields(res)
     if not wanted:
         return f
     unknown = sorted(set(wanted) - set(f) - {"normals"})
@@ -304,15 +315,20 @@ def _summary(job, cloud, done, device, times, normals_written):
 
 
 def run(job, out=print):
-    """Run ``job`` (a :class:`Job`), print its summary on ``out``; return a :class:`Done`."""
+    """Run ``job`` (a :class:`Job`), print its summary on ``out``; return a :class:`Done`
+    (in tiles, :func:`run_tiled`: the summary dict)."""
     check_options(job)
-    from clcurv.jobs import tiled_job
     if isinstance(job.input, (list, tuple)):        # a catalog: always in tiles
-        return tiled_job.run_job(job, out)
+        return run_tiled(job, out)
     io.check_output(job.output)             # before any work: extension, folder, rights
     io.check_not_input(job.output, job.input)
-    if tiled_job.wants_tiles(job):
-        return tiled_job.run_job(job, out)
+    if wants_tiles(job):
+        return run_tiled(job, out)
+    return _run_in_memory(job, out)
+
+
+def _run_in_memory(job, out):
+    """The job in memory (its options checked, its output path too)."""
     st = Stages(job.quiet)
     with st.stage("reading"):
         cloud = io.read(job.input)
@@ -328,3 +344,296 @@ def run(job, out=print):
     for line in _summary(job, cloud, done, device, st.times, normals is not None):
         out(line)
     return done
+
+
+# --------------------------------------------------------------------------- in tiles, or not
+
+def in_tiles(n, budget, forced=False, extra=0):
+    """The decision between a run in memory and one in tiles, for every entry point here: in
+    tiles when it is ``forced`` (a tile size, workers or a Dask scheduler or client, several
+    input files) or when ``n`` points do not fit ``budget`` bytes (``extra`` bytes more per
+    point: :func:`clcurv.tiles.planning.fits_memory`)."""
+    return forced or not fits_memory(n, budget, extra)
+
+
+def wants_tiles(job):
+    """Does the file job ``job`` (a :class:`Job`) run tiled: a tile size was given, or its
+    LAS/LAZ/NPY input does not fit the memory budget (its point count from the header)."""
+    if job.tile_size is not None or job.workers or job.scheduler:      # forced
+        return True
+    if Path(job.input).suffix.lower() not in stream.STREAM_READS:
+        return False
+    try:
+        n = stream.open_source(job.input).n
+    except Exception:                       # the in-memory reader reports it
+        return False
+    if job.projections or job.positions != "original" or job.k is not None:
+        # options only the in-memory job has: tiles only when it cannot fit at all (the
+        # tiled run then says which option it lacks)
+        return in_tiles(n, int(available_memory() * AUTO_FRACTION))
+    return in_tiles(n, budget_of(job.memory))
+
+
+def _check_before_reading(job):
+    """The checks of :func:`clcurv.tiles.engine.check_params` before ``radius="auto"`` reads the
+    cloud to estimate the radius (made with a radius of 1; the run checks the real one)."""
+    choice(job.method, "method", tuple(OPERATORS))
+    params = CurvatureParams(job.method, 1.0, job.weights,
+                             ORIENT_CHOICES.get(job.orient, job.orient), job.viewpoint,
+                             job.kernel, job.h, job.device, job.precision,
+                             bool(job.ignore_normals), int(job.scale_space))
+    tiled.check_params(params, job.fields, local=not (job.workers or job.scheduler))
+    tiled.wsp.check_workdir(job.workdir)
+
+
+def run_tiled(job, out=print):
+    """The file job ``job`` in tiles (:func:`curvature_file`); prints a summary on ``out``
+    and returns the summary dict."""
+    if job.k is not None:
+        raise UsageError("--k (a k-NN radius) needs the whole cloud in memory: it does not "
+                         "run in tiles (--tile-size, --workers, --scheduler, several input "
+                         "files, or a cloud larger than this machine's memory); give --radius "
+                         "to run in tiles")
+    if job.radius == "auto" or job.radius is None:
+        _check_before_reading(job)
+        src = (stream.Catalog(job.input) if isinstance(job.input, (list, tuple))
+               else stream.open_source(job.input))
+        job.radius = auto_radius_tiled(src,
+                                       budget=budget_of(job.memory))
+        out(f"radius auto: {job.radius:.6g} (median distance to the 30th neighbour, "
+            "sampled in regions spread over the cloud)")
+    if job.positions != "original":
+        raise UsageError("a tiled run writes the original positions (--positions original)")
+    if job.workers is not None and job.workers < 1:
+        raise UsageError(f"--workers must be >= 1, got {job.workers}")
+    try:
+        with tile_session(job.quiet, job.scheduler) as (progress, client):
+            summary = curvature_file(
+                job.input, job.output, float(job.radius), method=job.method,
+                weights=job.weights, orient=ORIENT_CHOICES.get(job.orient, job.orient),
+                viewpoint=job.viewpoint, kernel=job.kernel, h=job.h,
+                scale_space=job.scale_space, projections=job.projections, memory=job.memory,
+                tile=job.tile_size, fields=job.fields, ignore_normals=job.ignore_normals,
+                device=job.device, precision=job.precision, progress=progress,
+                out=None if job.quiet else (lambda s: print(s, file=sys.stderr)),
+                client=client, workers=job.workers, workdir=job.workdir)
+    except TilingError as exc:
+        raise UsageError(str(exc)) from exc
+    times = ", ".join(f"{k} {v:.2f} s" for k, v in summary["times"].items())
+    st = summary["status"]
+    ok = f"; status ok {st[0] / sum(st):.1%}" if st and sum(st) else ""
+    what = (f"{len(job.input)} files" if isinstance(job.input, (list, tuple))
+            else job.input)
+    dropped = summary.get("dropped", 0)
+    dropped = f" ({dropped} non-finite dropped)" if dropped else ""
+    out(f"\n{summary['points']} points from {what}{dropped} in {summary['tiles']} tile(s) "
+        f"(halo {summary['halo']} cell(s)){ok}")
+    out(f"time: {times}")
+    out(f"wrote {job.output}")
+    return summary
+
+
+def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient="auto",
+                   viewpoint=None, kernel=None, h=None, scale_space=0, projections=0,
+                   memory="auto", tile=None, workdir=None, fields=None,
+                   ignore_normals=False, device=None, precision="float", progress=None,
+                   out=None, client=None, workers=None):
+    """Run ``method`` on the cloud of file ``src`` and write ``dst``, in tiles when the cloud
+    does not fit the memory budget (:mod:`clcurv.tiles.engine`: the same output bit for
+    bit).
+
+    Parameters
+    ----------
+    src, dst : path
+        Input LAS/LAZ or NPY; output LAS/LAZ (only from LAS/LAZ input: header and records
+        kept) or NPZ. Non-tiled runs (the cloud fits) are the file job (:class:`Job`) in
+        memory and take every format it takes.
+    radius : float
+        Ball radius in the file's unit.
+    method, weights, orient, viewpoint, kernel, h, device, precision
+        As :func:`clcurv.curvature`; ``orient='auto'`` of a signed method without normals
+        in the file or a viewpoint is MST propagation, which a tiled run refuses (use
+        'up' for aerial data).
+    memory : 'auto', int or str
+        Host memory budget ('auto': half the available RAM). The run tiles when about
+        N x IN_MEMORY_BYTES_PER_POINT exceeds it, or when ``tile`` is given.
+    tile : float, optional
+        Tile side in the file's unit (default: from the budget).
+    workdir : path, optional
+        Workspace folder (default: beside ``dst``); kept between an interrupted run and
+        the same command run again (finished tiles are skipped), removed at the end.
+    fields : list of str, optional
+        The fields to write (as ``clcurv compute --fields``); default all and the normals.
+    progress : callable(done, total, points) or None
+        Called after each tile.
+    client : dask.distributed.Client, optional
+        Run the tiles on this cluster (:mod:`clcurv.tiles.workers`; the workspace must be on a
+        file system the workers share).
+    workers : int, optional
+        Run the tiles on a LocalCluster of this many worker processes.
+    out : callable(str) or None
+        Receives one line per stage (the CLI prints them).
+
+    Returns
+    -------
+    dict
+        ``tiled`` (bool), ``tiles``, ``points``, ``halo`` (cells), ``times`` (seconds per
+        stage), ``status`` counts, ``dst``.
+    """
+    say = out or (lambda s: None)
+    choice(method, "method", METHODS)
+    r = as_radius(radius)
+    catalog = isinstance(src, (list, tuple))
+    if catalog:
+        source = stream.Catalog(src)
+        dst = tiled.catalog_outputs(source, dst)
+    else:
+        dst = io.check_output(dst)
+        io.check_not_input(dst, src)        # as the CLI: a mesh's faces are never lost
+        source = stream.open_source(src)
+    tile = check_tile_size(tile)                    # before any point is read
+    budget = budget_of(memory)
+    if int(projections):
+        raise TilingError("a tiled run does not take projections yet (iterated MLS2 moves "
+                          "the points across tiles): run them in memory")
+    if int(scale_space) < 0:
+        raise ValueError(f"scale_space must be >= 0, got {scale_space}")
+    tiled.check_tiled_outputs(dst if catalog else [dst], source)
+    params = CurvatureParams(method, r, weights, orient, viewpoint, kernel, h, device,
+                             precision, bool(ignore_normals), int(scale_space))
+    forced = catalog or tile is not None or client is not None or bool(workers)
+    if not in_tiles(source.n, budget, forced):
+        summary = _curvature_in_memory(src, dst, params, fields)
+        summary["dropped"] = int(getattr(source, "dropped", 0))
+        return summary
+    return tiled.run(source, dst, params, budget, tile, workdir, fields, progress, say,
+                     client, workers)
+
+
+def _curvature_in_memory(src, dst, params, fields):
+    """The cloud fits: the file job in memory."""
+    orient = params.orient
+    if not isinstance(orient, str) and orient is not None:
+        raise TilingError("a direction orient= is for tiled runs and the API; the file job "
+                          "takes 'auto', 'mst', 'up' or None")
+    job = Job(src, dst, method=params.method, radius=params.radius, weights=params.weights,
+              kernel=params.kernel, h=params.h, device=params.device,
+              precision=params.precision, fields=fields, viewpoint=params.viewpoint,
+              orient="none" if orient is None else orient,
+              ignore_normals=params.ignore_normals, scale_space=params.scale_space,
+              quiet=True)
+    t0 = time.perf_counter()
+    check_options(job)
+    done = _run_in_memory(job, out=lambda line: None)
+    return {"tiled": False, "tiles": 1, "halo": 0, "points": len(done.points),
+            "times": {"in memory": time.perf_counter() - t0},
+            "status": np.bincount(done.result.status, minlength=4).tolist(), "dst": dst}
+
+
+def features_file(src, dst, radius=None, features=DEFAULT_FEATURES, *, k=None, ddof=0,
+                  optimal=False, memory="auto", tile=None, workdir=None, device=None,
+                  precision="float", progress=None, out=None, client=None, workers=None):
+    """Covariance features (:func:`clcurv.api.features`) of the cloud of file ``src``, written
+    with its points to ``dst``; in tiles when the cloud does not fit the memory budget
+    (:mod:`clcurv.tiles.features`), with the same output bit for bit.
+
+    Parameters
+    ----------
+    src : path, or a list of paths (a catalog: LAS/LAZ or NPY files read as one cloud, in
+        tiles, one output per input in the folder ``dst``)
+    dst : path
+        The output: any format :func:`clcurv.io.write` takes in memory; a tiled run writes
+        LAS/LAZ (from LAS/LAZ input: header and records kept), NPZ or binary PLY.
+    radius : float or list of floats
+        Ball radius in the file's unit, or several (one neighbour walk; fields named
+        ``<feature>_r<radius>``).
+    features, k, ddof, optimal, device, precision
+        As :func:`clcurv.api.features`. ``k`` runs in memory only.
+    memory, tile, workdir, progress, out, client, workers
+        As :func:`clcurv.curvature_file`.
+
+    Returns
+    -------
+    dict
+        ``tiled`` (bool), ``tiles``, ``points``, ``fields`` (names written), ``halo``,
+        ``times`` (seconds per stage), ``dst``.
+    """
+    tile = check_tile_size(tile)                    # before any point is read
+    say = out or (lambda s: None)
+    choice(ddof, "ddof", (0, 1))
+    names = canonical_names(features)
+    if not names:
+        raise ValueError("features must name at least one feature")
+    catalog = isinstance(src, (list, tuple))
+    forced = tile is not None or client is not None or bool(workers)
+    if k is not None:
+        if radius is not None:
+            raise ValueError("give either radius or k, not both")
+        if optimal:
+            raise ValueError("optimal=True chooses among a list of radii, not with k")
+        if forced or catalog:
+            raise TilingError("k (a k-NN radius) needs the whole cloud in memory: it does "
+                              "not run in tiles (a tile size, workers, a scheduler or several "
+                              "input files); give a radius to run in tiles")
+        dst = io.check_output(dst)
+        io.check_not_input(dst, src)
+        return _features_in_memory(src, dst, None, names, k, ddof, False, device,
+                                   precision)
+    if radius is None:
+        raise ValueError("features_file needs radius= (a number or a list) or k=")
+    radii, _ = as_radii(radius)
+    if optimal and len(radii) < 2:
+        raise ValueError(f"optimal=True needs a list of at least two radii, got {radius!r}")
+    params = FeatureParams(tuple(radii), names, int(ddof), bool(optimal), device, precision)
+    for d in ([dst] if not catalog else []):
+        if Path(d).suffix.lower() in (".las", ".laz"):     # before any work: LAS's limit
+            io.las.check_extra_count(d, params.columns())
+    if catalog:
+        source = stream.Catalog(src)
+        dst = tiled.catalog_outputs(source, dst)
+    else:
+        dst = io.check_output(dst)
+        io.check_not_input(dst, src)
+        source = _streamed(src) if not forced else stream.open_source(src)
+        if source is None:          # a format the tiles do not read: the in-memory reader
+            return _features_in_memory(src, dst, radii, names, None, ddof, optimal, device,
+                                       precision)
+    budget = budget_of(memory)
+    if not in_tiles(source.n, budget, forced or catalog, params.extra_in_memory()):
+        return _features_in_memory(src, dst, radii, names, None, ddof, optimal, device,
+                                   precision)
+    tiled.check_tiled_outputs(dst if catalog else [dst], source)
+    summary = tiled.run(source, dst, params, budget, tile, workdir, None, progress, say,
+                        client, workers)
+    summary["fields"] = [n for n, _, _ in params.specs()]
+    summary.pop("status", None)             # curvature's status field: none here
+    return summary
+
+
+def _streamed(src):
+    """The stream source of ``src``, or None when the tiles cannot read it (the in-memory
+    reader then reads it, or says what is wrong with it)."""
+    if Path(src).suffix.lower() not in stream.STREAM_READS:
+        return None
+    try:
+        return stream.open_source(src)
+    except Exception:
+        return None
+
+
+def _features_in_memory(src, dst, radii, names, k, ddof, optimal, device, precision):
+    """The whole cloud read, :func:`clcurv.api.features`, the file written (the summary dict
+    of :func:`features_file`)."""
+    t0 = time.perf_counter()
+    cloud = io.read(src)
+    several = radii is not None and len(radii) > 1 and not optimal
+    radius = None if radii is None else radii if several or optimal else radii[0]
+    res = compute_features(cloud.points, radius, names, k=k, ddof=ddof, optimal=optimal,
+                           device=device, precision=precision)
+    extra = "knn_radius" if k is not None else "optimal_radius" if optimal else None
+    fields, normals = file_fields(res, radii if several else None, extra)
+    path = io.write(dst, cloud.points, fields, normals=normals, like=cloud)
+    names_out = list(fields) + ([] if normals is None else ["normals"])
+    return {"tiled": False, "tiles": 1, "halo": 0, "points": len(cloud.points),
+            "dropped": int(getattr(cloud, "dropped", 0) or 0), "fields": names_out,
+            "times": {"in memory": time.perf_counter() - t0}, "dst": path}

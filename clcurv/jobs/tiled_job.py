@@ -1,39 +1,22 @@
-"""``clcurv compute`` on clouds that do not fit the memory budget: the file job in tiles
-(:func:`clcurv.tiles.engine.curvature_file`), and ``radius="auto"`` without the whole cloud."""
+"""What the file job needs to run in tiles (:func:`clcurv.jobs.job.run_tiled`):
+``radius="auto"`` without the whole cloud (:func:`auto_radius_tiled`), and the progress bar
+and Dask client of a tiled run (:func:`tile_session`)."""
 from __future__ import annotations
 
+import math
 import sys
 import tempfile
 import time
 from contextlib import contextmanager
-from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
+from tqdm import tqdm
 
+from clcurv.grid.binning import Frame
 from clcurv.tiles.buckets import BUCKETS_PER_TILE, READ_CHUNK, Buckets, bucket_grid
-from clcurv.io import stream
-from clcurv.ops.registry import OPERATORS
-from clcurv.tiles.engine import curvature_file
-from clcurv.tiles.planning import (AUTO_FRACTION, TILE_BYTES_PER_POINT, TilingError,
-                                   available_memory, budget_of, fits_memory)
-
-def wants_tiles(job):
-    """Does the file job ``job`` (clcurv.jobs.job.Job) run tiled: a tile size was given, or its
-    LAS/LAZ/NPY input does not fit the memory budget (its point count from the header)."""
-    if job.tile_size is not None or job.workers or job.scheduler:
-        return True
-    if Path(job.input).suffix.lower() not in stream.STREAM_READS:
-        return False
-    try:
-        n = stream.open_source(job.input).n
-    except Exception:                       # the in-memory reader reports it
-        return False
-    if job.projections or job.positions != "original" or job.k is not None:
-        # options only the in-memory job has: tiles only when it cannot fit at all (the
-        # tiled run then says which option it lacks)
-        return not fits_memory(n, int(available_memory() * AUTO_FRACTION))
-    return not fits_memory(n, budget_of(job.memory))
-
+from clcurv.tiles.planning import TILE_BYTES_PER_POINT, occupancy
+from clcurv.tiles.workers import connect
 
 #: most points :func:`auto_radius_tiled` holds at once (its regions together), whatever the
 #: budget: more would not make the estimate better, only slower
@@ -70,9 +53,6 @@ def auto_radius_tiled(src, k=30, regions=None, sample=5000, seed=0, budget=None)
     read in one pass over the buckets, a block of records at a time, keeping only the
     points inside them. Many small regions, not a few large ones: a cloud of uneven
     density (flight-line overlaps) is then sampled as a uniform sample of its points."""
-    from scipy.spatial import cKDTree
-
-    from clcurv.tiles.planning import occupancy
     per, count = _radius_budget(budget, k, sample, regions)
     with tempfile.TemporaryDirectory(prefix="clcurv-radius-") as tmp:
         target = max((budget or (1 << 28)) // (TILE_BYTES_PER_POINT * 9), 10_000)
@@ -153,9 +133,6 @@ def _radius_budget(budget, k=30, sample=5000, regions=None):
 def _radius_frame(b):
     """A frame of x-y cells over the exact bounds of the points of ``b``, as fine as int64
     keys allow (at most 2^30 + 1 cells a side; a power of two: blocks nest exactly)."""
-    import math
-
-    from clcurv.grid.binning import Frame
     lo, hi = np.asarray(b.lo, float), np.asarray(b.hi, float)
     ext = float(np.max(hi[:2] - lo[:2]))
     if not np.isfinite(ext):
@@ -432,14 +409,12 @@ def tile_session(quiet, scheduler=None):
     ConnectionError: nothing listening there, or not a Dask scheduler), never a hang."""
     client = None
     if scheduler:
-        from clcurv.tiles.workers import connect
         client = connect(scheduler)
     bars = []
     started = [None]
 
     def progress(done, total, points):
         if not quiet and not bars:
-            from tqdm import tqdm
             bars.append(tqdm(desc="tiles", unit="tile", total=total, file=sys.stderr,
                              leave=True))
         bar = bars[0] if bars else None
@@ -458,66 +433,3 @@ def tile_session(quiet, scheduler=None):
             bar.close()
         if client is not None:
             client.close()
-
-
-def _check_before_reading(job):
-    """The checks of :func:`clcurv.tiles.engine.check_params` before ``radius="auto"`` reads the
-    cloud to estimate the radius (made with a radius of 1; the run checks the real one)."""
-    from clcurv.jobs.job import ORIENT_CHOICES
-    from clcurv.tiles.engine import _Params, check_params
-    from clcurv._shared.validate import choice
-    choice(job.method, "method", tuple(OPERATORS))
-    params = _Params(job.method, 1.0, job.weights, ORIENT_CHOICES.get(job.orient, job.orient),
-                     job.viewpoint, job.kernel, job.h, job.device, job.precision,
-                     bool(job.ignore_normals), int(job.scale_space))
-    check_params(params, job.fields, local=not (job.workers or job.scheduler))
-    from clcurv.tiles.workspace import check_workdir
-    check_workdir(job.workdir)
-
-
-def run_job(job, out=print):
-    """The file job ``job`` in tiles (:func:`curvature_file`); prints a summary on ``out``
-    and returns the summary dict."""
-    from clcurv.jobs.job import ORIENT_CHOICES, UsageError
-    if job.k is not None:
-        raise UsageError("--k (a k-NN radius) needs the whole cloud in memory: it does not "
-                         "run in tiles (--tile-size, --workers, --scheduler, several input "
-                         "files, or a cloud larger than this machine's memory); give --radius "
-                         "to run in tiles")
-    if job.radius == "auto" or job.radius is None:
-        _check_before_reading(job)
-        src = (stream.Catalog(job.input) if isinstance(job.input, (list, tuple))
-               else stream.open_source(job.input))
-        job.radius = auto_radius_tiled(src,
-                                       budget=budget_of(job.memory))
-        out(f"radius auto: {job.radius:.6g} (median distance to the 30th neighbour, "
-            "sampled in regions spread over the cloud)")
-    if job.positions != "original":
-        raise UsageError("a tiled run writes the original positions (--positions original)")
-    if job.workers is not None and job.workers < 1:
-        raise UsageError(f"--workers must be >= 1, got {job.workers}")
-    try:
-        with tile_session(job.quiet, job.scheduler) as (progress, client):
-            summary = curvature_file(
-                job.input, job.output, float(job.radius), method=job.method,
-                weights=job.weights, orient=ORIENT_CHOICES.get(job.orient, job.orient),
-                viewpoint=job.viewpoint, kernel=job.kernel, h=job.h,
-                scale_space=job.scale_space, projections=job.projections, memory=job.memory,
-                tile=job.tile_size, fields=job.fields, ignore_normals=job.ignore_normals,
-                device=job.device, precision=job.precision, progress=progress,
-                out=None if job.quiet else (lambda s: print(s, file=sys.stderr)),
-                client=client, workers=job.workers, workdir=job.workdir)
-    except TilingError as exc:
-        raise UsageError(str(exc)) from exc
-    times = ", ".join(f"{k} {v:.2f} s" for k, v in summary["times"].items())
-    st = summary["status"]
-    ok = f"; status ok {st[0] / sum(st):.1%}" if st and sum(st) else ""
-    what = (f"{len(job.input)} files" if isinstance(job.input, (list, tuple))
-            else job.input)
-    dropped = summary.get("dropped", 0)
-    dropped = f" ({dropped} non-finite dropped)" if dropped else ""
-    out(f"\n{summary['points']} points from {what}{dropped} in {summary['tiles']} tile(s) "
-        f"(halo {summary['halo']} cell(s)){ok}")
-    out(f"time: {times}")
-    out(f"wrote {job.output}")
-    return summary

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from clcurv.tiles.planning import within
-from clcurv.tiles.workspace import Crc, check_records
+from clcurv.tiles.workspace import Crc, CorruptWorkspace, check_records
 
 #: points per read chunk of pass (1) and per written chunk of pass (3)
 READ_CHUNK = 1 << 18
@@ -116,7 +116,6 @@ class Buckets:
         start = 0
         check = Crc()
         if not self.path(i, j).exists():
-            from clcurv.tiles.workspace import CorruptWorkspace
             raise CorruptWorkspace(self.path(i, j), "missing")
         with open(self.path(i, j), "rb") as f:
             while True:
@@ -200,7 +199,6 @@ class Buckets:
         have = check.sums.get("", [0, 0])
         want = self.crc.sums.get(f"{i}_{j}", [0, 0])
         if list(have) != list(want):
-            from clcurv.tiles.workspace import CorruptWorkspace
             raise CorruptWorkspace(self.path(i, j), f"{have[0]} records where {want[0]} "
                                    "were written, or their CRC-32 differs (changed on disk)")
 

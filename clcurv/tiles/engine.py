@@ -65,9 +65,9 @@ tile size comes from the budget (``memory=``) and the density measured in pass (
 """
 from __future__ import annotations
 
+import ctypes
 import errno
 import json
-import os
 import shutil
 import time
 import warnings
@@ -77,18 +77,24 @@ from pathlib import Path
 import numpy as np
 
 from clcurv import io
+from clcurv.api.curvature import curvature
+from clcurv.grid.cloud import DeviceCloud
+from clcurv.runtime.memory import release_memory
 from clcurv.tiles import orient as tiled_orient
+from clcurv.tiles import scale as tiled_scale
+from clcurv.tiles import workers as cluster
 from clcurv.tiles import workspace as wsp
 from clcurv.tiles.buckets import READ_CHUNK, Buckets, bucket_grid
 from clcurv.grid.binning import Frame
 from clcurv.io import stream
 from clcurv._shared.constants import TOO_FEW
-from clcurv.tiles.results import Windows, partition, tile_dtype, tile_file
-from clcurv.tiles.planning import (AUTO_CAP, TILE_BYTES_PER_POINT, Tiling, TilingError,
-                                   budget_of, check_tile_size, fits_memory, halo_cells,
-                                   parse_memory, plan_tiles)
-from clcurv.ops.registry import METHODS, OPERATORS
-from clcurv._shared.validate import as_radius, choice, device_radius
+from clcurv.tiles.results import Windows, partition, tile_dtype
+from clcurv.tiles.workers import worker_device
+from clcurv.tiles.workspace import tile_file
+from clcurv.tiles.planning import (TILE_BYTES_PER_POINT, Tiling, TilingError, halo_cells,
+                                   plan_tiles)
+from clcurv.ops.registry import OPERATORS
+from clcurv._shared.validate import device_radius
 
 
 def worker_budget(budget, workers, client):
@@ -96,26 +102,15 @@ def worker_budget(budget, workers, client):
     workers share the run's budget; a Dask client's each have it)."""
     if client is None and not workers:
         return budget
-    from clcurv.tiles.workers import worker_budget as per_worker
-    return per_worker(budget, workers, client)
-
-
-# --------------------------------------------------------------------------- memory
-
-
-# --------------------------------------------------------------------------- geometry
-
-
-# --------------------------------------------------------------------------- buckets
-
-
-# --------------------------------------------------------------------------- planning
+    return cluster.worker_budget(budget, workers, client)
 
 
 # --------------------------------------------------------------------------- the run
 
 @dataclass
-class _Params:
+class CurvatureParams:
+    """What every tile of a curvature run computes (the options of
+    :func:`clcurv.curvature_file`): its radius, halo, orientation, fields and key."""
     method: str
     radius: float
     weights: str
@@ -191,8 +186,27 @@ def _source_key(src):
     return keys
 
 
-def _field_specs(method, precision, want_normals):
-    """(name, width, dtype) of the stored fields, as clcurv.jobs.job.result_fields names them."""
+def curvature_fields(res):
+    """The per-point fields of ``res`` (a :class:`~clcurv.api.result.CurvatureResult`) that a
+    file holds, name -> (N,) array, named as CloudCompare/MeshLab scalar fields: the
+    operator's file fields in the registry's order
+    (:meth:`clcurv.ops.registry.Operator.file_fields`; float64, curvatures in 1/length,
+    directions as ``dirI_x, _y, _z``), then ``knn_radius`` with a k-NN radius, ``neighbours``
+    (int32, #N_r(p), the point itself included) and ``status`` (uint8, 0 ok). The file job
+    (:func:`clcurv.jobs.job.result_fields`) and the tiles write these."""
+    f = {}
+    for name, (attr, col) in OPERATORS[res.method].file_fields().items():
+        a = getattr(res, attr)
+        f[name] = a if col is None else a[:, col]
+    if np.ndim(res.radius):                  # a k-NN radius: each point's
+        f["knn_radius"] = np.asarray(res.radius, dtype=np.float64)
+    f["neighbours"] = res.count.astype(np.int32)
+    f["status"] = res.status.astype(np.uint8)
+    return f
+
+
+def _field_specs(method, want_normals):
+    """(name, width, dtype) of the stored fields, as :func:`curvature_fields` names them."""
     op = OPERATORS[method]
     real = np.float64
     specs = [(name, None, real) for name in op.file_fields()]
@@ -202,78 +216,15 @@ def _field_specs(method, precision, want_normals):
     return specs
 
 
-def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient="auto",
-                   viewpoint=None, kernel=None, h=None, scale_space=0, projections=0,
-                   memory="auto", tile=None, workdir=None, fields=None,
-                   ignore_normals=False, device=None, precision="float", progress=None,
-                   out=None, client=None, workers=None):
-    """Run ``method`` on the cloud of file ``src`` and write ``dst``, in tiles when the cloud
-    does not fit the memory budget (see the module docstring).
-
-    Parameters
-    ----------
-    src, dst : path
-        Input LAS/LAZ or NPY; output LAS/LAZ (only from LAS/LAZ input: header and records
-        kept) or NPZ. Non-tiled runs (the cloud fits) go through :func:`clcurv.jobs.job.run` and
-        take every format it takes.
-    radius : float
-        Ball radius in the file's unit.
-    method, weights, orient, viewpoint, kernel, h, device, precision
-        As :func:`clcurv.curvature`; ``orient='auto'`` of a signed method without normals
-        in the file or a viewpoint is MST propagation, which a tiled run refuses (use
-        'up' for aerial data).
-    memory : 'auto', int or str
-        Host memory budget ('auto': half the available RAM). The run tiles when about
-        N x IN_MEMORY_BYTES_PER_POINT exceeds it, or when ``tile`` is given.
-    tile : float, optional
-        Tile side in the file's unit (default: from the budget).
-    workdir : path, optional
-        Workspace folder (default: beside ``dst``); kept between an interrupted run and
-        the same command run again (finished tiles are skipped), removed at the end.
-    fields : list of str, optional
-        The fields to write (as ``clcurv compute --fields``); default all and the normals.
-    progress : callable(done, total, points) or None
-        Called after each tile.
-    client : dask.distributed.Client, optional
-        Run the tiles on this cluster (:mod:`clcurv.tiles.workers`; the workspace must be on a
-        file system the workers share).
-    workers : int, optional
-        Run the tiles on a LocalCluster of this many worker processes.
-    out : callable(str) or None
-        Receives one line per stage (the CLI prints them).
-
-    Returns
-    -------
-    dict
-        ``tiled`` (bool), ``tiles``, ``points``, ``halo`` (cells), ``times`` (seconds per
-        stage), ``status`` counts, ``dst``.
-    """
-    say = out or (lambda s: None)
-    choice(method, "method", METHODS)
-    r = as_radius(radius)
-    catalog = isinstance(src, (list, tuple))
-    if catalog:
-        source = stream.Catalog(src)
-        dst = catalog_outputs(source, dst)
-    else:
-        dst = io.check_output(dst)
-        io.check_not_input(dst, src)        # as the CLI: a mesh's faces are never lost
-        source = stream.open_source(src)
-    tile = check_tile_size(tile)                    # before any point is read
-    budget = budget_of(memory)
-    if int(projections):
-        raise TilingError("a tiled run does not take projections yet (iterated MLS2 moves "
-                          "the points across tiles): run them in memory")
-    if int(scale_space) < 0:
-        raise ValueError(f"scale_space must be >= 0, got {scale_space}")
-    check_tiled_outputs(dst if catalog else [dst], source)
-    params = _Params(method, r, weights, orient, viewpoint, kernel, h, device, precision,
-                     bool(ignore_normals), int(scale_space))
-    if not catalog and tile is None and fits_memory(source.n, budget) and client is None \
-            and not workers:
-        summary = _in_memory(src, dst, params, fields, say)
-        summary["dropped"] = int(getattr(source, "dropped", 0))
-        return summary
+def run(source, dst, params, budget, tile, workdir, fields, progress, say, client=None,
+        workers=None):
+    """A tiled run of ``params`` (:class:`CurvatureParams`, or
+    clcurv.tiles.features.FeatureParams) from the opened ``source`` to ``dst`` (checked: a
+    path, or a catalog's list of paths, :func:`check_tiled_outputs`), once the caller chose
+    to tile (:mod:`clcurv.jobs.job`, the one place that does): the checks made before any
+    point is read (:func:`check_params`, the workspace's folder), then :func:`run_tiles` in
+    the workspace of ``dst`` (in ``workdir``), each tile's budget that of a worker
+    (:func:`worker_budget`); the summary dict."""
     check_params(params, fields, local=client is None and not workers)
     wsp.check_workdir(workdir)
     budget = worker_budget(budget, workers, client)
@@ -290,16 +241,15 @@ def check_params(params, fields, local=True):
     device_radius(params.radius, params.precision)
     if params.kind != "curvature":
         if local:
-            _worker_device(params.device)
+            worker_device(params.device)
         return
-    from clcurv.api.curvature import curvature
     u = np.random.default_rng(0).normal(size=(64, 3))
     pts = u / np.linalg.norm(u, axis=1)[:, None] * params.radius
     how = params.orient
     if isinstance(how, str) and how == "auto" and params.viewpoint is None:
         how = "up"
     given = isinstance(how, str) and how == "normals"           # the file's, in the run
-    where = ({"device": _worker_device(params.device)} if local else {"backend": "numpy"})
+    where = ({"device": worker_device(params.device)} if local else {"backend": "numpy"})
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         curvature(pts, params.radius, method=params.method, weights=params.weights,
@@ -348,7 +298,7 @@ def _manifest(source, params, budget, tile, wanted, client, workers):
     output (the fields written among them), the code, and the device of a local run."""
     device = None
     if client is None and not workers:
-        info = _worker_device(params.device).info
+        info = worker_device(params.device).info
         device = [info.platform, info.name, info.driver]
     return {"source": _source_key(source), "params": params.key(),
             "fields": sorted(wanted) if wanted else None, "code": wsp.code_key(),
@@ -385,7 +335,7 @@ def _prepare(space, want, source, params, budget, say, check_disk=None):
 
 def run_tiles(source, dst, params, budget, tile, ws, wanted, progress, say, client=None,
               workers=None):
-    """Passes (1) to (3) of a tiled run of ``params`` (:class:`_Params`, or
+    """Passes (1) to (3) of a tiled run of ``params`` (:class:`CurvatureParams`, or
     clcurv.tiles.features.FeatureParams: the tiles' computation, halo, fields and budget per
     point) from ``source`` to ``dst``, in the workspace folder ``ws``
     (:mod:`clcurv.tiles.workspace`: claimed and locked for the run); the summary dict.
@@ -483,10 +433,9 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
     halo = params.halo(file_normals)
     smoothed = None
     if params.scale_space:
-        from clcurv.tiles.scale import run_steps
         t_s = time.perf_counter()
-        wsp._remove(ws / "parts")            # an interrupted run's steps: made again
-        smoothed = run_steps(ws, buckets, params, params.scale_space, budget,
+        wsp.remove(ws / "parts")            # an interrupted run's steps: made again
+        smoothed = tiled_scale.run_steps(ws, buckets, params, params.scale_space, budget,
                              lambda tasks: _execute(tasks, client, workers, step=True),
                              tile=tile)
         times["scale space"] = time.perf_counter() - t_s
@@ -566,7 +515,7 @@ def _tile_done(ws, t, mst, say):
         return True
     say(f"{base}: fails its check; computing tile {t} again")
     for p in paths:
-        wsp._remove(p)
+        wsp.remove(p)
     return False
 
 
@@ -578,16 +527,16 @@ def _split(space, buckets, tiling, smoothed):
            "origin": list(map(float, tiling.frame.origin)), "cell": tiling.frame.cell}
     try:
         have = json.loads(record.read_text())
-        if have.get("key") == key and have.get("sum") == wsp._digest(
+        if have.get("key") == key and have.get("sum") == wsp.digest(
                 json.dumps(have["sums"], sort_keys=True).encode()):
             return have["sums"]
     except (OSError, ValueError, KeyError, TypeError):
         pass
-    wsp._remove(record)
+    wsp.remove(record)
     folder = space / "tiles_in"
-    wsp._remove(folder)
+    wsp.remove(folder)
     sums = buckets.split(tiling, folder, state=smoothed)
-    wsp._write_text(record, json.dumps({"key": key, "sums": sums, "sum": wsp._digest(
+    wsp.write_text(record, json.dumps({"key": key, "sums": sums, "sum": wsp.digest(
         json.dumps(sums, sort_keys=True).encode())}))
     return sums
 
@@ -596,7 +545,6 @@ def _trim():
     """Give the heap's free pages back to the system (glibc keeps them after a tile's
     large temporaries, and the next pass would run on top of them)."""
     try:
-        import ctypes
         ctypes.CDLL("libc.so.6").malloc_trim(0)
     except (OSError, AttributeError):
         pass
@@ -604,7 +552,7 @@ def _trim():
 
 def _wanted_specs(params, wanted):
     want_normals = not wanted or "normals" in wanted
-    specs = _field_specs(params.method, params.precision, want_normals)
+    specs = _field_specs(params.method, want_normals)
     if wanted:
         names = {s[0] for s in specs} | {"normals"}
         unknown = sorted(set(wanted) - names)
@@ -615,26 +563,6 @@ def _wanted_specs(params, wanted):
     return specs
 
 
-def _in_memory(src, dst, params, fields, say):
-    """The cloud fits: the in-memory file job (clcurv.jobs.job.run)."""
-    from clcurv.jobs.job import Job, run
-    orient = params.orient
-    if not isinstance(orient, str) and orient is not None:
-        raise TilingError("a direction orient= is for tiled runs and the API; the file job "
-                          "takes 'auto', 'mst', 'up' or None")
-    job = Job(src, dst, method=params.method, radius=params.radius, weights=params.weights,
-              kernel=params.kernel, h=params.h, device=params.device,
-              precision=params.precision, fields=fields, viewpoint=params.viewpoint,
-              orient="none" if orient is None else orient,
-              ignore_normals=params.ignore_normals, scale_space=params.scale_space,
-              quiet=True)
-    t0 = time.perf_counter()
-    done = run(job, out=lambda line: None)
-    return {"tiled": False, "tiles": 1, "halo": 0, "points": len(done.points),
-            "times": {"in memory": time.perf_counter() - t0},
-            "status": np.bincount(done.result.status, minlength=4).tolist(), "dst": dst}
-
-
 @dataclass
 class TileTask:
     """What a worker needs to compute one tile (small: no arrays; the worker reads the
@@ -643,7 +571,7 @@ class TileTask:
     t: int
     tiling: Tiling
     buckets: dict
-    params: _Params
+    params: CurvatureParams
     how: object
     file_normals: bool
     specs: list
@@ -655,10 +583,6 @@ class TileTask:
 def compute_tile(task, device=None):
     """Compute tile ``task.t`` and write its own points' fields (with their global ids) to
     the workspace, atomically; returns (t, points owned)."""
-    from clcurv.api.curvature import curvature
-    from clcurv.grid.cloud import DeviceCloud
-    from clcurv.jobs.job import result_fields
-    from clcurv.runtime.memory import release_memory
     params, tiling = task.params, task.tiling
     buckets = Buckets.from_state(Path(task.ws) / "buckets", task.buckets)
     rec = buckets.read_tile(Path(task.ws) / "tiles_in", task.t, state=task.smoothed,
@@ -669,7 +593,7 @@ def compute_tile(task, device=None):
     out = np.empty(int(own.sum()), tile_dtype(task.specs, mst))
     if len(out):
         if device is None:
-            device = _worker_device(params.device)
+            device = worker_device(params.device)
         cloud = DeviceCloud(pos, params.radius, device=device,
                             precision=params.precision, frame=tiling.frame)
         if params.kind == "features":           # clcurv.tiles.features.FeatureParams
@@ -681,7 +605,7 @@ def compute_tile(task, device=None):
             extra = {}
             if mst:
                 nl, node = tiled_orient.orient_tile(cloud, params.radius, params.orient_k,
-                                                    task.rank, tiling.frame.origin)
+                                                    task.rank)
                 normals = np.where(node[:, None] >= 0, nl, (0.0, 0.0, 1.0))
                 how = "normals"
                 if "align_normals" in OPERATORS[params.method].options:
@@ -692,7 +616,7 @@ def compute_tile(task, device=None):
                                 weights=params.weights, normals=normals, orient=how,
                                 viewpoint=params.viewpoint, kernel=params.kernel, h=params.h,
                                 **extra)
-            f = result_fields(res)
+            f = curvature_fields(res)
             f["normals"] = res.normals
         out["id"] = rec["id"][own]
         for name, _, _ in task.specs:
@@ -724,37 +648,15 @@ def _mst_records(task, out, own, pos, nl, node, ids):
         wsp.save_sealed(base.with_suffix(suffix), arr)
 
 
-_DEVICES = {}
-
-
-def _worker_device(spec):
-    """The device of this process (one OpenCL context per process): the one the Dask
-    worker plugin chose (:class:`ClcurvWorker`), else ``spec``."""
-    try:
-        from distributed import get_worker
-        chosen = getattr(get_worker(), "clcurv_device", None)
-    except (ImportError, ValueError):
-        chosen = None
-    key = chosen if chosen is not None else spec
-    if key not in _DEVICES:
-        from clcurv.runtime.device import get_device
-        _DEVICES[key] = get_device(key)
-    return _DEVICES[key]
-
-
 def _execute(tasks, client, workers, step=False):
     """fn(task) of every task as it finishes (fn: compute_tile, or the scale space's
     step_tile when ``step``): in this process, on a Dask ``client``, or on a LocalCluster
     of ``workers`` processes started (and closed) here."""
-    if step:
-        from clcurv.tiles.scale import step_tile as fn
-    else:
-        fn = compute_tile
+    fn = tiled_scale.step_tile if step else compute_tile
     if client is None and not workers:
         for task in tasks:
             yield fn(task)
         return
-    from clcurv.tiles import workers as cluster
     yield from cluster.map_tiles(fn, tasks, client=client, workers=workers)
 
 

@@ -1,5 +1,5 @@
-"""Covariance features of a file, in tiles when the cloud does not fit the memory budget
-(``clcurv features``, :func:`features_file`).
+"""Covariance features of a file in tiles, when the cloud does not fit the memory budget
+(``clcurv features``, :func:`clcurv.features_file`, which decides: :mod:`clcurv.jobs.job`).
 
     clcurv.features_file("survey.laz", "out.laz", [1, 2, 4], ["planarity", "linearity"])
     clcurv features survey.laz -o out.laz --radius 1,2,4 --features planarity,linearity
@@ -17,19 +17,12 @@ is a halo), ascii PLY and text formats. Output fields are those of the in-memory
 """
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
-from clcurv import io
-from clcurv.api.features import (DEFAULT_FEATURES, as_radii, canonical_names, empty_features,
-                                 radius_suffix)
-from clcurv.io import stream
-from clcurv.tiles.planning import (TILE_BYTES_PER_POINT, TilingError, budget_of,
-                                   check_tile_size, fits_memory)
-from clcurv._shared.validate import choice
+from clcurv.api.features import empty_features, features, radius_suffix
+from clcurv.tiles.planning import TILE_BYTES_PER_POINT
 
 #: host bytes per point and written column beyond a curvature run's (the float64 result
 #: column and its copy in the tile's records, or in the in-memory run the output's)
@@ -132,122 +125,9 @@ class FeatureParams:
     def tile_fields(self, cloud):
         """The fields (specs' names) of every point of a tile's ``cloud`` (a DeviceCloud in
         the run's frame, cells of the largest radius)."""
-        from clcurv.api.features import features
         radius = list(self.radii) if self.several or self.optimal else self.radii[0]
         res = features(cloud, radius, self.names, ddof=self.ddof, optimal=self.optimal)
         fields, normals = self._fields_of(res)
         if normals is not None:
             fields["normals"] = normals
         return fields
-
-
-def features_file(src, dst, radius=None, features=DEFAULT_FEATURES, *, k=None, ddof=0,
-                  optimal=False, memory="auto", tile=None, workdir=None, device=None,
-                  precision="float", progress=None, out=None, client=None, workers=None):
-    """Covariance features (:func:`clcurv.api.features`) of the cloud of file ``src``, written
-    with its points to ``dst``; in tiles when the cloud does not fit the memory budget
-    (see the module docstring), with the same output bit for bit.
-
-    Parameters
-    ----------
-    src : path, or a list of paths (a catalog: LAS/LAZ or NPY files read as one cloud, in
-        tiles, one output per input in the folder ``dst``)
-    dst : path
-        The output: any format :func:`clcurv.io.write` takes in memory; a tiled run writes
-        LAS/LAZ (from LAS/LAZ input: header and records kept), NPZ or binary PLY.
-    radius : float or list of floats
-        Ball radius in the file's unit, or several (one neighbour walk; fields named
-        ``<feature>_r<radius>``).
-    features, k, ddof, optimal, device, precision
-        As :func:`clcurv.api.features`. ``k`` runs in memory only.
-    memory, tile, workdir, progress, out, client, workers
-        As :func:`clcurv.curvature_file`.
-
-    Returns
-    -------
-    dict
-        ``tiled`` (bool), ``tiles``, ``points``, ``fields`` (names written), ``halo``,
-        ``times`` (seconds per stage), ``dst``.
-    """
-    from clcurv.tiles import engine as tiled
-    tile = check_tile_size(tile)                    # before any point is read
-    say = out or (lambda s: None)
-    choice(ddof, "ddof", (0, 1))
-    names = canonical_names(features)
-    if not names:
-        raise ValueError("features must name at least one feature")
-    catalog = isinstance(src, (list, tuple))
-    forced = tile is not None or client is not None or bool(workers)
-    if k is not None:
-        if radius is not None:
-            raise ValueError("give either radius or k, not both")
-        if optimal:
-            raise ValueError("optimal=True chooses among a list of radii, not with k")
-        if forced or catalog:
-            raise TilingError("k (a k-NN radius) needs the whole cloud in memory: it does "
-                              "not run in tiles (a tile size, workers, a scheduler or several "
-                              "input files); give a radius to run in tiles")
-        dst = io.check_output(dst)
-        io.check_not_input(dst, src)
-        return _in_memory(src, dst, None, names, k, ddof, False, device, precision)
-    if radius is None:
-        raise ValueError("features_file needs radius= (a number or a list) or k=")
-    radii, _ = as_radii(radius)
-    if optimal and len(radii) < 2:
-        raise ValueError(f"optimal=True needs a list of at least two radii, got {radius!r}")
-    params = FeatureParams(tuple(radii), names, int(ddof), bool(optimal), device, precision)
-    for d in ([dst] if not catalog else []):
-        if Path(d).suffix.lower() in (".las", ".laz"):     # before any work: LAS's limit
-            io.las.check_extra_count(d, params.columns())
-    if catalog:
-        source = stream.Catalog(src)
-        dst = tiled.catalog_outputs(source, dst)
-    else:
-        dst = io.check_output(dst)
-        io.check_not_input(dst, src)
-        source = _streamed(src) if not forced else stream.open_source(src)
-        if source is None:          # a format the tiles do not read: the in-memory reader
-            return _in_memory(src, dst, radii, names, None, ddof, optimal, device, precision)
-    budget = budget_of(memory)
-    if not catalog and not forced and fits_memory(source.n, budget, params.extra_in_memory()):
-        return _in_memory(src, dst, radii, names, None, ddof, optimal, device, precision)
-    tiled.check_tiled_outputs(dst if catalog else [dst], source)
-    tiled.check_params(params, None, local=client is None and not workers)
-    tiled.wsp.check_workdir(workdir)
-    budget = tiled.worker_budget(budget, workers, client)
-    ws = tiled.workspace(dst, workdir)
-    summary = tiled.run_tiles(source, dst, params, budget, tile, ws, None, progress, say,
-                              client, workers)
-    summary["fields"] = [n for n, _, _ in params.specs()]
-    summary.pop("status", None)             # curvature's status field: none here
-    return summary
-
-
-def _streamed(src):
-    """The stream source of ``src``, or None when the tiles cannot read it (the in-memory
-    reader then reads it, or says what is wrong with it)."""
-    if Path(src).suffix.lower() not in stream.STREAM_READS:
-        return None
-    try:
-        return stream.open_source(src)
-    except Exception:
-        return None
-
-
-def _in_memory(src, dst, radii, names, k, ddof, optimal, device, precision):
-    """The whole cloud read, :func:`clcurv.api.features`, the file written (the summary dict of
-    :func:`features_file`)."""
-    from clcurv.api.features import features
-    t0 = time.perf_counter()
-    cloud = io.read(src)
-    several = radii is not None and len(radii) > 1 and not optimal
-    radius = None if radii is None else radii if several or optimal else radii[0]
-    res = features(cloud.points, radius, names, k=k, ddof=ddof, optimal=optimal,
-                   device=device, precision=precision)
-    extra = "knn_radius" if k is not None else "optimal_radius" if optimal else None
-    fields, normals = file_fields(res, radii if several else None, extra)
-    path = io.write(dst, cloud.points, fields, normals=normals, like=cloud)
-    names_out = list(fields) + ([] if normals is None else ["normals"])
-    return {"tiled": False, "tiles": 1, "halo": 0, "points": len(cloud.points),
-            "dropped": int(getattr(cloud, "dropped", 0) or 0), "fields": names_out,
-            "times": {"in memory": time.perf_counter() - t0}, "dst": path}

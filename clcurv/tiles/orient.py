@@ -31,7 +31,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from clcurv.api.curvature import normals as pca_normals
+from clcurv.orient import forest, graph
 from clcurv.orient.orientation import MIN_COMPONENT
+from clcurv.tiles.workspace import load_sealed, tile_file
 
 #: extra per-point fields of a tile's records when it orients by MST
 NODE_FIELDS = [("node", "<i8"), ("nl", "<f4", (3,)), ("pd", "<f8")]
@@ -40,13 +43,11 @@ SUMS_DTYPE = np.dtype([("node", "<i8"), ("count", "<i8"), ("sp", "<f8", (3,)),
                        ("sn", "<f8", (3,)), ("snp", "<f8")])
 
 
-def orient_tile(cloud, radius, k, t, origin):
+def orient_tile(cloud, radius, k, t):
     """(normals (N, 3) consistent within each tile component, node (N,) int64 (-1 where
     the normal is invalid)) of the points of a tile's DeviceCloud; ``t`` numbers the tile
     among the run's (0 <= t < 2^31: a tile id t = tx + ntx ty, which one far point makes
     larger, would overflow the node ids t << 32)."""
-    from clcurv.orient import forest, graph
-    from clcurv.api.curvature import normals as pca_normals
     n = pca_normals(cloud, radius, orient=None)
     ok = np.isfinite(n).all(axis=1)
     u = np.where(ok[:, None], n, 0.0)
@@ -168,7 +169,6 @@ def reconcile_windows(ws, windows, tiles, method):
     """Votes between tile components from the halo points and their owners, window by
     window, and the node sums of ``tiles`` (the ids of the tiles that hold points); sets
     ``windows.transform`` to the final flips (clcurv.tiles.orient)."""
-    from clcurv.tiles.results import tile_file
     votes = {}
     for w in range(windows.count):
         hp = windows.halo_path(w)
@@ -186,7 +186,6 @@ def reconcile_windows(ws, windows, tiles, method):
         for (x, y, g), c in zip(uniq.tolist(), cnt.tolist()):
             if x != y:
                 votes[(x, y)] = votes.get((x, y), 0) + (c if g else -c)
-    from clcurv.tiles.workspace import load_sealed
     sums = [load_sealed(tile_file(ws, t).with_suffix(".nodes.npy")) for t in tiles]
     flips, centroid, small = reconcile(sums, votes)
     windows.transform = lambda rec: flip_fields(rec, flip_mask(rec, flips, centroid, small),

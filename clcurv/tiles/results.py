@@ -8,6 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
+from clcurv.tiles.orient import NODE_FIELDS
+from clcurv.tiles.workspace import CorruptWorkspace, load_sealed, tile_file
+
 #: points per id window of the merge, at most (its records are what the writing pass
 #: holds; a multiple of READ_CHUNK, so a written chunk never spans two windows)
 WINDOW = 1 << 18
@@ -56,7 +59,6 @@ class Windows:
             inside = (rel >= 0) & (rel < hi - lo)
             seen = np.bincount(rel[inside], minlength=hi - lo)
             if not inside.all() or not np.all(seen == 1):
-                from clcurv.tiles.workspace import CorruptWorkspace
                 raise CorruptWorkspace(
                     p, f"the tiles wrote ids {lo}..{hi - 1} wrongly: "
                     f"{int(np.count_nonzero(seen == 0))} missing, "
@@ -101,7 +103,6 @@ def partition(ws, n, tiles, specs, mst=False):
     if win.folder.exists():
         shutil.rmtree(win.folder)
     win.folder.mkdir()
-    from clcurv.tiles.workspace import load_sealed
     for t in tiles:
         rec = load_sealed(tile_file(ws, t))             # CorruptWorkspace: recomputed
         if "status" in rec.dtype.names and len(rec):
@@ -115,12 +116,7 @@ def partition(ws, n, tiles, specs, mst=False):
     return win
 
 
-def tile_file(ws, t):
-    return Path(ws) / "tiles" / f"{t}.npy"
-
-
 def tile_dtype(specs, mst=False):
-    from clcurv.tiles.orient import NODE_FIELDS
     return np.dtype([("id", "<i8")] + [(name, dtype) if width is None else
                                        (name, dtype, (width,)) for name, width, dtype in specs]
                     + (NODE_FIELDS if mst else []))

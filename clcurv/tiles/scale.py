@@ -35,7 +35,11 @@ from pathlib import Path
 import numpy as np
 
 from clcurv.grid.binning import Frame
-from clcurv.ops.smoothing import MARGIN
+from clcurv.ops.smoothing import MARGIN, DeviceState
+from clcurv.runtime.memory import release_memory
+from clcurv.tiles.buckets import Buckets
+from clcurv.tiles.planning import covering, occupied_tiles, plan_tiles, within
+from clcurv.tiles.workers import worker_device
 
 
 def state_dtype(real):
@@ -144,11 +148,6 @@ def _parts(ws, step):
 def step_tile(task):
     """One scale-space step of tile ``task.t``: its own points' new state rows go to part
     files (one per bucket they belong to); returns (t, largest drift of its points)."""
-    from clcurv.ops.smoothing import DeviceState
-    from clcurv.tiles.buckets import Buckets
-    from clcurv.runtime.memory import release_memory
-    from clcurv.tiles.engine import _worker_device
-    from clcurv.tiles.planning import within
     buckets = Buckets.from_state(Path(task.ws) / "buckets", task.buckets)
     state = State(task.state.folder, task.state.real, "pb", task.state.margin)
     tiling = task.tiling
@@ -163,11 +162,11 @@ def step_tile(task):
         return task.t, 0.0
     drift = 0.0
     if own.any():
-        device = _worker_device(task.device)
+        device = worker_device(task.device)
         ping = None if task.fresh else rec["it"]
         st = DeviceState(rec["pb"], np.zeros_like(rec["pb"]), task.radius, device,
-                          task.precision, task.density, frame=tiling.frame,
-                          iterate=(ping, rec["d"]))
+                         task.precision, task.density, frame=tiling.frame,
+                         iterate=(ping, rec["d"]))
         drifts = np.zeros(len(rec))
         st.step(task.radius, task.density, drifts)
         it, d = st.iterate()
@@ -194,7 +193,6 @@ def step_tile(task):
 def run_steps(ws, buckets, params, steps, budget, execute, progress=None, tile=None):
     """The ``steps`` scale-space steps over tiles (see the module docstring); leaves the
     final state in ``ws/state`` and returns the State to read smoothed positions from."""
-    from clcurv.tiles.planning import covering, occupied_tiles, plan_tiles
     real = "<f4" if params.precision == "float" else "<f8"
     folder = Path(ws) / "state"
     r = params.radius
@@ -229,12 +227,12 @@ def run_steps(ws, buckets, params, steps, budget, execute, progress=None, tile=N
         for _, most in execute(tasks):
             drift = max(drift, most)
         rebin = step < steps - 1 and drift > MARGIN * r      # as smoothing.scale_space
-        lo, hi, moved, dmax = _apply(ws, buckets, state, step, rebin)
+        lo, hi, moved, dmax, box = _apply(ws, buckets, state, step, rebin)
         fresh = rebin
         shutil.rmtree(_parts(ws, step), ignore_errors=True)
         if progress is not None:
             progress(step + 1, steps)
-    return State(str(folder), real, "smoothed", dmax, _apply.smoothed_box)
+    return State(str(folder), real, "smoothed", dmax, box)
 
 
 def _gathered(buckets, tiling, tiles, state):
@@ -248,9 +246,10 @@ def _gathered(buckets, tiling, tiles, state):
     return total
 
 
-def _apply(ws, buckets, state, step, rebin, block=1 << 18):
+def _apply(ws, buckets, state, step, rebin):
     """Merge the parts of ``step`` into the state files (and re-bin: pb = p + d); returns
-    the bounding box of pb, the largest |pb - p| and the largest |d| (for the margins)."""
+    the bounding box of pb, the largest |pb - p| and the largest |d| (for the margins), and
+    the bounding box of the smoothed positions p + d."""
     parts = _parts(ws, step)
     by_bucket = {}
     for f in parts.iterdir():
@@ -287,5 +286,4 @@ def _apply(ws, buckets, state, step, rebin, block=1 << 18):
             st.tofile(tmp)
             os.replace(tmp, path)
     # margins in x-y: a point is searched within this distance of its original position
-    _apply.smoothed_box = (slo, shi)
-    return lo, hi, moved * 1.001 + 1e-12, dmax * 1.001 + 1e-12
+    return lo, hi, moved * 1.001 + 1e-12, dmax * 1.001 + 1e-12, (slo, shi)

@@ -41,11 +41,14 @@ Bounds, so that a run on a shared machine cannot run away:
 """
 from __future__ import annotations
 
+import asyncio
 import os
 import threading
 import warnings
 
 import numpy as np
+
+from clcurv.runtime.device import devices, get_device
 
 #: retries of a tile whose task raised (a worker that dies is handled by Dask itself)
 RETRIES = 2
@@ -67,7 +70,7 @@ class SchedulerError(ConnectionError):
 
 def _import():
     try:
-        import distributed
+        import distributed          # here: Dask is an optional extra (clcurv[dask])
     except ImportError:
         raise ImportError('running tiles on Dask needs dask.distributed: pip install '
                           '"clcurv[dask]"') from None
@@ -104,9 +107,25 @@ def worker_plugin(device=None):
 def _gpu_by_ordinal(ordinal):
     """The device index of GPU ``ordinal mod count`` when this host has several GPUs
     (simulators excluded), else None (the default device)."""
-    from clcurv.runtime.device import devices
     gpus = [d for d in devices() if d.kind == "gpu" and not getattr(d, "simulator", False)]
     return gpus[ordinal % len(gpus)].index if len(gpus) > 1 else None
+
+
+_DEVICES = {}
+
+
+def worker_device(spec):
+    """The device of this process (one OpenCL context per process): the one the Dask
+    worker plugin chose (:class:`ClcurvWorker`), else ``spec``."""
+    try:
+        from distributed import get_worker          # Dask: optional
+        chosen = getattr(get_worker(), "clcurv_device", None)
+    except (ImportError, ValueError):
+        chosen = None
+    key = chosen if chosen is not None else spec
+    if key not in _DEVICES:
+        _DEVICES[key] = get_device(key)
+    return _DEVICES[key]
 
 
 def usable_cores():
@@ -178,8 +197,7 @@ def _unreachable(address, timeout, why):
 def _probe(address, timeout):
     """SchedulerError unless something at ``address`` completes Dask's handshake within
     ``timeout`` seconds (on its own thread and event loop: none of the caller's is used)."""
-    import asyncio
-    from distributed.comm import connect as dask_connect
+    from distributed.comm import connect as dask_connect      # Dask: optional
     outcome = []
 
     async def hello():

@@ -43,6 +43,9 @@ from pathlib import Path
 
 import numpy as np
 
+from clcurv._shared.version import __version__
+from clcurv.runtime.program import kernels_dir
+
 #: the file that marks a folder as a clcurv workspace
 TAG = "CLCURV-WORKSPACE"
 #: what a run makes in its workspace (and removes; nothing else is touched)
@@ -81,11 +84,11 @@ class WorkspaceError(RuntimeError):
 def folder(dsts, workdir=None):
     """The workspace folder of a run writing ``dsts`` (a path, or the list of a catalog)."""
     dsts = [Path(d) for d in (dsts if isinstance(dsts, (list, tuple)) else [dsts])]
-    digest = hashlib.blake2b("\0".join(str(d.resolve()) for d in dsts).encode(),
-                             digest_size=5).hexdigest()
+    key = hashlib.blake2b("\0".join(str(d.resolve()) for d in dsts).encode(),
+                          digest_size=5).hexdigest()
     name = dsts[0].name if len(dsts) == 1 else f"catalog-{len(dsts)}"
     parent = Path(workdir) if workdir is not None else dsts[0].parent
-    return parent / f".{name}.{digest}.clcurv-tiles"
+    return parent / f".{name}.{key}.clcurv-tiles"
 
 
 def check_workdir(workdir):
@@ -187,7 +190,7 @@ def claim(ws, dsts):
             _remove_stale_temps(d)
         stack.enter_context(_locked_path(ws, _make_dir, f"the workspace {ws}"))
         (ws / TAG).touch()
-        _write_text(ws / "owner.json", owner)
+        write_text(ws / "owner.json", owner)
         yield Workspace(ws)
 
 
@@ -208,7 +211,8 @@ def _unlink(path):
         pass
 
 
-def _write_text(path, text):
+def write_text(path, text):
+    """Write ``text`` to ``path`` atomically (a temporary file renamed onto it)."""
     tmp = Path(path).with_name(f".{Path(path).name}.{os.getpid()}.tmp")
     tmp.write_text(text)
     os.replace(tmp, path)
@@ -229,15 +233,15 @@ class Workspace:
         for name in ENTRIES:
             if name in (TAG, "owner.json"):
                 continue
-            _remove(self.path / name)
+            remove(self.path / name)
         for p in self.path.glob(".*.tmp"):
-            _remove(p)
+            remove(p)
 
     def remove(self):
         """Remove what runs make here, then the folder when nothing else is left in it."""
         self.clear()
         for name in (TAG, "owner.json"):
-            _remove(self.path / name)
+            remove(self.path / name)
         try:
             self.path.rmdir()
         except OSError:
@@ -248,18 +252,24 @@ class Workspace:
         try:
             doc = json.loads((self.path / "manifest.json").read_text())
             body = doc["body"]
-            ok = doc["sum"] == _digest(json.dumps(body, sort_keys=True).encode())
+            ok = doc["sum"] == digest(json.dumps(body, sort_keys=True).encode())
         except (OSError, ValueError, KeyError, TypeError):
             return None
         return body if ok else None
 
     def write_manifest(self, body):
         text = json.dumps(body, sort_keys=True)
-        _write_text(self.path / "manifest.json",
-                    json.dumps({"body": json.loads(text), "sum": _digest(text.encode())}))
+        write_text(self.path / "manifest.json",
+                   json.dumps({"body": json.loads(text), "sum": digest(text.encode())}))
 
 
-def _remove(p):
+def tile_file(ws, t):
+    """The result file of tile ``t`` in the workspace folder ``ws``."""
+    return Path(ws) / "tiles" / f"{t}.npy"
+
+
+def remove(p):
+    """Remove the file or folder ``p`` (and what it holds), if there."""
     p = Path(p)
     if p.is_dir() and not p.is_symlink():
         shutil.rmtree(p, ignore_errors=True)
@@ -267,7 +277,7 @@ def _remove(p):
         _unlink(p)
 
 
-def _digest(data):
+def digest(data):
     return hashlib.blake2b(data, digest_size=16).hexdigest()
 
 
@@ -309,8 +319,6 @@ def code_key():
     """The clcurv version and a hash of the kernels' sources: results of other code are
     never resumed."""
     if not _CODE:
-        from clcurv import __version__
-        from clcurv.runtime.program import kernels_dir
         h = hashlib.blake2b(digest_size=16)
         for p in sorted(kernels_dir().glob("*")):
             if p.suffix in (".cl", ".h"):

@@ -3,16 +3,16 @@
 * :class:`Format`, the declaration each format module makes (``FORMAT``) and the registry in
   ``clcurv/io/__init__.py`` is built from;
 * :class:`Cloud`, the result of :func:`clcurv.io.read`, and the errors;
-* reading helpers: :func:`_finish` (drops rows with non-finite coordinates and builds the
-  Cloud), :func:`_split_named` (columns by name: x y z, normals ``nx ny nz`` /
-  ``normal_x ...``, attributes), :func:`_split_positional` (headerless tables: columns 0-2
-  are x y z, 3-5 normals when exactly 6 columns of unit vectors), :func:`_native`,
-  :func:`_struct_columns` and :func:`_quiet`; :func:`_check_claim`, the guard against
+* reading helpers: :func:`finish` (drops rows with non-finite coordinates and builds the
+  Cloud), :func:`split_named` (columns by name: x y z, normals ``nx ny nz`` /
+  ``normal_x ...``, attributes), :func:`split_positional` (headerless tables: columns 0-2
+  are x y z, 3-5 normals when exactly 6 columns of unit vectors), :func:`native`,
+  :func:`struct_columns` and :func:`quiet`; :func:`check_claim`, the guard against
   hostile headers (a count is checked against the bytes the file holds before anything is
   allocated from it);
-* writing helpers: :func:`_check_points`, :func:`_check_normals`, :func:`_check_fields`
+* writing helpers: :func:`check_points`, :func:`check_normals`, :func:`check_fields`
   (names ``[A-Za-z_][A-Za-z0-9_.-]*``, not reserved for coordinates or normals, shape
-  ``(N,)``, numeric; bool becomes uint8) and :func:`_int_as` (the integer type a format
+  ``(N,)``, numeric; bool becomes uint8) and :func:`int_as` (the integer type a format
   stores an integer field in).
 """
 from __future__ import annotations
@@ -27,7 +27,7 @@ from typing import Callable
 import numpy as np
 
 _NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_.\-]*$")
-_RESERVED = {"x", "y", "z", "nx", "ny", "nz", "normal_x", "normal_y", "normal_z"}
+RESERVED = {"x", "y", "z", "nx", "ny", "nz", "normal_x", "normal_y", "normal_z"}
 _NORMAL_NAMES = (("nx", "ny", "nz"), ("normal_x", "normal_y", "normal_z"))
 
 
@@ -48,7 +48,7 @@ class Format:
         Extensions written -> description; empty for a read-only format.
     write : callable or None
         ``write(path, points, fields, normals, like, carried)`` with checked arguments:
-        points ``(N, 3)`` float64, fields from :func:`_check_fields`, normals ``(N, 3)`` or
+        points ``(N, 3)`` float64, fields from :func:`check_fields`, normals ``(N, 3)`` or
         None, ``carried`` the input's attributes to keep (:mod:`clcurv.io.carry`: name ->
         array in the dtype to write, written between the normals and the fields).
     carries : str or None
@@ -135,7 +135,7 @@ class Cloud:
 
 # --------------------------------------------------------------------------- reading
 
-def _finish(path, fmt, points, normals=None, attributes=None, header=None):
+def finish(path, fmt, points, normals=None, attributes=None, header=None):
     """Build a Cloud, dropping rows with non-finite coordinates."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     attributes = dict(attributes or {})
@@ -152,7 +152,7 @@ def _finish(path, fmt, points, normals=None, attributes=None, header=None):
     return Cloud(points, normals, attributes, header, dropped, path, fmt)
 
 
-def _check_claim(path, claim, need, have, exact=True):
+def check_claim(path, claim, need, have, exact=True):
     """Raise CorruptFileError unless the ``need`` bytes that the header's ``claim`` takes
     (exactly, or at least when ``exact`` is false) fit in the ``have`` bytes the file holds.
 
@@ -166,19 +166,19 @@ def _check_claim(path, claim, need, have, exact=True):
                                "for it")
 
 
-def _native(a):
+def native(a):
     """A writable, native-byte-order copy of ``a``."""
     a = np.asarray(a)
     return a.astype(a.dtype.newbyteorder("="), copy=True)
 
 
-def _struct_columns(rec):
+def struct_columns(rec):
     """Name -> native copy of each non-object field of the structured array ``rec``."""
-    return {name: _native(rec[name]) for name in rec.dtype.names if rec.dtype[name] != object}
+    return {name: native(rec[name]) for name in rec.dtype.names if rec.dtype[name] != object}
 
 
 @contextmanager
-def _quiet():
+def quiet():
     """Silence warnings (``np.loadtxt`` on an empty body, plyfile on empty elements)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -195,7 +195,7 @@ def _find(names, wanted):
 
 def split_names(names, xyz=True):
     """(the x, y, z names or None, the normal triple's names or None, the attributes' names)
-    of a file's named columns ``names`` by the rules of :func:`_split_named` (x y z and a
+    of a file's named columns ``names`` by the rules of :func:`split_named` (x y z and a
     normal triple, exact names first, then case-insensitive)."""
     names = list(names)
     pos = find_triple(names, "xyz") if xyz else None
@@ -211,7 +211,7 @@ def find_triple(names, wanted):
     return None if None in idx else [names[i] for i in idx]
 
 
-def _split_named(path, fmt, columns, header=None, points=None):
+def split_named(path, fmt, columns, header=None, points=None):
     """Split named per-point columns into points, normals and attributes.
 
     ``columns`` maps names to arrays of first dimension N; x, y, z are required unless
@@ -225,7 +225,7 @@ def _split_named(path, fmt, columns, header=None, points=None):
         points = _float_stack(columns, pos)
     normals = None if nrm is None else _float_stack(columns, nrm)
     attributes = {n: columns[n] for n in rest}
-    return _finish(path, fmt, points, normals, attributes, header)
+    return finish(path, fmt, points, normals, attributes, header)
 
 
 def _float_stack(columns, names):
@@ -233,7 +233,7 @@ def _float_stack(columns, names):
     return np.column_stack([np.asarray(columns[n], dtype=np.float64) for n in names])
 
 
-def _looks_like_normals(a):
+def looks_like_normals(a):
     """True when every finite row of the (N, 3) array ``a`` is a unit vector (1e-3)."""
     a = np.asarray(a, dtype=np.float64)
     a = a[np.isfinite(a).all(axis=1)]
@@ -242,7 +242,7 @@ def _looks_like_normals(a):
     return bool(np.all(np.abs(np.linalg.norm(a, axis=1) - 1.0) <= 1e-3))
 
 
-def _split_positional(path, fmt, table, header=None):
+def split_positional(path, fmt, table, header=None):
     """Columns 0-2 are x y z; 3-5 are normals if exactly 6 columns of unit vectors."""
     table = np.asarray(table)
     if table.ndim != 2 or table.shape[1] < 3:
@@ -250,15 +250,15 @@ def _split_positional(path, fmt, table, header=None):
                                f"of shape {table.shape}")
     normals = None
     first_attr = 3
-    if table.shape[1] == 6 and _looks_like_normals(table[:, 3:6]):
+    if table.shape[1] == 6 and looks_like_normals(table[:, 3:6]):
         normals, first_attr = table[:, 3:6], 6
     attributes = {f"col{j}": table[:, j] for j in range(first_attr, table.shape[1])}
-    return _finish(path, fmt, table[:, :3], normals, attributes, header)
+    return finish(path, fmt, table[:, :3], normals, attributes, header)
 
 
 # --------------------------------------------------------------------------- writing
 
-def _check_points(path, points):
+def check_points(path, points):
     """``points`` as a C-contiguous (N, 3) float64 array, or WriteError."""
     pts = np.asarray(points)
     if pts.dtype.kind not in "fiu" or pts.ndim != 2 or pts.shape[1] != 3:
@@ -267,7 +267,7 @@ def _check_points(path, points):
     return np.ascontiguousarray(pts, dtype=np.float64)
 
 
-def _check_normals(path, normals, n):
+def check_normals(path, normals, n):
     """``normals`` as a real (n, 3) array (dtype kept), None if None, or WriteError."""
     if normals is None:
         return None
@@ -278,13 +278,13 @@ def _check_normals(path, normals, n):
     return normals
 
 
-def _check_fields(path, fields, n):
+def check_fields(path, fields, n):
     """The fields as name -> numeric (n,) arrays (bool as uint8), or WriteError."""
     out = {}
     for name, values in (fields or {}).items():
         if not isinstance(name, str) or not _NAME_RE.match(name):
             raise WriteError(f"{path}: field name {name!r} must match [A-Za-z_][A-Za-z0-9_.-]*")
-        if name.lower() in _RESERVED:
+        if name.lower() in RESERVED:
             raise WriteError(f"{path}: field name {name!r} is reserved for coordinates or "
                              "normals")
         a = np.asarray(values)
@@ -298,7 +298,7 @@ def _check_fields(path, fields, n):
     return out
 
 
-def _int_as(path, name, a, allowed):
+def int_as(path, name, a, allowed):
     """The dtype for integer field ``a``: its own if in ``allowed``, else the 32-bit type of
     the same signedness when the values fit (int64 -> int32, uint64 -> uint32)."""
     if a.dtype in allowed:
