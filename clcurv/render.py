@@ -55,7 +55,7 @@ from pathlib import Path
 
 import numpy as np
 
-from clcurv.api.features import FEATURES
+from clcurv.ops.features import FEATURES
 from clcurv.io import atomic_output, check_output
 from clcurv.ops.registry import OPERATORS, signed_file_fields
 

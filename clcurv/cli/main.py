@@ -35,7 +35,7 @@ from clcurv.ops.registry import METHODS
 from clcurv.runtime.program import BuildError, PrecisionError
 from clcurv.jobs.tiled_job import tile_session
 from clcurv.render import check_image_output, render
-from clcurv.tiles.features import features_file
+from clcurv.jobs.job import features_file
 from clcurv.tiles.planning import TilingError, check_tile_size
 from clcurv.tiles.workers import CONNECT_TIMEOUT, FORCE_WORKERS
 from clcurv.tiles.workspace import WorkspaceError

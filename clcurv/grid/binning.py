@@ -295,8 +295,9 @@ def _check_inside(points, frame, cell, threads=None):
         check_finite_box(points, lo, hi)
         ijk_lo, ijk_hi = frame.cells_of(np.stack([lo, hi]))
         if (ijk_lo < 0).any() or (ijk_hi >= np.asarray(frame.dims)).any():
-            raise ValueError(f"points from {_fmt(lo)} to {_fmt(hi)} lie outside the frame "
-                             f"of origin {_fmt(frame.origin)} and {frame.dims} cells of "
+            raise ValueError(f"points from {format_point(lo)} to {format_point(hi)} lie outside "
+                             "the frame "
+                             f"of origin {format_point(frame.origin)} and {frame.dims} cells of "
                              f"size {cell:.6g}")
 
 
@@ -317,22 +318,23 @@ def _dims(points, lo, hi, cell):
         box = float(np.prod(span))
     if np.isfinite(box) and box < MAX_KEY:
         return tuple(int(d) for d in span)
-    raise ExtentError(f"the points span {_fmt(hi - lo)} (from {_fmt(lo)} to {_fmt(hi)}): "
+    raise ExtentError(f"the points span {format_point(hi - lo)} (from {format_point(lo)} to "
+                      f"{format_point(hi)}): "
                       f"{box:.3g} cells of size {cell:.6g}, more than the 2^62 a grid key "
-                      f"holds. {_outlier(points)}Drop far outliers and \"no data\" "
+                      f"holds. {outlier_sentence(points)}Drop far outliers and \"no data\" "
                       "values, use a larger radius, or split the cloud into tiles")
 
 
-def _fmt(v):
+def format_point(v):
     return "(" + ", ".join(f"{x:.6g}" for x in v) + ")"
 
 
-def _outlier(points):
+def outlier_sentence(points):
     """A sentence naming the point farthest from the median (only on the error path)."""
     med = np.median(points, axis=0)
     far = int(np.argmax(np.max(np.abs(points - med), axis=1)))
-    return (f"The farthest point from the median {_fmt(med)} is #{far} at "
-            f"{_fmt(points[far])}. ")
+    return (f"The farthest point from the median {format_point(med)} is #{far} at "
+            f"{format_point(points[far])}. ")
 
 
 @dataclass(frozen=True)

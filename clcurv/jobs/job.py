@@ -37,7 +37,8 @@ from tqdm import tqdm
 
 from clcurv import io
 from clcurv.api.curvature import curvature
-from clcurv.api.features import DEFAULT_FEATURES, as_radii, canonical_names
+from clcurv.api.features import DEFAULT_FEATURES, canonical_names
+from clcurv.api.inputs import as_radii
 from clcurv.api.features import features as compute_features
 from clcurv.api.result import CurvatureResult
 from clcurv.io import stream

@@ -183,10 +183,11 @@ def covering(buckets, cell):
         return Frame.covering(buckets.lo, buckets.hi, cell)
     except ExtentError as exc:
         lo, hi = np.asarray(buckets.lo, float), np.asarray(buckets.hi, float)
-        stub = grid._outlier(np.stack([lo, hi]), lo, hi)
+        stub = grid.outlier_sentence(np.stack([lo, hi]))
         med, far, point = _farthest_from_median(buckets)
-        sentence = (f"The farthest point from the median {grid._fmt(med)} is #{far} at "
-                    f"{grid._fmt(point)}. ")
+        sentence = (f"The farthest point from the median {grid.format_point(med)} is #{far} "
+                    f"at "
+                    f"{grid.format_point(point)}. ")
         raise ExtentError(str(exc).replace(stub, sentence)) from None
 
 
