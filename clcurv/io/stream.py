@@ -43,7 +43,7 @@ import plyfile
 
 from . import carry, las, ply
 from .common import (CorruptFileError, MissingFileError, UnknownFormatError, check_claim,
-                     looks_like_normals, native, split_names)
+                     is_las, looks_like_normals, native, split_names)
 from .npy import check_npy
 
 #: formats a tiled run reads and writes
@@ -59,7 +59,7 @@ def open_source(path):
     if not path.exists():
         raise MissingFileError(f"{path}: no such file")
     ext = path.suffix.lower()
-    if ext in (".las", ".laz"):
+    if is_las(path):
         return LasSource(path)
     if ext == ".npy":
         return NpySource(path)
