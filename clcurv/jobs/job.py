@@ -38,12 +38,12 @@ from tqdm import tqdm
 from clcurv import io
 from clcurv.api.curvature import curvature
 from clcurv.api.features import DEFAULT_FEATURES, canonical_names
-from clcurv.api.inputs import as_radii
+from clcurv.api.inputs import as_radii, check_method
 from clcurv.api.features import features as compute_features
 from clcurv.api.result import CurvatureResult
 from clcurv.io import stream
 from clcurv.jobs.tiled_job import auto_radius_tiled, tile_session
-from clcurv.ops.registry import METHODS, OPERATORS
+from clcurv.ops.registry import OPERATORS
 from clcurv.ops.smoothing import scale_space
 from clcurv.runtime.device import get_device
 from clcurv.tiles import engine as tiled
@@ -51,7 +51,8 @@ from clcurv.tiles.engine import CurvatureParams, curvature_fields
 from clcurv.tiles.features import FeatureParams, file_fields
 from clcurv.tiles.planning import (AUTO_FRACTION, TilingError, available_memory, budget_of,
                                    check_tile_size, fits_memory)
-from clcurv._shared.validate import as_radius, choice
+from clcurv._shared.options import OPTIONS, check, file_orient, job_default
+from clcurv._shared.validate import as_radius
 
 __all__ = ["Job", "Done", "UsageError", "run", "auto_radius", "result_fields",
            "curvature_file", "features_file"]
@@ -66,7 +67,8 @@ class UsageError(Exception):
 
 @dataclass
 class Job:
-    """One file job; the fields are the options of ``clcurv compute``.
+    """One file job; the fields are the options of ``clcurv compute``, their defaults the
+    file job's of the options' declaration (:data:`clcurv._shared.options.OPTIONS`).
 
     ``radius``: the ball radius in the file's length unit, or ``"auto"`` (about 30
     neighbours, :func:`auto_radius`). ``scale_space``: MLS1 scale-space steps at that
@@ -79,27 +81,27 @@ class Job:
     """
     input: str | Path
     output: str | Path
-    method: str = "mls2"
-    radius: float | str = "auto"
-    scale_space: int = 0
-    weights: str = "uniform"
-    kernel: str | None = None
-    h: float | None = None
-    projections: int = 0
-    device: int | str | None = None
-    precision: str = "float"
-    fields: Sequence[str] | None = None
-    viewpoint: Sequence[float] | None = None
-    orient: str = "auto"
-    positions: str = "original"
-    ignore_normals: bool = False
-    quiet: bool = False
-    memory: str | int | None = "auto"
-    tile_size: float | None = None
-    workers: int | None = None
-    scheduler: str | None = None
-    workdir: str | Path | None = None
-    k: int | None = None
+    method: str = job_default("method")
+    radius: float | str = job_default("radius")
+    scale_space: int = job_default("scale_space")
+    weights: str = job_default("weights")
+    kernel: str | None = job_default("kernel")
+    h: float | None = job_default("h")
+    projections: int = job_default("projections")
+    device: int | str | None = job_default("device")
+    precision: str = job_default("precision")
+    fields: Sequence[str] | None = job_default("fields")
+    viewpoint: Sequence[float] | None = job_default("viewpoint")
+    orient: str = job_default("orient")
+    positions: str = job_default("positions")
+    ignore_normals: bool = job_default("ignore_normals")
+    quiet: bool = job_default("quiet")
+    memory: str | int | None = job_default("memory")
+    tile_size: float | None = job_default("tile_size")
+    workers: int | None = job_default("workers")
+    scheduler: str | None = job_default("scheduler")
+    workdir: str | Path | None = job_default("workdir")
+    k: int | None = job_default("k")
 
     @classmethod
     def from_args(cls, args):
@@ -257,21 +259,20 @@ def _evaluate(job, cloud, radius, device, st):
     return res, work
 
 
-#: ``--orient`` values and the API's ``orient`` they stand for
-ORIENT_CHOICES = {"auto": "auto", "mst": "mst", "up": "up", "none": None}
+#: ``--orient`` values and the API's ``orient`` they stand for (the options' declaration)
+ORIENT_CHOICES = OPTIONS["orient"].cli_choices
 
 
 def orientation(job, cloud):
     """The API ``orient`` of a job: ``--orient auto`` is "up" (normals towards +Z, PDAL's
-    ``always_up``) for LAS/LAZ input without normals or a viewpoint, else the API's
+    ``always_up``) for LAS/LAZ input without normals or a viewpoint
+    (:func:`clcurv._shared.options.file_orient`, the tiles' rule too), else the API's
     "auto" (the file's normals, the viewpoint, else MST propagation)."""
     if job.orient not in ORIENT_CHOICES:
         raise UsageError(f"--orient must be one of {', '.join(ORIENT_CHOICES)}, got "
                          f"{job.orient!r}")
-    aerial = cloud.format in ("las", "laz") and job.viewpoint is None
-    if job.orient == "auto" and aerial and _input_normals(job, cloud) is None:
-        return "up"
-    return ORIENT_CHOICES[job.orient]
+    return file_orient(ORIENT_CHOICES[job.orient], io.from_las(cloud), job.viewpoint,
+                       _input_normals(job, cloud) is not None)
 
 
 def _positions(job, cloud, res, work):
@@ -378,7 +379,7 @@ def wants_tiles(job):
 def _check_before_reading(job):
     """The checks of :func:`clcurv.tiles.engine.check_params` before ``radius="auto"`` reads the
     cloud to estimate the radius (made with a radius of 1; the run checks the real one)."""
-    choice(job.method, "method", tuple(OPERATORS))
+    check_method(job.method)
     params = CurvatureParams(job.method, 1.0, job.weights,
                              ORIENT_CHOICES.get(job.orient, job.orient), job.viewpoint,
                              job.kernel, job.h, job.device, job.precision,
@@ -482,7 +483,7 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
         stage), ``status`` counts, ``dst``.
     """
     say = out or (lambda s: None)
-    choice(method, "method", METHODS)
+    check_method(method)
     r = as_radius(radius)
     catalog = isinstance(src, (list, tuple))
     if catalog:
@@ -561,7 +562,7 @@ def features_file(src, dst, radius=None, features=DEFAULT_FEATURES, *, k=None, d
     """
     tile = check_tile_size(tile)                    # before any point is read
     say = out or (lambda s: None)
-    choice(ddof, "ddof", (0, 1))
+    check(ddof, "ddof")
     names = canonical_names(features)
     if not names:
         raise ValueError("features must name at least one feature")
@@ -587,7 +588,7 @@ def features_file(src, dst, radius=None, features=DEFAULT_FEATURES, *, k=None, d
         raise ValueError(f"optimal=True needs a list of at least two radii, got {radius!r}")
     params = FeatureParams(tuple(radii), names, int(ddof), bool(optimal), device, precision)
     for d in ([dst] if not catalog else []):
-        if Path(d).suffix.lower() in (".las", ".laz"):     # before any work: LAS's limit
+        if io.is_las(d):                        # before any work: LAS's limit
             io.las.check_extra_count(d, params.columns())
     if catalog:
         source = stream.Catalog(src)

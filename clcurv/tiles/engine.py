@@ -94,6 +94,7 @@ from clcurv.tiles.workspace import tile_file
 from clcurv.tiles.planning import (TILE_BYTES_PER_POINT, Tiling, TilingError, halo_cells,
                                    plan_tiles)
 from clcurv.ops.registry import OPERATORS
+from clcurv._shared.options import file_orient
 from clcurv._shared.validate import device_radius
 
 
@@ -153,10 +154,8 @@ class CurvatureParams:
 def _orientation(params, src, file_normals):
     """The API orient of a tile run, or TilingError for one that needs the whole cloud."""
     op = OPERATORS[params.method]
-    how = params.orient
+    how = file_orient(params.orient, io.from_las(src), params.viewpoint, file_normals)
     if isinstance(how, str) and how == "auto":
-        if source_aerial(src) and params.viewpoint is None and not file_normals:
-            return "up"                      # as clcurv.jobs.job.orientation: PDAL's always_up
         if file_normals:
             return "auto"
         if params.viewpoint is not None:
@@ -165,10 +164,6 @@ def _orientation(params, src, file_normals):
             return "auto"
         how = "mst"
     return how
-
-
-def source_aerial(src):
-    return src.format in ("las", "laz")
 
 
 def workspace(dst, workdir):
@@ -263,7 +258,7 @@ def check_tiled_outputs(dsts, source):
         ext = d.suffix.lower()
         if ext not in stream.STREAM_WRITES:
             raise TilingError(f"{d}: a tiled run writes {', '.join(stream.STREAM_WRITES)}")
-        if ext in (".las", ".laz") and source.format not in ("las", "laz"):
+        if io.is_las(d) and not io.from_las(source):
             raise TilingError(f"{d}: a tiled run writes LAS/LAZ from LAS/LAZ input only (it "
                               "keeps the input's header); write .npz")
 
@@ -675,7 +670,7 @@ def _write_one(dst, source, rows, n, specs, chunk=READ_CHUNK):
     """One output file, ``chunk`` points at a time (a window's: wide records, fewer)."""
     names = [name for name, _, _ in specs]
     with io.atomic_output(dst) as tmp:
-        if dst.suffix.lower() in (".las", ".laz"):
+        if io.is_las(dst):
             stream.write_las(tmp, source, names, rows, chunk=chunk)
         elif dst.suffix.lower() == ".ply":
             stream.write_ply(tmp, source, names, rows, n,
