@@ -87,7 +87,7 @@ class Option:
             kw["type"] = self.type
             kw["nargs"] = self.nargs
             choices = self.cli_choices if self.cli_choices is not None else self.choices
-            kw["choices"] = list(choices) if choices is not None else None
+            kw["choices"] = (list(choices) if isinstance(choices, (tuple, dict)) else None)
         kw.update(self.per_command.get(command, {}))
         return {k: v for k, v in kw.items() if v is not None or k == "default"}
 
@@ -164,6 +164,8 @@ OPTIONS = dict([
          "LiDAR) and 'mst' (minimum-spanning-tree propagation, outward on closed shapes) "
          "for the other formats; 'none' keeps the PCA sign"),
     _opt("orient_k", default=10),
+    # the API takes normals (an array); the file job uses the file's unless told not to
+    _opt("normals", default=None),
     _opt("positions", default="original", choices=("original", "projected"),
          flag="--positions", job="positions",
          help="write the input positions or the smoothed/projected ones"),

@@ -24,6 +24,7 @@ Bad option values raise :class:`UsageError` (the command's exit code 2); the oth
 """
 from __future__ import annotations
 
+import inspect
 import sys
 import time
 from contextlib import contextmanager
@@ -51,7 +52,7 @@ from clcurv.tiles.engine import CurvatureParams, curvature_fields
 from clcurv.tiles.features import FeatureParams, file_fields
 from clcurv.tiles.planning import (AUTO_FRACTION, TilingError, available_memory, budget_of,
                                    check_tile_size, fits_memory)
-from clcurv._shared.options import OPTIONS, check, file_orient, job_default
+from clcurv._shared.options import OPTIONS, check, cli_value, file_orient, job_default
 from clcurv._shared.validate import as_radius
 
 __all__ = ["Job", "Done", "UsageError", "run", "auto_radius", "result_fields",
@@ -376,14 +377,20 @@ def wants_tiles(job):
     return in_tiles(n, budget_of(job.memory))
 
 
+def options_for(job, takes):
+    """The options of ``job`` (a :class:`Job`) that ``takes`` (a function or a class) takes,
+    by the names the options' declaration gives them (``tile_size`` is ``tile``), ``--orient``
+    spellings as the API's values (``"none"`` is None); the radius apart."""
+    names = inspect.signature(takes).parameters
+    return {o.name: cli_value(o.name, getattr(job, o.job)) for o in OPTIONS.values()
+            if o.job is not None and o.name in names and o.name != "radius"}
+
+
 def _check_before_reading(job):
     """The checks of :func:`clcurv.tiles.engine.check_params` before ``radius="auto"`` reads the
     cloud to estimate the radius (made with a radius of 1; the run checks the real one)."""
     check_method(job.method)
-    params = CurvatureParams(job.method, 1.0, job.weights,
-                             ORIENT_CHOICES.get(job.orient, job.orient), job.viewpoint,
-                             job.kernel, job.h, job.device, job.precision,
-                             bool(job.ignore_normals), int(job.scale_space))
+    params = CurvatureParams(radius=1.0, **options_for(job, CurvatureParams))
     tiled.check_params(params, job.fields, local=not (job.workers or job.scheduler))
     tiled.wsp.check_workdir(job.workdir)
 
@@ -411,14 +418,9 @@ def run_tiled(job, out=print):
     try:
         with tile_session(job.quiet, job.scheduler) as (progress, client):
             summary = curvature_file(
-                job.input, job.output, float(job.radius), method=job.method,
-                weights=job.weights, orient=ORIENT_CHOICES.get(job.orient, job.orient),
-                viewpoint=job.viewpoint, kernel=job.kernel, h=job.h,
-                scale_space=job.scale_space, projections=job.projections, memory=job.memory,
-                tile=job.tile_size, fields=job.fields, ignore_normals=job.ignore_normals,
-                device=job.device, precision=job.precision, progress=progress,
+                job.input, job.output, float(job.radius), progress=progress,
                 out=None if job.quiet else (lambda s: print(s, file=sys.stderr)),
-                client=client, workers=job.workers, workdir=job.workdir)
+                client=client, **options_for(job, curvature_file))
     except TilingError as exc:
         raise UsageError(str(exc)) from exc
     times = ", ".join(f"{k} {v:.2f} s" for k, v in summary["times"].items())
@@ -501,8 +503,10 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
     if int(scale_space) < 0:
         raise ValueError(f"scale_space must be >= 0, got {scale_space}")
     tiled.check_tiled_outputs(dst if catalog else [dst], source)
-    params = CurvatureParams(method, r, weights, orient, viewpoint, kernel, h, device,
-                             precision, bool(ignore_normals), int(scale_space))
+    params = CurvatureParams(method=method, radius=r, weights=weights, orient=orient,
+                             viewpoint=viewpoint, kernel=kernel, h=h, device=device,
+                             precision=precision, ignore_normals=ignore_normals,
+                             scale_space=scale_space)
     forced = catalog or tile is not None or client is not None or bool(workers)
     if not in_tiles(source.n, budget, forced):
         summary = _curvature_in_memory(src, dst, params, fields)

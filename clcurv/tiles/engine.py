@@ -94,7 +94,7 @@ from clcurv.tiles.workspace import tile_file
 from clcurv.tiles.planning import (TILE_BYTES_PER_POINT, Tiling, TilingError, halo_cells,
                                    plan_tiles)
 from clcurv.ops.registry import OPERATORS
-from clcurv._shared.options import file_orient
+from clcurv._shared.options import OPTIONS, file_orient
 from clcurv._shared.validate import device_radius
 
 
@@ -111,7 +111,8 @@ def worker_budget(budget, workers, client):
 @dataclass
 class CurvatureParams:
     """What every tile of a curvature run computes (the options of
-    :func:`clcurv.curvature_file`): its radius, halo, orientation, fields and key."""
+    :func:`clcurv.curvature_file`, named as the options' declaration names them,
+    :data:`clcurv._shared.options.OPTIONS`): its radius, halo, orientation, fields and key."""
     method: str
     radius: float
     weights: str
@@ -122,10 +123,13 @@ class CurvatureParams:
     device: object
     precision: str
     ignore_normals: bool
-    scale_space: int = 0
-    orient_k: int = 10
+    scale_space: int = OPTIONS["scale_space"].default
+    orient_k: int = OPTIONS["orient_k"].default
     #: what the tiles compute (clcurv.tiles.features.FeatureParams: "features")
     kind = "curvature"
+
+    def __post_init__(self):
+        self.ignore_normals, self.scale_space = bool(self.ignore_normals), int(self.scale_space)
 
     def halo(self, file_normals):
         """Cells of halo of this run's tiles (:func:`halo_cells`)."""
