@@ -92,8 +92,19 @@ class Option:
         return {k: v for k, v in kw.items() if v is not None or k == "default"}
 
 
+#: the commands that run on files
+FILE_COMMANDS = ("compute", "features")
+
+
 def _opt(name, **kw):
     return name, Option(name, **kw)
+
+
+def _both(name, flag, metavar=None, **kw):
+    """An option of both file commands, its :class:`~clcurv.jobs.job.Job` field of the same
+    name unless ``job=`` says another."""
+    kw.setdefault("job", name)
+    return _opt(name, flag=flag, metavar=metavar, commands=FILE_COMMANDS, **kw)
 
 
 #: the table: every compute option once (the order of ``clcurv compute --help``)
@@ -103,7 +114,7 @@ OPTIONS = dict([
          help="the operator (the registry's methods; the API's default is mls1, the file "
          "job's mls2)"),
     _opt("radius", default=None, file_default="auto", flag="--radius", job="radius",
-         commands=("compute", "features"),
+         commands=FILE_COMMANDS,
          help="ball radius in the file's unit, or 'auto' (about 30 neighbours), or knn:K "
          "(the same as --k K)",
          per_command={"features": {"default": None, "help": "ball radius in the file's "
@@ -111,7 +122,7 @@ OPTIONS = dict([
                                    "walk; fields named <feature>_r<radius>), or knn:K (the "
                                    "same as --k K)"}}),
     _opt("k", type=int, default=None, flag="--k", metavar="K", job="k",
-         commands=("compute", "features"),
+         commands=FILE_COMMANDS,
          help="instead of --radius, each point's radius is the distance to its K-th "
          "nearest point (the point itself the first; a knn_radius field is written); in "
          "memory only, not with --scale-space, --projections, --weights density or --kernel "
@@ -145,11 +156,11 @@ OPTIONS = dict([
     _opt("align_normals", default=None, choices=(None, True, False),
          methods=("2dcov2", "3dcov")),
     _opt("device", default=None, flag="--device", job="device",
-         commands=("compute", "features"),
+         commands=FILE_COMMANDS,
          help="index, 'platform:device' or name substring",
          per_command={"features": {"help": None}}),
     _opt("precision", default="float", choices=("float", "double"), flag="--precision",
-         job="precision", commands=("compute", "features")),
+         job="precision", commands=FILE_COMMANDS),
     _opt("backend", default="opencl", choices=("opencl", "numpy")),
     _opt("fields", default=None, flag="--fields", nargs="+", job="fields",
          help="fields to write (default: all)"),
@@ -171,35 +182,28 @@ OPTIONS = dict([
          help="write the input positions or the smoothed/projected ones"),
     _opt("ignore_normals", default=False, flag="--ignore-normals", action="store_true",
          job="ignore_normals", help="do not use normals stored in the input file"),
-    _opt("memory", default="auto", flag="--memory", metavar="SIZE", job="memory",
-         commands=("compute", "features"),
-         help="host memory budget, e.g. 2GiB (default auto: half the available RAM, at most "
-         "512 MiB). LAS/LAZ/NPY input that does not fit runs in tiles with an exact halo "
-         "(same results as in memory), output LAS/LAZ/NPZ"),
-    _opt("tile", type="tile size", default=None, flag="--tile-size", metavar="S",
-         job="tile_size", commands=("compute", "features"),
-         help="run in tiles of S x S (file unit, a finite number > 0) even if the cloud "
-         "fits; larger than the cloud: one tile"),
-    _opt("workers", type="workers", default=None, flag="--workers", metavar="N",
-         job="workers", commands=("compute", "features"),
-         help="run the tiles on a local Dask cluster of N worker processes "
-         '(pip install "clcurv[dask]"), at most the cores this process may use: more are '
-         "clamped to them with a warning, unless {force_workers}=1. --memory is the whole "
-         "run's: each worker's tiles get SIZE / N. The workers exit with the command, even "
-         "if it is killed"),
-    _opt("scheduler", default=None, flag="--scheduler", metavar="ADDRESS", job="scheduler",
-         commands=("compute", "features"),
-         help="run the tiles on the Dask cluster at ADDRESS, e.g. tcp://host:8786 (its "
-         "workers must see the input and the output's folder at the same paths; --memory is "
-         "then each worker's). Refused after {connect_timeout:g} s if no Dask scheduler "
-         "answers there"),
-    _opt("workdir", default=None, flag="--workdir", metavar="DIR", job="workdir",
-         commands=("compute", "features"),
-         help="an existing folder to keep a tiled run's workspace in (default: beside the "
-         "output), e.g. on another disk; the run makes its own folder there and touches "
-         "nothing else (docs/workspace.md)"),
-    _opt("quiet", default=False, flag="--quiet", short="-q", action="store_true", job="quiet",
-         commands=("compute", "features"), help="no progress bars"),
+    _both("memory", "--memory", "SIZE", default="auto",
+          help="host memory budget, e.g. 2GiB (default auto: half the available RAM, at most "
+          "512 MiB). LAS/LAZ/NPY input that does not fit runs in tiles with an exact halo "
+          "(same results as in memory), output LAS/LAZ/NPZ"),
+    _both("tile", "--tile-size", "S", type="tile size", job="tile_size",
+          help="run in tiles of S x S (file unit, a finite number > 0) even if the cloud "
+          "fits; larger than the cloud: one tile"),
+    _both("workers", "--workers", "N", type="workers",
+          help="run the tiles on a local Dask cluster of N worker processes "
+          '(pip install "clcurv[dask]"), at most the cores this process may use: more are '
+          "clamped to them with a warning, unless {force_workers}=1. --memory is the whole "
+          "run's: each worker's tiles get SIZE / N. The workers exit with the command, even "
+          "if it is killed"),
+    _both("scheduler", "--scheduler", "ADDRESS", help="run the tiles on the Dask cluster at "
+          "ADDRESS, e.g. tcp://host:8786 (its workers must see the input and the output's "
+          "folder at the same paths; --memory is then each worker's). Refused after "
+          "{connect_timeout:g} s if no Dask scheduler answers there"),
+    _both("workdir", "--workdir", "DIR", help="an existing folder to keep a tiled run's "
+          "workspace in (default: beside the output), e.g. on another disk; the run makes "
+          "its own folder there and touches nothing else (docs/workspace.md)"),
+    _both("quiet", "--quiet", short="-q", action="store_true", default=False,
+          help="no progress bars"),
 ])
 
 #: options that only some methods take (the registry's ``Operator.options``)
