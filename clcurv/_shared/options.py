@@ -218,6 +218,16 @@ def taken_by(method):
     return tuple(n for n in METHOD_OPTIONS if method in OPTIONS[n].methods)
 
 
+def given(values):
+    """{name: set?} of method-specific options (``values``: name -> value, the API's): an
+    option is set when it is not its declared default (None: not None)."""
+    out = {}
+    for name, value in values.items():
+        default = OPTIONS[name].default
+        out[name] = value is not None if default is None else bool(value != default)
+    return out
+
+
 def choices(name):
     """The allowed values of option ``name`` (the API's)."""
     return OPTIONS[name].choices

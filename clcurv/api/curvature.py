@@ -8,7 +8,7 @@ import numpy as np
 
 from clcurv._shared.constants import TOO_FEW
 from clcurv._shared.host_threads import host_pool
-from clcurv._shared.options import check
+from clcurv._shared.options import check, given
 from clcurv._shared.validate import (as_count, as_normals, as_points, as_radius, as_viewpoint,
                                      choice, device_radius)
 from clcurv.api.inputs import as_radii, check_method, cloud_points, orient_spec, parse_knn
@@ -180,9 +180,8 @@ def _result(op, r, weights, count, status, attrs):
 
 def _check_options(op, kernel, h, projections, align_normals=None):
     """The method-specific options: given to a method that ignores them, they raise."""
-    extra = op.foreign_options({"kernel": kernel is not None, "h": h is not None,
-                                "projections": projections != 0,
-                                "align_normals": align_normals is not None})
+    extra = op.foreign_options(given({"kernel": kernel, "h": h, "projections": projections,
+                                      "align_normals": align_normals}))
     if extra:
         takers = next(iter(extra.values()))
         raise ValueError(f"{', '.join(extra)} {'is' if len(extra) == 1 else 'are'} not an "

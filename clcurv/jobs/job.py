@@ -52,7 +52,8 @@ from clcurv.tiles.engine import CurvatureParams, curvature_fields
 from clcurv.tiles.features import FeatureParams, file_fields
 from clcurv.tiles.planning import (AUTO_FRACTION, TilingError, available_memory, budget_of,
                                    check_tile_size, fits_memory)
-from clcurv._shared.options import OPTIONS, check, cli_value, file_orient, job_default
+from clcurv._shared.options import (METHOD_OPTIONS, OPTIONS, check, cli_value, file_orient,
+                                    given, job_default)
 from clcurv._shared.validate import as_radius
 
 __all__ = ["Job", "Done", "UsageError", "run", "auto_radius", "result_fields",
@@ -191,11 +192,11 @@ def check_options(job):
     op = OPERATORS.get(job.method)
     if op is None:
         return                                  # the API names the methods
-    extra = op.foreign_options({"kernel": job.kernel is not None, "h": job.h is not None,
-                                "projections": bool(job.projections)})
+    extra = op.foreign_options(given({n: getattr(job, OPTIONS[n].job) for n in METHOD_OPTIONS
+                                      if OPTIONS[n].job is not None}))
     for name, takers in extra.items():
-        raise UsageError(f"--{name} is an option of --method {' or '.join(takers)} only, "
-                         f"not of {job.method}")
+        raise UsageError(f"{OPTIONS[name].flag} is an option of --method {' or '.join(takers)} "
+                         f"only, not of {job.method}")
     if job.k is not None:
         if job.radius != "auto":
             raise UsageError("give --radius or --k, not both")
