@@ -22,8 +22,10 @@ Two defaults differ between the API and the file job (the command line,
 ``clcurv compute``'s ``"auto"``). ``orient`` takes API values and command-line spellings
 (``"none"`` for None; :data:`Option.cli_choices`).
 
-Imports only :mod:`clcurv._shared.validate` (floor 0): the methods themselves are the registry's
-(``choices=METHODS_OF_REGISTRY`` says so; the layers above resolve it).
+Imports only :mod:`clcurv._shared.validate` (floor 0): the methods themselves are the
+registry's (``choices=METHODS_OF_REGISTRY`` says so; the layers above resolve it), and the
+default features the features table's (``features=None`` is them in the API; the command
+line writes them out).
 """
 from __future__ import annotations
 
@@ -44,15 +46,17 @@ class Option:
 
     ``name``: the API's keyword (:func:`clcurv.curvature`, :func:`clcurv.features`,
     :func:`clcurv.curvature_file`, ...); ``type``: the command line's converter (None: a
-    flag, or a string); ``default``: the API's default; ``file_default``: the file job's
+    flag, or a string; a name, "tile size" or "workers", for a converter the command line
+    takes from the tiles); ``default``: the API's default; ``file_default``: the file job's
     (``clcurv compute``, :class:`~clcurv.jobs.job.Job`, :func:`clcurv.curvature_file`) when it
     differs, else :data:`SAME`; ``choices``: the allowed values (None: any of the type);
     ``cli_choices``: the command line's spellings -> the API's values, when they differ;
     ``help``: the ``--help`` text; ``methods``: the methods that take it (None: every
-    method); ``flag`` (and a ``short`` one), ``metavar``, ``nargs``, ``action``: its command-line argument (no
-    flag: not on the command line); ``commands``: the commands that take it; ``job``: its
-    :class:`~clcurv.jobs.job.Job` field (None: not a job option); ``per_command``: other
-    ``default``/``help``/``metavar`` of a command (``{"features": {...}}``).
+    method); ``flag`` (and a ``short`` one), ``metavar``, ``nargs``, ``action``: its
+    command-line argument (no flag: not on the command line); ``commands``: the commands
+    that take it; ``job``: its :class:`~clcurv.jobs.job.Job` field (None: not a job
+    option); ``per_command``: another ``default``, ``help`` or ``metavar`` in a command
+    (``{"features": {...}}``).
     """
     name: str
     type: object = None

@@ -104,8 +104,9 @@ class Operator:
                PCL's PrincipalCurvaturesEstimation), unless ``align_normals=True``.
     ``options``: the keyword arguments of :func:`clcurv.curvature` it takes beyond the
     common ones (others given raise), read from the options' declaration
-    (:func:`clcurv._shared.options.taken_by`: each option names its methods). ``reference(points, r, normals, weights, **options)``
-    returns the same raw fields as the kernel (float64); ``finish(raw, points, r,
+    (:func:`clcurv._shared.options.taken_by`: each option names its methods).
+    ``reference(points, r, normals, weights, **options)`` returns the same raw fields as
+    the kernel (float64); ``finish(raw, points, r,
     normals_used, user_normals)`` turns raw fields into result attributes. ``flip(raw,
     mask)``, for a 'sign' method, turns the raw fields of a run without reference normals
     into those of the opposite normal where ``mask`` is True, so that the orientation can
