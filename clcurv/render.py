@@ -56,7 +56,7 @@ from pathlib import Path
 import numpy as np
 
 from clcurv.ops.features import FEATURES
-from clcurv.io import atomic_output, check_output
+from clcurv.io import atomic_output, check_output, is_las
 from clcurv.ops.registry import OPERATORS, signed_file_fields
 
 __all__ = ["render", "figure", "check_image_output", "MissingMatplotlibError", "VIEWS",
@@ -121,8 +121,6 @@ VIEWS = {
     "oblique": ((1, 0, 0), (0, np.cos(np.radians(40)), -np.sin(np.radians(40))),
                 (0, np.sin(np.radians(40)), np.cos(np.radians(40)))),
 }
-#: LAS/LAZ clouds are z-up (ASPRS: Z is elevation)
-Z_UP_SUFFIXES = (".las", ".laz")
 #: a cloud whose extent along up is below this fraction of its horizontal extents is terrain
 TERRAIN_RATIO = 0.25
 _AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
@@ -207,7 +205,7 @@ def up_axis(up="auto", points=None, source=None):
     middle one; else +Y), an axis name "x", "+y", "-z", or three numbers.
     """
     if up is None or (isinstance(up, str) and up == "auto"):
-        if source is not None and Path(str(source)).suffix.lower() in Z_UP_SUFFIXES:
+        if source is not None and is_las(source):     # z-up (ASPRS: Z is elevation)
             return np.array(_AXES["z"])
         if points is not None and len(points):
             pts = np.asarray(points, dtype=np.float64)

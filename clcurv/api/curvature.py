@@ -8,16 +8,17 @@ import numpy as np
 
 from clcurv._shared.constants import TOO_FEW
 from clcurv._shared.host_threads import host_pool
+from clcurv._shared.options import check, given
 from clcurv._shared.validate import (as_count, as_normals, as_points, as_radius, as_viewpoint,
                                      choice, device_radius)
-from clcurv.api.inputs import as_radii, cloud_points, orient_spec, parse_knn
+from clcurv.api.inputs import as_radii, check_method, cloud_points, orient_spec, parse_knn
 from clcurv.api.result import CurvatureResult, empty_columns, warn_sparse
 from clcurv.grid.binning import ExtentError, bin_points, check_pairs
 from clcurv.grid.cloud import DeviceCloud
 from clcurv.ops.driver import run_kernel
 from clcurv.ops.features import run_features
 from clcurv.ops.knn_radius import knn_radii
-from clcurv.ops.registry import METHODS, OPERATORS, PCA
+from clcurv.ops.registry import OPERATORS, PCA
 from clcurv.ops.smoothing import scale_space as smooth
 from clcurv.orient import orientation as _orient
 from clcurv.reference import operators as reference
@@ -25,7 +26,6 @@ from clcurv.reference import operators as reference
 #: largest ``orient_k`` (the device graph's longest neighbour list, clcurv.orient.graph.KMAX):
 #: Hoppe's graph needs about 10; more only costs time and memory
 MAX_ORIENT_K = 32
-MLS_KERNELS = ("ball", "gaussian")
 
 
 #: PCA normals of several radii from one walk (:func:`_radius_list`): {"cloud", "raws":
@@ -104,8 +104,8 @@ def _inputs(points, radius, weights, backend, orient, normals, viewpoint, orient
     orientation). With ``defer`` (and a large cloud on the OpenCL backend) the normals come
     as a future of that result, checked on a host thread while the caller bins the cloud;
     :func:`_resolved` gives the array or raises the check's error."""
-    choice(weights, "weights", ("uniform", "density"))
-    choice(backend, "backend", ("opencl", "numpy"))
+    check(weights, "weights")
+    check(backend, "backend")
     orient = orient_spec(orient)
     as_count(orient_k, "orient_k", MAX_ORIENT_K)
     # on the OpenCL backend the binning checks finiteness on its bounding box (every path
@@ -180,15 +180,14 @@ def _result(op, r, weights, count, status, attrs):
 
 def _check_options(op, kernel, h, projections, align_normals=None):
     """The method-specific options: given to a method that ignores them, they raise."""
-    extra = op.foreign_options({"kernel": kernel is not None, "h": h is not None,
-                                "projections": projections != 0,
-                                "align_normals": align_normals is not None})
+    extra = op.foreign_options(given({"kernel": kernel, "h": h, "projections": projections,
+                                      "align_normals": align_normals}))
     if extra:
         takers = next(iter(extra.values()))
         raise ValueError(f"{', '.join(extra)} {'is' if len(extra) == 1 else 'are'} not an "
                          f"option of method={op.name!r} (only of "
                          f"{', '.join(repr(m) for m in takers)})")
-    kernel = choice("ball" if kernel is None else kernel, "kernel", MLS_KERNELS)
+    kernel = check("ball" if kernel is None else kernel, "kernel")
     if h is not None:
         if kernel != "gaussian":
             raise ValueError("h is the width of kernel='gaussian'")
@@ -323,7 +322,7 @@ def curvature(points, radius=None, *, method="mls1", weights="uniform", normals=
     >>> bool(abs(np.nanmedian(res.k2) - 0.5) < 0.01)
     True
     """
-    op = OPERATORS[choice(method, "method", METHODS)]
+    op = OPERATORS[check_method(method)]
     if np.ndim(radius) > 0:
         if k is not None:
             raise ValueError("give either radius or k (or radius='knn:K'), not both")
@@ -424,7 +423,7 @@ def project(points, radius, *, projections=1, method="mls2", weights="uniform", 
     float64 points in input order. Iterated MLS2 is not a scale space (Digne & Morel): use
     :func:`clcurv.scale_space` (MLS1) to smooth.
     """
-    choice(method, "method", ("mls2",))
+    choice(method, "method", ("mls2",))         # project is MLS2's alone
     points, _ = cloud_points(points)
     projections = int(projections)
     if projections < 0:

@@ -54,7 +54,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from clcurv._shared.constants import MIN_COUNT_PCA, TOO_FEW
-from clcurv._shared.validate import as_points, choice
+from clcurv._shared.options import check
+from clcurv._shared.validate import as_points
 from clcurv.api.inputs import as_radii, cloud_points, orient_spec, parse_knn
 from clcurv.api.result import empty_columns, warn_sparse
 from clcurv.grid.cloud import DeviceCloud
@@ -263,8 +264,8 @@ def features(points, radius=None, features=DEFAULT_FEATURES, *, k=None, ddof=0, 
     >>> bool(np.nanmedian(f["planarity"]) > 0.9)
     True
     """
-    choice(backend, "backend", ("opencl", "numpy"))
-    choice(ddof, "ddof", (0, 1))
+    check(backend, "backend")
+    check(ddof, "ddof")
     names = canonical_names(DEFAULT_FEATURES if features is None else features)
     if not names:
         raise ValueError("features must name at least one feature")

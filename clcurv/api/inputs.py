@@ -1,14 +1,31 @@
 """The arguments that :func:`clcurv.curvature`, :func:`clcurv.normals`,
 :func:`clcurv.features` and the command line (:mod:`clcurv.cli.main`) share, checked once
-here: the points (or a DeviceCloud), a radius list, ``radius="knn:K"`` and ``orient``."""
+here: the points (or a DeviceCloud), a radius list, ``radius="knn:K"``, ``orient`` and
+``method`` (the allowed values of the options' declaration, :mod:`clcurv._shared.options`,
+with the registry's methods: :func:`allowed`)."""
 from __future__ import annotations
 
 import numpy as np
 
+from clcurv._shared.options import METHODS_OF_REGISTRY, choices
 from clcurv._shared.validate import as_radius, choice
 from clcurv.grid.cloud import DeviceCloud
+from clcurv.ops.registry import METHODS
 
-ORIENTS = ("auto", "mst", "viewpoint", "normals", "up", None)   # or a direction (3 floats)
+#: the allowed ``orient`` values (or a direction, 3 floats): the options' declaration
+ORIENTS = choices("orient")
+
+
+def allowed(name):
+    """The allowed values of compute option ``name`` (:data:`clcurv._shared.options.OPTIONS`),
+    the registry's methods for ``method``."""
+    found = choices(name)
+    return METHODS if found == METHODS_OF_REGISTRY else found
+
+
+def check_method(method):
+    """``method`` if it is one of the registry's methods, else ValueError."""
+    return choice(method, "method", allowed("method"))
 
 
 def cloud_points(points):

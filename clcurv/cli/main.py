@@ -24,6 +24,7 @@ import warnings
 
 import numpy as np
 
+from clcurv._shared.options import EXCLUSIVE, OPTIONS
 from clcurv.cli import demo
 from clcurv import io
 from clcurv.jobs import job
@@ -148,44 +149,57 @@ def demo_cmd(args, out=print):
     return demo.run(args.outdir, device=args.device, quiet=args.quiet, out=out)
 
 
+def _tile_size(text):
+    """``--tile-size``: a finite length > 0, refused before any work."""
+    try:
+        return check_tile_size(text)
+    except TilingError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _workers(text):
+    """``--workers``: an integer >= 1."""
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
+    return n
+
+
+#: the command line's converters of the declaration's named types, and what the
+#: declaration leaves to the layers above it: the registry's methods, the default features
+_CONVERTERS = {"tile size": _tile_size, "workers": _workers}
+_RESOLVED = {"method": {"choices": list(METHODS)},
+             "features": {"default": ",".join(FEATURE_NAMES)}}
+_HELP_VALUES = {"force_workers": FORCE_WORKERS, "connect_timeout": CONNECT_TIMEOUT}
+
+
+def add_options(c, command):
+    """The arguments of ``command`` ("compute" or "features") from the options' declaration
+    (:data:`clcurv._shared.options.OPTIONS`): flag, type, default, choices, metavar and
+    help; ``--workers`` and ``--scheduler`` exclusive."""
+    group = c.add_mutually_exclusive_group() if command in ("compute", "features") else None
+    for opt in OPTIONS.values():
+        kw = opt.cli(command)
+        if kw is None:
+            continue
+        kw.update(_RESOLVED.get(opt.name, {}))
+        kw["type"] = _CONVERTERS.get(kw.get("type"), kw.get("type"))
+        if kw.get("type") is None:
+            kw.pop("type", None)
+        if kw.get("help"):
+            kw["help"] = kw["help"].format(**_HELP_VALUES)
+        flags = [f for f in (opt.short, opt.flag) if f]
+        (group if opt.name in EXCLUSIVE else c).add_argument(*flags, **kw)
+
+
 def _compute_parser(sub):
     c = sub.add_parser("compute", help="compute an operator on a point cloud file",
                        allow_abbrev=False)
     _file_arguments(c)
-    c.add_argument("--method", default="mls2", choices=METHODS)
-    c.add_argument("--radius", default="auto", help="ball radius in the file's unit, or 'auto' "
-                   "(about 30 neighbours), or knn:K (the same as --k K)")
-    c.add_argument("--k", type=int, default=None, metavar="K",
-                   help="instead of --radius, each point's radius is the distance to its K-th "
-                   "nearest point (the point itself the first; a knn_radius field is "
-                   "written); in memory only, not with --scale-space, --projections, "
-                   "--weights density or --kernel gaussian")
-    c.add_argument("--scale-space", type=int, default=0, metavar="N",
-                   help="MLS1 scale-space iterations first (the paper's pipeline)")
-    c.add_argument("--weights", default="uniform", choices=["uniform", "density"])
-    c.add_argument("--kernel", default=None, choices=["ball", "gaussian"],
-                   help="MLS2 only: neighbour weights (default ball)")
-    c.add_argument("--h", type=float, default=None, metavar="H",
-                   help="MLS2 with --kernel gaussian only: Gaussian width in the file's unit "
-                   "(default radius / 2)")
-    c.add_argument("--projections", type=int, default=0, metavar="N",
-                   help="MLS2 only: MLS2 projections of the cloud before evaluation")
-    c.add_argument("--device", default=None, help="index, 'platform:device' or name substring")
-    c.add_argument("--precision", default="float", choices=["float", "double"])
-    c.add_argument("--fields", nargs="+", default=None, help="fields to write (default: all)")
-    c.add_argument("--viewpoint", nargs=3, type=float, default=None, metavar=("X", "Y", "Z"),
-                   help="orient normals towards this scanner position")
-    c.add_argument("--orient", default="auto", choices=list(job.ORIENT_CHOICES),
-                   help="how signed results are oriented: 'auto' (default) uses the file's "
-                   "normals, else --viewpoint, else 'up' for LAS/LAZ input (normals towards "
-                   "+Z, for aerial LiDAR) and 'mst' (minimum-spanning-tree propagation, "
-                   "outward on closed shapes) for the other formats; 'none' keeps the PCA sign")
-    c.add_argument("--positions", default="original", choices=["original", "projected"],
-                   help="write the input positions or the smoothed/projected ones")
-    c.add_argument("--ignore-normals", action="store_true",
-                   help="do not use normals stored in the input file")
-    _tile_options(c)
-    c.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    add_options(c, "compute")
 
 
 def _file_arguments(c):
@@ -195,49 +209,6 @@ def _file_arguments(c):
                    "the folder -o")
     c.add_argument("-o", "--output", required=True, help=".ply, .las/.laz, .npz, .csv, .txt "
                    "(a folder for several inputs)")
-
-
-def _tile_options(c):
-    """--memory, --tile-size, --workers | --scheduler: the tiled runs' options."""
-    c.add_argument("--memory", default="auto", metavar="SIZE",
-                   help="host memory budget, e.g. 2GiB (default auto: half the available "
-                   "RAM, at most 512 MiB). LAS/LAZ/NPY input that does not fit runs in tiles "
-                   "with an exact halo (same results as in memory), output LAS/LAZ/NPZ")
-
-    def tile_size(text):                # a finite length > 0, refused before any work
-        try:
-            return check_tile_size(text)
-        except TilingError as exc:
-            raise argparse.ArgumentTypeError(str(exc)) from None
-
-    def workers(text):
-        try:
-            n = int(text)
-        except ValueError:
-            n = 0
-        if n < 1:
-            raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
-        return n
-
-    c.add_argument("--tile-size", type=tile_size, default=None, metavar="S",
-                   help="run in tiles of S x S (file unit, a finite number > 0) even if the "
-                   "cloud fits; larger than the cloud: one tile")
-    w = c.add_mutually_exclusive_group()
-    w.add_argument("--workers", type=workers, default=None, metavar="N",
-                   help="run the tiles on a local Dask cluster of N worker processes "
-                   '(pip install "clcurv[dask]"), at most the cores this process may use: '
-                   f"more are clamped to them with a warning, unless {FORCE_WORKERS}=1. "
-                   "--memory is the whole run's: each worker's tiles get SIZE / N. The "
-                   "workers exit with the command, even if it is killed")
-    w.add_argument("--scheduler", default=None, metavar="ADDRESS",
-                   help="run the tiles on the Dask cluster at ADDRESS, e.g. "
-                   "tcp://host:8786 (its workers must see the input and the output's folder "
-                   "at the same paths; --memory is then each worker's). Refused after "
-                   f"{CONNECT_TIMEOUT:g} s if no Dask scheduler answers there")
-    c.add_argument("--workdir", default=None, metavar="DIR",
-                   help="an existing folder to keep a tiled run's workspace in (default: "
-                   "beside the output), e.g. on another disk; the run makes its own folder "
-                   "there and touches nothing else (docs/workspace.md)")
 
 
 def build_parser():
@@ -262,22 +233,7 @@ def build_parser():
     f = sub.add_parser("features", help="covariance features (planarity, linearity, ...)",
                        allow_abbrev=False)
     _file_arguments(f)
-    f.add_argument("--radius", default=None, help="ball radius in the file's unit, or several "
-                   "separated by commas (one neighbour walk; fields named <feature>_r<radius>), "
-                   "or knn:K (the same as --k K)")
-    f.add_argument("--k", type=int, default=None, help="per-point radius: the distance to "
-                   "the k-th nearest point")
-    f.add_argument("--optimal", action="store_true", help="with several radii: each point's "
-                   "features at the radius of least eigenentropy among them (optimal "
-                   "neighbourhood; one set of fields plus optimal_radius)")
-    f.add_argument("--features", default=",".join(FEATURE_NAMES), help="comma-separated "
-                   "names (jakteristics or PDAL spellings) or 'all'")
-    f.add_argument("--ddof", type=int, default=0, choices=[0, 1],
-                   help="covariance divided by n - ddof (1: jakteristics)")
-    f.add_argument("--device", default=None)
-    f.add_argument("--precision", default="float", choices=["float", "double"])
-    _tile_options(f)
-    f.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    add_options(f, "features")
     d = sub.add_parser("demo", help="run the pipeline on the bundled bunny", allow_abbrev=False)
     d.add_argument("--outdir", default="out")
     d.add_argument("--device", default=None)

@@ -62,14 +62,14 @@ from pathlib import Path
 from . import carry, las, npy, pcd, ply, text
 from .common import (Cloud, CorruptFileError, MissingDependencyError, MissingFileError,
                      ReadError, UnknownFormatError, WriteError, check_fields,
-                     check_normals, check_points)
+                     check_normals, check_points, from_las, is_las)
 from .las import LAZ_HINT  # noqa: F401  (kept importable from clcurv.io)
 from .pcd import lzf_decompress  # noqa: F401
 
 __all__ = ["Cloud", "read", "write", "check_output", "atomic_output", "lzf_decompress",
            "ReadError", "MissingFileError", "UnknownFormatError", "CorruptFileError",
            "MissingDependencyError", "WriteError", "OutputPathError", "WriteFailedError",
-           "READ_FORMATS", "WRITE_FORMATS"]
+           "READ_FORMATS", "WRITE_FORMATS", "is_las", "from_las"]
 
 
 class OutputPathError(WriteError):
@@ -263,7 +263,7 @@ def kept_attributes(path, like, fields=()):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")        # write() warns for what it leaves out
         if kind is None:                       # LAS/LAZ
-            if like.format in ("las", "laz"):
+            if from_las(like):
                 return list(like.attributes)
             _, rgb, plan = las.carried_plan(path, like, fields)
             return (rgb or []) + list(dict.fromkeys(c.src for c in plan))

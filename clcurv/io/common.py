@@ -31,6 +31,24 @@ RESERVED = {"x", "y", "z", "nx", "ny", "nz", "normal_x", "normal_y", "normal_z"}
 _NORMAL_NAMES = (("nx", "ny", "nz"), ("normal_x", "normal_y", "normal_z"))
 
 
+#: the extensions of LAS and LAZ files (a COPC file is a .copc.laz)
+LAS_SUFFIXES = (".las", ".laz")
+#: ``Cloud.format`` (and a stream source's ``format``) of a cloud read from LAS or LAZ
+LAS_FORMATS = ("las", "laz")
+
+
+def is_las(path):
+    """Is ``path`` a LAS/LAZ file name (by its extension, any case)? LAS/LAZ clouds are
+    z-up (ASPRS: Z is elevation) and their outputs keep the input's header."""
+    return Path(str(path)).suffix.lower() in LAS_SUFFIXES
+
+
+def from_las(cloud):
+    """Was ``cloud`` (a :class:`Cloud`, or a stream source of :mod:`clcurv.io.stream`) read
+    from a LAS/LAZ file (by its content)?"""
+    return getattr(cloud, "format", None) in LAS_FORMATS
+
+
 # --------------------------------------------------------------------------- registry entry
 
 @dataclass(frozen=True)

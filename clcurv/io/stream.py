@@ -43,12 +43,12 @@ import plyfile
 
 from . import carry, las, ply
 from .common import (CorruptFileError, MissingFileError, UnknownFormatError, check_claim,
-                     looks_like_normals, native, split_names)
+                     LAS_SUFFIXES, is_las, looks_like_normals, native, split_names)
 from .npy import check_npy
 
 #: formats a tiled run reads and writes
-STREAM_READS = (".las", ".laz", ".npy", ".ply")
-STREAM_WRITES = (".las", ".laz", ".npz", ".ply")
+STREAM_READS = (*LAS_SUFFIXES, ".npy", ".ply")
+STREAM_WRITES = (*LAS_SUFFIXES, ".npz", ".ply")
 #: bytes of the file read at a time by the scan of an NPY or PLY source
 SCAN_BYTES = 16 << 20
 
@@ -59,7 +59,7 @@ def open_source(path):
     if not path.exists():
         raise MissingFileError(f"{path}: no such file")
     ext = path.suffix.lower()
-    if ext in (".las", ".laz"):
+    if is_las(path):
         return LasSource(path)
     if ext == ".npy":
         return NpySource(path)

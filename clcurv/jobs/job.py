@@ -24,6 +24,7 @@ Bad option values raise :class:`UsageError` (the command's exit code 2); the oth
 """
 from __future__ import annotations
 
+import inspect
 import sys
 import time
 from contextlib import contextmanager
@@ -38,12 +39,12 @@ from tqdm import tqdm
 from clcurv import io
 from clcurv.api.curvature import curvature
 from clcurv.api.features import DEFAULT_FEATURES, canonical_names
-from clcurv.api.inputs import as_radii
+from clcurv.api.inputs import as_radii, check_method
 from clcurv.api.features import features as compute_features
 from clcurv.api.result import CurvatureResult
 from clcurv.io import stream
 from clcurv.jobs.tiled_job import auto_radius_tiled, tile_session
-from clcurv.ops.registry import METHODS, OPERATORS
+from clcurv.ops.registry import OPERATORS
 from clcurv.ops.smoothing import scale_space
 from clcurv.runtime.device import get_device
 from clcurv.tiles import engine as tiled
@@ -51,7 +52,9 @@ from clcurv.tiles.engine import CurvatureParams, curvature_fields
 from clcurv.tiles.features import FeatureParams, file_fields
 from clcurv.tiles.planning import (AUTO_FRACTION, TilingError, available_memory, budget_of,
                                    check_tile_size, fits_memory)
-from clcurv._shared.validate import as_radius, choice
+from clcurv._shared.options import (METHOD_OPTIONS, OPTIONS, check, cli_value, file_orient,
+                                    given, job_default)
+from clcurv._shared.validate import as_radius
 
 __all__ = ["Job", "Done", "UsageError", "run", "auto_radius", "result_fields",
            "curvature_file", "features_file"]
@@ -66,7 +69,8 @@ class UsageError(Exception):
 
 @dataclass
 class Job:
-    """One file job; the fields are the options of ``clcurv compute``.
+    """One file job; the fields are the options of ``clcurv compute``, their defaults the
+    file job's of the options' declaration (:data:`clcurv._shared.options.OPTIONS`).
 
     ``radius``: the ball radius in the file's length unit, or ``"auto"`` (about 30
     neighbours, :func:`auto_radius`). ``scale_space``: MLS1 scale-space steps at that
@@ -79,27 +83,27 @@ class Job:
     """
     input: str | Path
     output: str | Path
-    method: str = "mls2"
-    radius: float | str = "auto"
-    scale_space: int = 0
-    weights: str = "uniform"
-    kernel: str | None = None
-    h: float | None = None
-    projections: int = 0
-    device: int | str | None = None
-    precision: str = "float"
-    fields: Sequence[str] | None = None
-    viewpoint: Sequence[float] | None = None
-    orient: str = "auto"
-    positions: str = "original"
-    ignore_normals: bool = False
-    quiet: bool = False
-    memory: str | int | None = "auto"
-    tile_size: float | None = None
-    workers: int | None = None
-    scheduler: str | None = None
-    workdir: str | Path | None = None
-    k: int | None = None
+    method: str = job_default("method")
+    radius: float | str = job_default("radius")
+    scale_space: int = job_default("scale_space")
+    weights: str = job_default("weights")
+    kernel: str | None = job_default("kernel")
+    h: float | None = job_default("h")
+    projections: int = job_default("projections")
+    device: int | str | None = job_default("device")
+    precision: str = job_default("precision")
+    fields: Sequence[str] | None = job_default("fields")
+    viewpoint: Sequence[float] | None = job_default("viewpoint")
+    orient: str = job_default("orient")
+    positions: str = job_default("positions")
+    ignore_normals: bool = job_default("ignore_normals")
+    quiet: bool = job_default("quiet")
+    memory: str | int | None = job_default("memory")
+    tile_size: float | None = job_default("tile_size")
+    workers: int | None = job_default("workers")
+    scheduler: str | None = job_default("scheduler")
+    workdir: str | Path | None = job_default("workdir")
+    k: int | None = job_default("k")
 
     @classmethod
     def from_args(cls, args):
@@ -188,11 +192,11 @@ def check_options(job):
     op = OPERATORS.get(job.method)
     if op is None:
         return                                  # the API names the methods
-    extra = op.foreign_options({"kernel": job.kernel is not None, "h": job.h is not None,
-                                "projections": bool(job.projections)})
+    extra = op.foreign_options(given({n: getattr(job, OPTIONS[n].job) for n in METHOD_OPTIONS
+                                      if OPTIONS[n].job is not None}))
     for name, takers in extra.items():
-        raise UsageError(f"--{name} is an option of --method {' or '.join(takers)} only, "
-                         f"not of {job.method}")
+        raise UsageError(f"{OPTIONS[name].flag} is an option of --method {' or '.join(takers)} "
+                         f"only, not of {job.method}")
     if job.k is not None:
         if job.radius != "auto":
             raise UsageError("give --radius or --k, not both")
@@ -257,21 +261,20 @@ def _evaluate(job, cloud, radius, device, st):
     return res, work
 
 
-#: ``--orient`` values and the API's ``orient`` they stand for
-ORIENT_CHOICES = {"auto": "auto", "mst": "mst", "up": "up", "none": None}
+#: ``--orient`` values and the API's ``orient`` they stand for (the options' declaration)
+ORIENT_CHOICES = OPTIONS["orient"].cli_choices
 
 
 def orientation(job, cloud):
     """The API ``orient`` of a job: ``--orient auto`` is "up" (normals towards +Z, PDAL's
-    ``always_up``) for LAS/LAZ input without normals or a viewpoint, else the API's
+    ``always_up``) for LAS/LAZ input without normals or a viewpoint
+    (:func:`clcurv._shared.options.file_orient`, the tiles' rule too), else the API's
     "auto" (the file's normals, the viewpoint, else MST propagation)."""
     if job.orient not in ORIENT_CHOICES:
         raise UsageError(f"--orient must be one of {', '.join(ORIENT_CHOICES)}, got "
                          f"{job.orient!r}")
-    aerial = cloud.format in ("las", "laz") and job.viewpoint is None
-    if job.orient == "auto" and aerial and _input_normals(job, cloud) is None:
-        return "up"
-    return ORIENT_CHOICES[job.orient]
+    return file_orient(ORIENT_CHOICES[job.orient], io.from_las(cloud), job.viewpoint,
+                       _input_normals(job, cloud) is not None)
 
 
 def _positions(job, cloud, res, work):
@@ -375,14 +378,20 @@ def wants_tiles(job):
     return in_tiles(n, budget_of(job.memory))
 
 
+def options_for(job, takes):
+    """The options of ``job`` (a :class:`Job`) that ``takes`` (a function or a class) takes,
+    by the names the options' declaration gives them (``tile_size`` is ``tile``), ``--orient``
+    spellings as the API's values (``"none"`` is None); the radius apart."""
+    names = inspect.signature(takes).parameters
+    return {o.name: cli_value(o.name, getattr(job, o.job)) for o in OPTIONS.values()
+            if o.job is not None and o.name in names and o.name != "radius"}
+
+
 def _check_before_reading(job):
     """The checks of :func:`clcurv.tiles.engine.check_params` before ``radius="auto"`` reads the
     cloud to estimate the radius (made with a radius of 1; the run checks the real one)."""
-    choice(job.method, "method", tuple(OPERATORS))
-    params = CurvatureParams(job.method, 1.0, job.weights,
-                             ORIENT_CHOICES.get(job.orient, job.orient), job.viewpoint,
-                             job.kernel, job.h, job.device, job.precision,
-                             bool(job.ignore_normals), int(job.scale_space))
+    check_method(job.method)
+    params = CurvatureParams(radius=1.0, **options_for(job, CurvatureParams))
     tiled.check_params(params, job.fields, local=not (job.workers or job.scheduler))
     tiled.wsp.check_workdir(job.workdir)
 
@@ -410,14 +419,9 @@ def run_tiled(job, out=print):
     try:
         with tile_session(job.quiet, job.scheduler) as (progress, client):
             summary = curvature_file(
-                job.input, job.output, float(job.radius), method=job.method,
-                weights=job.weights, orient=ORIENT_CHOICES.get(job.orient, job.orient),
-                viewpoint=job.viewpoint, kernel=job.kernel, h=job.h,
-                scale_space=job.scale_space, projections=job.projections, memory=job.memory,
-                tile=job.tile_size, fields=job.fields, ignore_normals=job.ignore_normals,
-                device=job.device, precision=job.precision, progress=progress,
+                job.input, job.output, float(job.radius), progress=progress,
                 out=None if job.quiet else (lambda s: print(s, file=sys.stderr)),
-                client=client, workers=job.workers, workdir=job.workdir)
+                client=client, **options_for(job, curvature_file))
     except TilingError as exc:
         raise UsageError(str(exc)) from exc
     times = ", ".join(f"{k} {v:.2f} s" for k, v in summary["times"].items())
@@ -482,7 +486,7 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
         stage), ``status`` counts, ``dst``.
     """
     say = out or (lambda s: None)
-    choice(method, "method", METHODS)
+    check_method(method)
     r = as_radius(radius)
     catalog = isinstance(src, (list, tuple))
     if catalog:
@@ -500,8 +504,10 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
     if int(scale_space) < 0:
         raise ValueError(f"scale_space must be >= 0, got {scale_space}")
     tiled.check_tiled_outputs(dst if catalog else [dst], source)
-    params = CurvatureParams(method, r, weights, orient, viewpoint, kernel, h, device,
-                             precision, bool(ignore_normals), int(scale_space))
+    params = CurvatureParams(method=method, radius=r, weights=weights, orient=orient,
+                             viewpoint=viewpoint, kernel=kernel, h=h, device=device,
+                             precision=precision, ignore_normals=ignore_normals,
+                             scale_space=scale_space)
     forced = catalog or tile is not None or client is not None or bool(workers)
     if not in_tiles(source.n, budget, forced):
         summary = _curvature_in_memory(src, dst, params, fields)
@@ -561,7 +567,7 @@ def features_file(src, dst, radius=None, features=DEFAULT_FEATURES, *, k=None, d
     """
     tile = check_tile_size(tile)                    # before any point is read
     say = out or (lambda s: None)
-    choice(ddof, "ddof", (0, 1))
+    check(ddof, "ddof")
     names = canonical_names(features)
     if not names:
         raise ValueError("features must name at least one feature")
@@ -587,7 +593,7 @@ def features_file(src, dst, radius=None, features=DEFAULT_FEATURES, *, k=None, d
         raise ValueError(f"optimal=True needs a list of at least two radii, got {radius!r}")
     params = FeatureParams(tuple(radii), names, int(ddof), bool(optimal), device, precision)
     for d in ([dst] if not catalog else []):
-        if Path(d).suffix.lower() in (".las", ".laz"):     # before any work: LAS's limit
+        if io.is_las(d):                        # before any work: LAS's limit
             io.las.check_extra_count(d, params.columns())
     if catalog:
         source = stream.Catalog(src)

@@ -12,7 +12,9 @@ The records go through chunks of sorted points when the device lacks room for al
 stop) of each chunk and writes their records at g - first in a chunk-sized buffer, which is
 split and scattered on the host by ``order``. With one chunk (the cloud fits) the records
 go straight to their input index, as the host wants them. The kernels, and so the results,
-are the same either way, bit for bit.
+are the same either way, bit for bit. That launch loop, :func:`walk_chunks`, also runs the
+features kernel (:func:`clcurv.ops.features.run_features`: its layouts and radii, the same
+arguments).
 """
 from __future__ import annotations
 
@@ -63,6 +65,28 @@ def _par(cloud, r, h):
     """The kernels' REAL4 ``par`` = (r, 1 / h^2 or 0, 0, 0)."""
     make = ct.make_double4 if cloud.dtype == np.float64 else ct.make_float4
     return make(r, 0.0 if h is None else 1.0 / (h * h), 0.0, 0.0)
+
+
+def walk_chunks(cloud, entry, opts, plan, inputs, ranges, r, par, outputs, place):
+    """The one launch loop of the kernels that take ``OPERATOR_ARGS`` (kernels/common.h):
+    the operators (:func:`run_kernel`) and the features (:func:`clcurv.ops.features.run_features`).
+    ``entry`` runs on each chunk [first, stop) of sorted points of ``plan`` (one work-item
+    per VW points) with ``inputs`` (nx, ny, nz, the weights or per-point radii, the anchors),
+    the cell ``ranges``, the ball of ``r``, ``par`` and ``outputs`` (the record buffer and the
+    kernel's further arguments); then ``place(first, stop, chunked)`` takes its records.
+    Returns (seconds in the kernel, seconds placing)."""
+    chunked = plan.count > 1
+    run, fetch = 0.0, 0.0
+    for first, stop in plan.ranges():
+        t0 = time.perf_counter()
+        launch(cloud.device, entry, batches(stop - first, opts), cloud.x, cloud.y, cloud.z,
+               *inputs, cloud.cell_of, ranges, cloud.order, np.uint32(cloud.n), cloud.ball(r),
+               par, np.uint32(first), np.uint32(stop), np.uint32(chunked), *outputs)
+        cloud.device.queue.finish()
+        t1 = time.perf_counter()
+        place(first, stop, chunked)
+        run, fetch = run + t1 - t0, fetch + time.perf_counter() - t1
+    return run, fetch
 
 
 def run_kernel(kernel, cloud, radius, *, normals=None, weights="uniform", h=None,
@@ -126,23 +150,15 @@ def run_kernel(kernel, cloud, radius, *, normals=None, weights="uniform", h=None
     cloud.device.queue.finish()
     t.append(time.perf_counter())
     anchors = cell_normals(cloud) if opts.get("REFINE_L0") else cloud.x
-    chunked = plan.count > 1
     rec = record_buffer(cloud, plan.chunk)
     out = empty_fields(layout, cloud.n)
     cloud.device.queue.finish()
     t.append(time.perf_counter())
-    run, fetch = 0.0, 0.0
-    for first, stop in plan.ranges():
-        t0 = time.perf_counter()
-        launch(cloud.device, getattr(prg, kernel.entry), batches(stop - first, opts), cloud.x,
-               cloud.y, cloud.z, nx, ny, nz, wbuf, anchors, cloud.cell_of, ranges,
-               cloud.order,
-               np.uint32(cloud.n), cloud.ball(r), _par(cloud, r, h), np.uint32(first),
-               np.uint32(stop), np.uint32(chunked), rec)
-        cloud.device.queue.finish()
-        t1 = time.perf_counter()
-        place_records(cloud, rec, layout, out, first, stop, chunked)
-        run, fetch = run + t1 - t0, fetch + time.perf_counter() - t1
+    run, fetch = walk_chunks(
+        cloud, getattr(prg, kernel.entry), opts, plan, (nx, ny, nz, wbuf, anchors), ranges, r,
+        _par(cloud, r, h), (rec,),
+        lambda first, stop, chunked: place_records(cloud, rec, layout, out, first, stop,
+                                                   chunked))
     names = (f"build_{kernel.name}", "upload_normals", "density", "anchors")
     cloud.timings.update({k: b - a for k, a, b in zip(names, t, t[1:])})
     cloud.timings.update({f"kernel_{kernel.name}": run, "download": fetch})

@@ -1,7 +1,8 @@
 """The device side of the covariance features (:func:`clcurv.features`, whose module
 :mod:`clcurv.api.features` documents them): the :data:`FEATURES` table, the record layouts
 of kernels/features.cl, its build options and :func:`run_features`, the host side of the
-kernel (at one radius, up to four radii per neighbour walk, or per-point radii). Used by
+kernel (at one radius, up to four radii per neighbour walk, or per-point radii), whose
+launches are the operators' driver loop (:func:`clcurv.ops.driver.walk_chunks`). Used by
 the API (:mod:`clcurv.api.features`, :mod:`clcurv.api.curvature`'s radius lists), the
 optimal radius (:mod:`clcurv.ops.optimal`) and the registry's list of programs
 (:func:`clcurv.ops.registry.program_variants`).
@@ -18,8 +19,8 @@ from clcurv._shared.constants import MIN_COUNT_PCA, RECORD_WIDTH
 from clcurv.grid.anchor import cell_normals
 from clcurv.grid.cloud import (empty_fields, place_records, record_buffer, record_bytes,
                                splits_into_host)
-from clcurv.ops.driver import row_prune
-from clcurv.runtime.program import batches, build, launch
+from clcurv.ops.driver import row_prune, walk_chunks
+from clcurv.runtime.program import build
 
 
 @dataclass(frozen=True)
@@ -178,19 +179,15 @@ def run_features(cloud, radii, names, ddof=0, point_r2=None, anchored=True):
             wbuf = point_r2 if point_r2 is not None else cloud.x
             anchors = cell_normals(cloud) if opts.get("REFINE_L0") else cloud.x
             par = make4(max(walk), 0.0, float(ddof), 0.0)    # (r, 1/h^2, ddof, 0)
-            for first, stop in plan.ranges():
-                t0 = time.perf_counter()
-                launch(cloud.device, prg.features, batches(stop - first, opts), cloud.x,
-                       cloud.y, cloud.z, cloud.x, cloud.x, cloud.x, wbuf, anchors, cloud.cell_of,
-                       ranges, cloud.order, np.uint32(cloud.n),
-                       cloud.ball(max(walk)), par, np.uint32(first), np.uint32(stop),
-                       np.uint32(chunked), recs[0], make4(*r2), recs[1], recs[2], recs[3])
-                cloud.device.queue.finish()
-                t1 = time.perf_counter()
+            def place(first, stop, chunked):
                 for j in range(nr):
                     place_records(cloud, recs[j], layout, fields[j], first, stop, chunked,
                                   balls=(nr, j, REC_BLOCK) if one else None)
-                t_run, t_fetch = t_run + t1 - t0, t_fetch + time.perf_counter() - t1
+
+            run, fetch = walk_chunks(
+                cloud, prg.features, opts, plan, (cloud.x, cloud.x, cloud.x, wbuf, anchors),
+                ranges, max(walk), par, (recs[0], make4(*r2), recs[1], recs[2], recs[3]), place)
+            t_run, t_fetch = t_run + run, t_fetch + fetch
             for j in range(nr):
                 vals = res[j][0]
                 blocks = fields[j]

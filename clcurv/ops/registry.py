@@ -25,6 +25,7 @@ from typing import Callable, Mapping
 import numpy as np
 
 from clcurv._shared.constants import MIN_COUNT_MLS2, MIN_COUNT_PCA, OK, record_selector
+from clcurv._shared.options import taken_by
 from clcurv.ops.features import FEATURES, layouts, program_defines
 from clcurv.ops.knn_radius import knn_levels, program_defines as knn_program_defines
 from clcurv.reference import operators as reference
@@ -102,8 +103,10 @@ class Operator:
                the PCA signs; the normals you pass are used as given (then 2dcov2 is
                PCL's PrincipalCurvaturesEstimation), unless ``align_normals=True``.
     ``options``: the keyword arguments of :func:`clcurv.curvature` it takes beyond the
-    common ones (others given raise). ``reference(points, r, normals, weights, **options)``
-    returns the same raw fields as the kernel (float64); ``finish(raw, points, r,
+    common ones (others given raise), read from the options' declaration
+    (:func:`clcurv._shared.options.taken_by`: each option names its methods).
+    ``reference(points, r, normals, weights, **options)`` returns the same raw fields as
+    the kernel (float64); ``finish(raw, points, r,
     normals_used, user_normals)`` turns raw fields into result attributes. ``flip(raw,
     mask)``, for a 'sign' method, turns the raw fields of a run without reference normals
     into those of the opposite normal where ``mask`` is True, so that the orientation can
@@ -119,7 +122,6 @@ class Operator:
     normals: str
     finish: Callable
     reference: Callable
-    options: tuple = ()
     flip: Callable | None = None
     fields: tuple | None = None
 
@@ -127,6 +129,11 @@ class Operator:
     def signed(self):
         """True when some output carries the sign of curvature (needs oriented normals)."""
         return any(o.signed for o in self.outputs)
+
+    @property
+    def options(self):
+        """The method-specific options it takes (:func:`clcurv._shared.options.taken_by`)."""
+        return taken_by(self.name)
 
     @property
     def min_count(self):
@@ -281,11 +288,9 @@ def _ref_mls2(points, r, normals, weights, kernel="ball", h=None):
 
 def _cov(name, code, title, formula, eig_unit, eig_doc):
     k = _cov_kernel(name, code)
-    # 2dcov1 reads p's normal alone: aligning its neighbours' would change nothing
     return Operator(name, title, formula, k, _magnitudes((k.width("eigenvalues"), eig_unit,
                                                          eig_doc)),
-                    "values", _finish_cov, _ref_cov(name),
-                    options=("align_normals",) if code != 1 else ())
+                    "values", _finish_cov, _ref_cov(name))
 
 
 OPERATORS = {op.name: op for op in (
@@ -324,8 +329,7 @@ OPERATORS = {op.name: op for op in (
               Output("normals", 3, "1", "unit normals of the fitted quadric at the "
                      "projection, oriented as `orient` says"),
               Output("points", 3, "length", "the MLS2 projection of p")),
-             "sign", _finish_mls2, _ref_mls2, options=("kernel", "h", "projections"),
-             flip=_flip_mls2),
+             "sign", _finish_mls2, _ref_mls2, flip=_flip_mls2),
 )}
 
 #: the method names, in the registry's order

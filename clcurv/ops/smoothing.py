@@ -21,7 +21,8 @@ from clcurv._shared.constants import PAD
 from clcurv.reference import operators as reference
 from clcurv.runtime.memory import buffer as device_buffer
 from clcurv.runtime.program import batches, build, launch
-from clcurv._shared.validate import as_points, as_radius, choice
+from clcurv._shared.options import check
+from clcurv._shared.validate import as_points, as_radius
 
 MARGIN = 0.1        # allowed drift between re-binnings, in units of r
 BLOCK = 256         # drift values reduced per work-item
@@ -190,8 +191,8 @@ def scale_space(points, radius, steps, *, weights="uniform", return_iterates=Fal
     """
     pts = as_points(points)
     r = as_radius(radius)
-    weights = choice(weights, "weights", ("uniform", "density"))
-    choice(backend, "backend", ("opencl", "numpy"))
+    weights = check(weights, "weights")
+    check(backend, "backend")
     steps = int(steps)
     if steps < 0:
         raise ValueError(f"steps must be >= 0, got {steps}")

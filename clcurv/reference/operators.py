@@ -85,6 +85,7 @@ from scipy.sparse.csgraph import (breadth_first_order, connected_components,
                                   minimum_spanning_tree)
 from scipy.spatial import cKDTree
 
+from clcurv._shared.options import choices
 from clcurv._shared.constants import (DEGENERATE, MIN_COUNT_MLS2, MIN_COUNT_PCA, OK, SINGULAR,
                                       TOO_FEW)
 
@@ -104,8 +105,8 @@ RANK_TOL = 1e-10
 #: <= SINGULAR_RCOND times the largest (coordinates scaled by 1/r).
 SINGULAR_RCOND = 1e-10
 COV_METHODS = ("2dcov1", "2dcov2", "3dcov")
-_WEIGHTS = ("uniform", "density")
-_KERNELS = ("ball", "gaussian")
+_WEIGHTS = choices("weights")     # the options' declaration (clcurv._shared.options)
+_KERNELS = choices("kernel")
 # Edges per block of rows: bounds the per-edge temporaries (~30 arrays this long for MLS2).
 _BLOCK_EDGES = 1 << 16
 

@@ -38,6 +38,7 @@ from pathlib import Path
 import pyopencl as cl
 
 from clcurv._shared.constants import kernel_defines
+from clcurv._shared.options import choices
 
 
 class BuildError(RuntimeError):
@@ -70,8 +71,9 @@ def precision_defines(device, precision):
     device-dependent choices of the kernels: VW (:func:`clcurv.ops.registry.tuning`),
     MASKED_SUMS (:func:`masked_sums`), PCA_FMA (:func:`fused_sums`) and FEATURES_BUF
     (:func:`features_buffer`)."""
-    if precision not in ("float", "double"):
-        raise ValueError(f"precision must be 'float' or 'double', got {precision!r}")
+    if precision not in choices("precision"):
+        raise ValueError(f"precision must be {' or '.join(map(repr, choices('precision')))}, "
+                         f"got {precision!r}")
     if precision == "double" and not device.info.fp64:
         raise PrecisionError(f"device {device.info.name!r} has no float64 support "
                              "(cl_khr_fp64); use precision='float'")

@@ -94,6 +94,7 @@ from clcurv.tiles.workspace import tile_file
 from clcurv.tiles.planning import (TILE_BYTES_PER_POINT, Tiling, TilingError, halo_cells,
                                    plan_tiles)
 from clcurv.ops.registry import OPERATORS
+from clcurv._shared.options import OPTIONS, file_orient
 from clcurv._shared.validate import device_radius
 
 
@@ -110,7 +111,8 @@ def worker_budget(budget, workers, client):
 @dataclass
 class CurvatureParams:
     """What every tile of a curvature run computes (the options of
-    :func:`clcurv.curvature_file`): its radius, halo, orientation, fields and key."""
+    :func:`clcurv.curvature_file`, named as the options' declaration names them,
+    :data:`clcurv._shared.options.OPTIONS`): its radius, halo, orientation, fields and key."""
     method: str
     radius: float
     weights: str
@@ -121,10 +123,13 @@ class CurvatureParams:
     device: object
     precision: str
     ignore_normals: bool
-    scale_space: int = 0
-    orient_k: int = 10
+    scale_space: int = OPTIONS["scale_space"].default
+    orient_k: int = OPTIONS["orient_k"].default
     #: what the tiles compute (clcurv.tiles.features.FeatureParams: "features")
     kind = "curvature"
+
+    def __post_init__(self):
+        self.ignore_normals, self.scale_space = bool(self.ignore_normals), int(self.scale_space)
 
     def halo(self, file_normals):
         """Cells of halo of this run's tiles (:func:`halo_cells`)."""
@@ -153,10 +158,8 @@ class CurvatureParams:
 def _orientation(params, src, file_normals):
     """The API orient of a tile run, or TilingError for one that needs the whole cloud."""
     op = OPERATORS[params.method]
-    how = params.orient
+    how = file_orient(params.orient, io.from_las(src), params.viewpoint, file_normals)
     if isinstance(how, str) and how == "auto":
-        if source_aerial(src) and params.viewpoint is None and not file_normals:
-            return "up"                      # as clcurv.jobs.job.orientation: PDAL's always_up
         if file_normals:
             return "auto"
         if params.viewpoint is not None:
@@ -165,10 +168,6 @@ def _orientation(params, src, file_normals):
             return "auto"
         how = "mst"
     return how
-
-
-def source_aerial(src):
-    return src.format in ("las", "laz")
 
 
 def workspace(dst, workdir):
@@ -263,7 +262,7 @@ def check_tiled_outputs(dsts, source):
         ext = d.suffix.lower()
         if ext not in stream.STREAM_WRITES:
             raise TilingError(f"{d}: a tiled run writes {', '.join(stream.STREAM_WRITES)}")
-        if ext in (".las", ".laz") and source.format not in ("las", "laz"):
+        if io.is_las(d) and not io.from_las(source):
             raise TilingError(f"{d}: a tiled run writes LAS/LAZ from LAS/LAZ input only (it "
                               "keeps the input's header); write .npz")
 
@@ -675,7 +674,7 @@ def _write_one(dst, source, rows, n, specs, chunk=READ_CHUNK):
     """One output file, ``chunk`` points at a time (a window's: wide records, fewer)."""
     names = [name for name, _, _ in specs]
     with io.atomic_output(dst) as tmp:
-        if dst.suffix.lower() in (".las", ".laz"):
+        if io.is_las(dst):
             stream.write_las(tmp, source, names, rows, chunk=chunk)
         elif dst.suffix.lower() == ".ply":
             stream.write_ply(tmp, source, names, rows, n,
