@@ -39,15 +39,21 @@ def check_finite_box(points, lo, hi, name="points"):
         raise ValueError(f"{name} has NaN or Inf")      # (as_points raised already)
 
 
+def as_number(value, name, convert, kind):
+    """``convert(value)`` (float or int), or TypeError naming ``name`` and the ``kind`` it
+    must be; a bool is refused: ``radius=True`` is a slip, not 1.0."""
+    if isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"{name} must be {kind}, got {value!r}")
+    try:
+        return convert(value)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name} must be {kind}, got {value!r}") from None
+
+
 def as_radius(radius):
     """Return ``radius`` as a positive finite float, or raise ValueError (TypeError for a
     value that is not a number, a bool among them: ``radius=True`` is a slip, not 1.0)."""
-    if isinstance(radius, (bool, np.bool_)):
-        raise TypeError(f"radius must be a number, got {radius!r}")
-    try:
-        r = float(radius)
-    except (TypeError, ValueError):
-        raise TypeError(f"radius must be a number, got {radius!r}") from None
+    r = as_number(radius, "radius", float, "a number")
     if not math.isfinite(r) or r <= 0:
         raise ValueError(f"radius must be a positive finite number, got {radius!r}")
     return r

@@ -81,7 +81,7 @@ from scipy.spatial import cKDTree
 
 from clcurv._shared.constants import PAD
 from clcurv._shared.host_memory import empty as host_empty
-from clcurv._shared.validate import as_points, check_finite_box
+from clcurv._shared.validate import as_number, as_points, check_finite_box
 from clcurv.grid.binning import bounding_box
 from clcurv.grid.cloud import DeviceCloud, host_binning, upload_point_r2
 from clcurv.orient.graph import knn_defines
@@ -163,12 +163,7 @@ class KnnRadii:
 
 def check_k(k, n):
     """``k`` as an int in [1, min(MAX_K, n)], or TypeError / ValueError."""
-    if isinstance(k, (bool, np.bool_)):
-        raise TypeError(f"k must be an integer, got {k!r}")
-    try:
-        kk = int(k)
-    except (TypeError, ValueError):
-        raise TypeError(f"k must be an integer, got {k!r}") from None
+    kk = as_number(k, "k", int, "an integer")
     if kk != k or kk < 1 or kk > MAX_K:
         raise ValueError(f"k must be an integer in [1, {MAX_K}], got {k!r}")
     if kk > n:
