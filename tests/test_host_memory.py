@@ -10,6 +10,11 @@ import clcurv
 from clcurv._shared import host_memory as hm
 
 
+def held_bytes():
+    """Bytes the pool holds unused."""
+    return hm._STATE["held"]
+
+
 @pytest.fixture
 def pool(monkeypatch):
     hm.release()
@@ -26,15 +31,15 @@ def test_a_dropped_array_is_reused_and_a_live_one_never(pool):
     a[:] = 1.0
     view = a[::7]                                     # keeps the block alive
     del a
-    assert pool.held_bytes() == 0
+    assert held_bytes() == 0
     b = pool.empty((300_000, 3))
     assert b.ctypes.data != where                     # not the block the view is on
     b[:] = 2.0
     assert (view == 1.0).all()
     del view
-    assert pool.held_bytes() == size
+    assert held_bytes() == size
     c = pool.empty((300_000, 3))                      # the first block again
-    assert c.ctypes.data == where and pool.held_bytes() == 0
+    assert c.ctypes.data == where and held_bytes() == 0
     # other dtypes and shapes of the same bin take it too; small arrays are numpy's
     del c
     d = pool.empty(900_000 * 2, np.float32)
@@ -52,13 +57,13 @@ def test_results_survive_pickling_and_the_pool_respects_its_limit(pool, monkeypa
     c = pool.empty(500_000, np.int64)
     latest = c.ctypes.data
     del a, c                  # the later one returned stays, the earlier one is let go
-    assert pool.held_bytes() == size
+    assert held_bytes() == size
     d = pool.empty(500_000, np.int64)
-    assert d.ctypes.data == latest and pool.held_bytes() == 0
+    assert d.ctypes.data == latest and held_bytes() == 0
     big = pool.empty(2 * size // 8, np.int64)                 # larger than the limit
     del d, big
-    assert pool.held_bytes() == size
-    assert pool.release() == size and pool.held_bytes() == 0
+    assert held_bytes() == size
+    assert pool.release() == size and held_bytes() == 0
 
 
 def test_a_forked_child_writes_its_own_copy(pool):
@@ -82,7 +87,7 @@ def test_pool_off(monkeypatch):
     assert a.flags.owndata                            # numpy's own array
     assert hm.hold_limit() == 0
     del a
-    assert hm.held_bytes() == 0
+    assert held_bytes() == 0
 
 
 def test_a_call_reuses_the_pages_of_the_results_it_replaced(pool, device):
@@ -92,14 +97,14 @@ def test_a_call_reuses_the_pages_of_the_results_it_replaced(pool, device):
     want = {k: np.array(getattr(first, k)) for k in names}
     where = {getattr(first, k).ctypes.data for k in names}
     del first
-    held = pool.held_bytes()
+    held = held_bytes()
     assert held > 150_000 * 7 * 8                     # normals, eigenvalues, variation
     again = clcurv.curvature(pts, 0.03, method="variation", device=device)
-    assert pool.held_bytes() < held
+    assert held_bytes() < held
     assert {getattr(again, k).ctypes.data for k in names} & where
     for k, v in want.items():                         # the same values in reused pages
         np.testing.assert_array_equal(getattr(again, k), v, err_msg=k)
-    assert clcurv.release_memory() >= 0 and pool.held_bytes() == 0
+    assert clcurv.release_memory() >= 0 and held_bytes() == 0
 
 
 def _vm_flags(address):

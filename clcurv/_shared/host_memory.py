@@ -70,11 +70,6 @@ def hold_limit():
     return int(min(MAX_HOLD, ram // 16))
 
 
-def held_bytes():
-    """Bytes the pool holds unused."""
-    return _STATE["held"]
-
-
 def _bin(nbytes):
     """``nbytes`` rounded up to a multiple of 1/16 of its power of two (and of the page)."""
     step = max(1 << max(int(math.ceil(math.log2(nbytes))) - 4, 0), mmap.PAGESIZE)
