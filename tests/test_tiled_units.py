@@ -771,3 +771,17 @@ def test_map_tiles_retries_a_task_that_fails(monkeypatch):
     finally:
         client.close()
         lc.close()
+
+
+def test_auto_runs_in_memory_whenever_the_cloud_fits_half_the_ram(monkeypatch):
+    """memory='auto': a cloud whose in-memory estimate (600 bytes a point) fits half the
+    available RAM runs in memory, however many points; tiles only beyond, planned with a
+    budget of at most AUTO_CAP."""
+    from clcurv.jobs.job import in_tiles
+    monkeypatch.setattr(tiling, "available_memory", lambda: 8 << 30)
+    assert tiling.fit_budget("auto") == 4 << 30
+    assert tiling.budget_of("auto") == tiling.AUTO_CAP
+    assert tiling.fit_budget("2GiB") == tiling.budget_of("2GiB") == 2 << 30
+    assert not in_tiles(5_000_000, tiling.fit_budget("auto"))      # 3.0 GB: in memory
+    assert in_tiles(8_000_000, tiling.fit_budget("auto"))          # 4.8 GB: tiles
+    assert in_tiles(1000, tiling.fit_budget("auto"), forced=True)

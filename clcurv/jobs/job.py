@@ -50,7 +50,7 @@ from clcurv.runtime.device import get_device
 from clcurv.tiles import engine as tiled
 from clcurv.tiles.engine import CurvatureParams, curvature_fields
 from clcurv.tiles.features import FeatureParams, file_fields
-from clcurv.tiles.planning import (AUTO_FRACTION, TilingError, available_memory, budget_of,
+from clcurv.tiles.planning import (TilingError, budget_of, fit_budget,
                                    check_tile_size, fits_memory)
 from clcurv._shared.options import (METHOD_OPTIONS, OPTIONS, check, cli_value, file_orient,
                                     given, job_default)
@@ -374,8 +374,8 @@ def wants_tiles(job):
     if job.projections or job.positions != "original" or job.k is not None:
         # options only the in-memory job has: tiles only when it cannot fit at all (the
         # tiled run then says which option it lacks)
-        return in_tiles(n, int(available_memory() * AUTO_FRACTION))
-    return in_tiles(n, budget_of(job.memory))
+        return in_tiles(n, fit_budget("auto"))
+    return in_tiles(n, fit_budget(job.memory))
 
 
 def options_for(job, takes):
@@ -509,7 +509,7 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
                              precision=precision, ignore_normals=ignore_normals,
                              scale_space=scale_space)
     forced = catalog or tile is not None or client is not None or bool(workers)
-    if not in_tiles(source.n, budget, forced):
+    if not in_tiles(source.n, fit_budget(memory), forced):
         summary = _curvature_in_memory(src, dst, params, fields)
         summary["dropped"] = int(getattr(source, "dropped", 0))
         return summary
@@ -606,7 +606,7 @@ def features_file(src, dst, radius=None, features=DEFAULT_FEATURES, *, k=None, d
             return _features_in_memory(src, dst, radii, names, None, ddof, optimal, device,
                                        precision)
     budget = budget_of(memory)
-    if not in_tiles(source.n, budget, forced or catalog, params.extra_in_memory()):
+    if not in_tiles(source.n, fit_budget(memory), forced or catalog, params.extra_in_memory()):
         return _features_in_memory(src, dst, radii, names, None, ddof, optimal, device,
                                    precision)
     tiled.check_tiled_outputs(dst if catalog else [dst], source)

@@ -20,17 +20,21 @@ from clcurv.ops.registry import OPERATORS
 TILE_BYTES_PER_POINT = 900
 
 
-#: peak host bytes per point of an in-memory file job (clcurv.jobs.job.run), to decide whether a
-#: cloud fits memory="auto"
-IN_MEMORY_BYTES_PER_POINT = 1300
+#: peak host bytes per point of an in-memory file job (clcurv.jobs.job), above the process's
+#: baseline, to decide whether a cloud fits the budget. Measured (/usr/bin/time peak RSS,
+#: PoCL, AMD EPYC, `clcurv compute` of a 3M-point aerial PLY, --radius 0.5, default fields,
+#: baseline 294 MB): MLS2 541, MLS1 516, variation 237 bytes a point; 600 covers MLS2, the
+#: largest, within 11% (1M points: 568)
+IN_MEMORY_BYTES_PER_POINT = 600
 
 
-#: fraction of the available RAM that memory="auto" uses, at most AUTO_CAP bytes: the
-#: default run of a large file streams through tiles of at most ~600k points, whose peak
-#: memory does not grow with the cloud (bench/tiled.py), and a larger tile is not faster
+#: fraction of the available RAM that memory="auto" uses: a run that fits it runs in memory
 AUTO_FRACTION = 0.5
 
 
+#: with memory="auto", the budget a tiled run plans its tiles with is at most AUTO_CAP bytes:
+#: tiles of at most ~600k points, whose peak memory does not grow with the cloud
+#: (bench/tiled.py), and a larger tile is not faster
 AUTO_CAP = 512 << 20
 
 
@@ -72,10 +76,16 @@ def available_memory():
 
 
 def budget_of(memory):
-    """The byte budget of ``memory`` ('auto': AUTO_FRACTION of the available RAM, at most
-    AUTO_CAP)."""
+    """The byte budget a tiled run plans its tiles with, of ``memory`` ('auto':
+    AUTO_FRACTION of the available RAM, at most AUTO_CAP)."""
+    return min(fit_budget(memory), AUTO_CAP) if memory in (None, "auto") else fit_budget(memory)
+
+
+def fit_budget(memory):
+    """The byte budget a whole cloud must fit to run in memory, of ``memory`` ('auto':
+    AUTO_FRACTION of the available RAM: a run that fits comfortably runs in memory)."""
     if memory is None or memory == "auto":
-        return int(min(available_memory() * AUTO_FRACTION, AUTO_CAP))
+        return int(available_memory() * AUTO_FRACTION)
     return parse_memory(memory)
 
 
