@@ -374,3 +374,28 @@ def test_normals_of_both_backends_face_outward(name, device):
         ok = np.isfinite(n).all(axis=1)
         assert ok.mean() > 0.999
         assert np.all(rowdot(n[ok], s["normals"][ok]) > 0.9), kw
+
+
+@pytest.mark.parametrize("how", ["radius", "three radii", "k", "optimal"])
+def test_features_up_is_turned_by_the_reference_itself(device, how):
+    """features(orient="up"): the float64 reference turns its normals towards +z with its
+    own code (clcurv.reference.features, up=), the kernel path with the API's step; both
+    give n_z >= 0 and the same normals (|1 - n_ref . n_cl| < 1e-4 where both are valid, the
+    normal well-posed, l2 > 1.5 l3, and its sign too: |n_z| > 1e-3, walls left out)."""
+    pts = shapes.aerial_scene(6000, extent=(30.0, 20.0), seed=4)["points"]
+    kw = {"radius": dict(radius=1.5), "three radii": dict(radius=[1.0, 1.5, 2.0]),
+          "k": dict(k=30), "optimal": dict(radius=[1.0, 1.5, 2.0], optimal=True)}[how]
+    names = ["normals", "eigenvalue2", "eigenvalue3"]
+    ref = clcurv.features(pts, features=names, orient="up", backend="numpy", **kw)
+    got = clcurv.features(pts, features=names, orient="up", device=device,
+                          precision="double", **kw)
+    for r, g in zip(ref if isinstance(ref, list) else [ref], got if isinstance(got, list)
+                    else [got]):
+        nr, ng = r.values["normals"], g.values["normals"]
+        ok = ((r.status == 0) & (g.status == 0)
+              & (r.values["eigenvalue2"] > 1.5 * r.values["eigenvalue3"])
+              & (np.abs(nr[:, 2]) > 1e-3))
+        assert ok.mean() > 0.5
+        assert np.all(nr[r.status == 0, 2] >= 0) and np.all(ng[g.status == 0, 2] >= 0)
+        dots = np.einsum("ij,ij->i", nr[ok], ng[ok])
+        assert np.all(np.abs(1 - dots) < 1e-4), np.sort(dots)[:5]

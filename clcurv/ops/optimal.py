@@ -80,11 +80,11 @@ def optimal_features(cloud, radii, names, ddof=0):
     return vals, count, status, np.asarray(radii)[idx], idx
 
 
-def reference_optimal_features(points, radii, names, ddof=0):
+def reference_optimal_features(points, radii, names, ddof=0, up=None):
     """:func:`optimal_features` by the float64 reference (clcurv.reference.features at each
     of the sorted ``radii``, the same criterion and choice), for the tests."""
     need = list(dict.fromkeys(list(names) + list(EIGEN)))
-    cand = [ref.features(points, r, need, ddof=ddof) for r in radii]
+    cand = [ref.features(points, r, need, ddof=ddof, up=up) for r in radii]
     ent = np.stack([eigenentropy_normalised(*(v[n] for n in EIGEN)) for v, _, _ in cand])
     idx, _ = choose(ent, np.stack([s for _, _, s in cand]))
     rows = np.arange(len(points))

@@ -47,9 +47,10 @@ def covariances(points, radius, ddof=0):
     return count, cov
 
 
-def features(points, radius, names, ddof=0):
+def features(points, radius, names, ddof=0, up=None):
     """(values, count, status) of the features ``names`` (canonical) at ``radius`` (a
-    number or per-point radii): float64, NaN where status != 0."""
+    number or per-point radii): float64, NaN where status != 0. ``up``: a unit direction
+    the normals are turned towards (a normal with <n, up> < 0 negated), else eigh's sign."""
     count, cov = covariances(points, radius, ddof)
     ok = count >= MIN_COUNT_PCA
     cov[~ok] = np.eye(3)
@@ -59,6 +60,9 @@ def features(points, radius, names, ddof=0):
     status[ok & ~((w[:, 2] > 0) & (w[:, 1] > RANK_TOL * w[:, 2]))] = DEGENERATE
     l1, l2, l3 = w[:, 2], w[:, 1], w[:, 0]
     e1, e2, e3 = v[:, :, 2], v[:, :, 1], v[:, :, 0]
+    if up is not None:                          # the reference's own orientation step
+        e3 = np.where((np.einsum("ij,j->i", e3, np.asarray(up, np.float64)) < 0)[:, None],
+                      -e3, e3)
     s = l1 + l2 + l3
     with np.errstate(divide="ignore", invalid="ignore"):
         ent = -sum(np.where(x > 0, x * np.log(np.where(x > 0, x, 1.0)), 0.0)
