@@ -325,6 +325,10 @@ def test_cli_tiles_equal_the_cli_in_memory(scene, tmp_path):
     r2 = run_cli("compute", paths["laz"], "-o", b, "--radius", "1", "-q", "--tile-size", "8")
     assert r1.code == 0 and r2.code == 0, (r1.stderr, r2.stderr)
     assert "tile(s)" in r2.stdout
+    # the summary lines an in-memory run prints, but the value ranges and written fields
+    for line in ("method mls2, radius 1, scale space 0 iteration(s), weights uniform",
+                 "device "):
+        assert line in r1.stdout and line in r2.stdout, (line, r1.stdout, r2.stdout)
     _assert_same(a, b)
     bad = run_cli("compute", paths["laz"], "-o", tmp_path / "x.laz", "--radius", "1", "-q",
                   "--tile-size", "0.5")

@@ -433,6 +433,13 @@ def run_tiled(job, out=print):
     dropped = f" ({dropped} non-finite dropped)" if dropped else ""
     out(f"\n{summary['points']} points from {what}{dropped} in {summary['tiles']} tile(s) "
         f"(halo {summary['halo']} cell(s)){ok}")
+    out(f"method {job.method}, {_radius_text(job, float(job.radius))}, scale space "
+        f"{job.scale_space} iteration(s), weights {job.weights}")
+    if job.workers or job.scheduler:
+        out("device: each worker's own (--device, else its default)")
+    else:
+        device = get_device(job.device)
+        out(f"device {device.info.name} ({device.info.platform})")
     out(f"time: {times}")
     out(f"wrote {job.output}")
     return summary
