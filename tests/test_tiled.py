@@ -368,6 +368,29 @@ def test_dask_workers_equal_one_process_and_survive_a_killed_worker(scene, tmp_p
     assert one.read_bytes() == killed.read_bytes()
 
 
+@pytest.mark.parametrize("workers", [None, 2])
+def test_a_file_read_in_parts_by_the_workers_equals_the_in_memory_run(scene, tmp_path,
+                                                                      monkeypatch, workers):
+    """Pass (1) reads a LAS/LAZ file in parts (ranges of points: PART_POINTS made 7,001
+    here, so parts start inside a LAZ chunk), each filed in the buckets by its own task
+    (on two Dask workers: the client decodes no point), and pass (1b) splits each part
+    apart: the output is the in-memory run's, byte for byte."""
+    if workers:
+        pytest.importorskip("distributed")
+    from clcurv.io import stream
+    d, paths, pts = scene
+    monkeypatch.setattr(stream, "PART_POINTS", 7_001)
+    assert len(stream.parts_of(stream.open_source(paths["laz"]))) == 5
+    mem = d / "mem_mls2.laz"
+    if not mem.exists():
+        clcurv.curvature_file(paths["laz"], mem, R, method="mls2", memory="64GiB")
+    out = tmp_path / "parts.laz"
+    summary = clcurv.curvature_file(paths["laz"], out, R, method="mls2", tile=8.0,
+                                    workers=workers)
+    assert summary["tiled"] and summary["points"] == len(pts)
+    _assert_same(mem, out)
+
+
 def test_which_file_jobs_tile(scene):
     from clcurv.jobs.job import Job, wants_tiles
     _, paths, _ = scene
@@ -428,6 +451,67 @@ def test_a_catalog_of_files_equals_one_file(scene, tmp_path):
     assert start == len(pts)
     with pytest.raises(tiled.TilingError, match="replace the input"):
         clcurv.curvature_file(parts, tmp_path, R, method="mls2", tile=8.0)
+
+
+def _cut_catalog(full, pts, folder):
+    """Seven files cut from the scene's LAS ``full``: a 3 x 2 grid at unaligned x and y
+    (cut at coordinates of points, which then lie exactly on a file border and go to the
+    file on their right), 300 points of file 0 repeated in file 4 (overlapping flight
+    lines), and an empty file among them; and the single file of the same points in the
+    same order."""
+    xs = np.sort(pts[:, 0])
+    cx = [xs[int(len(xs) * q)] for q in (0.31, 0.67)]
+    cy = np.sort(pts[:, 1])[int(len(pts) * 0.45)]
+    col = (pts[:, 0] >= cx[0]).astype(int) + (pts[:, 0] >= cx[1])
+    cell = col * 2 + (pts[:, 1] >= cy)
+    on_border = np.isin(pts[:, 0], cx) | (pts[:, 1] == cy)
+    assert on_border.sum() >= 2
+    rows = [np.flatnonzero(cell == c) for c in range(6)]
+    rows[4] = np.concatenate([rows[4], rows[0][:300]])
+    rows.insert(3, np.zeros(0, int))
+    paths = []
+    for k, r in enumerate(rows):
+        p = folder / f"f{k}.{'laz' if k % 2 else 'las'}"
+        sub = laspy.LasData(full.header)
+        sub.points = full.points[r]
+        sub.write(str(p))
+        paths.append(p)
+    whole = folder / "whole.laz"
+    las = laspy.LasData(full.header)
+    las.points = full.points[np.concatenate(rows)]
+    las.write(str(whole))
+    return paths, whole, [len(r) for r in rows]
+
+
+@pytest.mark.parametrize("workers", [None, 2])
+def test_a_catalog_with_borders_duplicates_and_an_empty_file_equals_its_single_file(
+        scene, tmp_path, workers):
+    """A catalog of 7 files (unaligned extents, points on the borders, duplicates across
+    files, one empty file) in tiles: each file read and each output written by its own
+    task (on two Dask workers: the client reads and writes no point), every output its
+    slice of the in-memory run of the single file they were cut from, bit for bit."""
+    if workers:
+        pytest.importorskip("distributed")
+    _, paths, pts = scene
+    full = laspy.read(str(paths["las"]))
+    (tmp_path / "in").mkdir()
+    files, whole, counts = _cut_catalog(full, pts, tmp_path / "in")
+    ref = tmp_path / "ref.laz"
+    clcurv.curvature_file(whole, ref, R, method="mls2", memory="64GiB")
+    out = tmp_path / "out"
+    out.mkdir()
+    summary = clcurv.curvature_file(files, out, R, method="mls2", tile=8.0, workers=workers)
+    assert summary["tiled"] and summary["points"] == sum(counts)
+    assert sum(summary["status"]) == sum(counts)
+    _, r = _dims(ref)
+    start = 0
+    for p, m in zip(files, counts):
+        _, o = _dims(out / p.name)
+        assert len(o["X"]) == m
+        for name, a in o.items():
+            assert np.array_equal(a, r[name][start:start + m], equal_nan=True), (p, name)
+        start += m
+    assert sorted(q.name for q in out.iterdir()) == sorted(p.name for p in files)
 
 
 def test_binary_ply_in_and_out_byte_for_byte(tmp_path):

@@ -155,7 +155,8 @@ def test_split_puts_every_point_in_its_owner_and_the_halos_that_reach_it(tmp_pat
     sums = b.split(tl, tmp_path / "tiles_in")
     truth = _reach(_cells(pts, frame), tl)
     assert sorted(map(int, sums)) == sorted(truth) == tl.occupied(sums)
-    assert sorted(int(p.stem) for p in (tmp_path / "tiles_in").iterdir()) == sorted(truth)
+    assert sorted(int(p.stem) for p in (tmp_path / "tiles_in" / "p0").iterdir()) == \
+        sorted(truth)
     owners = []
     for k, (t, (ids, own)) in enumerate(truth.items()):
         rec = b.read_tile(tmp_path / "tiles_in", t, expect=sums[str(t)])
@@ -170,7 +171,8 @@ def test_split_puts_every_point_in_its_owner_and_the_halos_that_reach_it(tmp_pat
     # a tile file that does not match its sums is corrupt; an absent one is empty
     t = next(iter(truth))
     with pytest.raises(CorruptWorkspace):
-        b.read_tile(tmp_path / "tiles_in", t, expect=[sums[str(t)][0], 0])
+        b.read_tile(tmp_path / "tiles_in", t, expect={"p0": [sums[str(t)]["p0"][0], 0]})
+    assert sums[str(t)]["p0"][2] == int(truth[t][1].sum())          # its points owned
     assert len(b.read_tile(tmp_path / "tiles_in", 10 ** 9)) == 0
 
 

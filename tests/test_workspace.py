@@ -238,12 +238,12 @@ def _results(ws):
 def _todo_inputs(ws):
     """The input files of the tiles not yet computed (read by the resumed run)."""
     done = {p.stem for p in _results(ws)}
-    return sorted(p for p in (ws / "tiles_in").glob("*.bin") if p.stem not in done)
+    return sorted(p for p in (ws / "tiles_in").glob("p*/*.bin") if p.stem not in done)
 
 
 def _buckets_and_split_again(ws):
     (ws / "tiles_in.json").unlink()            # the split runs again: it reads the buckets
-    return sorted((ws / "buckets").glob("*.bin"))
+    return sorted((ws / "buckets").glob("p*/*.bin"))
 
 
 KINDS = {
@@ -322,7 +322,7 @@ _KILLER = textwrap.dedent("""
             return open(path, mode, *a, **kw)
         return opener
     if stage == "bucketing":
-        tiled.READ_CHUNK = 400               # many appends (the same bucket files)
+        buckets.READ_CHUNK = 400             # many appends (the same bucket files)
         buckets.open = wrap_open("buckets")
     elif stage == "splitting":
         buckets.open = wrap_open("tiles_in")

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import mmap
 import zipfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -134,13 +135,20 @@ class LasSource:
         lo, hi = np.asarray(self.header.mins, float), np.asarray(self.header.maxs, float)
         return (lo, hi) if np.isfinite(lo).all() and np.isfinite(hi).all() else None
 
-    def chunks(self, size, attributes=False):
+    def chunks(self, size, attributes=False, first=0, stop=None):
         """(start, xyz, normals or None) of each ``size`` points; with ``attributes``
-        (start, xyz, normals, {name: values} of the attributes, as clcurv.io.read has them)."""
-        start = 0
+        (start, xyz, normals, {name: values} of the attributes, as clcurv.io.read has them).
+        ``first``, ``stop``: only the points first..stop-1 (a part of the file,
+        :func:`parts_of`; a LAZ file is entered at the chunk that holds ``first``, through
+        its chunk table)."""
+        stop = self.n if stop is None else min(int(stop), self.n)
+        start = first = int(first)
         try:
             with self.laspy.open(str(self.path)) as f:
-                for rec in f.chunk_iterator(size):
+                if first:
+                    f.seek(first)
+                while start < stop:
+                    rec = f.read_points(min(size, stop - start))
                     m = len(rec)
                     if m == 0:
                         break
@@ -156,12 +164,10 @@ class LasSource:
                     else:
                         yield start, xyz, nrm
                     start += m
-                    if start > self.n:
-                        break
-        except (self.laspy.LaspyException, ValueError, OSError) as exc:
+        except (self.laspy.LaspyException, ValueError, OSError, IndexError) as exc:
             raise CorruptFileError(f"{self.path}: cannot decode the points after #{start}: "
                                    f"{exc}") from exc
-        if start != self.n:
+        if start != stop:
             raise CorruptFileError(f"{self.path}: the header claims {self.n} points but "
                                    f"{start} were decoded (a truncated file?)")
 
@@ -385,6 +391,55 @@ class PlySource:
                 yield xyz, nrm, attrs
         for start, xyz, nrm, attrs in _regroup(blocks(), size, self.n, self.path):
             yield (start, xyz, nrm, attrs) if attributes else (start, xyz, nrm)
+
+
+#: points of a part of one LAS/LAZ file, at most (:func:`parts_of`): a multiple of
+#: LASzip's default chunk of 50,000 points, so that parts start at a chunk
+PART_POINTS = 4_000_000
+
+
+@dataclass(frozen=True)
+class Part:
+    """Points ``first``..``stop``-1 of the file ``path``, whose global ids start at
+    ``offset``; ``normals``: read the file's normals (a catalog reads them only when every
+    file has them). Small and picklable: what a worker needs to read its points itself."""
+    path: str
+    first: int
+    stop: int
+    offset: int
+    normals: bool
+
+    @property
+    def n(self):
+        return self.stop - self.first
+
+
+def parts_of(source, most=None):
+    """The :class:`Part` list of ``source`` (a source or a :class:`Catalog`), in global-id
+    order: every file of a catalog apart, and a LAS/LAZ file of more than ``most`` points
+    in ranges of ``most`` (NPY and PLY files whole: their ids count finite rows only)."""
+    files = source.parts if isinstance(source, Catalog) else [source]
+    offsets = source.offsets if isinstance(source, Catalog) else [0]
+    normals = bool(source.has_normals)
+    most = PART_POINTS if most is None else most
+    out = []
+    for off, src in zip(offsets, files):
+        step = max(int(most), 1) if isinstance(src, LasSource) else max(src.n, 1)
+        for a in range(0, max(src.n, 1), step):
+            out.append(Part(str(src.path), a, min(a + step, src.n), int(off) + a, normals))
+    return out
+
+
+def read_part(part, size):
+    """(global start, xyz, normals or None) of each ``size`` points of ``part``, read by
+    whoever calls it (a worker): the file is opened here."""
+    src = open_source(Path(part.path))
+    if isinstance(src, LasSource):
+        it = src.chunks(size, first=part.first, stop=part.stop)
+    else:
+        it = src.chunks(size)
+    for start, xyz, nrm in it:
+        yield part.offset + start - part.first, xyz, nrm if part.normals else None
 
 
 # --------------------------------------------------------------------------- writing

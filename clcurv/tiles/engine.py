@@ -68,6 +68,7 @@ from __future__ import annotations
 import ctypes
 import errno
 import json
+import os
 import shutil
 import time
 import warnings
@@ -84,13 +85,14 @@ from clcurv.tiles import orient as tiled_orient
 from clcurv.tiles import scale as tiled_scale
 from clcurv.tiles import workers as cluster
 from clcurv.tiles import workspace as wsp
-from clcurv.tiles.buckets import READ_CHUNK, Buckets, bucket_grid
+from clcurv.tiles.buckets import (READ_CHUNK, BucketTask, Buckets, SplitTask, bucket_grid,
+                                  bucket_part, merge_sums, split_part)
 from clcurv.grid.binning import Frame
 from clcurv.io import stream
 from clcurv._shared.constants import TOO_FEW
-from clcurv.tiles.results import Windows, partition, tile_dtype
+from clcurv.tiles.results import Windows, partition, tile_dtype, to_windows
 from clcurv.tiles.workers import worker_device
-from clcurv.tiles.workspace import tile_file
+from clcurv.tiles.workspace import load_sealed, tile_file
 from clcurv.tiles.planning import (TILE_BYTES_PER_POINT, Tiling, TilingError, halo_cells,
                                    plan_tiles)
 from clcurv.ops.registry import OPERATORS
@@ -306,9 +308,11 @@ def _manifest(source, params, budget, tile, wanted, client, workers):
             "dask": bool(client is not None or workers)}
 
 
-def _prepare(space, want, source, params, budget, say, check_disk=None):
+def _prepare(space, want, source, params, budget, say, execute, check_disk=None):
     """Pass (1), or its state from an interrupted run with the same key ``want``
-    (``check_disk()`` is called before a fresh pass)."""
+    (``check_disk()`` is called before a fresh pass): each part of the input
+    (:func:`clcurv.io.stream.parts_of`) read and filed by a task of ``execute`` (on the
+    workers of a Dask run: the client reads no point)."""
     have = space.manifest()
     if have and have.get("key") == want and have.get("buckets"):
         say(f"resuming from {space.path}")
@@ -321,10 +325,10 @@ def _prepare(space, want, source, params, budget, say, check_disk=None):
         check_disk()
     (space / "buckets").mkdir()
     target = max(budget // params.bytes_per_point(), 1)
-    origin, side, shape = bucket_grid(source, target)
-    b = Buckets(space / "buckets", origin, side, shape, source.has_normals)
-    for start, xyz, nrm in source.chunks(READ_CHUNK):
-        b.add(start, xyz, nrm)
+    grid = bucket_grid(source, target)
+    tasks = [BucketTask(str(space / "buckets"), k, part, grid)
+             for k, part in enumerate(stream.parts_of(source))]
+    b = Buckets.merge(space / "buckets", list(execute(tasks, bucket_part)))
     if source.n == 0:
         raise TilingError(f"{source.path}: no points")
     state = {"key": want, "buckets": b.state()}
@@ -344,12 +348,12 @@ def run_tiles(source, dst, params, budget, tile, ws, wanted, progress, say, clie
     interruption or any other failure, for the same command to resume. A workspace file
     that fails its check is recomputed: the run starts afresh once."""
     want = _manifest(source, params, budget, tile, wanted, client, workers)
-    with wsp.claim(ws, dst) as space:
+    with wsp.claim(ws, dst) as space, cluster.session(client, workers) as dask:
         try:
             for attempt in (0, 1):
                 try:
                     summary = _run_tiles(space, want, source, dst, params, budget, tile,
-                                         wanted, progress, say, client, workers)
+                                         wanted, progress, say, dask)
                     break
                 except wsp.CorruptWorkspace as exc:
                     if attempt:
@@ -413,7 +417,7 @@ def check_disk(space, source, params, wanted, say):
 
 
 def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress, say,
-               client, workers):
+               client):
     times = {}
     t0 = time.perf_counter()
     ws = space.path
@@ -422,8 +426,10 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
     if source.n == 0:                   # as the in-memory run: an empty output
         windows = Windows(ws / "windows", 0, tile_dtype(stored))
         _write_output(dst, source, windows, specs)
-        return _summary(params, 0, 0, 0, source, times, windows, dst)
-    buckets, state, fresh = _prepare(space, want, source, params, budget, say,
+        return _summary(params, 0, 0, 0, source, times, windows.status, dst)
+    def execute(tasks, fn):
+        return _execute(tasks, client, fn)
+    buckets, state, fresh = _prepare(space, want, source, params, budget, say, execute,
                                      lambda: check_disk(space, source, params, wanted, say))
     times["bucketing"] = time.perf_counter() - t0
     file_normals = (buckets.normals_finite and "n" in buckets.dtype.names
@@ -435,7 +441,7 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
         t_s = time.perf_counter()
         wsp.remove(ws / "parts")            # an interrupted run's steps: made again
         smoothed = tiled_scale.run_steps(ws, buckets, params, params.scale_space, budget,
-                             lambda tasks: _execute(tasks, client, workers, step=True),
+                             lambda tasks: execute(tasks, tiled_scale.step_tile),
                              tile=tile)
         times["scale space"] = time.perf_counter() - t_s
         frame = Frame.covering(*smoothed.box, params.radius)
@@ -445,20 +451,23 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
                             bytes_per_point=params.bytes_per_point())
     (ws / "tiles").mkdir(exist_ok=True)
     t_split = time.perf_counter()
-    sums = _split(space, buckets, tiling, smoothed)
+    sums = _split(space, buckets, tiling, smoothed, execute)
     times["splitting"] = time.perf_counter() - t_split
     tiles = tiling.occupied(sums)       # never range(tiling.count): see Tiling.occupied
     say(f"{source.n} points in {len(tiles)} tile(s) of {tiling.size} x {tiling.size} "
         f"cells of {tiling.frame.cell:.6g} (halo {halo} cell(s)), budget "
         f"{budget / 2**20:.0f} MiB")
     mst = isinstance(how, str) and how == "mst"
+    offsets = _file_offsets(source)
     todo = [(rank, t) for rank, t in enumerate(tiles) if not _tile_done(ws, t, mst, say)]
     skipped = len(tiles) - len(todo)
     tasks = [TileTask(str(ws), t, tiling, state["buckets"], params, how, file_normals,
-                      stored, smoothed, sums.get(str(t)), rank) for rank, t in todo]
+                      stored, smoothed, sums.get(str(t)), rank, offsets) for rank, t in todo]
     t1 = time.perf_counter()
     computed, finished = 0, skipped
-    for _, owned in _execute(tasks, client, workers):
+    files_of = {}
+    for t, owned, files in execute(tasks, compute_tile):
+        files_of[t] = files
         computed += owned
         finished += 1
         _trim()
@@ -466,15 +475,22 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
             progress(finished, len(tiles), computed)
     times["tiles"] = time.perf_counter() - t1
     t2 = time.perf_counter()
-    windows = partition(ws, source.n, tiles, stored, mst)
-    if mst:
-        tiled_orient.reconcile_windows(ws, windows, tiles, params.method)
-    _trim()
-    times["merging"] = time.perf_counter() - t2
-    t3 = time.perf_counter()
-    _write_output(dst, source, windows, specs)
-    times["writing"] = time.perf_counter() - t3
-    return _summary(params, len(tiles), skipped, tiling.size, source, times, windows, dst,
+    if isinstance(source, stream.Catalog) and not mst:
+        for t in set(tiles) - set(files_of):        # a resumed run's tiles done before
+            files_of[t] = _files(load_sealed(tile_file(ws, t))["id"], offsets)
+        status = write_files(ws, source, dst, tiles, files_of, stored, specs, execute)
+        times["writing"] = time.perf_counter() - t2
+    else:
+        windows = partition(ws, source.n, tiles, stored, mst)
+        if mst:
+            tiled_orient.reconcile_windows(ws, windows, tiles, params.method)
+        _trim()
+        times["merging"] = time.perf_counter() - t2
+        t3 = time.perf_counter()
+        _write_output(dst, source, windows, specs)
+        times["writing"] = time.perf_counter() - t3
+        status = windows.status
+    return _summary(params, len(tiles), skipped, tiling.size, source, times, status, dst,
                     halo)
 
 
@@ -486,10 +502,10 @@ def _stored_specs(params, specs):
     return list(specs) + [("status", None, np.uint8)]
 
 
-def _summary(params, tiles, skipped, size, source, times, windows, dst, halo=0):
-    """The summary dict of a tiled run; warns, as the in-memory run does, when most points
-    have too few neighbours."""
-    status = windows.status.tolist() if params.kind == "curvature" else None
+def _summary(params, tiles, skipped, size, source, times, status, dst, halo=0):
+    """The summary dict of a tiled run (``status``: the points by status); warns, as the
+    in-memory run does, when most points have too few neighbours."""
+    status = np.asarray(status).tolist() if params.kind == "curvature" else None
     if status is not None:
         few, total = status[TOO_FEW], sum(status)
         need = OPERATORS[params.method].min_count
@@ -518,9 +534,11 @@ def _tile_done(ws, t, mst, say):
     return False
 
 
-def _split(space, buckets, tiling, smoothed):
-    """Pass (1b), once per run: the tiles' input files and their sums (a resumed run reuses
-    them when their record of sums, ``tiles_in.json``, is sound and of this tiling)."""
+def _split(space, buckets, tiling, smoothed, execute):
+    """Pass (1b), once per run: the tiles' input files and their sums, each part's by a
+    task of ``execute`` (after a scale space, all parts at once here: its state is by
+    bucket); a resumed run reuses them when their record of sums, ``tiles_in.json``, is
+    sound and of this tiling."""
     record = space / "tiles_in.json"
     key = {"size": tiling.size, "halo": tiling.halo, "count": tiling.count,
            "origin": list(map(float, tiling.frame.origin)), "cell": tiling.frame.cell}
@@ -534,7 +552,15 @@ def _split(space, buckets, tiling, smoothed):
     wsp.remove(record)
     folder = space / "tiles_in"
     wsp.remove(folder)
-    sums = buckets.split(tiling, folder, state=smoothed)
+    if smoothed is not None:
+        sums = buckets.split(tiling, folder, state=smoothed)
+    else:
+        folder.mkdir()
+        tasks = [SplitTask(str(buckets.folder), k, buckets.state(), tiling, str(folder))
+                 for k in buckets.parts]
+        sums = {}
+        for part in execute(tasks, split_part):
+            merge_sums(sums, part)
     wsp.write_text(record, json.dumps({"key": key, "sums": sums, "sum": wsp.digest(
         json.dumps(sums, sort_keys=True).encode())}))
     return sums
@@ -575,13 +601,15 @@ class TileTask:
     file_normals: bool
     specs: list
     smoothed: object = None      # clcurv.tiles.scale.State after a scale space
-    expect: object = None        # (count, CRC-32) of its input file (clcurv.tiles.workspace)
+    expect: object = None        # {file: [count, CRC-32, owned]} of its input files
     rank: int = 0                # its place among the run's tiles (< 2^31: MST node ids)
+    offsets: tuple = (0,)        # the first global id of each input file
 
 
 def compute_tile(task, device=None):
     """Compute tile ``task.t`` and write its own points' fields (with their global ids) to
-    the workspace, atomically; returns (t, points owned)."""
+    the workspace, atomically; returns (t, points owned, the input files that hold them:
+    their indices in ``task.offsets``)."""
     params, tiling = task.params, task.tiling
     buckets = Buckets.from_state(Path(task.ws) / "buckets", task.buckets)
     rec = buckets.read_tile(Path(task.ws) / "tiles_in", task.t, state=task.smoothed,
@@ -628,7 +656,84 @@ def compute_tile(task, device=None):
         _mst_records(task, out, np.zeros(0, bool), np.empty((0, 3)), np.empty((0, 3)),
                      np.empty(0, np.int64), np.empty(0, np.int64))
     wsp.save_sealed(tile_file(task.ws, task.t), out)
-    return task.t, len(out)
+    return task.t, len(out), _files(out["id"], task.offsets)
+
+
+def _file_offsets(source):
+    """The first global id of each input file (a catalog's), as a tuple of ints."""
+    if isinstance(source, stream.Catalog):
+        return tuple(int(o) for o in source.offsets[:-1])
+    return (0,)
+
+
+def _files(ids, offsets):
+    """The indices of the input files (first ids ``offsets``) that hold the ``ids``."""
+    if not len(ids):
+        return []
+    return np.unique(np.searchsorted(np.asarray(offsets), ids, side="right") - 1).tolist()
+
+
+@dataclass
+class WriteTask:
+    """The output of input file number ``t`` of a catalog (:func:`write_file`)."""
+    ws: str
+    t: int
+    path: str           # the input file
+    dst: str            # where the worker writes it (renamed by the client at the end)
+    offset: int         # its first global id
+    n: int
+    tiles: list         # the tiles that own its points
+    stored: list        # the fields of the tiles' records
+    specs: list         # the fields written
+
+
+def write_file(task):
+    """Pass (3) of one input file of a catalog, on a worker: its points' records gathered
+    from the tiles that own them (by id windows in the workspace, each id checked present
+    once: :class:`clcurv.tiles.results.Windows`), and its output written, in input order,
+    from its own input file; returns (t, points by status)."""
+    src = stream.open_source(Path(task.path))
+    folder = Path(task.ws) / "out" / str(task.t)
+    wsp.remove(folder)
+    folder.mkdir(parents=True)
+    win = Windows(folder, task.n, tile_dtype(task.stored))
+    lo, hi = task.offset, task.offset + task.n
+    for t in task.tiles:
+        rec = load_sealed(tile_file(task.ws, t))          # CorruptWorkspace: recomputed
+        rec = rec[(rec["id"] >= lo) & (rec["id"] < hi)]
+        rec["id"] -= lo
+        if "status" in rec.dtype.names and len(rec):
+            win.status += np.bincount(rec["status"], minlength=4)[:4]
+        to_windows(rec, win.path, win.size)
+    _write_one(Path(task.dst), src, win.rows, task.n, task.specs, win.size)
+    wsp.remove(folder)
+    return task.t, win.status.tolist()
+
+
+def write_files(ws, source, dst, tiles, files_of, stored, specs, execute):
+    """Pass (3) of a catalog: each input file's output written by a task of ``execute``
+    (:func:`write_file`; on the workers of a Dask run), each under a hidden name beside
+    its destination; once every one is written, each is renamed to its destination (a
+    failure leaves no output of the run and no earlier file replaced). Returns the points
+    by status."""
+    token = os.urandom(4).hex()
+    hidden = [Path(d).with_name(f".clcurv-{token}-{Path(d).name}") for d in dst]
+    tasks = []
+    for k, (part, off, tmp) in enumerate(zip(source.parts, source.offsets, hidden)):
+        mine = [t for t in tiles if k in files_of[t]]
+        tasks.append(WriteTask(str(ws), k, str(part.path), str(tmp), int(off), int(part.n),
+                               mine, stored, specs))
+    status = np.zeros(4, np.int64)
+    try:
+        for _, counts in execute(tasks, write_file):
+            status += counts
+        for tmp, d in zip(hidden, dst):
+            os.replace(tmp, d)
+    finally:
+        for tmp in hidden:
+            wsp.remove(tmp)
+        wsp.remove(Path(ws) / "out")
+    return status
 
 
 def _mst_records(task, out, own, pos, nl, node, ids):
@@ -647,16 +752,14 @@ def _mst_records(task, out, own, pos, nl, node, ids):
         wsp.save_sealed(base.with_suffix(suffix), arr)
 
 
-def _execute(tasks, client, workers, step=False):
-    """fn(task) of every task as it finishes (fn: compute_tile, or the scale space's
-    step_tile when ``step``): in this process, on a Dask ``client``, or on a LocalCluster
-    of ``workers`` processes started (and closed) here."""
-    fn = tiled_scale.step_tile if step else compute_tile
-    if client is None and not workers:
+def _execute(tasks, client, fn):
+    """fn(task) of every task as it finishes (fn: a pass's task, :func:`compute_tile`,
+    the scale space's step_tile...): in this process, or on the Dask ``client``."""
+    if client is None:
         for task in tasks:
             yield fn(task)
         return
-    yield from cluster.map_tiles(fn, tasks, client=client, workers=workers)
+    yield from cluster.map_tiles(fn, tasks, client=client)
 
 
 def _write_output(dst, source, windows, specs):

@@ -45,6 +45,7 @@ import asyncio
 import os
 import threading
 import warnings
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -172,6 +173,22 @@ def local_cluster(workers):
     return cluster, distributed.Client(cluster)
 
 
+@contextmanager
+def session(client=None, workers=None):
+    """The Dask client of a run: ``client`` as it is, a LocalCluster of ``workers``
+    processes started here for the whole run (all its passes) and closed after it, or
+    None (one process)."""
+    if client is not None or not workers:
+        yield client
+        return
+    cluster, client = local_cluster(workers)
+    try:
+        yield client
+    finally:
+        client.close()
+        cluster.close()
+
+
 def connect(address, timeout=None):
     """A Dask client of the scheduler at ``address`` (``--scheduler``), or
     :class:`SchedulerError` after ``timeout`` seconds (default :data:`CONNECT_TIMEOUT`)
@@ -240,8 +257,8 @@ def map_tiles(fn, tasks, *, client=None, workers=None, device=None):
         def submit_next():
             task = next(pending, None)
             if task is not None:
-                running.add(client.submit(fn, task, retries=RETRIES, pure=False,
-                                          key=f"clcurv-tile-{task.t}-{os.urandom(4).hex()}"))
+                key = f"clcurv-{fn.__name__}-{task.t}-{os.urandom(4).hex()}"
+                running.add(client.submit(fn, task, retries=RETRIES, pure=False, key=key))
         for _ in range(IN_FLIGHT * nworkers):
             submit_next()
         for fut in running:
