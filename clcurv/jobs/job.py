@@ -424,25 +424,46 @@ def run_tiled(job, out=print):
                 client=client, **options_for(job, curvature_file))
     except TilingError as exc:
         raise UsageError(str(exc)) from exc
+    for line in _tiled_summary(job, summary):
+        out(line)
+    return summary
+
+
+def _tiled_summary(job, summary):
+    """The summary lines of a tiled run: those of the in-memory run (:func:`_summary`),
+    the percentiles from the systematic sample of the tiles (:func:`clcurv.tiles.engine.
+    values_summary`; the mean neighbour count and the NaN counts exact)."""
     times = ", ".join(f"{k} {v:.2f} s" for k, v in summary["times"].items())
     st = summary["status"]
-    ok = f"; status ok {st[0] / sum(st):.1%}" if st and sum(st) else ""
     what = (f"{len(job.input)} files" if isinstance(job.input, (list, tuple))
             else job.input)
     dropped = summary.get("dropped", 0)
     dropped = f" ({dropped} non-finite dropped)" if dropped else ""
-    out(f"\n{summary['points']} points from {what}{dropped} in {summary['tiles']} tile(s) "
-        f"(halo {summary['halo']} cell(s)){ok}")
-    out(f"method {job.method}, {_radius_text(job, float(job.radius))}, scale space "
-        f"{job.scale_space} iteration(s), weights {job.weights}")
+    n = summary["points"]
+    yield (f"\n{n} points from {what}{dropped} in {summary['tiles']} tile(s) "
+           f"(halo {summary['halo']} cell(s))")
+    yield (f"method {job.method}, {_radius_text(job, float(job.radius))}, scale space "
+           f"{job.scale_space} iteration(s), weights {job.weights}")
+    if "neighbours" in summary and st and sum(st):
+        mean, med = summary["neighbours"]
+        yield (f"mean neighbours {mean:.1f} (median {med:.0f}); status ok "
+               f"{st[0] / sum(st):.1%}")
     if job.workers or job.scheduler:
-        out("device: each worker's own (--device, else its default)")
+        yield "device: each worker's own (--device, else its default)"
     else:
         device = get_device(job.device)
-        out(f"device {device.info.name} ({device.info.platform})")
-    out(f"time: {times}")
-    out(f"wrote {job.output}")
-    return summary
+        yield f"device {device.info.name} ({device.info.platform})"
+    yield f"time: {times}"
+    for k, (q, nan) in summary.get("ranges", {}).items():
+        text = ("all NaN" if q is None else
+                f"p1 {q[0]:.4g}  median {q[1]:.4g}  p99 {q[2]:.4g}"
+                + (f", {nan} NaN" if nan else ""))
+        yield f"  {k:<20} {text}"
+    if summary.get("ranges") and summary.get("sample", n) < n:
+        yield (f"  (median and percentiles of a systematic sample of {summary['sample']} "
+               "points)")
+    names = summary.get("fields")
+    yield f"wrote {job.output}" + (f": {', '.join(names)}" if names else "")
 
 
 def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient="auto",

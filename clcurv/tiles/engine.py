@@ -462,22 +462,24 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
     todo = [(rank, t) for rank, t in enumerate(tiles) if not _tile_done(ws, t, mst, say)]
     skipped = len(tiles) - len(todo)
     tasks = [TileTask(str(ws), t, tiling, state["buckets"], params, how, file_normals,
-                      stored, smoothed, sums.get(str(t)), rank, offsets) for rank, t in todo]
+                      stored, smoothed, sums.get(str(t)), rank, offsets, source.n)
+             for rank, t in todo]
     t1 = time.perf_counter()
     computed, finished = 0, skipped
-    files_of = {}
-    for t, owned, files in execute(tasks, compute_tile):
-        files_of[t] = files
+    info = {}
+    for t, owned, about in execute(tasks, compute_tile):
+        info[t] = about
         computed += owned
         finished += 1
         _trim()
         if progress is not None:
             progress(finished, len(tiles), computed)
     times["tiles"] = time.perf_counter() - t1
+    for t in set(tiles) - set(info):        # a resumed run's tiles, done before
+        info[t] = tile_info(load_sealed(tile_file(ws, t)), offsets, params, source.n)
     t2 = time.perf_counter()
     if isinstance(source, stream.Catalog) and not mst:
-        for t in set(tiles) - set(files_of):        # a resumed run's tiles done before
-            files_of[t] = _files(load_sealed(tile_file(ws, t))["id"], offsets)
+        files_of = {t: info[t]["files"] for t in tiles}
         status = write_files(ws, source, dst, tiles, files_of, stored, specs, execute)
         times["writing"] = time.perf_counter() - t2
     else:
@@ -490,8 +492,12 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
         _write_output(dst, source, windows, specs)
         times["writing"] = time.perf_counter() - t3
         status = windows.status
-    return _summary(params, len(tiles), skipped, tiling.size, source, times, status, dst,
-                    halo)
+    summary = _summary(params, len(tiles), skipped, tiling.size, source, times, status,
+                       dst, halo)
+    summary.update(values_summary([info[t] for t in tiles], params))
+    summary["fields"] = [("nx ny nz" if k == "normals" else k)
+                         for k, _, _ in sorted(specs, key=lambda s: s[0] != "normals")]
+    return summary
 
 
 def _stored_specs(params, specs):
@@ -604,6 +610,7 @@ class TileTask:
     expect: object = None        # {file: [count, CRC-32, owned]} of its input files
     rank: int = 0                # its place among the run's tiles (< 2^31: MST node ids)
     offsets: tuple = (0,)        # the first global id of each input file
+    n: int = 0                   # the points of the run (its summary's sample)
 
 
 def compute_tile(task, device=None):
@@ -656,7 +663,56 @@ def compute_tile(task, device=None):
         _mst_records(task, out, np.zeros(0, bool), np.empty((0, 3)), np.empty((0, 3)),
                      np.empty(0, np.int64), np.empty(0, np.int64))
     wsp.save_sealed(tile_file(task.ws, task.t), out)
-    return task.t, len(out), _files(out["id"], task.offsets)
+    return task.t, len(out), tile_info(out, task.offsets, params, task.n)
+
+
+#: points of the sample the summary of a tiled run takes its percentiles from, about
+SAMPLE_POINTS = 1 << 17
+
+
+def _ranged(params):
+    """The fields whose ranges a run's summary prints (clcurv.jobs.job.summary_fields)."""
+    if params.kind != "curvature":
+        return []
+    return [o.file for o in OPERATORS[params.method].outputs
+            if o.file is not None and o.width == 1]
+
+
+def tile_info(out, offsets, params, n):
+    """What the client needs of a tile's records ``out``, small: the input files that hold
+    its points, and for the summary the exact NaN counts and neighbour sum, and a
+    systematic sample (the ids that are multiples of n / SAMPLE_POINTS) of the summary's
+    fields."""
+    step = max(1, int(n) // SAMPLE_POINTS)
+    names = [k for k in _ranged(params) + ["neighbours"] if k in out.dtype.names]
+    take = out[out["id"] % step == 0]
+    return {"files": _files(out["id"], offsets),
+            "sample": {k: take[k].tolist() for k in names},
+            "nan": {k: int(np.count_nonzero(np.isnan(out[k]))) for k in names
+                    if out.dtype[k].kind == "f"},
+            "neighbours": int(out["neighbours"].sum()) if "neighbours" in names else 0,
+            "points": len(out)}
+
+
+def values_summary(infos, params):
+    """The summary's value lines of a tiled run from its tiles' :func:`tile_info`: per
+    ranged field (p1, median, p99 of the sample, NaN count), the mean neighbour count (exact)
+    and its median (sample), and the sample's size."""
+    names = [k for k in _ranged(params) if infos and k in infos[0]["sample"]]
+    sample = {k: np.concatenate([np.asarray(i["sample"][k], float) for i in infos])
+              for k in names + (["neighbours"] if infos and "neighbours" in
+                                infos[0]["sample"] else [])}
+    points = sum(i["points"] for i in infos)
+    out = {"sample": len(next(iter(sample.values()))) if sample else 0, "ranges": {}}
+    for k in names:
+        v = sample[k][np.isfinite(sample[k])]
+        nan = sum(i["nan"].get(k, 0) for i in infos)
+        out["ranges"][k] = (tuple(np.percentile(v, [1, 50, 99]).tolist()) if len(v)
+                            else None, nan)
+    if "neighbours" in sample and points:
+        out["neighbours"] = (sum(i["neighbours"] for i in infos) / points,
+                             float(np.median(sample["neighbours"])))
+    return out
 
 
 def _file_offsets(source):
