@@ -8,6 +8,9 @@ A *source* yields a file's points in input order, a bounded number at a time:
     for start, xyz, normals in src.chunks(1_000_000):
         ...                                 # xyz (m, 3) float64 of points start..start+m-1
 
+A :class:`Catalog` is several files read as one cloud: a list of paths, a folder or a
+``.vpc`` (:func:`is_catalog`), checked before any point is decoded.
+
 ``xyz`` equals what :func:`clcurv.io.read` gives for the same rows (LAS: X * scale + offset
 in float64), so a computation on the chunks can equal the in-memory one bit for bit.
 ``normals`` are the file's normals as :func:`clcurv.io.read` finds them (LAS extra
@@ -92,6 +95,30 @@ def folder_files(folder):
     return files
 
 
+def _catalog_files(src):
+    """(the files of the catalog ``src``, its ``.vpc`` or None, the ``.vpc``'s items or
+    None): ``src`` a list of paths (one folder or ``.vpc`` alone stands for itself), a
+    folder or a ``.vpc``."""
+    if isinstance(src, (list, tuple)):
+        src = [Path(p) for p in src]
+        if not src:
+            raise CatalogError("an empty list of input files")
+        nested = [p for p in src if p.is_dir() or vpc.is_vpc(p)]
+        if not nested:
+            return src, None, None
+        if len(src) > 1:
+            raise CatalogError(f"{nested[0]}: a folder or a .vpc is a catalog by itself; "
+                               "give it alone, or list the files")
+        src = nested[0]
+    src = Path(src)
+    if not vpc.is_vpc(src):
+        return folder_files(src), None, None
+    items = vpc.read(src)
+    if not items:
+        raise CatalogError(f"{src}: the virtual point cloud has no items")
+    return [it.path for it in items], src, items
+
+
 class Catalog:
     """Several files read as one cloud (lidR's catalog), given as a list of LAS/LAZ (or of
     NPY) paths, a folder (:func:`folder_files`) or a ``.vpc`` (:mod:`clcurv.io.vpc`, its
@@ -107,29 +134,7 @@ class Catalog:
     :func:`clcurv.io.vpc.header_crs`; none stated counts as one) are refused."""
 
     def __init__(self, paths):
-        self.vpc, items = None, None
-        if isinstance(paths, (list, tuple)):
-            paths = [Path(p) for p in paths]
-            if not paths:
-                raise CatalogError("an empty list of input files")
-            nested = [p for p in paths if p.is_dir() or vpc.is_vpc(p)]
-            if nested and len(paths) > 1:
-                raise CatalogError(f"{nested[0]}: a folder or a .vpc is a catalog by itself; "
-                                   "give it alone, or list the files")
-            if nested:
-                paths = nested[0]
-        if not isinstance(paths, list):
-            paths = Path(paths)
-            if vpc.is_vpc(paths):
-                self.vpc = paths
-                if not paths.is_file():
-                    raise MissingFileError(f"{paths}: no such file")
-                items = vpc.read(paths)
-                if not items:
-                    raise CatalogError(f"{paths}: the virtual point cloud has no items")
-                paths = [it.path for it in items]
-            else:
-                paths = folder_files(paths)
+        paths, self.vpc, items = _catalog_files(paths)
         missing = [p for p in paths if not p.exists()]
         if missing:
             where = f"{self.vpc}: names " if self.vpc else ""

@@ -28,8 +28,8 @@ from urllib.parse import unquote, urlparse
 
 import numpy as np
 
-from . import las
-from .common import CorruptFileError, is_las
+from . import atomic_output, las
+from .common import CorruptFileError, MissingFileError, is_las
 
 #: the STAC extensions a written item declares (as wrench writes them)
 EXTENSIONS = ("https://stac-extensions.github.io/pointcloud/v1.0.0/schema.json",
@@ -87,8 +87,10 @@ def read(path):
     """
     path = Path(path)
     try:
-        doc = json.loads(Path(path).read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise MissingFileError(f"{path}: no such file") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise CorruptFileError(f"{path}: not a virtual point cloud (.vpc is JSON): "
                                f"{exc}") from None
     if not isinstance(doc, dict) or doc.get("type") != "FeatureCollection" \
@@ -190,7 +192,6 @@ def write(path, files):
     relative to the folder of ``path``. The GeoJSON ``geometry`` and ``bbox`` are WGS 84
     when pyproj is installed and the file states a CRS, else the native box (what wrench
     writes when it cannot reproject). Written atomically. Returns ``path``."""
-    from clcurv.io import atomic_output         # the package's: it imports this module's peers
     path = Path(path)
     items, ids = [], set()
     for f in files:
