@@ -328,3 +328,23 @@ def test_the_output_index_never_replaces_the_input_vpc(scene, tmp_path):
     with pytest.raises(TilingError, match="replace the input .vpc"):
         clcurv.curvature_file(survey, f, R, method=METHOD)
     assert survey.read_bytes() == before and os.listdir(f) == ["survey.vpc"]
+
+
+def test_an_index_of_files_without_crs_and_of_one_stem(scene, tmp_path):
+    """No CRS: ``proj:wkt2`` an empty string (wrench reads a string), no ``proj:epsg``, the
+    native box as the GeoJSON bbox; x.las and x.laz get their names as ids."""
+    _, _, pts, kind, strip = scene
+    files = [_write(tmp_path / name, pts[strip == k], kind[strip == k], wkt=None)
+             for k, name in enumerate(("x.las", "x.laz"))]
+    index = vpc.write(tmp_path / "i.vpc", files)
+    doc = json.loads(index.read_text())
+    props = [f["properties"] for f in doc["features"]]
+    assert [f["id"] for f in doc["features"]] == ["x", "x.laz"]
+    assert [p["proj:wkt2"] for p in props] == ["", ""]
+    assert all("proj:epsg" not in p for p in props)
+    assert doc["features"][0]["bbox"] == props[0]["proj:bbox"]
+    items = vpc.read(index)
+    assert [it.crs.key for it in items] == [None, None]
+    assert [it.count for it in items] == [int(np.sum(strip == k)) for k in range(2)]
+    assert np.array_equal(items[1].bounds[1], pts[strip == 1].max(axis=0))
+    assert [p.name for p in stream.Catalog(index).paths] == ["x.las", "x.laz"]

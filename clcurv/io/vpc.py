@@ -225,7 +225,7 @@ def _describe(file, folder):
         "pc:type": "lidar",
         "pc:encoding": "LASzip" if layout.compressed else "LAS",
         "pc:schemas": [_schema(d) for d in h.point_format.dimensions],
-        "proj:wkt2": crs.wkt,
+        "proj:wkt2": crs.wkt or "",             # a string, as wrench reads it
         "proj:bbox": box,
         "proj:geometry": geometry,
     }
