@@ -315,7 +315,7 @@ def test_a_catalog_names_the_output_of_a_copc_file_laz(files, tmp_path):
     folder = tmp_path / "out"
     folder.mkdir()
     clcurv.curvature_file([str(src), str(tmp_path / "far.laz")], folder, R, method="mls1")
-    assert sorted(os.listdir(folder)) == ["far.laz", "survey.laz"]
+    assert sorted(os.listdir(folder)) == ["far.laz", "index.vpc", "survey.laz"]
     assert_plain(folder / "survey.laz")
     ref = tmp_path / "ref.laz"
     clcurv.curvature_file(src, ref, R, method="mls1", tile=8.0)

@@ -1,6 +1,7 @@
 """The ``clcurv`` command line: compute, features, devices, render, demo.
 
     clcurv compute INPUT -o OUTPUT --method mls2 --radius auto --scale-space 3
+    clcurv compute tiles/ -o out/ --method mls2 --radius 1     # a catalog: folder, .vpc, files
     clcurv features INPUT -o OUTPUT --radius 0.5,1,2 --features planarity,Scattering
     clcurv devices
     clcurv render OUTPUT.ply --field mean_curvature -o picture.png [--up z]
@@ -37,6 +38,7 @@ from clcurv.runtime.program import BuildError, PrecisionError
 from clcurv.jobs.tiled_job import tile_session
 from clcurv.render import check_image_output, render
 from clcurv.jobs.job import features_file
+from clcurv.io.stream import is_catalog
 from clcurv.tiles.planning import TilingError, check_tile_size
 from clcurv.tiles.workers import CONNECT_TIMEOUT, FORCE_WORKERS
 from clcurv.tiles.workspace import WorkspaceError
@@ -115,8 +117,9 @@ def features_cmd(args, out=print):
     tiles = f" in {done['tiles']} tile(s)" if done["tiled"] else ""
     dropped = done.get("dropped", 0)
     dropped = f" ({dropped} non-finite dropped)" if dropped else ""
-    out(f"wrote {done['dst'] if len(args.input) == 1 else args.output}: {done['points']} "
-        f"points{dropped}, {nf} fields{tiles}")
+    index = f" and the index {done['index']}" if done.get("index") else ""
+    out(f"wrote {args.output if is_catalog(inputs) else done['dst']}: {done['points']} "
+        f"points{dropped}, {nf} fields{tiles}{index}")
     return done["dst"]
 
 
@@ -205,10 +208,11 @@ def _compute_parser(sub):
 def _file_arguments(c):
     """input (one file, or several as one cloud) and -o: the file commands' arguments."""
     c.add_argument("input", nargs="+", help="a point cloud file; several LAS/LAZ (or NPY) "
-                   "files are one cloud (a catalog), run in tiles, one output per input in "
-                   "the folder -o")
+                   "files, a folder of LAS/LAZ files (sorted by name) or a .vpc are one "
+                   "cloud (a catalog), run in tiles: one output per input file and an "
+                   "index .vpc in the folder -o")
     c.add_argument("-o", "--output", required=True, help=".ply, .las/.laz, .npz, .csv, .txt "
-                   "(a folder for several inputs)")
+                   "(a folder for a catalog)")
 
 
 def build_parser():

@@ -60,16 +60,16 @@ import warnings
 from pathlib import Path
 
 from . import carry, las, npy, pcd, ply, text
-from .common import (Cloud, CorruptFileError, MissingDependencyError, MissingFileError,
-                     ReadError, UnknownFormatError, WriteError, check_fields,
+from .common import (CatalogError, Cloud, CorruptFileError, MissingDependencyError,
+                     MissingFileError, ReadError, UnknownFormatError, WriteError, check_fields,
                      check_normals, check_points, from_las, is_las)
 from .las import LAZ_HINT  # noqa: F401  (kept importable from clcurv.io)
 from .pcd import lzf_decompress  # noqa: F401
 
 __all__ = ["Cloud", "read", "write", "check_output", "atomic_output", "lzf_decompress",
            "ReadError", "MissingFileError", "UnknownFormatError", "CorruptFileError",
-           "MissingDependencyError", "WriteError", "OutputPathError", "WriteFailedError",
-           "READ_FORMATS", "WRITE_FORMATS", "is_las", "from_las"]
+           "CatalogError", "MissingDependencyError", "WriteError", "OutputPathError",
+           "WriteFailedError", "READ_FORMATS", "WRITE_FORMATS", "is_las", "from_las"]
 
 
 class OutputPathError(WriteError):
@@ -84,7 +84,8 @@ class WriteFailedError(WriteError, OSError):
     temporary file is removed. Also an ``OSError``."""
 
 for _public in (Cloud, ReadError, MissingFileError, UnknownFormatError, CorruptFileError,
-                MissingDependencyError, WriteError, OutputPathError, WriteFailedError):
+                CatalogError, MissingDependencyError, WriteError, OutputPathError,
+                WriteFailedError):
     _public.__module__ = __name__  # shown (and pickled) as clcurv.io.<name>, as before
 del _public
 

@@ -100,6 +100,11 @@ class CorruptFileError(ReadError, ValueError):
     """The file exists but its content is not what its extension promises."""
 
 
+class CatalogError(ReadError, ValueError):
+    """The files of a catalog (several paths, a folder, a ``.vpc``) cannot be read as one
+    cloud: none, two CRS, a ``.vpc`` stating other point counts than the files' headers."""
+
+
 class MissingDependencyError(ReadError, ImportError):
     """An optional package needed for this format is missing (raised by read and write)."""
 

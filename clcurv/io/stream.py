@@ -8,6 +8,9 @@ A *source* yields a file's points in input order, a bounded number at a time:
     for start, xyz, normals in src.chunks(1_000_000):
         ...                                 # xyz (m, 3) float64 of points start..start+m-1
 
+A :class:`Catalog` is several files read as one cloud: a list of paths, a folder or a
+``.vpc`` (:func:`is_catalog`), checked before any point is decoded.
+
 ``xyz`` equals what :func:`clcurv.io.read` gives for the same rows (LAS: X * scale + offset
 in float64), so a computation on the chunks can equal the in-memory one bit for bit.
 ``normals`` are the file's normals as :func:`clcurv.io.read` finds them (LAS extra
@@ -42,9 +45,10 @@ from pathlib import Path
 import numpy as np
 import plyfile
 
-from . import carry, las, ply
-from .common import (CorruptFileError, MissingFileError, UnknownFormatError, check_claim,
-                     LAS_SUFFIXES, is_las, looks_like_normals, native, split_names)
+from . import carry, las, ply, vpc
+from .common import (CatalogError, CorruptFileError, MissingFileError, UnknownFormatError,
+                     check_claim,
+                     LAS_SUFFIXES, from_las, is_las, looks_like_normals, native, split_names)
 from .npy import check_npy
 
 #: formats a tiled run reads and writes
@@ -70,19 +74,88 @@ def open_source(path):
                              f"(got {ext or 'no extension'}); convert it, or run in memory")
 
 
+def is_catalog(src):
+    """Is ``src`` a catalog: a list of paths, a folder, or a ``.vpc`` file name?"""
+    if isinstance(src, (list, tuple)):
+        return True
+    return vpc.is_vpc(src) or (isinstance(src, (str, Path)) and Path(src).is_dir())
+
+
+def folder_files(folder):
+    """The LAS/LAZ files of ``folder`` (``*.las``, ``*.laz``, ``*.copc.laz``, any case; not
+    its subfolders) in sorted name order (Python's string order of the names: code point
+    by code point, ``B.las`` before ``a.las``, ``t10.laz`` before ``t2.laz``), the order of
+    a catalog's global ids. CatalogError for a folder without any."""
+    folder = Path(folder)
+    names = sorted(p.name for p in folder.iterdir())
+    files = [folder / n for n in names if is_las(n) and (folder / n).is_file()]
+    if not files:
+        held = ", ".join(names[:5]) + (", ..." if len(names) > 5 else "")
+        raise CatalogError(f"{folder}: no LAS/LAZ file (.las, .laz, .copc.laz) in the folder"
+                           + (f" (it holds {held})" if names else " (it is empty)"))
+    return files
+
+
+def _catalog_files(src):
+    """(the files of the catalog ``src``, its ``.vpc`` or None, the ``.vpc``'s items or
+    None): ``src`` a list of paths (one folder or ``.vpc`` alone stands for itself), a
+    folder or a ``.vpc``."""
+    if isinstance(src, (list, tuple)):
+        src = [Path(p) for p in src]
+        if not src:
+            raise CatalogError("an empty list of input files")
+        nested = [p for p in src if p.is_dir() or vpc.is_vpc(p)]
+        if not nested:
+            return src, None, None
+        if len(src) > 1:
+            raise CatalogError(f"{nested[0]}: a folder or a .vpc is a catalog by itself; "
+                               "give it alone, or list the files")
+        src = nested[0]
+    src = Path(src)
+    if not vpc.is_vpc(src):
+        return folder_files(src), None, None
+    items = vpc.read(src)
+    if not items:
+        raise CatalogError(f"{src}: the virtual point cloud has no items")
+    return [it.path for it in items], src, items
+
+
 class Catalog:
-    """Several LAS/LAZ (or several NPY) files read as one cloud, in the order given: the
-    points of file k have the global ids offsets[k] .. offsets[k + 1] - 1 (lidR's
-    catalog). The file normals are used only when every file has them."""
+    """Several files read as one cloud (lidR's catalog), given as a list of LAS/LAZ (or of
+    NPY) paths, a folder (:func:`folder_files`) or a ``.vpc`` (:mod:`clcurv.io.vpc`, its
+    items' order): the points of file k have the global ids offsets[k] .. offsets[k + 1] -
+    1. The file normals are used only when every file has them.
+
+    Checked when made, before any point is decoded (nothing is written yet): every file
+    exists (the missing ones named together) and its header holds (clcurv.io.las: against
+    the file size, a truncated LAZ's chunk table too); all LAS/LAZ or all NPY; a ``.vpc``'s
+    ``pc:count`` equals each file's header count. LAS/LAZ files of other point formats,
+    versions, scales or offsets are one cloud (each read as float64 coordinates; each
+    output keeps its own input's header); files of two CRS (their WKT or EPSG code, see
+    :func:`clcurv.io.vpc.header_crs`; none stated counts as one) are refused."""
 
     def __init__(self, paths):
-        if not paths:
-            raise ValueError("an empty list of input files")
+        paths, self.vpc, items = _catalog_files(paths)
+        missing = [p for p in paths if not p.exists()]
+        if missing:
+            where = f"{self.vpc}: names " if self.vpc else ""
+            raise MissingFileError(f"{where}{len(missing)} missing file(s): "
+                                   + ", ".join(map(str, missing)))
+        if items is not None and vpc.data_files(items):
+            raise UnknownFormatError(f"{self.vpc}: names {vpc.data_files(items)[0]}, not a "
+                                     "LAS/LAZ file")
         self.parts = [open_source(p) for p in paths]
-        kinds = {"npy" if s.format == "npy" else "las" for s in self.parts}
+        kinds = {}
+        for s in self.parts:
+            kinds.setdefault("las" if from_las(s) else s.format, s.path)
         if len(kinds) > 1:
-            raise UnknownFormatError("a catalog is all LAS/LAZ or all NPY files, got "
-                                     + ", ".join(str(s.path) for s in self.parts))
+            (ka, a), (kb, b) = list(kinds.items())[:2]
+            raise UnknownFormatError(f"{b}: a catalog is all LAS/LAZ or all NPY files, not "
+                                     f"{kb.upper()} with {ka.upper()} ({a})")
+        if items is not None:
+            self._check_counts(items)
+        if "las" in kinds:
+            self._check_crs()
         self.format = self.parts[0].format
         self.path = self.parts[0].path
         self.paths = [s.path for s in self.parts]
@@ -90,6 +163,25 @@ class Catalog:
         self.n = int(self.offsets[-1])
         self.dropped = sum(s.dropped for s in self.parts)
         self.has_normals = all(s.has_normals for s in self.parts)
+
+    def _check_counts(self, items):
+        """CatalogError when the .vpc states another point count than a file's header."""
+        for it, s in zip(items, self.parts):
+            if it.count is not None and it.count != s.n:
+                raise CatalogError(f"{self.vpc}: states {it.count} points for {s.path}, whose "
+                                   f"header has {s.n} (the .vpc is stale: build it again)")
+
+    def _check_crs(self):
+        """CatalogError naming two files of different CRS."""
+        first = {}
+        for s in self.parts:
+            crs = vpc.header_crs(s.header)
+            first.setdefault(crs.key, (s.path, crs))
+            if len(first) > 1:
+                (a, ca), (b, cb) = first.values()
+                raise CatalogError(f"the files of a catalog have one CRS: {a} has {ca}, {b} "
+                                   f"has {cb}; reproject them to one (e.g. PDAL's "
+                                   "filters.reprojection)")
 
     def bounds_hint(self):
         boxes = [s.bounds_hint() for s in self.parts]

@@ -42,7 +42,7 @@ from clcurv.api.features import DEFAULT_FEATURES, canonical_names
 from clcurv.api.inputs import as_radii, check_method
 from clcurv.api.features import features as compute_features
 from clcurv.api.result import CurvatureResult
-from clcurv.io import stream
+from clcurv.io import stream, vpc
 from clcurv.jobs.tiled_job import auto_radius_tiled, tile_session
 from clcurv.ops.registry import OPERATORS
 from clcurv.ops.smoothing import scale_space
@@ -110,7 +110,7 @@ class Job:
         """The job of an ``argparse.Namespace`` with the same attribute names."""
         kw = {f.name: getattr(args, f.name) for f in fields(cls) if hasattr(args, f.name)}
         if isinstance(kw.get("input"), list) and len(kw["input"]) == 1:
-            kw["input"] = kw["input"][0]            # several: a catalog (in tiles)
+            kw["input"] = kw["input"][0]            # several, a folder, a .vpc: a catalog
         return cls(**kw)
 
 
@@ -322,7 +322,7 @@ def run(job, out=print):
     """Run ``job`` (a :class:`Job`), print its summary on ``out``; return a :class:`Done`
     (in tiles, :func:`run_tiled`: the summary dict)."""
     check_options(job)
-    if isinstance(job.input, (list, tuple)):        # a catalog: always in tiles
+    if stream.is_catalog(job.input):                # a catalog: always in tiles
         return run_tiled(job, out)
     io.check_output(job.output)             # before any work: extension, folder, rights
     io.check_not_input(job.output, job.input)
@@ -406,7 +406,7 @@ def run_tiled(job, out=print):
                          "to run in tiles")
     if job.radius == "auto" or job.radius is None:
         _check_before_reading(job)
-        src = (stream.Catalog(job.input) if isinstance(job.input, (list, tuple))
+        src = (stream.Catalog(job.input) if stream.is_catalog(job.input)
                else stream.open_source(job.input))
         job.radius = auto_radius_tiled(src,
                                        budget=budget_of(job.memory))
@@ -435,8 +435,10 @@ def _tiled_summary(job, summary):
     values_summary`; the mean neighbour count and the NaN counts exact)."""
     times = ", ".join(f"{k} {v:.2f} s" for k, v in summary["times"].items())
     st = summary["status"]
-    what = (f"{len(job.input)} files" if isinstance(job.input, (list, tuple))
-            else job.input)
+    what = job.input
+    if "files" in summary:
+        what = f"{summary['files']} files" + ("" if isinstance(what, (list, tuple))
+                                               else f" of {what}")
     dropped = summary.get("dropped", 0)
     dropped = f" ({dropped} non-finite dropped)" if dropped else ""
     n = summary["points"]
@@ -463,7 +465,8 @@ def _tiled_summary(job, summary):
         yield (f"  (median and percentiles of a systematic sample of {summary['sample']} "
                "points)")
     names = summary.get("fields")
-    yield f"wrote {job.output}" + (f": {', '.join(names)}" if names else "")
+    index = f"; and the index {summary['index']}" if summary.get("index") else ""
+    yield f"wrote {job.output}" + (f": {', '.join(names)}" if names else "") + index
 
 
 def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient="auto",
@@ -480,7 +483,14 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
     src, dst : path
         Input LAS/LAZ or NPY; output LAS/LAZ (only from LAS/LAZ input: header and records
         kept) or NPZ. Non-tiled runs (the cloud fits) are the file job (:class:`Job`) in
-        memory and take every format it takes.
+        memory and take every format it takes. ``src`` may be a catalog, always run in
+        tiles: a list of LAS/LAZ (or NPY) paths, a folder (its ``*.las``, ``*.laz``,
+        ``*.copc.laz`` in sorted name order) or a ``.vpc`` (its items' order), read as one
+        cloud (:class:`clcurv.io.stream.Catalog`, which says what is checked and refused);
+        ``dst`` is then an existing folder that gets one output per input file, named as
+        the input (``x.copc.laz`` as ``x.laz``, ``x.npy`` as ``x.npz``), and for LAS/LAZ a
+        ``.vpc`` index of them (:mod:`clcurv.io.vpc`): ``dst/<the input .vpc's name>``,
+        else ``dst/index.vpc``.
     radius : float
         Ball radius in the file's unit.
     method, weights, orient, viewpoint, kernel, h, device, precision
@@ -511,16 +521,17 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
     -------
     dict
         ``tiled`` (bool), ``tiles``, ``points``, ``halo`` (cells), ``times`` (seconds per
-        stage), ``status`` counts, ``dst``.
+        stage), ``status`` counts, ``dst``; a catalog's ``files`` (count) and ``index``
+        (the ``.vpc`` written, LAS/LAZ only).
     """
     say = out or (lambda s: None)
     check_method(method)
     r = as_radius(radius)
-    catalog = isinstance(src, (list, tuple))
+    catalog = stream.is_catalog(src)
     if catalog:
-        source = stream.Catalog(src)
-        dst = tiled.catalog_outputs(source, dst)
+        source, dst, index = _catalog(src, dst)
     else:
+        index = None
         dst = io.check_output(dst)
         io.check_not_input(dst, src)        # as the CLI: a mesh's faces are never lost
         source = stream.open_source(src)
@@ -541,8 +552,35 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
         summary = _curvature_in_memory(src, dst, params, fields)
         summary["dropped"] = int(getattr(source, "dropped", 0))
         return summary
-    return tiled.run(source, dst, params, budget, tile, workdir, fields, progress, say,
-                     client, workers)
+    summary = tiled.run(source, dst, params, budget, tile, workdir, fields, progress, say,
+                        client, workers)
+    return _indexed(summary, source, dst, index) if catalog else summary
+
+
+def _catalog(src, dst):
+    """(the :class:`clcurv.io.stream.Catalog` of ``src``: several paths, a folder or a
+    ``.vpc``; its output paths in the folder ``dst``; the path of the ``.vpc`` index of
+    the outputs, or None): checked before any point is read. The index of LAS/LAZ outputs
+    is ``dst/<the input .vpc's name>``, else ``dst/index.vpc``; it never replaces the
+    input ``.vpc``."""
+    source = stream.Catalog(src)
+    dsts = tiled.catalog_outputs(source, dst)
+    if not io.from_las(source):
+        return source, dsts, None
+    index = Path(dst) / (source.vpc.name if source.vpc is not None else "index.vpc")
+    if source.vpc is not None and index.resolve() == source.vpc.resolve():
+        raise TilingError(f"{index} would replace the input .vpc: choose another output "
+                          "folder")
+    io.check_output(index, {".vpc": "virtual point cloud"}, what="virtual point cloud")
+    return source, dsts, index
+
+
+def _indexed(summary, source, dsts, index):
+    """The summary of a catalog run, its ``.vpc`` index of the outputs written."""
+    summary["files"] = len(source.parts)
+    if index is not None:
+        summary["index"] = vpc.write(index, dsts)
+    return summary
 
 
 def _curvature_in_memory(src, dst, params, fields):
@@ -574,8 +612,9 @@ def features_file(src, dst, radius=None, features=DEFAULT_FEATURES, *, k=None, d
 
     Parameters
     ----------
-    src : path, or a list of paths (a catalog: LAS/LAZ or NPY files read as one cloud, in
-        tiles, one output per input in the folder ``dst``)
+    src : path, or a catalog (a list of paths, a folder or a ``.vpc``: files read as one
+        cloud, in tiles, one output per input and a ``.vpc`` index in the folder ``dst``,
+        as :func:`clcurv.curvature_file`)
     dst : path
         The output: any format :func:`clcurv.io.write` takes in memory; a tiled run writes
         LAS/LAZ (from LAS/LAZ input: header and records kept), NPZ or binary PLY.
@@ -599,7 +638,7 @@ def features_file(src, dst, radius=None, features=DEFAULT_FEATURES, *, k=None, d
     names = canonical_names(features)
     if not names:
         raise ValueError("features must name at least one feature")
-    catalog = isinstance(src, (list, tuple))
+    catalog = stream.is_catalog(src)
     forced = tile is not None or client is not None or bool(workers)
     if k is not None:
         if radius is not None:
@@ -624,9 +663,9 @@ def features_file(src, dst, radius=None, features=DEFAULT_FEATURES, *, k=None, d
         if io.is_las(d):                        # before any work: LAS's limit
             io.las.check_extra_count(d, params.columns())
     if catalog:
-        source = stream.Catalog(src)
-        dst = tiled.catalog_outputs(source, dst)
+        source, dst, index = _catalog(src, dst)
     else:
+        index = None
         dst = io.check_output(dst)
         io.check_not_input(dst, src)
         source = _streamed(src) if not forced else stream.open_source(src)
@@ -642,7 +681,7 @@ def features_file(src, dst, radius=None, features=DEFAULT_FEATURES, *, k=None, d
                         client, workers)
     summary["fields"] = [n for n, _, _ in params.specs()]
     summary.pop("status", None)             # curvature's status field: none here
-    return summary
+    return _indexed(summary, source, dst, index) if catalog else summary
 
 
 def _streamed(src):
