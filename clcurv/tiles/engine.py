@@ -501,11 +501,13 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
 
 
 def _stored_specs(params, specs):
-    """The fields the tiles store: those written, and a curvature run's status always (the
-    summary's counts and the small-radius warning need it)."""
-    if params.kind != "curvature" or any(n == "status" for n, _, _ in specs):
+    """The fields the tiles store: those written, and a curvature run's status and
+    neighbour count always (the summary's counts and the small-radius warning need them)."""
+    if params.kind != "curvature":
         return specs
-    return list(specs) + [("status", None, np.uint8)]
+    names = {n for n, _, _ in specs}
+    return list(specs) + [s for s in _field_specs(params.method, False)
+                          if s[0] in ("neighbours", "status") and s[0] not in names]
 
 
 def _summary(params, tiles, skipped, size, source, times, status, dst, halo=0):
