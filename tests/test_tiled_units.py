@@ -825,3 +825,43 @@ def test_a_tiled_summary_takes_exact_counts_and_a_systematic_sample(monkeypatch)
             band = 2.0 if p == 50 else 0.5
             lo, hi = np.percentile(v, [max(p - band, 0), p + band])
             assert lo <= got <= hi, (k, p, got, lo, hi)
+
+
+def test_buckets_filed_in_parts_read_as_one_writer_filed_them(tmp_path):
+    """Buckets written by several part writers (pass (1) on the workers) and merged read
+    back, bucket by bucket, the same records in the same order as one writer's, and split
+    into the same tile inputs; their occupancies, each part's counted apart (at most
+    ``limit`` blocks each) and merged, are the whole cloud's at the merged block size."""
+    from clcurv.tiles.buckets import occupancy_part, OccupancyTask
+    pts, nrm = _cloud()
+    one = _buckets(tmp_path / "one", pts, nrm)
+    cuts = [0, 1500, 1501, 4000, len(pts)]
+    states = []
+    for k, (a, e) in enumerate(zip(cuts[:-1], cuts[1:])):
+        w = Buckets(tmp_path / "parts", one.origin, one.side, one.shape, True, part=k)
+        for s in range(a, e, 700):
+            w.add(s, pts[s:min(s + 700, e)], nrm[s:min(s + 700, e)])
+        states.append(w.state())
+    many = Buckets.merge(tmp_path / "parts", states[::-1])       # in any order
+    assert many.parts == [0, 1, 2, 3]
+    assert np.array_equal(many.counts, one.counts)
+    assert np.array_equal(many.lo, one.lo) and np.array_equal(many.hi, one.hi)
+    for i, j in one.nonempty():
+        assert np.array_equal(many.read(i, j), one.read(i, j)), (i, j)
+    frame = Frame.covering(one.lo, one.hi, CELL)
+    tl = Tiling(frame, 5, 1)
+    s1, s2 = one.split(tl, tmp_path / "t1"), many.split(tl, tmp_path / "t2")
+    assert sorted(s1) == sorted(s2)
+    for t in s1:
+        assert np.array_equal(one.read_tile(tmp_path / "t1", t, expect=s1[t]),
+                              many.read_tile(tmp_path / "t2", t, expect=s2[t]))
+    whole = tiling.occupancy(one, frame, limit=None)
+    for limit in (None, 300):
+        parts = [occupancy_part(OccupancyTask(str(many.folder), k, many.state(), frame,
+                                              limit)) for k in many.parts]
+        merged = tiling.merge_occupancy(frame, parts, limit=None)
+        ref = tiling.occupancy(one, frame, g=merged.g, limit=None)
+        assert merged.count.sum() == whole.count.sum() == len(pts)
+        assert np.array_equal(np.stack([merged.bx, merged.by, merged.count]),
+                              np.stack([ref.bx, ref.by, ref.count])), limit
+        assert (merged.g == 1) == (limit is None)

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from clcurv.io import stream
-from clcurv.tiles.planning import within
+from clcurv.tiles.planning import occupancy, within
 from clcurv.tiles.workspace import Crc, CorruptWorkspace, check_records
 
 #: points per read chunk of pass (1) and per written chunk of pass (3)
@@ -365,6 +365,23 @@ class SplitTask:
     buckets: dict
     tiling: object
     out: str
+
+
+@dataclass
+class OccupancyTask:
+    """The occupancy of part number ``t`` (:func:`occupancy_part`)."""
+    folder: str
+    t: int
+    buckets: dict
+    frame: object
+    limit: int
+
+
+def occupancy_part(task):
+    """The :class:`clcurv.tiles.planning.Occupancy` of one part's points, on a worker (at
+    most ``task.limit`` blocks: clcurv.tiles.planning.merge_occupancy joins them)."""
+    b = Buckets.from_state(task.folder, task.buckets)._only([task.t])
+    return occupancy(b, task.frame, limit=task.limit)
 
 
 def split_part(task):

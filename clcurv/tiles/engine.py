@@ -85,16 +85,17 @@ from clcurv.tiles import orient as tiled_orient
 from clcurv.tiles import scale as tiled_scale
 from clcurv.tiles import workers as cluster
 from clcurv.tiles import workspace as wsp
-from clcurv.tiles.buckets import (READ_CHUNK, BucketTask, Buckets, SplitTask, bucket_grid,
-                                  bucket_part, merge_sums, split_part)
+from clcurv.tiles.buckets import (READ_CHUNK, BucketTask, Buckets, OccupancyTask, SplitTask,
+                                  bucket_grid, bucket_part, merge_sums, occupancy_part,
+                                  split_part)
 from clcurv.grid.binning import Frame
 from clcurv.io import stream
 from clcurv._shared.constants import TOO_FEW
 from clcurv.tiles.results import Windows, partition, tile_dtype, to_windows
 from clcurv.tiles.workers import worker_device
 from clcurv.tiles.workspace import load_sealed, tile_file
-from clcurv.tiles.planning import (TILE_BYTES_PER_POINT, Tiling, TilingError, halo_cells,
-                                   plan_tiles)
+from clcurv.tiles.planning import (OCCUPANCY_BLOCKS, TILE_BYTES_PER_POINT, Tiling,
+                                   TilingError, halo_cells, merge_occupancy, plan_tiles)
 from clcurv.ops.registry import OPERATORS
 from clcurv._shared.options import OPTIONS, file_orient
 from clcurv._shared.validate import device_radius
@@ -448,7 +449,8 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
         tiling = plan_tiles(buckets, params.radius, halo, budget, tile, frame=frame)
     else:
         tiling = plan_tiles(buckets, params.radius, halo, budget, tile,
-                            bytes_per_point=params.bytes_per_point())
+                            bytes_per_point=params.bytes_per_point(),
+                            occupy=lambda frame: _occupancy(buckets, frame, execute))
     (ws / "tiles").mkdir(exist_ok=True)
     t_split = time.perf_counter()
     sums = _split(space, buckets, tiling, smoothed, execute)
@@ -498,6 +500,15 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
     summary["fields"] = [("nx ny nz" if k == "normals" else k)
                          for k, _, _ in sorted(specs, key=lambda s: s[0] != "normals")]
     return summary
+
+
+def _occupancy(buckets, frame, execute):
+    """The points' occupancy of ``frame`` (for planning), each part's counted by a task of
+    ``execute`` (at most OCCUPANCY_BLOCKS blocks in all: what the client receives)."""
+    limit = max(OCCUPANCY_BLOCKS // len(buckets.parts), 1 << 10)
+    tasks = [OccupancyTask(str(buckets.folder), k, buckets.state(), frame, limit)
+             for k in buckets.parts]
+    return merge_occupancy(frame, list(execute(tasks, occupancy_part)))
 
 
 def _stored_specs(params, specs):

@@ -275,7 +275,7 @@ def _farthest_from_median(buckets):
 
 
 def plan_tiles(buckets, radius, halo, budget, tile=None, frame=None,
-               bytes_per_point=TILE_BYTES_PER_POINT, state=None):
+               bytes_per_point=TILE_BYTES_PER_POINT, state=None, occupy=None):
     """The :class:`Tiling` of the whole cloud: its frame from the exact bounds (or
     ``frame``), and tiles of ``tile`` (length) or, from the budget, as large as the
     densest tile allows at ``bytes_per_point`` (a tile's peak host bytes per point).
@@ -284,7 +284,8 @@ def plan_tiles(buckets, radius, halo, budget, tile=None, frame=None,
     of cells): the densest tile is estimated from the non-empty buckets, or, when the
     buckets are much larger than the tiles, from the points' occupancy of the cells
     (:func:`occupancy`, one pass over the buckets; ``state``: the scale space's, to place
-    the points by their binned positions)."""
+    the points by their binned positions; ``occupy(frame)``, when given, computes it
+    instead: on the workers, :mod:`clcurv.tiles.engine`)."""
     check_tile_size(tile)                           # first: no pass over the points
     frame = frame if frame is not None else covering(buckets, radius)
     if tile is not None:
@@ -299,7 +300,7 @@ def plan_tiles(buckets, radius, halo, budget, tile=None, frame=None,
         if occ is None and (worst is None or _finer_than_buckets(buckets, tiling)):
             # buckets far larger than the tiles, or not much smaller: their counts spread
             # uniformly misjudge clustered points (both ways); the cells' counts do not
-            occ = occupancy(buckets, frame, state)
+            occ = occupancy(buckets, frame, state) if occupy is None else occupy(frame)
             worst = densest(buckets, tiling, occ)
         if worst <= limit:
             return tiling
@@ -465,6 +466,30 @@ def occupancy(buckets, frame, state=None, g=1, limit=OCCUPANCY_BLOCKS, block=1 <
     u, n = merge(parts) if parts else (np.empty(0, np.int64), np.empty(0, np.int64))
     while limit is not None and len(u) > limit:
         u, n = coarser(u, n, g)
+        g *= 2
+    bx, by = np.divmod(u, -(-ny // g))
+    return Occupancy(frame, g, bx, by, n)
+
+
+def merge_occupancy(frame, parts, limit=OCCUPANCY_BLOCKS):
+    """One :class:`Occupancy` of ``frame`` from those of parts of the cloud (each at its own
+    block size): all brought to the largest block size, counts summed per block, blocks
+    doubled until at most ``limit`` are occupied."""
+    ny = frame.dims[1]
+    g = max([p.g for p in parts] + [1])
+    keys, counts = [], []
+    for p in parts:
+        f = g // p.g                                      # block sizes are g0 * 2^k
+        keys.append((p.bx // f) * -(-ny // g) + p.by // f)
+        counts.append(p.count)
+    if not keys:
+        return Occupancy(frame, g, *(np.empty(0, np.int64),) * 3)
+    u, inv = np.unique(np.concatenate(keys), return_inverse=True)
+    n = np.bincount(inv.ravel(), weights=np.concatenate(counts)).astype(np.int64)
+    while limit is not None and len(u) > limit:
+        bx, by = np.divmod(u, -(-ny // g))
+        u, inv = np.unique((bx // 2) * -(-ny // (2 * g)) + by // 2, return_inverse=True)
+        n = np.bincount(inv.ravel(), weights=n).astype(np.int64)
         g *= 2
     bx, by = np.divmod(u, -(-ny // g))
     return Occupancy(frame, g, bx, by, n)
