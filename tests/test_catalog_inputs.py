@@ -348,3 +348,27 @@ def test_an_index_of_files_without_crs_and_of_one_stem(scene, tmp_path):
     assert [it.count for it in items] == [int(np.sum(strip == k)) for k in range(2)]
     assert np.array_equal(items[1].bounds[1], pts[strip == 1].max(axis=0))
     assert [p.name for p in stream.Catalog(index).paths] == ["x.las", "x.laz"]
+
+
+@pytest.mark.parametrize("workers", [None, 2])
+def test_a_file_whose_points_do_not_decode_fails_the_run_on_the_workers(scene, tmp_path,
+                                                                        workers):
+    """A LAZ of the catalog whose header and chunk table are sound but whose compressed
+    points are damaged (200 zero bytes in the middle) passes the checks made before the
+    run; the worker that decodes it (pass (1), on a Dask worker with ``workers=2``) fails,
+    its retries too, and the run stops with a CorruptFileError naming the file: no
+    output, no index, no workspace."""
+    if workers:
+        pytest.importorskip("distributed")
+    d, _, _, _, _ = scene
+    f = _folder(tmp_path, "cat")
+    for p in NAMES:
+        shutil.copy(d / "tiles" / p, f / p)
+    data = bytearray((f / "t2.laz").read_bytes())
+    start = int.from_bytes(data[96:100], "little") + 300       # the points' first chunk
+    data[start:start + 200] = bytes(200)
+    (f / "t2.laz").write_bytes(bytes(data))
+    out = _folder(tmp_path, "out")
+    with pytest.raises(CorruptFileError, match=r"t2\.laz: cannot decode the points"):
+        clcurv.curvature_file(f, out, R, method=METHOD, workers=workers)
+    assert os.listdir(out) == []

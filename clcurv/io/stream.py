@@ -256,7 +256,8 @@ class LasSource:
                     else:
                         yield start, xyz, nrm
                     start += m
-        except (self.laspy.LaspyException, ValueError, OSError, IndexError) as exc:
+        except (self.laspy.LaspyException, ValueError, OSError, IndexError,
+                RuntimeError) as exc:       # RuntimeError: lazrs.LazrsError, bad LAZ data
             raise CorruptFileError(f"{self.path}: cannot decode the points after #{start}: "
                                    f"{exc}") from exc
         if start != stop:
