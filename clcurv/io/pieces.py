@@ -201,9 +201,12 @@ def _records(path, header, points):
 # --------------------------------------------------------------------------- worker
 
 def _extreme_rows(header, arr):
-    """Indices of the records holding the minimum and the maximum of X, Y, Z, the GPS time
-    and each element of each extra-bytes dimension (NaN counts as both, as NumPy's min and
-    max return it; an extra-bytes ``no_data`` value is left out, as laspy does)."""
+    """Indices of the first record and of the records holding the minimum and the maximum
+    of X, Y, Z, the GPS time and each element of each extra-bytes dimension (NaN counts as
+    both, as NumPy's min and max return it; an extra-bytes ``no_data`` value is left out,
+    as laspy does). The first record comes first: laspy 2.7 takes the extra-bytes min/max
+    of a scalar dimension from the first record it grows the header with (``pts[..., 0]``),
+    so the assembled header has the values laspy writes in one go."""
     if not len(arr):
         return np.zeros(0, dtype=np.int64)
     no_data = {}
@@ -213,7 +216,7 @@ def _extreme_rows(header, arr):
                 no_data[eb.format_name()] = np.asarray(eb.no_data)
     names = ["X", "Y", "Z"] + [n for n in ("gps_time",) if n in arr.dtype.names]
     names += [d.name for d in header.point_format.extra_dimensions]
-    rows = []
+    rows = [0]
     for name in names:
         col = arr[name]
         col = col.reshape(len(arr), -1)
