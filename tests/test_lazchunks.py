@@ -33,7 +33,8 @@ def make_header(fmt, version, evlr=True):
     header = laspy.LasHeader(point_format=fmt, version=version)
     header.add_extra_dims([laspy.ExtraBytesParams("mean_curvature", np.float32),
                            laspy.ExtraBytesParams("label", np.uint8),
-                           laspy.ExtraBytesParams("normal", "3f4")])
+                           laspy.ExtraBytesParams("normal", "3f4",
+                                                  no_data=[-9999.0] * 3)])
     header.scales = np.array([0.001, 0.001, 0.01])
     header.offsets = np.array([481200.0, 4390100.0, 0.0])
     header.vlrs.append(laspy.VLR("clcurv", 7, "a test VLR", b"hello VLR"))
@@ -45,7 +46,8 @@ def make_header(fmt, version, evlr=True):
 def make_points(header, n, seed=0):
     """A synthetic aerial-like cloud in ``header``'s point format: every standard dimension
     filled, returns 1..7 (and 0), GPS times, extra bytes: a float32 field with NaN, a
-    uint8 one and a 3-float32 array (whose min/max laspy computes over all the points)."""
+    uint8 one and a 3-float32 array with no-data values (whose min/max laspy computes
+    over all the points but those)."""
     rng = np.random.default_rng(seed)
     rec = laspy.ScaleAwarePointRecord.zeros(n, header=header)
     rec.x = 481200.25 + rng.uniform(0, 97.3, n)
@@ -65,7 +67,9 @@ def make_points(header, n, seed=0):
     curv[rng.random(n) < 0.01] = np.nan
     rec["mean_curvature"] = curv
     rec["label"] = rng.integers(0, 256, n)
-    rec["normal"] = rng.normal(0, 1, (n, 3)).astype(np.float32)
+    normal = rng.normal(0, 1, (n, 3)).astype(np.float32)
+    normal[rng.random((n, 3)) < 0.05] = -9999.0          # no data: out of the min/max
+    rec["normal"] = normal
     return rec
 
 

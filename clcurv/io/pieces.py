@@ -218,17 +218,15 @@ def _extreme_rows(header, arr):
     names += [d.name for d in header.point_format.extra_dimensions]
     rows = [0]
     for name in names:
-        col = arr[name]
-        col = col.reshape(len(arr), -1)
+        col = arr[name].reshape(len(arr), -1)
         for j in range(col.shape[1]):
-            c = col[:, j]
-            idx = np.arange(len(c))
+            c = np.ascontiguousarray(col[:, j])      # a strided column is slow to scan
             if name in no_data:
-                keep = c != no_data[name].reshape(-1)[j]
-                c, idx = c[keep], idx[keep]
-                if not len(c):
-                    continue
-            rows += [idx[np.argmin(c)], idx[np.argmax(c)]]
+                idx = np.flatnonzero(c != no_data[name].reshape(-1)[j])
+                if len(idx):
+                    rows += [idx[np.argmin(c[idx])], idx[np.argmax(c[idx])]]
+            else:
+                rows += [np.argmin(c), np.argmax(c)]
     return np.unique(np.asarray(rows, dtype=np.int64))
 
 
