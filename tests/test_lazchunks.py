@@ -6,7 +6,7 @@ VLRs and EVLRs; with windows aligned on the chunk size the files are byte for by
 """
 import concurrent.futures
 import copy
-import io
+import errno
 import os
 import struct
 
@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from laspy.vlrs.vlrlist import VLRList
 
-from clcurv.io import WriteError, read
+from clcurv.io import WriteError, las, read
 from clcurv.io.pieces import (CHUNK_SIZE, VARIABLE_CHUNKS, PieceError, assemble,
                               read_piece_info, windows, write_piece)
 
@@ -214,6 +214,48 @@ def test_pieces_from_worker_processes(tmp_path):
         check_same(out, ref, backend)
 
 
+def test_output_header_of_a_laz_input(tmp_path):
+    """The header clcurv builds for an output (clcurv.io.las.output_header of the input's,
+    extra_dims for the fields), the input's records copied and the fields set: the pieces
+    assemble into the file laspy writes from the same header and records."""
+    src = make_header(3, "1.2", evlr=False)             # its mean_curvature is kept in place
+    n = 12_345
+    inp = laspy_reference(tmp_path / "in.laz", src, make_points(src, n, seed=2))
+    with laspy.open(str(inp)) as r:
+        header = las.output_header(r.header)
+        records = r.read_points(n)
+    fields = {"k1": np.linspace(-1, 1, n).astype(np.float32),
+              "mean_curvature": np.cos(np.arange(n)).astype(np.float32)}
+    las.extra_dims(laspy, tmp_path / "out.laz", fields, header)
+    rec = laspy.ScaleAwarePointRecord.zeros(n, header=header)
+    for name in records.array.dtype.names:
+        rec.array[name] = records.array[name]
+    for name, a in fields.items():
+        rec.array[name] = a
+    out = assemble(tmp_path / "out.laz", header,
+                   write_pieces(tmp_path, header, rec, cut(n, 3), True))
+    ref = laspy_reference(tmp_path / "ref.laz", header, rec)
+    for backend in BACKENDS.values():
+        check_same(out, ref, backend)
+
+
+def test_kernel_copy_falls_back(tmp_path, monkeypatch):
+    """verify=False copies with os.copy_file_range; where the kernel refuses (another file
+    system, an old kernel) the bytes are copied by read and write, the same file."""
+    header = make_header(6, "1.4")
+    rec = make_points(header, 9000, seed=8)
+    paths = write_pieces(tmp_path, header, rec, cut(9000, 3), True)
+    fast = assemble(tmp_path / "fast.laz", header, paths, verify=False)
+
+    def refuse(*args, **kw):
+        raise OSError(errno.EXDEV, "Invalid cross-device link")
+    monkeypatch.setattr(os, "copy_file_range", refuse, raising=False)
+    slow = assemble(tmp_path / "slow.laz", header, paths, verify=False)
+    assert slow.read_bytes() == fast.read_bytes()
+    ref = laspy_reference(tmp_path / "ref.laz", header, rec)
+    check_same(slow, ref, laspy.LazBackend.Lazrs)
+
+
 def _worker(args):
     path, header, arr = args
     return write_piece(path, header, arr, chunk_size=7000)
@@ -287,6 +329,27 @@ def test_seek_variable_chunks(tmp_path, backend):
             r.seek(at)
             got = r.read_points(10)
         assert_same_records(got.array, rec.array[at:at + 10], f"seek {at}")
+
+
+@pytest.mark.skipif(not laspy.LazBackend.Laszip.is_available(),
+                    reason="LASzip (the reference C++ implementation) NOT RUN: laspy's Laszip "
+                    "backend needs the 'laszip' package, not installed here")
+@pytest.mark.parametrize("parts", [1, 3, 7])
+@pytest.mark.parametrize("fmt,version", FORMATS, ids=[f"fmt{f}" for f, _ in FORMATS])
+def test_laszip_reads_and_seeks(tmp_path, fmt, version, parts):
+    """LASzip itself reads the assembled files, variable-size chunks too, and seeks in them
+    (where lazrs 0.8 does not)."""
+    n = 20_011
+    header = make_header(fmt, version)
+    rec = make_points(header, n, seed=parts)
+    out = assemble(tmp_path / "out.laz", header,
+                   write_pieces(tmp_path, header, rec, cut(n, parts), True))
+    got = laspy.read(str(out), laz_backend=laspy.LazBackend.Laszip)
+    assert_same_records(got.points.array, rec.array, "LASzip read")
+    for at in (0, 2601, 7777, n - 10):
+        with laspy.open(str(out), laz_backend=laspy.LazBackend.Laszip) as r:
+            r.seek(at)
+            assert_same_records(r.read_points(10).array, rec.array[at:at + 10], f"seek {at}")
 
 
 def test_windows():

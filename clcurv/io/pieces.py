@@ -90,6 +90,8 @@ _FOOTER = struct.Struct("<8sIQI")
 _MAX_META = 1 << 24
 #: the chunk-size field of the LASzip VLR's record data (uint32 at byte 12)
 _CHUNK_FIELD = slice(12, 16)
+#: records scanned at a time for their extremes (a block stays in the CPU's cache)
+_SCAN_ROWS = 1 << 14
 #: bytes copied at a time when a payload's CRC is checked during the copy
 _COPY_BYTES = 8 << 20
 
@@ -216,17 +218,27 @@ def _extreme_rows(header, arr):
                 no_data[eb.format_name()] = np.asarray(eb.no_data)
     names = ["X", "Y", "Z"] + [n for n in ("gps_time",) if n in arr.dtype.names]
     names += [d.name for d in header.point_format.extra_dimensions]
+    columns = [(name, j, None if name not in no_data else no_data[name].reshape(-1)[j])
+               for name in names for j in range(int(np.prod(arr.dtype[name].shape)))]
+    lows, highs = [[] for _ in columns], [[] for _ in columns]
+    for start in range(0, len(arr), _SCAN_ROWS):   # block by block: one pass over memory
+        block = arr[start:start + _SCAN_ROWS]
+        for k, (name, j, nd) in enumerate(columns):
+            c = block[name].reshape(len(block), -1)[:, j]
+            if nd is None:
+                lows[k].append(start + np.argmin(c))
+                highs[k].append(start + np.argmax(c))
+                continue
+            idx = np.flatnonzero(c != nd)
+            if len(idx):
+                lows[k].append(start + idx[np.argmin(c[idx])])
+                highs[k].append(start + idx[np.argmax(c[idx])])
     rows = [0]
-    for name in names:
-        col = arr[name].reshape(len(arr), -1)
-        for j in range(col.shape[1]):
-            c = np.ascontiguousarray(col[:, j])      # a strided column is slow to scan
-            if name in no_data:
-                idx = np.flatnonzero(c != no_data[name].reshape(-1)[j])
-                if len(idx):
-                    rows += [idx[np.argmin(c[idx])], idx[np.argmax(c[idx])]]
-            else:
-                rows += [np.argmin(c), np.argmax(c)]
+    for (name, j, _), lo, hi in zip(columns, lows, highs):
+        if lo:          # the blocks' candidates in order: NaN and ties give the first row
+            lo, hi = np.asarray(lo), np.asarray(hi)
+            rows += [lo[np.argmin(arr[name].reshape(len(arr), -1)[lo, j])],
+                     hi[np.argmax(arr[name].reshape(len(arr), -1)[hi, j])]]
     return np.unique(np.asarray(rows, dtype=np.int64))
 
 
