@@ -17,8 +17,8 @@ import pytest
 from laspy.vlrs.vlrlist import VLRList
 
 from clcurv.io import WriteError, las, read
-from clcurv.io.pieces import (CHUNK_SIZE, VARIABLE_CHUNKS, PieceError, assemble,
-                              read_piece_info, windows, write_piece)
+from clcurv.io.pieces import (CHUNK_SIZE, VARIABLE_CHUNKS, PieceError, PieceWriter,
+                              assemble, read_piece_info, windows, write_piece)
 
 BACKENDS = {"lazrs": laspy.LazBackend.Lazrs, "lazrs-parallel": laspy.LazBackend.LazrsParallel}
 #: (point format, LAS version): 1 and 3 in LAS 1.2 and 1.4 (EVLRs), 6 in LAS 1.4
@@ -484,6 +484,43 @@ def test_piece_is_written_atomically(tmp_path):
     with pytest.raises(WriteError):
         write_piece(p, header, np.zeros(5))
     assert p.read_bytes() == before and read_piece_info(p) == info
+    assert os.listdir(tmp_path) == ["p.lazpiece"]
+
+
+@pytest.mark.parametrize("laz", [True, False], ids=["laz", "las"])
+def test_piece_writer_in_batches(tmp_path, laz):
+    """Batches of any size (empty, within a chunk, across several) give the piece that
+    write_piece writes from all the records at once, byte for byte."""
+    header = make_header(6, "1.4")
+    rec = make_points(header, 10_000, seed=6)
+    whole = write_piece(tmp_path / "whole.piece", header, rec, laz=laz, chunk_size=1500)
+    cuts = [0, 0, 7, 1500, 1501, 4000, 4000, 9000, 9999, 10_000]
+    buffer = np.zeros(10_000, rec.array.dtype)
+    with PieceWriter(tmp_path / "batches.piece", header, laz=laz, chunk_size=1500) as w:
+        for a, b in zip(cuts[:-1], cuts[1:]):
+            buffer[:b - a] = rec.array[a:b]             # one buffer reused for every batch
+            w.write(buffer[:b - a])
+            if laz:
+                assert w._n_pending < 1500           # full chunks are compressed at once
+    assert w.info.chunks == whole.chunks and w.info.points == 10_000
+    assert (tmp_path / "batches.piece").read_bytes() == (tmp_path / "whole.piece").read_bytes()
+
+
+def test_piece_writer_error_leaves_nothing(tmp_path):
+    header = make_header(6, "1.4")
+    p = tmp_path / "p.lazpiece"
+    p.write_bytes(b"an earlier piece")
+    with pytest.raises(KeyError):
+        with PieceWriter(p, header, chunk_size=100) as w:
+            w.write(make_points(header, 250))
+            raise KeyError("the worker failed")
+    assert p.read_bytes() == b"an earlier piece" and os.listdir(tmp_path) == ["p.lazpiece"]
+    w = PieceWriter(tmp_path / "q.lazpiece", header)
+    w.write(make_points(header, 10))
+    with pytest.raises(WriteError, match="point format"):
+        w.write(np.zeros(3))                         # aborts the piece
+    with pytest.raises(WriteError, match="closed"):
+        w.write(make_points(header, 10))
     assert os.listdir(tmp_path) == ["p.lazpiece"]
 
 

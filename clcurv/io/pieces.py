@@ -1,7 +1,8 @@
 """One LAS/LAZ file assembled from pieces that workers write in parallel (issue 50).
 
 A *piece* is a window of consecutive points of the output, written by a worker (another
-process, maybe another machine on a shared file system) with :func:`write_piece`; the client
+process, maybe another machine on a shared file system) with :func:`write_piece` (or
+:class:`PieceWriter`, from its records a batch at a time); the client
 joins the pieces with :func:`assemble`, whose serial work is a header, a byte copy of each
 piece's payload and, for LAZ, a chunk table. No point is decoded or encoded by the client.
 
@@ -31,11 +32,18 @@ what it checks: ``kind`` ('laz'/'las'), the point format, record length, record 
 (field names, types, offsets), scales and offsets of the header it was written for, the
 LASzip items (LAZ), the point count, the payload's size and CRC-32, each chunk's point
 count and byte size, the number of points by return (15 counts, as laspy counts them) and
-*extreme records*: the records holding each axis', the GPS time's and each extra-bytes
-element's minimum and maximum, from which the assembler grows the output header exactly as
-laspy grows it when it writes the points itself (bounds, GPS time range, the extra-bytes
-VLR's min/max). A piece is written under a temporary name and renamed (``os.replace``), so
-a reader sees a whole piece or none.
+*extreme records*: the piece's first record and the records holding each axis', the GPS
+time's and each extra-bytes element's minimum and maximum, from which the assembler grows
+the output header exactly as laspy grows it when it writes the points itself (bounds, GPS
+time range, the extra-bytes VLR's min/max). A piece is written under a temporary name,
+flushed to disk and renamed (:func:`clcurv.io.atomic_output`), so that a reader, on this
+machine or another, sees a whole piece or none.
+
+The assembled file is laspy's: with windows from :func:`windows` (every piece but the last a
+multiple of the chunk size, the default :data:`CHUNK_SIZE` laspy uses too) it is the very
+file ``laspy.LasData(header, points).write(path)`` writes, byte for byte (tested for point
+formats 1, 3 and 6, LAS and LAZ); with other windows, the same header and points, only the
+chunking (LAZ) differs.
 
 Checks
 ------
@@ -49,11 +57,18 @@ output's extension, and with ``verify=True`` (the default) checks each payload's
 copying it. The output is written atomically (:func:`clcurv.io.atomic_output`): on any error
 the previous file at the path, if any, is left byte for byte and nothing else remains.
 
-Compatibility: laspy (backends Lazrs and LazrsParallel) reads the assembled files, fixed or
-variable chunks, and its ``chunk_iterator`` works on both. lazrs 0.8's *seek* (laspy's
-``LasReader.seek``) is wrong in files with variable-size chunks (it takes the position
-within a chunk as the point index modulo the chunk's count); with windows from
-:func:`windows` the output has fixed-size chunks and seeking works.
+Compatibility: laspy (backends Lazrs, LazrsParallel and Laszip, i.e. LASzip itself) reads
+the assembled files, fixed or variable chunks, and its ``chunk_iterator`` works on all of
+them; LASzip also seeks in both. lazrs 0.8's *seek* (laspy's ``LasReader.seek``) is wrong in
+files with variable-size chunks (it takes the position within a chunk as the point index
+modulo the chunk's count); with windows from :func:`windows` the output has fixed-size
+chunks and seeking works with every backend.
+
+Costs: a worker's :func:`write_piece` costs what laspy's LAZ write of its points costs (one
+lazrs compression, plus a pass over the records for the extremes, 0.04 s a million points);
+:func:`assemble` reads each piece's metadata, writes the header and copies the payloads
+(``verify=True`` reads them once more for the CRC), then flushes the file to disk.
+``bench/lazchunks.py`` measures both.
 """
 from __future__ import annotations
 
@@ -76,8 +91,8 @@ from . import atomic_output
 from .common import CorruptFileError, MissingDependencyError, WriteError
 from .las import LAZ_HINT
 
-__all__ = ["write_piece", "assemble", "read_piece_info", "windows", "PieceInfo",
-           "PieceError", "CHUNK_SIZE"]
+__all__ = ["write_piece", "PieceWriter", "assemble", "read_piece_info", "windows", "PieceInfo",
+           "PieceError", "CHUNK_SIZE", "VARIABLE_CHUNKS"]
 
 #: points per LAZ chunk in a piece (LASzip's default)
 CHUNK_SIZE = 50_000
@@ -256,7 +271,7 @@ def write_piece(path, header, points, *, laz=True, chunk_size=CHUNK_SIZE, parall
     ----------
     path : str or os.PathLike
         The piece file (any name; ``.lazpiece``/``.laspiece`` say what it is). Written
-        under a temporary name in its folder and renamed onto ``path``.
+        under a temporary name in its folder, flushed to disk and renamed onto ``path``.
     header : laspy.LasHeader
         The output's header (point format with its extra bytes, scales, offsets), the one
         given to :func:`assemble`: e.g. :func:`clcurv.io.las.output_header` with
@@ -282,44 +297,160 @@ def write_piece(path, header, points, *, laz=True, chunk_size=CHUNK_SIZE, parall
         ``points`` are not records of the header's point format, or ``chunk_size`` < 1.
     MissingDependencyError
         LAZ needs lazrs.
+
+    See Also
+    --------
+    PieceWriter : the same piece, from the records given a batch at a time.
     """
-    path = Path(os.fspath(path))
-    arr = _records(path, header, points)
-    if not isinstance(chunk_size, (int, np.integer)) or not 1 <= chunk_size < VARIABLE_CHUNKS:
-        raise WriteError(f"{path}: chunk_size must be an integer in [1, 2**32 - 1), got "
-                         f"{chunk_size!r}")
-    kind = "laz" if laz else "las"
-    lazrs = _lazrs(path) if laz else None
-    meta = _facts(header, kind, lazrs)
-    chunks = []
-    if laz and len(arr):
-        vlr = _laszip_vlr(lazrs, header.point_format, int(chunk_size))
-        data = lazrs.compress_points(vlr, arr.view(np.uint8), bool(parallel))
+    with PieceWriter(path, header, laz=laz, chunk_size=chunk_size, parallel=parallel) as w:
+        w.write(points)
+    return w.info
+
+
+class PieceWriter:
+    """Write a piece from its records given a batch at a time, in order (a window larger
+    than memory); the file is the one :func:`write_piece` writes from all of them at once.
+
+        with PieceWriter("p3.lazpiece", header) as w:
+            for batch in batches:          # records of the header's point format
+                w.write(batch)
+        w.info                             # the PieceInfo, once the block is left
+
+    LAZ: full chunks are compressed as soon as they are complete, so at most
+    ``chunk_size - 1`` records wait in memory. The file appears at its path when the
+    ``with`` block ends without an error (:meth:`close`); an error in the block, or
+    :meth:`abort`, leaves no file (and any earlier file at the path as it was). Arguments
+    as :func:`write_piece`.
+    """
+
+    def __init__(self, path, header, *, laz=True, chunk_size=CHUNK_SIZE, parallel=False):
+        self.path = Path(os.fspath(path))
+        if (not isinstance(chunk_size, (int, np.integer)) or isinstance(chunk_size, bool)
+                or not 1 <= chunk_size < VARIABLE_CHUNKS):
+            raise WriteError(f"{self.path}: chunk_size must be an integer in [1, 2**32 - 1), "
+                             f"got {chunk_size!r}")
+        self.header, self.laz, self.parallel = header, bool(laz), bool(parallel)
+        self.chunk_size = int(chunk_size)
+        self._lazrs = _lazrs(self.path) if laz else None
+        self._meta = _facts(header, "laz" if laz else "las", self._lazrs)
+        self._vlr = (_laszip_vlr(self._lazrs, header.point_format, self.chunk_size)
+                     if laz else None)
+        self._dtype = header.point_format.dtype()
+        self._pending = []                      # LAZ: records of the chunk being filled
+        self._n_pending = 0
+        self._chunks, self._points, self._bytes, self._crc = [], 0, 0, 0
+        self._by_return = np.zeros(15, dtype=np.int64)
+        self._extremes = np.zeros(0, self._dtype)
+        self.info = None
+        self._output = atomic_output(self.path)
+        self._tmp = self._output.__enter__()
+        try:
+            self._file = open(self._tmp, "wb")
+        except BaseException as exc:
+            self._output.__exit__(type(exc), exc, exc.__traceback__)
+            raise
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, exc, tb):
+        if kind is None:
+            self.close()
+        else:
+            self.abort(exc)
+        return False
+
+    def write(self, points):
+        """Add the records ``points`` (as :func:`write_piece` takes them) after those
+        written before. An error (records of another format...) aborts the piece."""
+        if self._file is None:
+            raise WriteError(f"{self.path}: the piece is closed")
+        try:
+            arr = _records(self.path, self.header, points)
+            if not len(arr):
+                return
+            self._grow(arr)
+            if not self.laz:
+                self._put(memoryview(arr.view(np.uint8)))
+                return
+            self._pending.append(arr)
+            self._n_pending += len(arr)
+            if self._n_pending >= self.chunk_size:
+                ready = (self._pending[0] if len(self._pending) == 1
+                         else np.concatenate(self._pending))
+                full = len(ready) - len(ready) % self.chunk_size
+                self._compress(ready[:full])
+                self._pending = [ready[full:]] if full < len(ready) else []
+                self._n_pending = len(ready) - full
+            # the caller may reuse its buffer: the records waiting (< chunk_size) are copied
+            self._pending = [np.array(a) for a in self._pending]
+        except BaseException as exc:
+            self.abort(exc)
+            raise
+
+    def close(self):
+        """Compress what is left, write the metadata and the footer, and put the piece at
+        its path; returns its :class:`PieceInfo` (also ``self.info``)."""
+        if self._file is None:
+            return self.info
+        try:
+            if self._pending:
+                self._compress(self._pending[0] if len(self._pending) == 1
+                               else np.concatenate(self._pending))
+                self._pending, self._n_pending = [], 0
+            meta = dict(self._meta, points=self._points, payload_bytes=self._bytes,
+                        crc32=self._crc, chunks=self._chunks,
+                        by_return=[int(c) for c in self._by_return],
+                        extremes=base64.b64encode(self._extremes.tobytes()).decode("ascii"))
+            blob = json.dumps(meta, separators=(",", ":")).encode("utf-8")
+            self._file.write(blob)
+            self._file.write(_FOOTER.pack(_MAGIC, _VERSION, len(blob), zlib.crc32(blob)))
+            self._file.close()
+            self._file = None
+            self._output.__exit__(None, None, None)
+        except BaseException as exc:
+            self.abort(exc)
+            raise
+        self.info = _info(self.path, meta)
+        return self.info
+
+    def abort(self, exc=None):
+        """Give the piece up: its temporary file is removed, nothing appears at its path."""
+        if self._file is None:
+            return
+        self._file.close()
+        self._file = None
+        exc = exc if exc is not None else RuntimeError("piece aborted")
+        try:
+            self._output.__exit__(type(exc), exc, exc.__traceback__)
+        except BaseException:
+            pass                        # the caller raises its own error
+
+    def _put(self, data):
+        self._file.write(data)
+        self._bytes += len(data)
+        self._crc = zlib.crc32(data, self._crc)
+
+    def _grow(self, arr):
+        """Count the returns and keep the extreme records of all records so far."""
+        self._by_return += _by_return(self.header, arr)
+        both = np.concatenate([self._extremes, arr[_extreme_rows(self.header, arr)]])
+        self._extremes = both[_extreme_rows(self.header, both)]
+        self._points += len(arr)
+
+    def _compress(self, arr):
+        """Compress ``arr`` (whole chunks, but the piece's last) and append the chunks."""
+        data = self._lazrs.compress_points(self._vlr, arr.view(np.uint8), self.parallel)
         table_at, = struct.unpack_from("<q", data, 0)
-        table = lazrs.read_chunk_table(io.BytesIO(data), vlr)
+        table = self._lazrs.read_chunk_table(io.BytesIO(data), self._vlr)
         sizes = [int(b) for _, b in table]
-        counts = [min(int(chunk_size), len(arr) - i * int(chunk_size))
+        counts = [min(self.chunk_size, len(arr) - i * self.chunk_size)
                   for i in range(len(table))]
         if sum(sizes) != table_at - 8 or sum(counts) != len(arr) or min(counts) < 1:
-            raise WriteError(f"{path}: lazrs gave {len(table)} chunks of {sum(sizes)} bytes "
-                             f"for {len(arr)} points, its table is at byte {table_at}")
-        payload = memoryview(data)[8:table_at]
-        chunks = [[c, b] for c, b in zip(counts, sizes)]
-    elif laz:
-        payload = memoryview(b"")
-    else:
-        payload = memoryview(arr.view(np.uint8))
-    ext = arr[_extreme_rows(header, arr)]
-    meta.update(points=len(arr), payload_bytes=len(payload), crc32=zlib.crc32(payload),
-                chunks=chunks, by_return=_by_return(header, arr),
-                extremes=base64.b64encode(ext.tobytes()).decode("ascii"))
-    blob = json.dumps(meta, separators=(",", ":")).encode("utf-8")
-    footer = _FOOTER.pack(_MAGIC, _VERSION, len(blob), zlib.crc32(blob))
-    with atomic_output(path) as tmp, open(tmp, "wb") as f:
-        f.write(payload)
-        f.write(blob)
-        f.write(footer)
-    return _info(path, meta)
+            raise WriteError(f"{self.path}: lazrs gave {len(table)} chunks of {sum(sizes)} "
+                             f"bytes for {len(arr)} points, its table at byte {table_at}")
+        self._put(memoryview(data)[8:table_at])
+        self._chunks += [[c, b] for c, b in zip(counts, sizes)]
 
 
 # --------------------------------------------------------------------------- client
@@ -434,7 +565,7 @@ def _extremes(info, header):
     return arr
 
 
-def _output_header(header, infos, laz, vlr):
+def _output_header(path, header, infos, laz, vlr):
     """The assembled file's header: ``header`` reset and grown as laspy's LasWriter does
     (bounds, GPS time range, extra-bytes min/max from the pieces' extreme records; the
     point count and points by return summed), with the LASzip VLR for LAZ."""
@@ -449,7 +580,7 @@ def _output_header(header, infos, laz, vlr):
     ext = np.concatenate(ext) if ext else np.zeros(0, header.point_format.dtype())
     total = sum(i.points for i in infos)
     if total > out.max_point_count():
-        raise WriteError(f"LAS {out.version} holds at most {out.max_point_count()} points, "
+        raise WriteError(f"{path}: LAS {out.version} holds at most {out.max_point_count()} points, "
                          f"the pieces have {total}")
     if len(ext):
         out.grow(laspy.PackedPointRecord(ext, out.point_format))
@@ -464,12 +595,12 @@ def _output_header(header, infos, laz, vlr):
 
 def _chunk_vlr(lazrs, header, chunks):
     """The output's LASzip VLR: fixed-size chunks when every chunk but the last has the
-    same count (and the last no more), else variable-size chunks."""
+    same count (and the last no more), else variable-size chunks (:data:`VARIABLE_CHUNKS`)."""
     counts = [c for c, _ in chunks]
     fixed = counts[0] if counts else CHUNK_SIZE
     if all(c == fixed for c in counts[:-1]) and (not counts or counts[-1] <= fixed):
-        return _laszip_vlr(lazrs, header.point_format, fixed), False
-    return _laszip_vlr(lazrs, header.point_format, VARIABLE_CHUNKS), True
+        return _laszip_vlr(lazrs, header.point_format, fixed)
+    return _laszip_vlr(lazrs, header.point_format, VARIABLE_CHUNKS)
 
 
 def _copy(src, dst, n, crc, path):
@@ -572,8 +703,8 @@ def assemble(path, header, pieces, *, verify=True):
     for info in infos:
         _check_piece(info, facts)
     chunks = [c for i in infos for c in i.chunks]
-    vlr, variable = _chunk_vlr(lazrs, header, chunks) if laz else (None, False)
-    out = _output_header(header, infos, laz, vlr)
+    vlr = _chunk_vlr(lazrs, header, chunks) if laz else None
+    out = _output_header(path, header, infos, laz, vlr)
     table = b""
     if laz:
         buf = io.BytesIO()
