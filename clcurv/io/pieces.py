@@ -88,8 +88,9 @@ import numpy as np
 from laspy.vlrs.known import LasZipVlr
 
 from . import atomic_output
-from .common import CorruptFileError, MissingDependencyError, WriteError
-from .las import LAZ_HINT
+from .common import (LAS_FORMATS, CorruptFileError, MissingDependencyError, WriteError,
+                     is_las)
+from .las import LAZ_HINT, is_laz
 
 __all__ = ["write_piece", "PieceWriter", "assemble", "read_piece_info", "windows", "PieceInfo",
            "PieceError", "CHUNK_SIZE", "VARIABLE_CHUNKS"]
@@ -510,7 +511,7 @@ def read_piece_info(path):
         meta = json.loads(blob)
     except ValueError as exc:
         raise PieceError(f"{path}: the piece's metadata is not JSON: {exc}") from None
-    if not isinstance(meta, dict) or meta.get("kind") not in ("las", "laz"):
+    if not isinstance(meta, dict) or meta.get("kind") not in LAS_FORMATS:
         raise PieceError(f"{path}: the piece's metadata names no kind (las or laz)")
     n = _int(meta, "points", path)
     payload = _int(meta, "payload_bytes", path)
@@ -693,10 +694,10 @@ def assemble(path, header, pieces, *, verify=True):
         On any error the previous file at ``path`` is untouched and no file remains.
     """
     path = Path(os.fspath(path))
-    ext = path.suffix.lower()
-    if ext not in (".las", ".laz"):
-        raise WriteError(f"{path}: pieces assemble into .las or .laz, not {ext or '(none)'}")
-    laz = ext == ".laz"
+    if not is_las(path):
+        raise WriteError(f"{path}: pieces assemble into .las or .laz, not "
+                         f"{path.suffix or '(none)'}")
+    laz = is_laz(path)
     lazrs = _lazrs(path) if laz else None
     facts = _facts(header, "laz" if laz else "las", lazrs)
     infos = [read_piece_info(p) for p in pieces]
