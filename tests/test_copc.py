@@ -43,18 +43,19 @@ def _scene(n=N, seed=5):
     return pts, s["kind"], rgb
 
 
-def write_copc(path, pts, kind, rgb=None, fmt=6, seed=0):
+def write_copc(path, pts, kind, rgb=None, fmt=6, seed=0, header_max=None):
     """A COPC file of ``pts`` written by copclib; returns the indices of ``pts`` in the
     file's order (octree order: the root node first, then the depth-1 and depth-2 nodes).
 
     ``gps_time`` is the index of each point in ``pts``, ``classification`` its ``kind``,
     ``intensity`` the index modulo 65536 and, for point formats 7 and 8, ``rgb`` the colour.
+    The header's min/max are the points' (``header_max``: another max, a wrong header).
     """
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     span = float((hi - lo).max())
     cfg = copc.CopcConfigWriter(fmt, scale=(SCALE,) * 3, offset=tuple(np.floor(lo)))
     cfg.las_header.min = copc.Vector3(*lo)
-    cfg.las_header.max = copc.Vector3(*(lo + span))
+    cfg.las_header.max = copc.Vector3(*(hi if header_max is None else header_max))
     info = cfg.copc_info
     info.center_x, info.center_y, info.center_z = lo + span / 2
     info.halfsize = span / 2
