@@ -423,6 +423,12 @@ def test_points_on_tile_borders_are_owned_once(tmp_path):
         reach += len(ids)
     owned = np.concatenate(owned)
     assert len(owned) == n and np.array_equal(np.sort(owned), np.arange(n))   # once each
+    ref = cio.read(src).points                  # node edges at 100 + 6 k: points on them
+    for box in (((100.0, 200.0), (106.0, 206.0)), ((106.0, 200.0), (112.0, 224.0)),
+                ((94.0, 194.0), (100.0, 200.0))):
+        ids, xyz = plan.index.read_region(box)
+        want = _inside(ref, box)
+        assert len(want) and np.array_equal(ids, want) and np.array_equal(xyz, ref[want])
     on_border = (np.mod(pts[order, 0] - 100.0, 4.0) == 0) | (np.mod(pts[order, 1] - 200.0,
                                                                     4.0) == 0)
     assert on_border.sum() > 300 and reach > n                # halos overlap
