@@ -556,3 +556,31 @@ def test_nodes_that_do_not_hold_their_points_are_caught(files, tmp_path):
         ccopc.open_index(bad).read_region(((-1e9, -1e9), (1e9, 1e9)))
     said = _fallback(tmp_path, bad, plain)
     assert "outside the bounds of its COPC node" in said
+
+
+def test_an_interrupted_region_run_resumes(files, tmp_path, monkeypatch):
+    """Tiles done before an interruption are kept (their owned boxes too) and skipped by
+    the same command; the output equals the in-memory run."""
+    _, src, plain, _, _, _ = files
+    compute, done = engine.compute_tile, []
+
+    def flaky(task, device=None):
+        if len(done) == 3:
+            raise KeyboardInterrupt("interrupted")
+        done.append(task.t)
+        return compute(task, device)
+    monkeypatch.setattr(engine, "compute_tile", flaky)
+    a, b = tmp_path / "a.laz", tmp_path / "b.laz"
+    with pytest.raises(KeyboardInterrupt):
+        clcurv.curvature_file(src, a, R, method="mls1", tile=6.0, memory="64GiB")
+    ws = [p for p in os.listdir(tmp_path) if p.endswith(".clcurv-tiles")]
+    assert len(ws) == 1 and not a.exists()
+    assert len(list((tmp_path / ws[0] / "tiles").glob("*.box.npy"))) == 3
+    monkeypatch.setattr(engine, "compute_tile", compute)
+    said = []
+    ra = clcurv.curvature_file(src, a, R, method="mls1", tile=6.0, memory="64GiB",
+                               out=said.append)
+    assert ra.get("regions") and ra["skipped"] == 3 and any("resuming" in s for s in said)
+    clcurv.curvature_file(plain, b, R, method="mls1", memory="64GiB")
+    assert_same(a, b)
+    assert sorted(os.listdir(tmp_path)) == ["a.laz", "b.laz"]
