@@ -341,11 +341,13 @@ def _inside(ref, box):
                           & (ref[:, 1] >= y0) & (ref[:, 1] <= y1))
 
 
-def test_the_hierarchy_and_regions_read_as_the_file(files):
+@pytest.mark.parametrize("batch", [1 << 20, 700])
+def test_the_hierarchy_and_regions_read_as_the_file(files, monkeypatch, batch):
     """The node table is the file's point order; a region is the points of its box
     (inclusive), with their global ids and the coordinates clcurv.io.read gives, bit for
-    bit; a small box decodes a few nodes only."""
+    bit, decoded in batches of nodes or at once; a small box decodes a few nodes only."""
     _, src, _, _, pts, order = files
+    monkeypatch.setattr(ccopc, "BATCH_POINTS", batch)
     index = ccopc.open_index(src)
     ref = cio.read(src).points
     nodes = index.nodes

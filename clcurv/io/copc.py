@@ -48,6 +48,8 @@ ENTRY = np.dtype([("level", "<i4"), ("x", "<i4"), ("y", "<i4"), ("z", "<i4"),
 NODE = np.dtype([("level", np.int32), ("x", np.int64), ("y", np.int64), ("z", np.int64),
                  ("offset", np.int64), ("size", np.int64), ("count", np.int64),
                  ("first", np.int64)])
+#: points a region decodes at a time at most (more for a larger node): its memory
+BATCH_POINTS = 1 << 20
 #: most hierarchy pages an index reads (a loop of pages is caught before this anyway)
 MAX_PAGES = 1 << 20
 _INFO_BYTES = 160
@@ -135,11 +137,9 @@ class CopcIndex:
     def read_region(self, box):
         """(global ids (m,) int64, xyz (m, 3) float64) of the points in the x-y ``box``
         ((x0, y0), (x1, y1), inclusive), in global-id order."""
-        ids, xyz = self.region(box).read()
         (x0, y0), (x1, y1) = box
-        keep = ((xyz[:, 0] >= x0) & (xyz[:, 0] <= x1)
-                & (xyz[:, 1] >= y0) & (xyz[:, 1] <= y1))
-        return ids[keep], xyz[keep]
+        return self.region(box).read(lambda p: (p[:, 0] >= x0) & (p[:, 0] <= x1)
+                                     & (p[:, 1] >= y0) & (p[:, 1] <= y1))
 
 
 @dataclass
@@ -156,26 +156,38 @@ class Region:
     pad: float
     nodes: np.ndarray
 
-    def read(self):
-        """(global ids, xyz float64) of every point of the nodes, in global-id order; each
-        node's points checked within its widened x-y bounds, and every point within the
-        header's bounds (:class:`UntrustedBounds`)."""
+    def read(self, keep=None):
+        """(global ids, xyz float64) of the points of the nodes, in global-id order: all,
+        or those of the mask ``keep(xyz)``; each node's points checked within its widened
+        x-y bounds, and every point within the header's bounds (:class:`UntrustedBounds`).
+        The nodes are decoded :data:`BATCH_POINTS` points at a time at most (a node whole),
+        each batch filtered by ``keep`` before the next."""
         laspy, lazrs = _laspy()
         nodes = self.nodes
-        if not len(nodes):
-            return np.empty(0, np.int64), np.empty((0, 3))
+        ids, xyz = [np.empty(0, np.int64)], [np.empty((0, 3))]
         with open(self.path, "rb") as f:
-            header = laspy.LasHeader.read_from(f)
-            fmt = header.point_format
-            raw = bytearray(int(nodes["size"].sum()))
-            view, at = memoryview(raw), 0
-            for o, s in zip(nodes["offset"].tolist(), nodes["size"].tolist()):
-                f.seek(o)
-                got = f.readinto(view[at:at + s])
-                if got != s:
-                    raise CorruptFileError(f"{self.path}: the COPC node at byte {o} claims "
-                                           f"{s} bytes but the file ends after {got}")
-                at += s
+            fmt = laspy.LasHeader.read_from(f).point_format
+            cut = np.cumsum(nodes["count"]) // BATCH_POINTS
+            for b in np.unique(cut):
+                i, p = self._decode(f, nodes[cut == b], fmt, laspy, lazrs)
+                if keep is not None:
+                    k = keep(p)
+                    i, p = i[k], p[k]
+                ids.append(i)
+                xyz.append(p)
+        return np.concatenate(ids), np.concatenate(xyz)
+
+    def _decode(self, f, nodes, fmt, laspy, lazrs):
+        """(global ids, xyz) of every point of ``nodes`` (checked), read from ``f``."""
+        raw = bytearray(int(nodes["size"].sum()))
+        view, at = memoryview(raw), 0
+        for o, s in zip(nodes["offset"].tolist(), nodes["size"].tolist()):
+            f.seek(o)
+            got = f.readinto(view[at:at + s])
+            if got != s:
+                raise CorruptFileError(f"{self.path}: the COPC node at byte {o} claims "
+                                       f"{s} bytes but the file ends after {got}")
+            at += s
         m = int(nodes["count"].sum())
         out = np.zeros(m * fmt.size, np.uint8)
         table = list(zip(nodes["count"].tolist(), nodes["size"].tolist()))

@@ -522,7 +522,7 @@ def _run_regions(space, want, source, dst, params, budget, tile, wanted, progres
     t0 = time.perf_counter()
     plan = regions.plan(source, params, budget, tile, halo)
     times["planning"] = time.perf_counter() - t0
-    state = {"key": want, "regions": plan.key()}
+    state = json.loads(json.dumps({"key": want, "regions": plan.key()}, sort_keys=True))
     if space.manifest() != state:
         space.clear()
         space.write_manifest(state)

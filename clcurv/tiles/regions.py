@@ -161,11 +161,9 @@ def occupied(index, tiling):
 def read_tile(region, tiling, t):
     """(global ids, xyz float64, owned mask) of tile t's points with its halo, in global-id
     order, read from ``region`` (:meth:`Plan.region`) by the worker."""
-    ids, xyz = region.read()
-    c = tiling.frame.cells_xy(xyz)
-    keep = within(c, tiling.cells(t))
-    own = within(c[keep], tiling.cells(t, halo=False))
-    return ids[keep], xyz[keep], own
+    reach = tiling.cells(t)
+    ids, xyz = region.read(lambda p: within(tiling.frame.cells_xy(p), reach))
+    return ids, xyz, within(tiling.frame.cells_xy(xyz), tiling.cells(t, halo=False))
 
 
 def owned_box(pos, own):
