@@ -15,12 +15,19 @@ of computation), the values of each point must agree to 1e-4 (float32 sums in an
 order), matched by the point's index.
 """
 import os
+import struct
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
 import clcurv
 from tests.hostile import assert_same_las, las_dims
 from clcurv import io as cio
+from clcurv.io import copc as ccopc
+from clcurv.io import stream
+from clcurv.io.common import CorruptFileError
+from clcurv.tiles import engine, regions
 
 from hostile import run_cli
 
@@ -49,12 +56,13 @@ def write_copc(path, pts, kind, rgb=None, fmt=6, seed=0):
 
     ``gps_time`` is the index of each point in ``pts``, ``classification`` its ``kind``,
     ``intensity`` the index modulo 65536 and, for point formats 7 and 8, ``rgb`` the colour.
+    The header's min/max are the points'.
     """
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     span = float((hi - lo).max())
     cfg = copc.CopcConfigWriter(fmt, scale=(SCALE,) * 3, offset=tuple(np.floor(lo)))
     cfg.las_header.min = copc.Vector3(*lo)
-    cfg.las_header.max = copc.Vector3(*(lo + span))
+    cfg.las_header.max = copc.Vector3(*hi)
     info = cfg.copc_info
     info.center_x, info.center_y, info.center_z = lo + span / 2
     info.halfsize = span / 2
@@ -320,3 +328,261 @@ def test_a_catalog_names_the_output_of_a_copc_file_laz(files, tmp_path):
     ref = tmp_path / "ref.laz"
     clcurv.curvature_file(src, ref, R, method="mls1", tile=8.0)
     assert_same(folder / "survey.laz", ref)       # the far file: the same grid frame
+
+
+# --------------------------------------------------------------------------- region reads
+# A tiled run of one COPC file reads each tile's region through the octree
+# (clcurv.tiles.regions, clcurv.io.copc): its output must equal, bit for bit, the in-memory
+# output of the same points given as a plain LAZ in the COPC file's order.
+
+def _inside(ref, box):
+    (x0, y0), (x1, y1) = box
+    return np.flatnonzero((ref[:, 0] >= x0) & (ref[:, 0] <= x1)
+                          & (ref[:, 1] >= y0) & (ref[:, 1] <= y1))
+
+
+@pytest.mark.parametrize("batch", [1 << 20, 700])
+def test_the_hierarchy_and_regions_read_as_the_file(files, monkeypatch, batch):
+    """The node table is the file's point order; a region is the points of its box
+    (inclusive), with their global ids and the coordinates clcurv.io.read gives, bit for
+    bit, decoded in batches of nodes or at once; a small box decodes a few nodes only."""
+    _, src, _, _, pts, order = files
+    monkeypatch.setattr(ccopc, "BATCH_POINTS", batch)
+    index = ccopc.open_index(src)
+    ref = cio.read(src).points
+    nodes = index.nodes
+    assert index.n == len(ref) == int(nodes["count"].sum()) == N
+    assert len(nodes) > 10 and np.all(np.diff(nodes["offset"]) > 0)
+    assert np.array_equal(nodes["first"], np.r_[0, np.cumsum(nodes["count"])[:-1]])
+    assert np.array_equal(index.mins, ref.min(axis=0))
+    assert np.array_equal(index.maxs, ref.max(axis=0))
+    lo, hi = ref.min(axis=0), ref.max(axis=0)
+    p, q = ref[17], ref[4000]                      # edges through points: inclusive
+    boxes = [((lo[0] - 1, lo[1] - 1), (hi[0] + 1, hi[1] + 1)),
+             ((min(p[0], q[0]), min(p[1], q[1])), (max(p[0], q[0]), max(p[1], q[1]))),
+             ((lo[0] + 3.0, lo[1] + 2.5), (lo[0] + 9.25, lo[1] + 6.0))]
+    for box in boxes:
+        ids, xyz = index.read_region(box)
+        want = _inside(ref, box)
+        assert len(want) > 50
+        assert np.array_equal(ids, want)
+        assert np.array_equal(xyz, ref[want])
+    assert {17, 4000} <= set(index.read_region(boxes[1])[0].tolist())
+    assert len(index.select(boxes[2])) < len(nodes) // 2
+
+
+def _no_bucket_pass(*args, **kwargs):
+    raise AssertionError("a COPC input read by region makes no bucket")
+
+
+@pytest.mark.parametrize("method,tile,memory,workers", [
+    ("mls1", 6.0, "64GiB", None), ("2dcov2", 8.0, "64GiB", None),
+    ("mls1", None, "3MiB", None), ("mls1", 6.0, "64GiB", 2)],
+    ids=["mls1-tile6", "2dcov2-halo2", "mls1-budget", "mls1-2workers"])
+def test_region_tiles_equal_the_in_memory_plain_laz(files, tmp_path, monkeypatch, method,
+                                                     tile, memory, workers):
+    _, src, plain, _, _, order = files
+    monkeypatch.setattr(engine, "_prepare", _no_bucket_pass)
+    a, b = tmp_path / "copc.laz", tmp_path / "plain.laz"
+    said = []
+    ra = clcurv.curvature_file(src, a, R, method=method, tile=tile, memory=memory,
+                               workers=workers, out=said.append)
+    rb = clcurv.curvature_file(plain, b, R, method=method, memory="64GiB")
+    assert ra["tiled"] and ra.get("regions") and not rb["tiled"]
+    assert ra["tiles"] >= 4 and ra["points"] == N
+    assert any("read by region" in s for s in said), said
+    assert_plain(a)
+    assert_same(a, b)
+    las, dims = _dims(a)
+    assert np.array_equal(dims["gps_time"], order)
+    assert ra["status"] == [int(np.count_nonzero(dims["status"] == k)) for k in range(4)]
+    assert sorted(os.listdir(tmp_path)) == ["copc.laz", "plain.laz"]     # no workspace
+
+
+def _lattice(tmp_path):
+    """A COPC file of points on a 0.5 lattice from (100, 200): with R = 1 and tiles of 4.0
+    one point in 4 lies on a cell border and one in 16 on a tile border."""
+    g = np.arange(0.0, 24.0 + 1e-9, 0.5)
+    x, y = np.meshgrid(g, g, indexing="ij")
+    z = np.round((0.05 * x * x - 0.03 * y * y + 0.1 * x * y / 4) / SCALE) * SCALE
+    pts = np.column_stack([100.0 + x.ravel(), 200.0 + y.ravel(), 10.0 + z.ravel()])
+    src = tmp_path / "lattice.copc.laz"
+    order = write_copc(src, pts, np.zeros(len(pts), np.uint8), seed=3)
+    return src, write_plain(tmp_path / "lattice.laz", src), pts, order
+
+
+def test_points_on_tile_borders_are_owned_once(tmp_path):
+    src, plain, pts, order = _lattice(tmp_path)
+    n = len(pts)
+    params = SimpleNamespace(radius=R, bytes_per_point=lambda: 900)
+    plan = regions.plan(stream.open_source(src), params, 1 << 30, 4.0, 1)
+    assert plan.tiling.size == 4 and plan.tiling.frame.origin[:2] == (100.0, 200.0)
+    owned, reach = [], 0
+    for t in plan.tiles:
+        ids, xyz, own = regions.read_tile(plan.region(t), plan.tiling, t)
+        assert np.all(np.diff(ids) > 0)                      # global-id order
+        owned.append(ids[own])
+        reach += len(ids)
+    owned = np.concatenate(owned)
+    assert len(owned) == n and np.array_equal(np.sort(owned), np.arange(n))   # once each
+    ref = cio.read(src).points                  # node edges at 100 + 6 k: points on them
+    for box in (((100.0, 200.0), (106.0, 206.0)), ((106.0, 200.0), (112.0, 224.0)),
+                ((94.0, 194.0), (100.0, 200.0))):
+        ids, xyz = plan.index.read_region(box)
+        want = _inside(ref, box)
+        assert len(want) and np.array_equal(ids, want) and np.array_equal(xyz, ref[want])
+    on_border = (np.mod(pts[order, 0] - 100.0, 4.0) == 0) | (np.mod(pts[order, 1] - 200.0,
+                                                                    4.0) == 0)
+    assert on_border.sum() > 300 and reach > n                # halos overlap
+    a, b = tmp_path / "a.laz", tmp_path / "b.laz"
+    ra = clcurv.curvature_file(src, a, R, method="mls1", tile=4.0, memory="64GiB")
+    clcurv.curvature_file(plain, b, R, method="mls1", memory="64GiB")
+    assert ra.get("regions") and ra["tiles"] == len(plan.tiles) >= 25
+    assert_same(a, b)
+
+
+def _edit_hierarchy(src, dst, edit):
+    """A copy of the COPC file ``src`` at ``dst`` with its root hierarchy page's entries
+    (ccopc.ENTRY, writable) and info VLR's root page (offset, size) given to ``edit``."""
+    data = bytearray(src.read_bytes())
+    info = struct.unpack_from("<H", data, 94)[0] + 54
+    offset, size = struct.unpack_from("<QQ", data, info + 40)
+    page = np.frombuffer(bytes(data[offset:offset + size]), ccopc.ENTRY).copy()
+    root = edit(page, (offset, size), len(data)) or (offset, size)
+    data[offset:offset + size] = page.tobytes()
+    struct.pack_into("<QQ", data, info + 40, *root)
+    dst.write_bytes(bytes(data))
+    return dst
+
+
+def _nth(page, k=0):
+    """The index in ``page`` of the k-th node holding points, in file order."""
+    held = np.flatnonzero(page["count"] > 0)
+    return held[np.argsort(page["offset"][held])][k]
+
+
+def _set(k, field, value):
+    """An edit of _edit_hierarchy: the k-th node's ``field`` = value(its field, file size)."""
+    def edit(page, root, n):
+        i = _nth(page, k)
+        page[field][i] = value(int(page[field][i]), n)
+    return edit
+
+
+#: damage -> (the edit, the message)
+DAMAGES = {
+    "offset into the header": (_set(3, "offset", lambda v, n: 200),
+                               "after the point data's start"),
+    "offset past the end": (_set(3, "offset", lambda v, n: n - 10), "within the file"),
+    "byte size": (_set(0, "size", lambda v, n: v + 9), "overlapping bytes"),
+    "last byte size": (_set(-1, "size", lambda v, n: v - 1),
+                       "not the .* chunks of the LAZ chunk table"),
+    "negative byte size": (_set(2, "size", lambda v, n: -v), "claims bytes"),
+    "count": (_set(5, "count", lambda v, n: v + 1),
+              f"hold {N + 1} points and the header claims {N}"),
+    "page size": (lambda p, r, n: (r[0], r[1] - 5), "whole number of 32-byte entries"),
+    "page in the header": (lambda p, r, n: (100, r[1]), "whole number of 32-byte entries"),
+}
+
+
+@pytest.mark.parametrize("damage", sorted(DAMAGES))
+def test_a_damaged_hierarchy_fails_before_any_output(files, tmp_path, damage):
+    _, src, _, _, _, _ = files
+    edit, message = DAMAGES[damage]
+    bad = _edit_hierarchy(src, tmp_path / "bad.copc.laz", edit)
+    with pytest.raises(CorruptFileError, match=message):
+        ccopc.open_index(bad)
+    dst = tmp_path / "out.laz"
+    with pytest.raises(CorruptFileError, match=message) as err:
+        clcurv.curvature_file(bad, dst, R, method="mls1", tile=6.0, memory="64GiB")
+    assert "bad.copc.laz" in str(err.value)
+    assert sorted(os.listdir(tmp_path)) == ["bad.copc.laz"]         # no output, no workspace
+
+
+def test_an_undamaged_copy_reads(files, tmp_path):
+    """The damage tests' copy is sound when nothing is edited (they test the edits)."""
+    _, src, _, _, _, _ = files
+    good = _edit_hierarchy(src, tmp_path / "good.copc.laz", lambda p, r, n: None)
+    assert len(ccopc.open_index(good).nodes) == len(ccopc.open_index(src).nodes)
+
+
+def _fallback(tmp_path, src, plain):
+    """The tiled run of ``src`` falls back to the buckets (saying why) and equals the
+    in-memory run of ``plain``; returns what it said."""
+    a, b = tmp_path / "a.laz", tmp_path / "b.laz"
+    said = []
+    ra = clcurv.curvature_file(src, a, R, method="mls1", tile=6.0, memory="64GiB",
+                               out=said.append)
+    clcurv.curvature_file(plain, b, R, method="mls1", memory="64GiB")
+    assert ra["tiled"] and not ra.get("regions")
+    assert_same(a, b)
+    return " ".join(said)
+
+
+@pytest.mark.parametrize("end,axis,delta", [
+    ("max", 0, 0.5), ("max", 2, 0.25), ("max", 1, -0.5), ("max", 0, 2.0 ** -30),
+    ("min", 0, -0.5), ("min", 1, 0.25)],
+    ids=["wide-max-x", "wide-max-z", "narrow-max-y", "one-ulp-max-x", "wide-min-x",
+         "narrow-min-y"])
+def test_wrong_header_bounds_are_caught(files, tmp_path, end, axis, delta):
+    """A header max beyond the points' would shift the frame (the owned points' box
+    differs), one short of them leaves points outside it (the tiles see them): either way
+    the run starts again through the buckets and equals the in-memory run."""
+    _, src, plain, _, _, _ = files
+    data = bytearray(src.read_bytes())
+    at = 179 + 16 * axis + (8 if end == "min" else 0)      # max x, min x, max y...
+    true = struct.unpack_from("<d", data, at)[0]
+    struct.pack_into("<d", data, at, true + delta)
+    bad = tmp_path / "bounds.copc.laz"
+    bad.write_bytes(bytes(data))
+    index = ccopc.open_index(bad)
+    assert (index.maxs if end == "max" else index.mins)[axis] == true + delta != true
+    said = _fallback(tmp_path, bad, plain)
+    wide = delta > 0 if end == "max" else delta < 0
+    why = "are not the points'" if wide else "outside the header's bounds"
+    assert why in said and "plain LAZ instead" in said, said
+
+
+def test_nodes_that_do_not_hold_their_points_are_caught(files, tmp_path):
+    """Two nodes' keys swapped: their points are outside their bounds, a region could miss
+    them; the run starts again through the buckets."""
+    _, src, plain, _, _, _ = files
+
+    def swap(page, root, n):
+        deep = np.flatnonzero((page["level"] == 2) & (page["count"] > 0))
+        i, j = deep[0], deep[-1]
+        for k in ("x", "y", "z"):
+            page[k][i], page[k][j] = page[k][j], page[k][i]
+    bad = _edit_hierarchy(src, tmp_path / "swapped.copc.laz", swap)
+    with pytest.raises(ccopc.UntrustedBounds, match="outside the bounds of its COPC node"):
+        ccopc.open_index(bad).read_region(((-1e9, -1e9), (1e9, 1e9)))
+    said = _fallback(tmp_path, bad, plain)
+    assert "outside the bounds of its COPC node" in said
+
+
+def test_an_interrupted_region_run_resumes(files, tmp_path, monkeypatch):
+    """Tiles done before an interruption are kept (their owned boxes too) and skipped by
+    the same command; the output equals the in-memory run."""
+    _, src, plain, _, _, _ = files
+    compute, done = engine.compute_tile, []
+
+    def flaky(task, device=None):
+        if len(done) == 3:
+            raise KeyboardInterrupt("interrupted")
+        done.append(task.t)
+        return compute(task, device)
+    monkeypatch.setattr(engine, "compute_tile", flaky)
+    a, b = tmp_path / "a.laz", tmp_path / "b.laz"
+    with pytest.raises(KeyboardInterrupt):
+        clcurv.curvature_file(src, a, R, method="mls1", tile=6.0, memory="64GiB")
+    ws = [p for p in os.listdir(tmp_path) if p.endswith(".clcurv-tiles")]
+    assert len(ws) == 1 and not a.exists()
+    assert len(list((tmp_path / ws[0] / "tiles").glob("*.box.npy"))) == 3
+    monkeypatch.setattr(engine, "compute_tile", compute)
+    said = []
+    ra = clcurv.curvature_file(src, a, R, method="mls1", tile=6.0, memory="64GiB",
+                               out=said.append)
+    assert ra.get("regions") and ra["skipped"] == 3 and any("resuming" in s for s in said)
+    clcurv.curvature_file(plain, b, R, method="mls1", memory="64GiB")
+    assert_same(a, b)
+    assert sorted(os.listdir(tmp_path)) == ["a.laz", "b.laz"]

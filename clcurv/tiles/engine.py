@@ -82,6 +82,7 @@ from clcurv.api.curvature import curvature
 from clcurv.grid.cloud import DeviceCloud
 from clcurv.runtime.memory import release_memory
 from clcurv.tiles import orient as tiled_orient
+from clcurv.tiles import regions
 from clcurv.tiles import scale as tiled_scale
 from clcurv.tiles import workers as cluster
 from clcurv.tiles import workspace as wsp
@@ -90,6 +91,7 @@ from clcurv.tiles.buckets import (READ_CHUNK, BucketTask, Buckets, OccupancyTask
                                   split_part)
 from clcurv.grid.binning import Frame
 from clcurv.io import stream
+from clcurv.io.copc import UntrustedBounds
 from clcurv._shared.constants import TOO_FEW
 from clcurv.tiles.results import Windows, partition, tile_dtype, to_windows
 from clcurv.tiles.workers import worker_device
@@ -430,6 +432,13 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
         return _summary(params, 0, 0, 0, source, times, windows.status, dst)
     def execute(tasks, fn):
         return _execute(tasks, client, fn)
+    if regions.applies(source, params):
+        try:
+            return _run_regions(space, want, source, dst, params, budget, tile, wanted,
+                                progress, say, execute)
+        except UntrustedBounds as exc:
+            say(f"{exc}: reading it as a plain LAZ instead")
+            space.clear()
     buckets, state, fresh = _prepare(space, want, source, params, budget, say, execute,
                                      lambda: check_disk(space, source, params, wanted, say))
     times["bucketing"] = time.perf_counter() - t0
@@ -509,6 +518,63 @@ def _occupancy(buckets, frame, execute):
     tasks = [OccupancyTask(str(buckets.folder), k, buckets.state(), frame, limit)
              for k in buckets.parts]
     return merge_occupancy(frame, list(execute(tasks, occupancy_part)))
+
+
+def _run_regions(space, want, source, dst, params, budget, tile, wanted, progress, say,
+                 execute):
+    """A tiled run of one COPC file whose tiles read their own regions
+    (:mod:`clcurv.tiles.regions`): no pass (1) nor (1b); the tiles' results checked
+    against the header (UntrustedBounds: the caller starts again through the buckets),
+    then merged and written as by :func:`_run_tiles`; the summary dict."""
+    times, ws = {}, space.path
+    specs = params.specs(wanted)
+    stored = _stored_specs(params, specs)
+    how, halo = params.orientation(source, False), params.halo(False)
+    t0 = time.perf_counter()
+    plan = regions.plan(source, params, budget, tile, halo)
+    times["planning"] = time.perf_counter() - t0
+    state = json.loads(json.dumps({"key": want, "regions": plan.key()}, sort_keys=True))
+    if space.manifest() != state:
+        space.clear()
+        space.write_manifest(state)
+    else:
+        say(f"resuming from {space.path}")
+    (ws / "tiles").mkdir(exist_ok=True)
+    tiles, tiling = plan.tiles, plan.tiling
+    say(f"{source.n} points in {len(tiles)} tile(s) of {tiling.size} x {tiling.size} "
+        f"cells of {tiling.frame.cell:.6g} (halo {halo} cell(s)), read by region from the "
+        f"COPC file, budget {budget / 2**20:.0f} MiB")
+    todo = [(rank, t) for rank, t in enumerate(tiles) if not _tile_done(ws, t, False, say)]
+    tasks = [TileTask(str(ws), t, tiling, None, params, how, False, stored, rank=rank,
+                      n=source.n, region=plan.region(t)) for rank, t in todo]
+    t1 = time.perf_counter()
+    info, computed = {}, 0
+    for t, owned, about in execute(tasks, compute_tile):
+        info[t] = about
+        computed += owned
+        _trim()
+        if progress is not None:
+            progress(len(tiles) - len(tasks) + len(info), len(tiles), computed)
+    times["tiles"] = time.perf_counter() - t1
+    for t in set(tiles) - set(info):        # a resumed run's tiles, done before
+        info[t] = tile_info(load_sealed(tile_file(ws, t)), (0,), params, source.n)
+        info[t]["box"] = load_sealed(regions.box_file(tile_file(ws, t))).tolist()
+    regions.check(plan.index, [info[t]["box"] for t in tiles],
+                  sum(info[t]["points"] for t in tiles))
+    t2 = time.perf_counter()
+    windows = partition(ws, source.n, tiles, stored, False)
+    _trim()
+    times["merging"] = time.perf_counter() - t2
+    t3 = time.perf_counter()
+    _write_output(dst, source, windows, specs)
+    times["writing"] = time.perf_counter() - t3
+    summary = _summary(params, len(tiles), len(tiles) - len(tasks), tiling.size, source,
+                       times, windows.status, dst, halo)
+    summary.update(values_summary([info[t] for t in tiles], params))
+    summary["fields"] = [("nx ny nz" if k == "normals" else k)
+                         for k, _, _ in sorted(specs, key=lambda s: s[0] != "normals")]
+    summary["regions"] = True
+    return summary
 
 
 def _stored_specs(params, specs):
@@ -624,18 +690,40 @@ class TileTask:
     rank: int = 0                # its place among the run's tiles (< 2^31: MST node ids)
     offsets: tuple = (0,)        # the first global id of each input file
     n: int = 0                   # the points of the run (its summary's sample)
+    region: object = None        # clcurv.io.copc.Region: read from a COPC file, no bucket
 
 
 def compute_tile(task, device=None):
     """Compute tile ``task.t`` and write its own points' fields (with their global ids) to
-    the workspace, atomically; returns (t, points owned, the input files that hold them:
-    their indices in ``task.offsets``)."""
-    params, tiling = task.params, task.tiling
+    the workspace, atomically; returns (t, points owned, :func:`tile_info`: the input files
+    that hold them, their indices in ``task.offsets``, ...; read by region, the owned
+    points' box too, ``"box"``). Its points come from its split files, or, with
+    ``task.region``, from the COPC file (:func:`clcurv.tiles.regions.read_tile`)."""
+    if task.region is not None:
+        ids, pos, own = regions.read_tile(task.region, task.tiling, task.t)
+        out = tile_records(task, pos, own, ids, None, device)
+        box = regions.owned_box(pos, own)       # first: a tile is done when its result is
+        wsp.save_sealed(regions.box_file(tile_file(task.ws, task.t)), box)
+        wsp.save_sealed(tile_file(task.ws, task.t), out)
+        info = tile_info(out, task.offsets, task.params, task.n)
+        info["box"] = box.tolist()
+        return task.t, len(out), info
     buckets = Buckets.from_state(Path(task.ws) / "buckets", task.buckets)
     rec = buckets.read_tile(Path(task.ws) / "tiles_in", task.t, state=task.smoothed,
                             expect=task.expect)
     pos = rec["p"] if task.smoothed is None or not len(rec) else task.smoothed.key(rec)
     own = rec["own"].astype(bool)
+    out = tile_records(task, pos, own, rec["id"], rec["n"] if task.file_normals else None,
+                       device)
+    wsp.save_sealed(tile_file(task.ws, task.t), out)
+    return task.t, len(out), tile_info(out, task.offsets, task.params, task.n)
+
+
+def tile_records(task, pos, own, ids, file_normals, device=None):
+    """The records of tile ``task.t``'s own points: its points ``pos`` (global-id order,
+    ``own`` those it owns, ``ids`` their global ids, ``file_normals`` theirs or None) run
+    in the global frame (an MST run's records written to the workspace here)."""
+    params, tiling = task.params, task.tiling
     mst = isinstance(task.how, str) and task.how == "mst"
     out = np.empty(int(own.sum()), tile_dtype(task.specs, mst))
     if len(out):
@@ -648,7 +736,7 @@ def compute_tile(task, device=None):
                 warnings.simplefilter("ignore", RuntimeWarning)
                 f = params.tile_fields(cloud)
         else:
-            normals, how = (rec["n"] if task.file_normals else None), task.how
+            normals, how = file_normals, task.how
             extra = {}
             if mst:
                 nl, node = tiled_orient.orient_tile(cloud, params.radius, params.orient_k,
@@ -665,18 +753,17 @@ def compute_tile(task, device=None):
                                 **extra)
             f = curvature_fields(res)
             f["normals"] = res.normals
-        out["id"] = rec["id"][own]
+        out["id"] = ids[own]
         for name, _, _ in task.specs:
             out[name] = f[name][own]
         del cloud               # its device buffers back to the pool, which lets them go:
         release_memory(device)  # the memory budget sizes tiles as if all were freed
     if mst and len(out):        # the MST records first: a tile is done when its result is
-        _mst_records(task, out, own, pos, nl, node, rec["id"])
+        _mst_records(task, out, own, pos, nl, node, ids)
     elif mst:
         _mst_records(task, out, np.zeros(0, bool), np.empty((0, 3)), np.empty((0, 3)),
                      np.empty(0, np.int64), np.empty(0, np.int64))
-    wsp.save_sealed(tile_file(task.ws, task.t), out)
-    return task.t, len(out), tile_info(out, task.offsets, params, task.n)
+    return out
 
 
 #: points of the sample the summary of a tiled run takes its percentiles from, about

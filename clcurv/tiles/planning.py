@@ -275,7 +275,8 @@ def _farthest_from_median(buckets):
 
 
 def plan_tiles(buckets, radius, halo, budget, tile=None, frame=None,
-               bytes_per_point=TILE_BYTES_PER_POINT, state=None, occupy=None):
+               bytes_per_point=TILE_BYTES_PER_POINT, state=None, occupy=None,
+               density=None):
     """The :class:`Tiling` of the whole cloud: its frame from the exact bounds (or
     ``frame``), and tiles of ``tile`` (length) or, from the budget, as large as the
     densest tile allows at ``bytes_per_point`` (a tile's peak host bytes per point).
@@ -285,7 +286,9 @@ def plan_tiles(buckets, radius, halo, budget, tile=None, frame=None,
     buckets are much larger than the tiles, from the points' occupancy of the cells
     (:func:`occupancy`, one pass over the buckets; ``state``: the scale space's, to place
     the points by their binned positions; ``occupy(frame)``, when given, computes it
-    instead: on the workers, :mod:`clcurv.tiles.engine`)."""
+    instead: on the workers, :mod:`clcurv.tiles.engine`). ``density``: an
+    :class:`Occupancy` to size the tiles with instead (a COPC input's, from its nodes'
+    counts: clcurv.tiles.regions; then ``buckets`` is not read and ``frame`` is given)."""
     check_tile_size(tile)                           # first: no pass over the points
     frame = frame if frame is not None else covering(buckets, radius)
     if tile is not None:
@@ -293,7 +296,7 @@ def plan_tiles(buckets, radius, halo, budget, tile=None, frame=None,
     limit = max(int(budget // bytes_per_point), 1)
     nx, ny, _ = frame.dims
     size = max(nx, ny, halo, 1)
-    occ = None
+    occ = density
     while True:
         tiling = Tiling(frame, size, halo)
         worst = densest(buckets, tiling, occ)
