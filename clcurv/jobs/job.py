@@ -76,7 +76,8 @@ class Job:
     neighbours, :func:`auto_radius`). ``scale_space``: MLS1 scale-space steps at that
     radius before the operator. ``kernel``, ``h`` (length unit) and ``projections``: the
     options of the methods that take them (MLS2). ``fields``: the fields to write
-    (``"normals"`` and the names of :func:`result_fields`; None: all). ``positions``:
+    (``"normals"`` and the names of :func:`result_fields`, ``"all"``; None: the method's
+    default set, :func:`chosen_fields`). ``positions``:
     write the ``"original"`` positions or the ``"projected"`` ones (the operator's
     projection, else the smoothed cloud). ``k``: instead of ``radius``, each point's radius
     is the distance to its k-th nearest point (:mod:`clcurv.ops.knn_radius`; in memory only).
@@ -207,20 +208,27 @@ def check_options(job):
                 raise UsageError(f"{name} does not combine with --k (a k-NN radius)")
 
 
+def chosen_fields(res, wanted=None):
+    """The names of the fields a file of ``res`` gets for the ``fields`` option's value
+    ``wanted`` (None: the method's default set; ``"all"``; names: :meth:`clcurv.ops.registry.
+    Operator.chosen_fields`), ``"normals"`` among them when they are written; UsageError
+    for an unknown name."""
+    extra = ("knn_radius",) if np.ndim(res.radius) else ()
+    try:
+        return OPERATORS[res.method].chosen_fields(wanted, extra)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+
+
 def result_fields(res, wanted=None):
     """The per-point fields of ``res`` to write, name -> (N,) array, named as
     CloudCompare/MeshLab scalar fields (:func:`clcurv.tiles.engine.curvature_fields`: the
     operator's file fields in the registry's order, then ``neighbours`` and ``status``).
-    ``wanted``: keep only these names (``"normals"`` is allowed and written apart);
-    UsageError for another name."""
-    f = curvature_fields(res)
-    if not wanted:
-        return f
-    unknown = sorted(set(wanted) - set(f) - {"normals"})
-    if unknown:
-        raise UsageError(f"unknown field(s) {', '.join(unknown)} for method {res.method}; "
-                         f"available: normals, {', '.join(f)}")
-    return {k: v for k, v in f.items() if k in wanted}
+    ``wanted``: the ``fields`` option (None: the method's default set, :func:`chosen_fields`;
+    ``"all"``: every one; ``"normals"`` is allowed and written apart); UsageError for an
+    unknown name."""
+    names = chosen_fields(res, wanted)
+    return {k: v for k, v in curvature_fields(res).items() if k in names}
 
 
 def summary_fields(method):
@@ -341,7 +349,7 @@ def _run_in_memory(job, out):
     res, work = _evaluate(job, cloud, radius, device, st)
     done = Done(cloud.points, res.radius if job.k is not None else radius, res,
                 result_fields(res, job.fields))
-    normals = None if job.fields and "normals" not in job.fields else res.normals
+    normals = res.normals if "normals" in chosen_fields(res, job.fields) else None
     with st.stage("writing"):
         io.write(job.output, _positions(job, cloud, res, work), fields=done.fields,
                  normals=normals, like=cloud)
@@ -474,8 +482,11 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
     workdir : path, optional
         Workspace folder (default: beside ``dst``); kept between an interrupted run and
         the same command run again (finished tiles are skipped), removed at the end.
-    fields : list of str, optional
-        The fields to write (as ``clcurv compute --fields``); default all and the normals.
+    fields : list of str or 'all', optional
+        The fields to write (as ``clcurv compute --fields``; ``"normals"`` among them):
+        default the method's default set (its curvatures, ``neighbours``, ``status`` and
+        the normals; not the principal directions), ``"all"`` every one
+        (:meth:`clcurv.ops.registry.Operator.chosen_fields`).
     progress : callable(done, total, points) or None
         Called after each tile.
     client : dask.distributed.Client, optional
@@ -511,6 +522,7 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
     if int(scale_space) < 0:
         raise ValueError(f"scale_space must be >= 0, got {scale_space}")
     tiled.check_tiled_outputs(dst if catalog else [dst], source)
+    fields = OPERATORS[method].chosen_fields(fields)    # the names, in the resume key too
     params = CurvatureParams(method=method, radius=r, weights=weights, orient=orient,
                              viewpoint=viewpoint, kernel=kernel, h=h, device=device,
                              precision=precision, ignore_normals=ignore_normals,

@@ -550,16 +550,11 @@ def _trim():
 
 
 def _wanted_specs(params, wanted):
-    want_normals = not wanted or "normals" in wanted
-    specs = _field_specs(params.method, want_normals)
-    if wanted:
-        names = {s[0] for s in specs} | {"normals"}
-        unknown = sorted(set(wanted) - names)
-        if unknown:
-            raise ValueError(f"unknown field(s) {', '.join(unknown)} for method "
-                             f"{params.method}; available: {', '.join(sorted(names))}")
-        specs = [s for s in specs if s[0] in wanted]
-    return specs
+    """The specs of the fields written for the ``fields`` option's value ``wanted`` (None:
+    the method's default set; :meth:`clcurv.ops.registry.Operator.chosen_fields`, as the
+    run in memory); ValueError for an unknown name."""
+    names = OPERATORS[params.method].chosen_fields(wanted)
+    return [s for s in _field_specs(params.method, "normals" in names) if s[0] in names]
 
 
 @dataclass
