@@ -112,6 +112,16 @@ def is_laz(path):
     return path.suffix.lower() == ".laz"
 
 
+def laz_backends(laspy):
+    """The LAZ backends laspy tries, in this order: lazrs' parallel one (its chunks decoded
+    and encoded on rayon's threads, as many as the cores, or ``RAYON_NUM_THREADS``, which
+    the Dask workers set to their share: :mod:`clcurv.tiles.workers`), then the sequential
+    ones. Parallel is measured faster to read and to write on 2 cores
+    (``bench/results/io.md``)."""
+    b = laspy.LazBackend
+    return tuple(x for x in (b.LazrsParallel, b.Lazrs, b.Laszip) if x.is_available())
+
+
 # --------------------------------------------------------------------------- read
 
 #: public header size by minor version (LAS 1.0-1.5; 1.5 is read by laspy 2.6+)
@@ -306,7 +316,7 @@ def _read_points(laspy, path, layout):
     first = count if not layout.compressed else \
         min(count, max(step, _LAZ_TRUSTED_RATIO * layout.size // rec))
     got = 0
-    with laspy.open(str(path)) as reader:
+    with laspy.open(str(path), laz_backend=laz_backends(laspy)) as reader:
         header = reader.header
         out = np.empty(first, dtype=header.point_format.dtype())
         try:
@@ -572,14 +582,44 @@ def check_extra_count(path, count):
                          "write fewer fields (radii, features), or NPZ or PLY")
 
 
+#: clcurv's count fields (``neighbours``: #N_r(p), the point itself included): stored
+#: unsigned, in the first of :data:`COUNT_TYPES` that holds the largest count of the file
+#: (:func:`count_dtype`)
+COUNT_FIELDS = ("neighbours",)
+#: uint16 (counts up to 65,535), else uint32; a count is never clipped nor wrapped
+COUNT_TYPES = (np.dtype("u2"), np.dtype("u4"))
+
+
+def count_dtype(path, name, a):
+    """The extra-bytes type of the count field ``name`` (:data:`COUNT_FIELDS`) with values
+    ``a``: uint16 when every count is at most 65,535, else uint32 (its own type when ``a``
+    already has one of :data:`COUNT_TYPES`: the tiled writer's choice,
+    :func:`clcurv.io.stream.write_las`). WriteError for a negative count or one beyond
+    uint32."""
+    a = np.asarray(a)
+    if a.dtype in COUNT_TYPES:
+        return a.dtype
+    lo, hi = (int(a.min()), int(a.max())) if a.size else (0, 0)
+    if lo < 0:
+        raise WriteError(f"{path}: the count field {name!r} has a negative value ({lo})")
+    for dt in COUNT_TYPES:
+        if hi <= np.iinfo(dt).max:
+            return dt
+    raise WriteError(f"{path}: the count field {name!r} has a value ({hi}) beyond "
+                     f"{COUNT_TYPES[-1]}, the widest count type")
+
+
 def _field_dtype(path, name, a, dtypes=None):
     """(the extra-bytes dtype clcurv writes field ``name`` with, its description): float32
-    for real values, the integer type of an integer field, ``dtypes[name]`` when given."""
+    for real values, :func:`count_dtype` for a count field (:data:`COUNT_FIELDS`), the
+    integer type of another integer field, ``dtypes[name]`` when given."""
     if dtypes and name in dtypes:
         return np.dtype(dtypes[name]), "the input's"
     a = np.asarray(a)
     if a.dtype.kind == "f":
         return np.dtype("f4"), "clcurv"
+    if name in COUNT_FIELDS and a.dtype.kind in "iu":
+        return count_dtype(path, name, a), "clcurv"
     return int_as(path, name, a, _INTS), "clcurv"
 
 
@@ -679,6 +719,77 @@ def _normal_names(header):
     return split_names(dims, xyz=False)[1]
 
 
+class _ExtraStats:
+    """The minimum and maximum of each extra-bytes dimension over every point written (raw
+    values, no-data values and NaN left out), set in the descriptors of the header written
+    (:func:`write_records`)."""
+
+    def __init__(self, header):
+        self.lo, self.hi = {}, {}
+        vlrs = header.vlrs.get("ExtraBytesVlr")
+        self.structs = [s for s in (vlrs[0].extra_bytes_structs if vlrs else [])
+                        if s.data_type != 0]
+
+    def grow(self, array):
+        for s in self.structs:
+            name = s.format_name()
+            if name not in (array.dtype.names or ()):
+                continue
+            v = np.asarray(array[name]).reshape(len(array), -1)
+            nd = s.no_data
+            for i in range(v.shape[1]):
+                c = v[:, i]
+                ok = np.ones(len(c), bool) if nd is None else c != nd[i]
+                if c.dtype.kind == "f":
+                    ok &= ~np.isnan(c)
+                if ok.any():
+                    c = c[ok]
+                    key = (name, i)
+                    lo, hi = c.min(), c.max()
+                    self.lo[key] = lo if key not in self.lo else min(self.lo[key], lo)
+                    self.hi[key] = hi if key not in self.hi else max(self.hi[key], hi)
+
+    def put(self, header):
+        """Set the statistics in the descriptors of ``header`` (the writer's copy); a
+        dimension without a value gets none (its min and max bits cleared)."""
+        vlrs = header.vlrs.get("ExtraBytesVlr")
+        for s in (vlrs[0].extra_bytes_structs if vlrs else []):
+            if s.data_type == 0:
+                continue
+            name, n = s.format_name(), s.num_elements()
+            if all((name, i) in self.lo for i in range(n)):
+                s.options |= s.MIN_BIT_MASK | s.MAX_BIT_MASK
+                s._raw_min()[:] = [self.lo[name, i] for i in range(n)]
+                s._raw_max()[:] = [self.hi[name, i] for i in range(n)]
+            else:
+                s.options &= ~(s.MIN_BIT_MASK | s.MAX_BIT_MASK)
+
+
+def write_records(laspy, path, header, chunks, evlrs=None):
+    """Write ``path`` (LAZ when its extension says so, :func:`laz_backends`) with ``header``
+    and the point records ``chunks`` (``laspy.ScaleAwarePointRecord`` of that header, in
+    order), then ``evlrs``; both writers use it (:func:`write` in memory, one chunk;
+    :func:`clcurv.io.stream.write_las` in tiles, a window at a time).
+
+    The minimum and maximum that each extra-bytes descriptor holds are those of every point
+    (:class:`_ExtraStats`): laspy's own take the first point of each chunk written, so they
+    would be wrong and would differ between a file written at once and one written in
+    chunks."""
+    compress = is_laz(path)
+    # the file opened here, as LasData.write does: a failed write (disk full) is then the
+    # OSError, not lazrs' "Failed to call flush"
+    with open(path, "wb+") as f, \
+            laspy.open(f, mode="w", header=header, do_compress=compress, closefd=False,
+                       laz_backend=laz_backends(laspy) if compress else None) as writer:
+        stats = _ExtraStats(writer.header)
+        for rec in chunks:
+            writer.write_points(rec)
+            stats.grow(rec.array)
+        stats.put(writer.header)
+        if evlrs:
+            writer.write_evlrs(evlrs)
+
+
 def write(path, pts, fields, normals, like, carried):
     laspy = import_laspy(path, is_laz(path))
     if not np.isfinite(pts).all():
@@ -706,7 +817,8 @@ def write(path, pts, fields, normals, like, carried):
     las.X, las.Y, las.Z = (ints[:, i].astype(np.int32) for i in range(3))
     keep = {k: v for k, v in keep.items() if k not in columns}
     _store(laspy, path, las, header, {**keep, **columns})
-    las.write(str(path))
+    write_records(laspy, path, las.header, [las.points],
+                  las.evlrs if las.header.version.minor >= 4 else None)
 
 
 FORMAT = Format(reads={".las": "LAS", ".laz": "LAZ (compressed LAS)"}, read=read,

@@ -389,6 +389,11 @@ class PlySource:
 
 # --------------------------------------------------------------------------- writing
 
+class _WiderCounts(Exception):
+    """A count of a later chunk does not fit the count type chosen from the first rows
+    (:func:`write_las` writes the file again with the wider type)."""
+
+
 def write_las(path, src, names, rows, chunk=1_000_000):
     """Write a LAS/LAZ ``path`` holding the points of LAS/LAZ ``src`` (a :class:`LasSource`:
     its header, scales, offsets, VLRs, EVLRs and every dimension kept, the records copied as
@@ -399,7 +404,19 @@ def write_las(path, src, names, rows, chunk=1_000_000):
     replacing an extra-bytes dimension of its name, one stored in a standard dimension must
     fit it), so both outputs are the same. ``rows(start, stop)`` gives the structured
     records (one field per name) of the points start..stop-1. Written chunk by chunk in
-    input order."""
+    input order.
+
+    A count field (:data:`clcurv.io.las.COUNT_FIELDS`) is uint16 unless some count exceeds
+    65,535 (:func:`clcurv.io.las.count_dtype`, which sees the whole column in memory): the
+    first rows choose the type, and a later chunk with a count beyond it makes the file
+    be written again with uint32, so both outputs are the same and no count is clipped."""
+    try:
+        _write_las(path, src, names, rows, chunk, wide=False)
+    except _WiderCounts:
+        _write_las(path, src, names, rows, chunk, wide=True)
+
+
+def _write_las(path, src, names, rows, chunk, wide):
     laspy = las.import_laspy(path, las.is_laz(path))
     header = las.output_header(src.header)
 
@@ -411,11 +428,15 @@ def write_las(path, src, names, rows, chunk=1_000_000):
             else:
                 out[name] = rec[name]
         return out
-    added = las.extra_dims(laspy, path, columns(rows(0, min(1, src.n))), header)
+    first = columns(rows(0, min(1, src.n)))
+    counts = [k for k in first if k in las.COUNT_FIELDS]
+    if wide:
+        first.update({k: np.asarray(first[k]).astype(las.COUNT_TYPES[-1]) for k in counts})
+    added = las.extra_dims(laspy, path, first, header)
     dims = set(header.point_format.dimension_names)
     evlrs = header.evlrs if header.version.minor >= 4 else None
-    with laspy.open(str(src.path)) as reader, \
-            laspy.open(str(path), mode="w", header=header) as writer:
+
+    def records(reader):
         start = 0
         for rec in reader.chunk_iterator(chunk):
             m = len(rec)
@@ -423,15 +444,30 @@ def write_las(path, src, names, rows, chunk=1_000_000):
             _copy_records(rec.array, out.array)       # the raw records: integers as read
             for name, a in columns(rows(start, start + m)).items():
                 if name in added:                     # unscaled extra bytes: raw = value
+                    if name in counts:
+                        _check_counts(path, name, a, out.array.dtype[name])
                     out.array[name] = a
                 elif name in dims:
                     las.check_fits(path, header.point_format, name, a)
                     out[name] = (np.asarray(a).astype(np.int64)
                                  if las.is_bitfield(header.point_format, name) else a)
-            writer.write_points(out)
+            yield out
             start += m
-        if evlrs:                                     # as LasData.write does in memory
-            writer.write_evlrs(evlrs)
+    with laspy.open(str(src.path), laz_backend=las.laz_backends(laspy)) as reader:
+        las.write_records(laspy, path, header, records(reader), evlrs)   # as in memory
+
+
+def _check_counts(path, name, a, dt):
+    """_WiderCounts when a count of ``a`` exceeds the type ``dt`` chosen for it (a wider one
+    exists), WriteError when none holds it: never a count clipped or wrapped."""
+    if not len(a):
+        return
+    lo, hi = int(np.min(a)), int(np.max(a))
+    if lo >= 0 and hi <= np.iinfo(dt).max:
+        return
+    if lo >= 0 and dt != las.COUNT_TYPES[-1]:
+        raise _WiderCounts(name)
+    las.count_dtype(path, name, a)                    # its WriteError
 
 
 def _copy_records(src, dst):
