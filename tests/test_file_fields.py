@@ -124,3 +124,88 @@ def test_count_dtype_rule():
     assert cl_las.count_dtype("p", "neighbours", np.zeros(0, np.int32)) == "u2"
     # an array already of a count type keeps it (the tiled writer's choice)
     assert cl_las.count_dtype("p", "neighbours", np.array([1], np.uint32)) == "u4"
+
+
+# --------------------------------------------------------------------------- quantised
+
+R = 0.5
+
+
+def _quantised_fields(n, seed=3):
+    rng = np.random.default_rng(seed)
+    f = {"mean_curvature": rng.normal(scale=2.0, size=n),
+         "gaussian_curvature": rng.normal(scale=4.0, size=n),
+         "surface_variation": rng.uniform(0, 1 / 3, size=n),
+         "knn_radius": rng.uniform(0.1, 1, size=n),
+         "neighbours": rng.integers(6, 300, size=n).astype(np.int32),
+         "status": np.zeros(n, np.uint8)}
+    f["mean_curvature"][[1, 9]] = np.nan
+    f["surface_variation"][4] = np.nan
+    f["gaussian_curvature"][[1, 50]] = np.nan
+    return f
+
+
+@pytest.mark.parametrize("ext", [".las"] + ([".laz"] if HAS_LAZ else []))
+def test_quantised_extra_bytes_read_back_within_half_a_step(tmp_path, ext):
+    """laspy reads each quantised field as raw * scale, within scale / 2 of the float64
+    value; NaN is the descriptor's no_data; knn_radius and the counts are not quantised.
+    The tiled writer (16 points at a time) writes the same bytes."""
+    src = _make_las(tmp_path / "in.las")
+    f, nrm = _quantised_fields(N), _normals(N)
+    nrm[2] = np.nan
+    cloud = io.read(src)
+    mem = io.write(tmp_path / f"mem{ext}", cloud.points, f, normals=nrm, like=cloud,
+                   quantize=R)
+    back = laspy.read(str(mem))
+    fmt = back.point_format
+    want = {"nx": ("i2", 1e-4), "nz": ("i2", 1e-4), "mean_curvature": ("i4", 1e-4 / R),
+            "gaussian_curvature": ("i4", 1e-4 / R**2), "surface_variation": ("u2", 1e-5)}
+    eb = {s.format_name(): s for s in back.header.vlrs.get("ExtraBytesVlr")[0]
+          .extra_bytes_structs}
+    for name, (dt, step) in want.items():
+        info = fmt.dimension_by_name(name)
+        assert np.dtype(info.dtype) == np.dtype(dt), name
+        assert info.scales[0] == pytest.approx(step, rel=1e-15) and info.offsets[0] == 0
+        nd = np.iinfo(dt).min if dt[0] == "i" else np.iinfo(dt).max
+        assert eb[name].no_data[0] == nd
+        v = f[name] if name in f else nrm[:, "xyz".index(name[1])]
+        exact = np.asarray(v, np.float64)
+        got = np.asarray(back[name], np.float64)
+        raw = np.asarray(back.points.array[name])
+        ok = ~np.isnan(exact)
+        assert np.abs(got[ok] - exact[ok]).max() <= step / 2 * (1 + 1e-9), name
+        assert np.all(raw[~ok] == nd) and (~ok).sum() >= 1, name
+    assert np.dtype(fmt.dimension_by_name("knn_radius").dtype) == np.float32
+    assert fmt.dimension_by_name("knn_radius").scales is None
+    assert np.dtype(fmt.dimension_by_name("neighbours").dtype) == np.uint16
+    # bytes: format 6 (30) + 3 int16 + 2 int32 + uint16 + float32 + uint16 + uint8
+    assert back.header.point_format.size == 30 + 6 + 8 + 2 + 4 + 2 + 1
+    names = list(f) + ["normals"]
+    dt = [(k, f[k].dtype) for k in f] + [("normals", "f8", (3,))]
+    rec = np.empty(N, dt)
+    for k in f:
+        rec[k] = f[k]
+    rec["normals"] = nrm
+    til = tmp_path / f"til{ext}"
+    stream.write_las(til, stream.open_source(src), names, lambda a, b: rec[a:b], chunk=16,
+                     quantize=R)
+    assert mem.read_bytes() == til.read_bytes()
+
+
+def test_quantised_values_out_of_range_are_refused(tmp_path):
+    src = _make_las(tmp_path / "in.las")
+    cloud = io.read(src)
+    top = (2**31 - 1) * 1e-4 / R                 # the largest int32 value at this step
+    for bad in (top * 1.001, -np.inf, np.inf):
+        h = np.zeros(N)
+        h[5] = bad
+        with pytest.raises(WriteError, match="quantised extra bytes cannot hold"):
+            io.write(tmp_path / "x.las", cloud.points, {"mean_curvature": h}, like=cloud,
+                     quantize=R)
+    h = np.zeros(N)
+    h[5] = top * 0.999                         # within the range: kept
+    io.write(tmp_path / "x.las", cloud.points, {"mean_curvature": h}, like=cloud, quantize=R)
+    assert np.asarray(laspy.read(str(tmp_path / "x.las"))["mean_curvature"], float)[5] == \
+        pytest.approx(h[5], abs=1e-4 / R)
+    with pytest.raises(WriteError, match="LAS/LAZ"):
+        io.write(tmp_path / "x.ply", cloud.points, {"mean_curvature": h}, quantize=R)

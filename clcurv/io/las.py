@@ -609,6 +609,86 @@ def count_dtype(path, name, a):
                      f"{COUNT_TYPES[-1]}, the widest count type")
 
 
+#: the step of quantised extra bytes (``quantize=``): normals and principal directions
+#: (unit vectors) 1e-4; curvatures 1e-4 / radius (1/length), the Gaussian curvature
+#: 1e-4 / radius^2; the surface variation 1e-5 (:func:`quantization`)
+QUANTUM = 1e-4
+_UNIT_VECTORS = ("nx", "ny", "nz") + tuple(f"dir{i}_{a}" for i in "12" for a in "xyz")
+
+
+def quantization(name, radius):
+    """(integer dtype, scale) of clcurv's real field ``name`` stored quantised with ``radius``
+    (the run's, in the file's unit), or None for a field kept float32 (``knn_radius``,
+    features, the input's). The value is ``raw * scale`` (offset 0), within ``scale / 2`` of
+    the computed (float64) value; the type's most negative value (uint16: its largest) is the
+    descriptor's ``no_data``, for NaN (:func:`quantized`).
+
+    =====================================  =======  ==================  ==================
+    field                                  type     scale (step)        range
+    =====================================  =======  ==================  ==================
+    ``nx ny nz``, ``dir1_*``, ``dir2_*``    int16    1e-4                +-3.2767
+    ``mean_curvature``, ``k1``, ``k2``      int32    1e-4 / r            +-214,748 / r
+    ``gaussian_curvature``                  int32    1e-4 / r^2          +-214,748 / r^2
+    ``surface_variation``                   uint16   1e-5                0 to 0.65534
+    =====================================  =======  ==================  ==================
+
+    A step of 1e-4 / r is a sag of 5e-5 r across the ball, far below LiDAR noise. The
+    curvatures take 32 bits: LAZ compresses their high bytes to almost nothing (int16 would
+    save little and clip the rare large values; bench/results/io.md)."""
+    r = float(radius)
+    if name in _UNIT_VECTORS:
+        return np.dtype("i2"), QUANTUM
+    if name in ("mean_curvature", "k1", "k2"):
+        return np.dtype("i4"), QUANTUM / r
+    if name == "gaussian_curvature":
+        return np.dtype("i4"), QUANTUM / (r * r)
+    if name == "surface_variation":
+        return np.dtype("u2"), QUANTUM / 10
+    return None
+
+
+def no_data(dt):
+    """The ``no_data`` value of quantised type ``dt``: its most negative value (unsigned:
+    its largest)."""
+    info = np.iinfo(dt)
+    return int(info.min) if dt.kind == "i" else int(info.max)
+
+
+def quantized(path, name, a, dt, scale):
+    """The raw integers (``dt``) of the values ``a`` stored with ``scale``: the value (in
+    float64) divided by ``scale`` and rounded to the nearest; NaN is :func:`no_data`.
+    WriteError for a value the type cannot hold (an infinity, or beyond the range of
+    :func:`quantization`): never clipped."""
+    v = np.asarray(a, np.float64)
+    nan = np.isnan(v)
+    with np.errstate(invalid="ignore", over="ignore"):
+        q = np.round(v / scale)
+    info, nd = np.iinfo(dt), no_data(dt)
+    lo, hi = (int(info.min) + 1, int(info.max)) if dt.kind == "i" else (0, int(info.max) - 1)
+    bad = ~nan & ~((q >= lo) & (q <= hi))
+    if bad.any():
+        raise WriteError(f"{path}: field {name!r} has {int(bad.sum())} value(s) that quantised "
+                         f"extra bytes cannot hold ({dt.name}, step {scale:.6g}: "
+                         f"{lo * scale:.6g} to {hi * scale:.6g}; e.g. {v[bad][0]:.6g}): "
+                         "write it without quantize")
+    q[nan] = nd
+    return q.astype(dt)
+
+
+def raw_column(path, name, a, quantize):
+    """The raw values of field ``name`` in the extra-bytes dimension :func:`extra_dims` made
+    for it: :func:`quantized` when ``quantize`` (the run's radius) applies to it, else the
+    values."""
+    spec = _quantization_of(name, a, quantize)
+    return a if spec is None else quantized(path, name, a, *spec)
+
+
+def _quantization_of(name, a, quantize):
+    if quantize is None or np.asarray(a).dtype.kind != "f":
+        return None
+    return quantization(name, quantize)
+
+
 def _field_dtype(path, name, a, dtypes=None):
     """(the extra-bytes dtype clcurv writes field ``name`` with, its description): float32
     for real values, :func:`count_dtype` for a count field (:data:`COUNT_FIELDS`), the
@@ -630,9 +710,12 @@ def _holds_as_is(info, dt):
             and info.dtype is not None and np.dtype(info.dtype) == dt)
 
 
-def extra_dims(laspy, path, columns, header, dtypes=None):
+def extra_dims(laspy, path, columns, header, dtypes=None, quantize=None):
     """Make ``header`` (the output's, modified in place) hold the columns; returns the names
-    of the extra-bytes dimensions created for them, whose raw values are the values.
+    of the extra-bytes dimensions created for them, whose raw values are the values
+    (:func:`raw_column`: quantised with ``quantize``, the run's radius, for the fields
+    :func:`quantization` names: an integer type with the descriptor's scale, offset 0 and
+    ``no_data``).
 
     A column named like no dimension gets a new extra-bytes dimension (float32, or the
     integer type of the field, ``dtypes[name]`` when given), described ``clcurv``. A column
@@ -652,6 +735,16 @@ def extra_dims(laspy, path, columns, header, dtypes=None):
         if len(name) > 32:
             raise WriteError(f"{path}: LAS extra-bytes names have at most 32 characters: "
                              f"{name!r}")
+        spec = _quantization_of(name, a, quantize) if not (dtypes and name in dtypes) \
+            else None
+        if spec is not None:
+            dt, scale = spec
+            if name in extra:
+                replaced.append(name)
+            plan.append(laspy.ExtraBytesParams(
+                name=name, type=dt, description="clcurv", scales=np.array([scale]),
+                offsets=np.array([0.0]), no_data=np.array([no_data(dt)])))
+            continue
         dt, what = _field_dtype(path, name, a, dtypes)
         if name in extra:
             if _holds_as_is(extra[name], dt):
@@ -790,7 +883,10 @@ def write_records(laspy, path, header, chunks, evlrs=None):
             writer.write_evlrs(evlrs)
 
 
-def write(path, pts, fields, normals, like, carried):
+def write(path, pts, fields, normals, like, carried, quantize=None):
+    """The LAS/LAZ writer of :func:`clcurv.io.write`; ``quantize``: the run's radius, to
+    store clcurv's real fields as quantised extra bytes (:func:`quantization`), or None
+    (float32)."""
     laspy = import_laspy(path, is_laz(path))
     if not np.isfinite(pts).all():
         raise WriteError(f"{path}: LAS cannot store NaN/Inf coordinates "
@@ -807,16 +903,22 @@ def write(path, pts, fields, normals, like, carried):
     ints = _scaled_ints(path, pts, header)
     columns = dict(fields)
     if normals is not None:
-        nrm = np.asarray(normals, dtype=np.float32)
+        # float32 fields; quantised ones from the float64 values, as the tiled writer's
+        nrm = np.asarray(normals, dtype=np.float32 if quantize is None else np.float64)
         columns = {"nx": nrm[:, 0], "ny": nrm[:, 1], "nz": nrm[:, 2], **columns}
     if dtypes:                      # carried from a non-LAS like: extra bytes, first
         columns = {**{k: keep[k] for k in dtypes}, **columns}
-    extra_dims(laspy, path, columns, header, dtypes)
+    added = extra_dims(laspy, path, columns, header, dtypes, quantize)
     las = laspy.LasData(header, points=laspy.ScaleAwarePointRecord.zeros(len(pts),
                                                                           header=header))
     las.X, las.Y, las.Z = (ints[:, i].astype(np.int32) for i in range(3))
     keep = {k: v for k, v in keep.items() if k not in columns}
-    _store(laspy, path, las, header, {**keep, **columns})
+    raw = {k: raw_column(path, k, v, quantize) for k, v in columns.items()
+           if k in added and _quantization_of(k, v, quantize) is not None}
+    _store(laspy, path, las, header, {**keep, **{k: v for k, v in columns.items()
+                                                 if k not in raw}})
+    for k, v in raw.items():                  # quantised: the raw integers
+        las.points.array[k] = v
     write_records(laspy, path, las.header, [las.points],
                   las.evlrs if las.header.version.minor >= 4 else None)
 

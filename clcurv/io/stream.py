@@ -394,7 +394,7 @@ class _WiderCounts(Exception):
     (:func:`write_las` writes the file again with the wider type)."""
 
 
-def write_las(path, src, names, rows, chunk=1_000_000):
+def write_las(path, src, names, rows, chunk=1_000_000, quantize=None):
     """Write a LAS/LAZ ``path`` holding the points of LAS/LAZ ``src`` (a :class:`LasSource`:
     its header, scales, offsets, VLRs, EVLRs and every dimension kept, the records copied as
     read) with the fields ``names`` added as extra-bytes dimensions; ``"normals"`` becomes
@@ -409,14 +409,17 @@ def write_las(path, src, names, rows, chunk=1_000_000):
     A count field (:data:`clcurv.io.las.COUNT_FIELDS`) is uint16 unless some count exceeds
     65,535 (:func:`clcurv.io.las.count_dtype`, which sees the whole column in memory): the
     first rows choose the type, and a later chunk with a count beyond it makes the file
-    be written again with uint32, so both outputs are the same and no count is clipped."""
+    be written again with uint32, so both outputs are the same and no count is clipped.
+
+    ``quantize``: the run's radius, to store clcurv's real fields quantised
+    (:func:`clcurv.io.las.quantization`), as the in-memory writer does."""
     try:
-        _write_las(path, src, names, rows, chunk, wide=False)
+        _write_las(path, src, names, rows, chunk, quantize, wide=False)
     except _WiderCounts:
-        _write_las(path, src, names, rows, chunk, wide=True)
+        _write_las(path, src, names, rows, chunk, quantize, wide=True)
 
 
-def _write_las(path, src, names, rows, chunk, wide):
+def _write_las(path, src, names, rows, chunk, quantize, wide):
     laspy = las.import_laspy(path, las.is_laz(path))
     header = las.output_header(src.header)
 
@@ -432,7 +435,7 @@ def _write_las(path, src, names, rows, chunk, wide):
     counts = [k for k in first if k in las.COUNT_FIELDS]
     if wide:
         first.update({k: np.asarray(first[k]).astype(las.COUNT_TYPES[-1]) for k in counts})
-    added = las.extra_dims(laspy, path, first, header)
+    added = las.extra_dims(laspy, path, first, header, quantize=quantize)
     dims = set(header.point_format.dimension_names)
     evlrs = header.evlrs if header.version.minor >= 4 else None
 
@@ -446,7 +449,7 @@ def _write_las(path, src, names, rows, chunk, wide):
                 if name in added:                     # unscaled extra bytes: raw = value
                     if name in counts:
                         _check_counts(path, name, a, out.array.dtype[name])
-                    out.array[name] = a
+                    out.array[name] = las.raw_column(path, name, a, quantize)
                 elif name in dims:
                     las.check_fits(path, header.point_format, name, a)
                     out[name] = (np.asarray(a).astype(np.int64)

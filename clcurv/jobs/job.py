@@ -77,7 +77,8 @@ class Job:
     radius before the operator. ``kernel``, ``h`` (length unit) and ``projections``: the
     options of the methods that take them (MLS2). ``fields``: the fields to write
     (``"normals"`` and the names of :func:`result_fields`, ``"all"``; None: the method's
-    default set, :func:`chosen_fields`). ``positions``:
+    default set, :func:`chosen_fields`). ``quantize``: LAS/LAZ output, the real fields as
+    quantised extra bytes (:func:`clcurv.io.las.quantization`). ``positions``:
     write the ``"original"`` positions or the ``"projected"`` ones (the operator's
     projection, else the smoothed cloud). ``k``: instead of ``radius``, each point's radius
     is the distance to its k-th nearest point (:mod:`clcurv.ops.knn_radius`; in memory only).
@@ -94,6 +95,7 @@ class Job:
     device: int | str | None = job_default("device")
     precision: str = job_default("precision")
     fields: Sequence[str] | None = job_default("fields")
+    quantize: bool = job_default("quantize")
     viewpoint: Sequence[float] | None = job_default("viewpoint")
     orient: str = job_default("orient")
     positions: str = job_default("positions")
@@ -198,6 +200,15 @@ def check_options(job):
     for name, takers in extra.items():
         raise UsageError(f"{OPTIONS[name].flag} is an option of --method {' or '.join(takers)} "
                          f"only, not of {job.method}")
+    if job.quantize:
+        outs = job.output if isinstance(job.output, (list, tuple)) else [job.output]
+        if isinstance(job.input, (list, tuple)):
+            outs = []                       # a catalog's outputs are LAS/LAZ, like its inputs
+        if not all(io.is_las(o) for o in outs):
+            raise UsageError("--quantize stores LAS/LAZ extra bytes: write .las or .laz")
+        if job.k is not None:
+            raise UsageError("--quantize scales the curvatures by the radius: give --radius, "
+                             "not --k")
     if job.k is not None:
         if job.radius != "auto":
             raise UsageError("give --radius or --k, not both")
@@ -352,7 +363,7 @@ def _run_in_memory(job, out):
     normals = res.normals if "normals" in chosen_fields(res, job.fields) else None
     with st.stage("writing"):
         io.write(job.output, _positions(job, cloud, res, work), fields=done.fields,
-                 normals=normals, like=cloud)
+                 normals=normals, like=cloud, quantize=radius if job.quantize else None)
     for line in _summary(job, cloud, done, device, st.times, normals is not None):
         out(line)
     return done
@@ -455,7 +466,7 @@ def run_tiled(job, out=print):
 
 def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient="auto",
                    viewpoint=None, kernel=None, h=None, scale_space=0, projections=0,
-                   memory="auto", tile=None, workdir=None, fields=None,
+                   memory="auto", tile=None, workdir=None, fields=None, quantize=False,
                    ignore_normals=False, device=None, precision="float", progress=None,
                    out=None, client=None, workers=None):
     """Run ``method`` on the cloud of file ``src`` and write ``dst``, in tiles when the cloud
@@ -487,6 +498,10 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
         default the method's default set (its curvatures, ``neighbours``, ``status`` and
         the normals; not the principal directions), ``"all"`` every one
         (:meth:`clcurv.ops.registry.Operator.chosen_fields`).
+    quantize : bool
+        LAS/LAZ output: clcurv's real fields as integers with the extra-bytes descriptor's
+        scale (:func:`clcurv.io.las.quantization`: curvatures to 5e-5 / radius, normals to
+        5e-5, NaN as ``no_data``); ValueError for another output format.
     progress : callable(done, total, points) or None
         Called after each tile.
     client : dask.distributed.Client, optional
@@ -523,10 +538,12 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
         raise ValueError(f"scale_space must be >= 0, got {scale_space}")
     tiled.check_tiled_outputs(dst if catalog else [dst], source)
     fields = OPERATORS[method].chosen_fields(fields)    # the names, in the resume key too
+    if quantize and not all(io.is_las(d) for d in (dst if catalog else [dst])):
+        raise ValueError("quantize stores LAS/LAZ extra bytes: write .las or .laz")
     params = CurvatureParams(method=method, radius=r, weights=weights, orient=orient,
                              viewpoint=viewpoint, kernel=kernel, h=h, device=device,
                              precision=precision, ignore_normals=ignore_normals,
-                             scale_space=scale_space)
+                             scale_space=scale_space, quantize=quantize)
     forced = catalog or tile is not None or client is not None or bool(workers)
     if not in_tiles(source.n, fit_budget(memory), forced):
         summary = _curvature_in_memory(src, dst, params, fields)
@@ -547,7 +564,7 @@ def _curvature_in_memory(src, dst, params, fields):
               precision=params.precision, fields=fields, viewpoint=params.viewpoint,
               orient="none" if orient is None else orient,
               ignore_normals=params.ignore_normals, scale_space=params.scale_space,
-              quiet=True)
+              quantize=params.quantize, quiet=True)
     t0 = time.perf_counter()
     check_options(job)
     done = _run_in_memory(job, out=lambda line: None)

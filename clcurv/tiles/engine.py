@@ -124,12 +124,14 @@ class CurvatureParams:
     precision: str
     ignore_normals: bool
     scale_space: int = OPTIONS["scale_space"].default
+    quantize: bool = OPTIONS["quantize"].default
     orient_k: int = OPTIONS["orient_k"].default
     #: what the tiles compute (clcurv.tiles.features.FeatureParams: "features")
     kind = "curvature"
 
     def __post_init__(self):
         self.ignore_normals, self.scale_space = bool(self.ignore_normals), int(self.scale_space)
+        self.quantize = bool(self.quantize)
 
     def halo(self, file_normals):
         """Cells of halo of this run's tiles (:func:`halo_cells`)."""
@@ -421,7 +423,7 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
     stored = _stored_specs(params, specs)
     if source.n == 0:                   # as the in-memory run: an empty output
         windows = Windows(ws / "windows", 0, tile_dtype(stored))
-        _write_output(dst, source, windows, specs)
+        _write_output(dst, source, windows, specs, _quantize(params))
         return _summary(params, 0, 0, 0, source, times, windows, dst)
     buckets, state, fresh = _prepare(space, want, source, params, budget, say,
                                      lambda: check_disk(space, source, params, wanted, say))
@@ -472,7 +474,7 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
     _trim()
     times["merging"] = time.perf_counter() - t2
     t3 = time.perf_counter()
-    _write_output(dst, source, windows, specs)
+    _write_output(dst, source, windows, specs, _quantize(params))
     times["writing"] = time.perf_counter() - t3
     return _summary(params, len(tiles), skipped, tiling.size, source, times, windows, dst,
                     halo)
@@ -654,23 +656,29 @@ def _execute(tasks, client, workers, step=False):
     yield from cluster.map_tiles(fn, tasks, client=client, workers=workers)
 
 
-def _write_output(dst, source, windows, specs):
+def _quantize(params):
+    """The ``quantize`` of the LAS writers: the run's radius when its fields are written
+    quantised (:func:`clcurv.io.las.quantization`), else None."""
+    return float(params.radius) if getattr(params, "quantize", False) else None
+
+
+def _write_output(dst, source, windows, specs, quantize=None):
     """Pass (3b): the output in input order, a window at a time, atomically (a catalog:
     one output per input file, each with its own points)."""
     if isinstance(source, stream.Catalog):
         for part, off, d in zip(source.parts, source.offsets, dst):
             rows = (lambda o: lambda a, b: windows.rows(o + a, o + b))(int(off))
-            _write_one(d, part, rows, part.n, specs, windows.size)
+            _write_one(d, part, rows, part.n, specs, windows.size, quantize)
         return
-    _write_one(dst, source, windows.rows, windows.n, specs, windows.size)
+    _write_one(dst, source, windows.rows, windows.n, specs, windows.size, quantize)
 
 
-def _write_one(dst, source, rows, n, specs, chunk=READ_CHUNK):
+def _write_one(dst, source, rows, n, specs, chunk=READ_CHUNK, quantize=None):
     """One output file, ``chunk`` points at a time (a window's: wide records, fewer)."""
     names = [name for name, _, _ in specs]
     with io.atomic_output(dst) as tmp:
         if io.is_las(dst):
-            stream.write_las(tmp, source, names, rows, chunk=chunk)
+            stream.write_las(tmp, source, names, rows, chunk=chunk, quantize=quantize)
         elif dst.suffix.lower() == ".ply":
             stream.write_ply(tmp, source, names, rows, n,
                              {name: (width, dtype) for name, width, dtype in specs},
