@@ -560,9 +560,12 @@ def _target_header(laspy, path, pts, like, fields):
 
 
 def _scaled_ints(path, pts, header):
-    """The int32 X, Y, Z columns of ``pts`` with the header's scales and offsets."""
+    """The X, Y, Z integers of ``pts`` with the header's scales and offsets (float64,
+    rounded: ``round((pts - offsets) / scales)``, computed in place)."""
     scales, offsets = np.asarray(header.scales), np.asarray(header.offsets)
-    ints = np.round((pts - offsets) / scales)
+    ints = np.subtract(pts, offsets)
+    ints /= scales
+    np.rint(ints, out=ints)
     if len(pts) and (ints.min() < -2**31 or ints.max() > 2**31 - 1):
         raise WriteError(f"{path}: coordinates do not fit LAS int32 with scales {scales} and "
                          f"offsets {offsets}")
@@ -791,19 +794,42 @@ def is_bitfield(point_format, name):
     return getattr(point_format.dimension_by_name(name).kind, "name", "") == "BitField"
 
 
-def _store(laspy, path, las, header, values):
-    """Set every dimension of ``las`` named in ``values``; WriteError if one cannot hold it."""
+#: points of each batch of records the in-memory writer hands to the codec (lazrs' parallel
+#: encoder shares a batch's LAZ chunks, of 50,000 points, among its threads)
+WRITE_BATCH = 1 << 20
+#: points of each block of a batch whose columns are set together: its records (a few MB)
+#: stay in the cache while every column is set
+WRITE_BLOCK = 1 << 16
+
+
+def _records(laspy, path, header, ints, values, raw, n):
+    """The point records of ``header`` for the in-memory writer, :data:`WRITE_BATCH` points
+    at a time (one empty batch for no point, as LasData.write), set :data:`WRITE_BLOCK`
+    points at a time: X, Y, Z from ``ints`` (scaled, rounded), every dimension named in
+    ``values`` set through laspy (bit fields packed, scaled dimensions scaled), the
+    quantised extra bytes ``raw`` as they are. ``values`` are checked first against their
+    dimensions (:func:`check_fits`): a WriteError before any point is written."""
+    fmt = header.point_format
+    values = {k: np.asarray(v) for k, v in values.items() if k in fmt.dimension_names}
     for name, a in values.items():
-        if name in las.point_format.dimension_names:
-            check_fits(path, las.point_format, name, a)
-    try:
-        for name, a in values.items():
-            if name in las.point_format.dimension_names:
-                las[name] = np.asarray(a).astype(np.int64) if is_bitfield(
-                    las.point_format, name) else a
-    except (ValueError, OverflowError, laspy.LaspyException) as exc:
-        raise WriteError(f"{path}: cannot store field {name!r} in LAS point format "
-                         f"{header.point_format.id}: {exc}") from exc
+        check_fits(path, fmt, name, a)
+    bits = {k for k in values if is_bitfield(fmt, k)}
+    for a0 in range(0, max(n, 1), WRITE_BATCH):
+        rec = laspy.ScaleAwarePointRecord.zeros(min(n, a0 + WRITE_BATCH) - a0, header=header)
+        for a in range(a0, a0 + len(rec), WRITE_BLOCK):
+            b = min(a0 + len(rec), a + WRITE_BLOCK)
+            block = rec[a - a0:b - a0]                # a view of rec's records
+            for i, axis in enumerate("XYZ"):
+                block.array[axis] = ints[a:b, i]
+            try:
+                for name, v in values.items():
+                    block[name] = v[a:b].astype(np.int64) if name in bits else v[a:b]
+            except (ValueError, OverflowError, laspy.LaspyException) as exc:
+                raise WriteError(f"{path}: cannot store field {name!r} in LAS point format "
+                                 f"{header.point_format.id}: {exc}") from exc
+            for name, v in raw.items():
+                block.array[name] = v[a:b]
+        yield rec
 
 
 def _normal_names(header):
@@ -832,15 +858,19 @@ class _ExtraStats:
             nd = s.no_data
             for i in range(v.shape[1]):
                 c = v[:, i]
-                ok = np.ones(len(c), bool) if nd is None else c != nd[i]
-                if c.dtype.kind == "f":
-                    ok &= ~np.isnan(c)
-                if ok.any():
-                    c = c[ok]
-                    key = (name, i)
+                if nd is not None:
+                    c = c[c != nd[i]]
+                if not len(c):
+                    continue
+                if c.dtype.kind == "f":           # NaN left out (all NaN: no value)
+                    lo, hi = np.fmin.reduce(c), np.fmax.reduce(c)
+                    if np.isnan(lo):
+                        continue
+                else:
                     lo, hi = c.min(), c.max()
-                    self.lo[key] = lo if key not in self.lo else min(self.lo[key], lo)
-                    self.hi[key] = hi if key not in self.hi else max(self.hi[key], hi)
+                key = (name, i)
+                self.lo[key] = lo if key not in self.lo else min(self.lo[key], lo)
+                self.hi[key] = hi if key not in self.hi else max(self.hi[key], hi)
 
     def put(self, header):
         """Set the statistics in the descriptors of ``header`` (the writer's copy); a
@@ -909,18 +939,13 @@ def write(path, pts, fields, normals, like, carried, quantize=None):
     if dtypes:                      # carried from a non-LAS like: extra bytes, first
         columns = {**{k: keep[k] for k in dtypes}, **columns}
     added = extra_dims(laspy, path, columns, header, dtypes, quantize)
-    las = laspy.LasData(header, points=laspy.ScaleAwarePointRecord.zeros(len(pts),
-                                                                          header=header))
-    las.X, las.Y, las.Z = (ints[:, i].astype(np.int32) for i in range(3))
     keep = {k: v for k, v in keep.items() if k not in columns}
     raw = {k: raw_column(path, k, v, quantize) for k, v in columns.items()
            if k in added and _quantization_of(k, v, quantize) is not None}
-    _store(laspy, path, las, header, {**keep, **{k: v for k, v in columns.items()
-                                                 if k not in raw}})
-    for k, v in raw.items():                  # quantised: the raw integers
-        las.points.array[k] = v
-    write_records(laspy, path, las.header, [las.points],
-                  las.evlrs if las.header.version.minor >= 4 else None)
+    values = {**keep, **{k: v for k, v in columns.items() if k not in raw}}
+    write_records(laspy, path, header, _records(laspy, path, header, ints, values, raw,
+                                                len(pts)),
+                  header.evlrs if header.version.minor >= 4 else None)
 
 
 FORMAT = Format(reads={".las": "LAS", ".laz": "LAZ (compressed LAS)"}, read=read,
