@@ -29,9 +29,9 @@ def test_compute_on_bundled_sample_writes_fields(tmp_path):
     cloud = io.read(out)
     src = io.read(sample_path())
     np.testing.assert_array_equal(cloud.points, src.points)           # order and points kept
-    for name in ("mean_curvature", "gaussian_curvature", "k1", "k2", "dir1_x",
-                 "neighbours", "status"):
-        assert name in cloud.attributes, name
+    # the default fields: MLS2's curvatures, counts, statuses and normals, no directions
+    assert list(cloud.attributes) == ["mean_curvature", "gaussian_curvature", "k1", "k2",
+                                      "neighbours", "status"]
     ok = cloud.attributes["status"] == 0
     assert ok.mean() > 0.98
     assert np.isfinite(cloud.attributes["mean_curvature"][ok]).all()
@@ -98,6 +98,10 @@ def test_compute_with_a_knn_radius(tmp_path):
     (["compute", "{sample}", "-o", "{tmp}/x.ply", "--radius", "big"], 2, "number or 'auto'"),
     (["compute", "{sample}", "-o", "{tmp}/x.unknown"], 3, "x.unknown"),
     (["compute", "{sample}", "-o", "{tmp}/x.ply", "--fields", "nonsense"], 2, "unknown field"),
+    (["compute", "{sample}", "-o", "{tmp}/x.ply", "--quantize"], 2,
+     "--quantize stores LAS/LAZ extra bytes"),
+    (["compute", "{sample}", "-o", "{tmp}/x.las", "--quantize", "--k", "30"], 2,
+     "give --radius, not --k"),
     (["compute", "{sample}", "-o", "{tmp}/x.ply", "--device", "no-such-gpu"], 4, "no OpenCL device"),
     (["compute", "{sample}", "-o", "{tmp}/x.ply", "--method", "mls9"], 2, "invalid choice"),
     (["compute", "{sample}", "-o", "{tmp}/x.ply", "--method", "3dcov", "--kernel", "gaussian"],
@@ -185,8 +189,13 @@ def sphere_points():
 def test_result_fields_names_order_and_dtypes(sphere_points, method):
     import clcurv
     res = clcurv.curvature(sphere_points, 0.35, method=method)
-    f = job.result_fields(res)
+    f = job.result_fields(res, "all")
     assert list(f) == FILE_FIELDS[method] + ["neighbours", "status"]
+    # the default set: all but the principal directions, and the normals
+    assert list(job.result_fields(res)) == \
+        [k for k in FILE_FIELDS[method] if k not in DIRS] + ["neighbours", "status"]
+    assert job.chosen_fields(res)[-1] == "normals"
+    assert job.result_fields(res, ["all"]).keys() == f.keys()
     assert f["neighbours"].dtype == np.int32 and f["status"].dtype == np.uint8
     assert all(f[k].dtype == np.float64 and f[k].shape == (len(res),) for k in FILE_FIELDS[method])
     if res.k1 is not None:
@@ -195,6 +204,28 @@ def test_result_fields_names_order_and_dtypes(sphere_points, method):
         [FILE_FIELDS[method][0], "status"]
     with pytest.raises(job.UsageError, match="unknown field"):
         job.result_fields(res, ["nonsense"])
+
+
+def test_fields_words_default_all_and_stems(sphere_points):
+    """``fields=``: "default" and "all" stand for those sets, a width-3 field's stem for its
+    three components, in file order whatever the order given."""
+    import clcurv
+    res = clcurv.curvature(sphere_points, 0.35, method="mls2")
+    assert job.chosen_fields(res, ["dir2", "default"]) == [
+        "mean_curvature", "gaussian_curvature", "k1", "k2", "dir2_x", "dir2_y", "dir2_z",
+        "neighbours", "status", "normals"]
+    assert job.chosen_fields(res, ["status", "k2"]) == ["k2", "status"]
+    assert job.chosen_fields(res, "all") == FILE_FIELDS["mls2"] + ["neighbours", "status",
+                                                                   "normals"]
+
+
+def test_compute_fields_all_writes_the_directions(tmp_path):
+    out = tmp_path / "bunny.npz"
+    p = run("compute", sample_path(), "-o", out, "--method", "2dcov1", "--fields", "all", "-q")
+    assert p.returncode == 0, p.stderr
+    cloud = io.read(out)
+    assert list(cloud.attributes) == FILE_FIELDS["2dcov1"] + ["neighbours", "status"]
+    assert cloud.normals is not None
 
 
 def test_summary_prints_the_ranges_of_the_width_1_fields(tmp_path, sphere_points):

@@ -106,10 +106,12 @@ def test_cli_compute_in_place_on_a_full_disk_keeps_the_input(tmp_path):
     src = tmp_path / "in.ply"
     shutil.copyfile(sample_path(), src)
     before = listing(tmp_path)
-    # the result (normals, curvatures, directions: 2.9 MB) does not fit; PoCL's compiler
-    # writes files of up to about 1 MB (a kernel build fails under a 0.5 MB limit)
+    # the result with every field (normals, curvatures, directions: 2.9 MB) does not fit;
+    # PoCL's compiler writes files of up to about 1 MB (a kernel build fails under a 0.5 MB
+    # limit)
     limit = 2 * 2**20
-    outcome = run_cli("compute", src, "-o", src, "-q", preexec_fn=fsize_limit(limit))
+    outcome = run_cli("compute", src, "-o", src, "-q", "--fields", "all",
+                      preexec_fn=fsize_limit(limit))
     assert listing(tmp_path) == before
     assert_clean_failure(outcome, 3, "compute on a full disk")
     assert str(src) in outcome.lines[0] and "write failed" in outcome.lines[0], outcome.lines

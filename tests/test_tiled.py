@@ -550,3 +550,33 @@ def test_a_real_aerial_scan_tiles_exactly(tmp_path):
     s = clcurv.curvature_file(AUTZEN, b, 6.0, method="mls2", scale_space=2, tile=100.0)
     assert s["tiles"] >= 50
     _assert_same(a, b)
+
+
+@pytest.mark.parametrize("method", ["mls2", "mls1"])
+def test_quantised_tiles_equal_the_in_memory_run_byte_for_byte(scene, method):
+    """quantize=True: the tiled LAZ is the in-memory LAZ byte for byte (header, extra-bytes
+    descriptors and their statistics included), every field within half its step of the
+    float32 run's, the principal directions written on request."""
+    d, paths, pts = scene
+    kw = dict(method=method, fields=["all"], memory="64GiB")
+    plain = clcurv.curvature_file(paths["laz"], d / f"q0_{method}.laz", R, **kw)
+    mem = clcurv.curvature_file(paths["laz"], d / f"qm_{method}.laz", R, quantize=True, **kw)
+    til = clcurv.curvature_file(paths["laz"], d / f"qt_{method}.laz", R, quantize=True,
+                                tile=8.0, **kw)
+    assert not plain["tiled"] and not mem["tiled"] and til["tiled"]
+    assert (d / f"qm_{method}.laz").read_bytes() == (d / f"qt_{method}.laz").read_bytes()
+    _, q = _dims(d / f"qt_{method}.laz")
+    _, f = _dims(d / f"q0_{method}.laz")
+    assert list(q) == list(f)
+    steps = {"nx": 1e-4, "mean_curvature": 1e-4 / R, "surface_variation": 1e-5,
+             "gaussian_curvature": 1e-4 / R**2, "k1": 1e-4 / R, "dir2_z": 1e-4}
+    checked = 0
+    for name, step in steps.items():
+        if name not in f:
+            continue
+        a, b = np.asarray(f[name], np.float64), np.asarray(q[name], np.float64)
+        ok = np.isfinite(a)
+        # float32 rounding of the plain run's value beside the half step
+        assert np.abs(a[ok] - b[ok]).max() <= step / 2 + 1e-7 * np.abs(a[ok]).max(), name
+        checked += 1
+    assert checked == (5 if method == "mls2" else 3)

@@ -167,7 +167,13 @@ OPTIONS = dict([
          job="precision", commands=FILE_COMMANDS),
     _opt("backend", default="opencl", choices=("opencl", "numpy")),
     _opt("fields", default=None, flag="--fields", nargs="+", job="fields",
-         help="fields to write (default: all)"),
+         help="fields to write: names (normals, mean_curvature, k1, dir1 for dir1_x "
+         "dir1_y dir1_z, ...), 'default' or 'all' (default: the method's curvatures, "
+         "neighbours, status and normals; not the principal directions)"),
+    _opt("quantize", default=False, flag="--quantize", action="store_true", job="quantize",
+         help="LAS/LAZ output: store normals, curvatures and directions as integers with "
+         "the extra-bytes descriptor's scale (curvatures to 5e-5 / radius, normals to "
+         "5e-5; NaN as no_data): a smaller LAZ"),
     _opt("viewpoint", type=float, default=None, flag="--viewpoint", nargs=3,
          metavar=("X", "Y", "Z"), job="viewpoint",
          help="orient normals towards this scanner position"),

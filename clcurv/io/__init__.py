@@ -167,7 +167,7 @@ def read(path) -> Cloud:
                                ) from exc
 
 
-def write(path, points, fields=None, normals=None, like=None):
+def write(path, points, fields=None, normals=None, like=None, quantize=None):
     """Write points, optional normals and per-point fields; the format follows the extension.
 
     Parameters
@@ -198,6 +198,12 @@ def write(path, points, fields=None, normals=None, like=None):
         field replacing an attribute of its name). Every format: ``like``'s normals when
         ``normals`` is None. Anything that is not a Cloud, or a Cloud of another size,
         raises WriteError.
+    quantize : float, optional
+        LAS/LAZ only (WriteError for another format): the radius of the run (file unit),
+        to store clcurv's real fields (normals, curvatures, directions, surface variation)
+        as integers with the extra-bytes descriptor's scale, e.g. ``mean_curvature`` as
+        int32 with scale 1e-4 / radius, NaN as its ``no_data``
+        (:func:`clcurv.io.las.quantization`).
 
     Returns
     -------
@@ -236,6 +242,9 @@ def write(path, points, fields=None, normals=None, like=None):
     :mod:`clcurv.io.ply`, :mod:`clcurv.io.las`, :mod:`clcurv.io.text`, :mod:`clcurv.io.npy`.
     """
     path = check_output(path)
+    if quantize is not None and not is_las(path):
+        raise WriteError(f"{path}: quantised fields are LAS/LAZ extra bytes; write .las or "
+                         ".laz, or leave quantize out")
     pts = check_points(path, points)
     normals = check_normals(path, normals, len(pts))
     fields = check_fields(path, fields, len(pts))
@@ -246,7 +255,8 @@ def write(path, points, fields=None, normals=None, like=None):
         normals = check_normals(path, normals, len(pts))
     with atomic_output(path) as tmp, warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        _WRITERS[path.suffix.lower()][1](tmp, pts, fields, normals, like, carried)
+        more = {} if quantize is None else {"quantize": float(quantize)}
+        _WRITERS[path.suffix.lower()][1](tmp, pts, fields, normals, like, carried, **more)
     for w in caught:                # the writer's warnings, naming path, not the temporary
         warnings.warn(str(w.message).replace(str(tmp), str(path)), w.category, stacklevel=2)
     return path

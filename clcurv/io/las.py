@@ -112,6 +112,16 @@ def is_laz(path):
     return path.suffix.lower() == ".laz"
 
 
+def laz_backends(laspy):
+    """The LAZ backends laspy tries, in this order: lazrs' parallel one (its chunks decoded
+    and encoded on rayon's threads, as many as the cores, or ``RAYON_NUM_THREADS``, which
+    the Dask workers set to their share: :mod:`clcurv.tiles.workers`), then the sequential
+    ones. Parallel is measured faster to read and to write on 2 cores
+    (``bench/results/io.md``)."""
+    b = laspy.LazBackend
+    return tuple(x for x in (b.LazrsParallel, b.Lazrs, b.Laszip) if x.is_available())
+
+
 # --------------------------------------------------------------------------- read
 
 #: public header size by minor version (LAS 1.0-1.5; 1.5 is read by laspy 2.6+)
@@ -306,7 +316,7 @@ def _read_points(laspy, path, layout):
     first = count if not layout.compressed else \
         min(count, max(step, _LAZ_TRUSTED_RATIO * layout.size // rec))
     got = 0
-    with laspy.open(str(path)) as reader:
+    with laspy.open(str(path), laz_backend=laz_backends(laspy)) as reader:
         header = reader.header
         out = np.empty(first, dtype=header.point_format.dtype())
         try:
@@ -550,9 +560,12 @@ def _target_header(laspy, path, pts, like, fields):
 
 
 def _scaled_ints(path, pts, header):
-    """The int32 X, Y, Z columns of ``pts`` with the header's scales and offsets."""
+    """The X, Y, Z integers of ``pts`` with the header's scales and offsets (float64,
+    rounded: ``round((pts - offsets) / scales)``, computed in place)."""
     scales, offsets = np.asarray(header.scales), np.asarray(header.offsets)
-    ints = np.round((pts - offsets) / scales)
+    ints = np.subtract(pts, offsets)
+    ints /= scales
+    np.rint(ints, out=ints)
     if len(pts) and (ints.min() < -2**31 or ints.max() > 2**31 - 1):
         raise WriteError(f"{path}: coordinates do not fit LAS int32 with scales {scales} and "
                          f"offsets {offsets}")
@@ -572,14 +585,124 @@ def check_extra_count(path, count):
                          "write fewer fields (radii, features), or NPZ or PLY")
 
 
+#: clcurv's count fields (``neighbours``: #N_r(p), the point itself included): stored
+#: unsigned, in the first of :data:`COUNT_TYPES` that holds the largest count of the file
+#: (:func:`count_dtype`)
+COUNT_FIELDS = ("neighbours",)
+#: uint16 (counts up to 65,535), else uint32; a count is never clipped nor wrapped
+COUNT_TYPES = (np.dtype("u2"), np.dtype("u4"))
+
+
+def count_dtype(path, name, a):
+    """The extra-bytes type of the count field ``name`` (:data:`COUNT_FIELDS`) with values
+    ``a``: uint16 when every count is at most 65,535, else uint32 (its own type when ``a``
+    already has one of :data:`COUNT_TYPES`: the tiled writer's choice,
+    :func:`clcurv.io.stream.write_las`). WriteError for a negative count or one beyond
+    uint32."""
+    a = np.asarray(a)
+    if a.dtype in COUNT_TYPES:
+        return a.dtype
+    lo, hi = (int(a.min()), int(a.max())) if a.size else (0, 0)
+    if lo < 0:
+        raise WriteError(f"{path}: the count field {name!r} has a negative value ({lo})")
+    for dt in COUNT_TYPES:
+        if hi <= np.iinfo(dt).max:
+            return dt
+    raise WriteError(f"{path}: the count field {name!r} has a value ({hi}) beyond "
+                     f"{COUNT_TYPES[-1]}, the widest count type")
+
+
+#: the step of quantised extra bytes (``quantize=``): normals and principal directions
+#: (unit vectors) 1e-4; curvatures 1e-4 / radius (1/length), the Gaussian curvature
+#: 1e-4 / radius^2; the surface variation 1e-5 (:func:`quantization`)
+QUANTUM = 1e-4
+_UNIT_VECTORS = ("nx", "ny", "nz") + tuple(f"dir{i}_{a}" for i in "12" for a in "xyz")
+
+
+def quantization(name, radius):
+    """(integer dtype, scale) of clcurv's real field ``name`` stored quantised with ``radius``
+    (the run's, in the file's unit), or None for a field kept float32 (``knn_radius``,
+    features, the input's). The value is ``raw * scale`` (offset 0), within ``scale / 2`` of
+    the computed (float64) value; the type's most negative value (uint16: its largest) is the
+    descriptor's ``no_data``, for NaN (:func:`quantized`).
+
+    =====================================  =======  ==================  ==================
+    field                                  type     scale (step)        range
+    =====================================  =======  ==================  ==================
+    ``nx ny nz``, ``dir1_*``, ``dir2_*``    int16    1e-4                +-3.2767
+    ``mean_curvature``, ``k1``, ``k2``      int32    1e-4 / r            +-214,748 / r
+    ``gaussian_curvature``                  int32    1e-4 / r^2          +-214,748 / r^2
+    ``surface_variation``                   uint16   1e-5                0 to 0.65534
+    =====================================  =======  ==================  ==================
+
+    A step of 1e-4 / r is a sag of 5e-5 r across the ball, far below LiDAR noise. The
+    curvatures take 32 bits: LAZ compresses their high bytes to almost nothing (int16 would
+    save little and clip the rare large values; bench/results/io.md)."""
+    r = float(radius)
+    if name in _UNIT_VECTORS:
+        return np.dtype("i2"), QUANTUM
+    if name in ("mean_curvature", "k1", "k2"):
+        return np.dtype("i4"), QUANTUM / r
+    if name == "gaussian_curvature":
+        return np.dtype("i4"), QUANTUM / (r * r)
+    if name == "surface_variation":
+        return np.dtype("u2"), QUANTUM / 10
+    return None
+
+
+def no_data(dt):
+    """The ``no_data`` value of quantised type ``dt``: its most negative value (unsigned:
+    its largest)."""
+    info = np.iinfo(dt)
+    return int(info.min) if dt.kind == "i" else int(info.max)
+
+
+def quantized(path, name, a, dt, scale):
+    """The raw integers (``dt``) of the values ``a`` stored with ``scale``: the value (in
+    float64) divided by ``scale`` and rounded to the nearest; NaN is :func:`no_data`.
+    WriteError for a value the type cannot hold (an infinity, or beyond the range of
+    :func:`quantization`): never clipped."""
+    v = np.asarray(a, np.float64)
+    nan = np.isnan(v)
+    with np.errstate(invalid="ignore", over="ignore"):
+        q = np.round(v / scale)
+    info, nd = np.iinfo(dt), no_data(dt)
+    lo, hi = (int(info.min) + 1, int(info.max)) if dt.kind == "i" else (0, int(info.max) - 1)
+    bad = ~nan & ~((q >= lo) & (q <= hi))
+    if bad.any():
+        raise WriteError(f"{path}: field {name!r} has {int(bad.sum())} value(s) that quantised "
+                         f"extra bytes cannot hold ({dt.name}, step {scale:.6g}: "
+                         f"{lo * scale:.6g} to {hi * scale:.6g}; e.g. {v[bad][0]:.6g}): "
+                         "write it without quantize")
+    q[nan] = nd
+    return q.astype(dt)
+
+
+def raw_column(path, name, a, quantize):
+    """The raw values of field ``name`` in the extra-bytes dimension :func:`extra_dims` made
+    for it: :func:`quantized` when ``quantize`` (the run's radius) applies to it, else the
+    values."""
+    spec = _quantization_of(name, a, quantize)
+    return a if spec is None else quantized(path, name, a, *spec)
+
+
+def _quantization_of(name, a, quantize):
+    if quantize is None or np.asarray(a).dtype.kind != "f":
+        return None
+    return quantization(name, quantize)
+
+
 def _field_dtype(path, name, a, dtypes=None):
     """(the extra-bytes dtype clcurv writes field ``name`` with, its description): float32
-    for real values, the integer type of an integer field, ``dtypes[name]`` when given."""
+    for real values, :func:`count_dtype` for a count field (:data:`COUNT_FIELDS`), the
+    integer type of another integer field, ``dtypes[name]`` when given."""
     if dtypes and name in dtypes:
         return np.dtype(dtypes[name]), "the input's"
     a = np.asarray(a)
     if a.dtype.kind == "f":
         return np.dtype("f4"), "clcurv"
+    if name in COUNT_FIELDS and a.dtype.kind in "iu":
+        return count_dtype(path, name, a), "clcurv"
     return int_as(path, name, a, _INTS), "clcurv"
 
 
@@ -590,9 +713,12 @@ def _holds_as_is(info, dt):
             and info.dtype is not None and np.dtype(info.dtype) == dt)
 
 
-def extra_dims(laspy, path, columns, header, dtypes=None):
+def extra_dims(laspy, path, columns, header, dtypes=None, quantize=None):
     """Make ``header`` (the output's, modified in place) hold the columns; returns the names
-    of the extra-bytes dimensions created for them, whose raw values are the values.
+    of the extra-bytes dimensions created for them, whose raw values are the values
+    (:func:`raw_column`: quantised with ``quantize``, the run's radius, for the fields
+    :func:`quantization` names: an integer type with the descriptor's scale, offset 0 and
+    ``no_data``).
 
     A column named like no dimension gets a new extra-bytes dimension (float32, or the
     integer type of the field, ``dtypes[name]`` when given), described ``clcurv``. A column
@@ -612,6 +738,16 @@ def extra_dims(laspy, path, columns, header, dtypes=None):
         if len(name) > 32:
             raise WriteError(f"{path}: LAS extra-bytes names have at most 32 characters: "
                              f"{name!r}")
+        spec = _quantization_of(name, a, quantize) if not (dtypes and name in dtypes) \
+            else None
+        if spec is not None:
+            dt, scale = spec
+            if name in extra:
+                replaced.append(name)
+            plan.append(laspy.ExtraBytesParams(
+                name=name, type=dt, description="clcurv", scales=np.array([scale]),
+                offsets=np.array([0.0]), no_data=np.array([no_data(dt)])))
+            continue
         dt, what = _field_dtype(path, name, a, dtypes)
         if name in extra:
             if _holds_as_is(extra[name], dt):
@@ -658,19 +794,42 @@ def is_bitfield(point_format, name):
     return getattr(point_format.dimension_by_name(name).kind, "name", "") == "BitField"
 
 
-def _store(laspy, path, las, header, values):
-    """Set every dimension of ``las`` named in ``values``; WriteError if one cannot hold it."""
+#: points of each batch of records the in-memory writer hands to the codec (lazrs' parallel
+#: encoder shares a batch's LAZ chunks, of 50,000 points, among its threads)
+WRITE_BATCH = 1 << 20
+#: points of each block of a batch whose columns are set together: its records (a few MB)
+#: stay in the cache while every column is set
+WRITE_BLOCK = 1 << 16
+
+
+def _records(laspy, path, header, ints, values, raw, n):
+    """The point records of ``header`` for the in-memory writer, :data:`WRITE_BATCH` points
+    at a time (one empty batch for no point, as LasData.write), set :data:`WRITE_BLOCK`
+    points at a time: X, Y, Z from ``ints`` (scaled, rounded), every dimension named in
+    ``values`` set through laspy (bit fields packed, scaled dimensions scaled), the
+    quantised extra bytes ``raw`` as they are. ``values`` are checked first against their
+    dimensions (:func:`check_fits`): a WriteError before any point is written."""
+    fmt = header.point_format
+    values = {k: np.asarray(v) for k, v in values.items() if k in fmt.dimension_names}
     for name, a in values.items():
-        if name in las.point_format.dimension_names:
-            check_fits(path, las.point_format, name, a)
-    try:
-        for name, a in values.items():
-            if name in las.point_format.dimension_names:
-                las[name] = np.asarray(a).astype(np.int64) if is_bitfield(
-                    las.point_format, name) else a
-    except (ValueError, OverflowError, laspy.LaspyException) as exc:
-        raise WriteError(f"{path}: cannot store field {name!r} in LAS point format "
-                         f"{header.point_format.id}: {exc}") from exc
+        check_fits(path, fmt, name, a)
+    bits = {k for k in values if is_bitfield(fmt, k)}
+    for a0 in range(0, max(n, 1), WRITE_BATCH):
+        rec = laspy.ScaleAwarePointRecord.zeros(min(n, a0 + WRITE_BATCH) - a0, header=header)
+        for a in range(a0, a0 + len(rec), WRITE_BLOCK):
+            b = min(a0 + len(rec), a + WRITE_BLOCK)
+            block = rec[a - a0:b - a0]                # a view of rec's records
+            for i, axis in enumerate("XYZ"):
+                block.array[axis] = ints[a:b, i]
+            try:
+                for name, v in values.items():
+                    block[name] = v[a:b].astype(np.int64) if name in bits else v[a:b]
+            except (ValueError, OverflowError, laspy.LaspyException) as exc:
+                raise WriteError(f"{path}: cannot store field {name!r} in LAS point format "
+                                 f"{header.point_format.id}: {exc}") from exc
+            for name, v in raw.items():
+                block.array[name] = v[a:b]
+        yield rec
 
 
 def _normal_names(header):
@@ -679,7 +838,85 @@ def _normal_names(header):
     return split_names(dims, xyz=False)[1]
 
 
-def write(path, pts, fields, normals, like, carried):
+class _ExtraStats:
+    """The minimum and maximum of each extra-bytes dimension over every point written (raw
+    values, no-data values and NaN left out), set in the descriptors of the header written
+    (:func:`write_records`)."""
+
+    def __init__(self, header):
+        self.lo, self.hi = {}, {}
+        vlrs = header.vlrs.get("ExtraBytesVlr")
+        self.structs = [s for s in (vlrs[0].extra_bytes_structs if vlrs else [])
+                        if s.data_type != 0]
+
+    def grow(self, array):
+        for s in self.structs:
+            name = s.format_name()
+            if name not in (array.dtype.names or ()):
+                continue
+            v = np.asarray(array[name]).reshape(len(array), -1)
+            nd = s.no_data
+            for i in range(v.shape[1]):
+                c = v[:, i]
+                if nd is not None:
+                    c = c[c != nd[i]]
+                if not len(c):
+                    continue
+                if c.dtype.kind == "f":           # NaN left out (all NaN: no value)
+                    lo, hi = np.fmin.reduce(c), np.fmax.reduce(c)
+                    if np.isnan(lo):
+                        continue
+                else:
+                    lo, hi = c.min(), c.max()
+                key = (name, i)
+                self.lo[key] = lo if key not in self.lo else min(self.lo[key], lo)
+                self.hi[key] = hi if key not in self.hi else max(self.hi[key], hi)
+
+    def put(self, header):
+        """Set the statistics in the descriptors of ``header`` (the writer's copy); a
+        dimension without a value gets none (its min and max bits cleared)."""
+        vlrs = header.vlrs.get("ExtraBytesVlr")
+        for s in (vlrs[0].extra_bytes_structs if vlrs else []):
+            if s.data_type == 0:
+                continue
+            name, n = s.format_name(), s.num_elements()
+            if all((name, i) in self.lo for i in range(n)):
+                s.options |= s.MIN_BIT_MASK | s.MAX_BIT_MASK
+                s._raw_min()[:] = [self.lo[name, i] for i in range(n)]
+                s._raw_max()[:] = [self.hi[name, i] for i in range(n)]
+            else:
+                s.options &= ~(s.MIN_BIT_MASK | s.MAX_BIT_MASK)
+
+
+def write_records(laspy, path, header, chunks, evlrs=None):
+    """Write ``path`` (LAZ when its extension says so, :func:`laz_backends`) with ``header``
+    and the point records ``chunks`` (``laspy.ScaleAwarePointRecord`` of that header, in
+    order), then ``evlrs``; both writers use it (:func:`write` in memory, one chunk;
+    :func:`clcurv.io.stream.write_las` in tiles, a window at a time).
+
+    The minimum and maximum that each extra-bytes descriptor holds are those of every point
+    (:class:`_ExtraStats`): laspy's own take the first point of each chunk written, so they
+    would be wrong and would differ between a file written at once and one written in
+    chunks."""
+    compress = is_laz(path)
+    # the file opened here, as LasData.write does: a failed write (disk full) is then the
+    # OSError, not lazrs' "Failed to call flush"
+    with open(path, "wb+") as f, \
+            laspy.open(f, mode="w", header=header, do_compress=compress, closefd=False,
+                       laz_backend=laz_backends(laspy) if compress else None) as writer:
+        stats = _ExtraStats(writer.header)
+        for rec in chunks:
+            writer.write_points(rec)
+            stats.grow(rec.array)
+        stats.put(writer.header)
+        if evlrs:
+            writer.write_evlrs(evlrs)
+
+
+def write(path, pts, fields, normals, like, carried, quantize=None):
+    """The LAS/LAZ writer of :func:`clcurv.io.write`; ``quantize``: the run's radius, to
+    store clcurv's real fields as quantised extra bytes (:func:`quantization`), or None
+    (float32)."""
     laspy = import_laspy(path, is_laz(path))
     if not np.isfinite(pts).all():
         raise WriteError(f"{path}: LAS cannot store NaN/Inf coordinates "
@@ -696,17 +933,19 @@ def write(path, pts, fields, normals, like, carried):
     ints = _scaled_ints(path, pts, header)
     columns = dict(fields)
     if normals is not None:
-        nrm = np.asarray(normals, dtype=np.float32)
+        # float32 fields; quantised ones from the float64 values, as the tiled writer's
+        nrm = np.asarray(normals, dtype=np.float32 if quantize is None else np.float64)
         columns = {"nx": nrm[:, 0], "ny": nrm[:, 1], "nz": nrm[:, 2], **columns}
     if dtypes:                      # carried from a non-LAS like: extra bytes, first
         columns = {**{k: keep[k] for k in dtypes}, **columns}
-    extra_dims(laspy, path, columns, header, dtypes)
-    las = laspy.LasData(header, points=laspy.ScaleAwarePointRecord.zeros(len(pts),
-                                                                          header=header))
-    las.X, las.Y, las.Z = (ints[:, i].astype(np.int32) for i in range(3))
+    added = extra_dims(laspy, path, columns, header, dtypes, quantize)
     keep = {k: v for k, v in keep.items() if k not in columns}
-    _store(laspy, path, las, header, {**keep, **columns})
-    las.write(str(path))
+    raw = {k: raw_column(path, k, v, quantize) for k, v in columns.items()
+           if k in added and _quantization_of(k, v, quantize) is not None}
+    values = {**keep, **{k: v for k, v in columns.items() if k not in raw}}
+    write_records(laspy, path, header, _records(laspy, path, header, ints, values, raw,
+                                                len(pts)),
+                  header.evlrs if header.version.minor >= 4 else None)
 
 
 FORMAT = Format(reads={".las": "LAS", ".laz": "LAZ (compressed LAS)"}, read=read,

@@ -537,7 +537,12 @@ def read_part(part, size):
 
 # --------------------------------------------------------------------------- writing
 
-def write_las(path, src, names, rows, chunk=1_000_000):
+class _WiderCounts(Exception):
+    """A count of a later chunk does not fit the count type chosen from the first rows
+    (:func:`write_las` writes the file again with the wider type)."""
+
+
+def write_las(path, src, names, rows, chunk=1_000_000, quantize=None):
     """Write a LAS/LAZ ``path`` holding the points of LAS/LAZ ``src`` (a :class:`LasSource`:
     its header, scales, offsets, VLRs, EVLRs and every dimension kept, the records copied as
     read) with the fields ``names`` added as extra-bytes dimensions; ``"normals"`` becomes
@@ -547,7 +552,22 @@ def write_las(path, src, names, rows, chunk=1_000_000):
     replacing an extra-bytes dimension of its name, one stored in a standard dimension must
     fit it), so both outputs are the same. ``rows(start, stop)`` gives the structured
     records (one field per name) of the points start..stop-1. Written chunk by chunk in
-    input order."""
+    input order.
+
+    A count field (:data:`clcurv.io.las.COUNT_FIELDS`) is uint16 unless some count exceeds
+    65,535 (:func:`clcurv.io.las.count_dtype`, which sees the whole column in memory): the
+    first rows choose the type, and a later chunk with a count beyond it makes the file
+    be written again with uint32, so both outputs are the same and no count is clipped.
+
+    ``quantize``: the run's radius, to store clcurv's real fields quantised
+    (:func:`clcurv.io.las.quantization`), as the in-memory writer does."""
+    try:
+        _write_las(path, src, names, rows, chunk, quantize, wide=False)
+    except _WiderCounts:
+        _write_las(path, src, names, rows, chunk, quantize, wide=True)
+
+
+def _write_las(path, src, names, rows, chunk, quantize, wide):
     laspy = las.import_laspy(path, las.is_laz(path))
     header = las.output_header(src.header)
 
@@ -559,11 +579,15 @@ def write_las(path, src, names, rows, chunk=1_000_000):
             else:
                 out[name] = rec[name]
         return out
-    added = las.extra_dims(laspy, path, columns(rows(0, min(1, src.n))), header)
+    first = columns(rows(0, min(1, src.n)))
+    counts = [k for k in first if k in las.COUNT_FIELDS]
+    if wide:
+        first.update({k: np.asarray(first[k]).astype(las.COUNT_TYPES[-1]) for k in counts})
+    added = las.extra_dims(laspy, path, first, header, quantize=quantize)
     dims = set(header.point_format.dimension_names)
     evlrs = header.evlrs if header.version.minor >= 4 else None
-    with laspy.open(str(src.path)) as reader, \
-            laspy.open(str(path), mode="w", header=header) as writer:
+
+    def records(reader):
         start = 0
         for rec in reader.chunk_iterator(chunk):
             m = len(rec)
@@ -571,15 +595,30 @@ def write_las(path, src, names, rows, chunk=1_000_000):
             _copy_records(rec.array, out.array)       # the raw records: integers as read
             for name, a in columns(rows(start, start + m)).items():
                 if name in added:                     # unscaled extra bytes: raw = value
-                    out.array[name] = a
+                    if name in counts:
+                        _check_counts(path, name, a, out.array.dtype[name])
+                    out.array[name] = las.raw_column(path, name, a, quantize)
                 elif name in dims:
                     las.check_fits(path, header.point_format, name, a)
                     out[name] = (np.asarray(a).astype(np.int64)
                                  if las.is_bitfield(header.point_format, name) else a)
-            writer.write_points(out)
+            yield out
             start += m
-        if evlrs:                                     # as LasData.write does in memory
-            writer.write_evlrs(evlrs)
+    with laspy.open(str(src.path), laz_backend=las.laz_backends(laspy)) as reader:
+        las.write_records(laspy, path, header, records(reader), evlrs)   # as in memory
+
+
+def _check_counts(path, name, a, dt):
+    """_WiderCounts when a count of ``a`` exceeds the type ``dt`` chosen for it (a wider one
+    exists), WriteError when none holds it: never a count clipped or wrapped."""
+    if not len(a):
+        return
+    lo, hi = int(np.min(a)), int(np.max(a))
+    if lo >= 0 and hi <= np.iinfo(dt).max:
+        return
+    if lo >= 0 and dt != las.COUNT_TYPES[-1]:
+        raise _WiderCounts(name)
+    las.count_dtype(path, name, a)                    # its WriteError
 
 
 def _copy_records(src, dst):

@@ -76,7 +76,9 @@ class Job:
     neighbours, :func:`auto_radius`). ``scale_space``: MLS1 scale-space steps at that
     radius before the operator. ``kernel``, ``h`` (length unit) and ``projections``: the
     options of the methods that take them (MLS2). ``fields``: the fields to write
-    (``"normals"`` and the names of :func:`result_fields`; None: all). ``positions``:
+    (``"normals"`` and the names of :func:`result_fields`, ``"all"``; None: the method's
+    default set, :func:`chosen_fields`). ``quantize``: LAS/LAZ output, the real fields as
+    quantised extra bytes (:func:`clcurv.io.las.quantization`). ``positions``:
     write the ``"original"`` positions or the ``"projected"`` ones (the operator's
     projection, else the smoothed cloud). ``k``: instead of ``radius``, each point's radius
     is the distance to its k-th nearest point (:mod:`clcurv.ops.knn_radius`; in memory only).
@@ -93,6 +95,7 @@ class Job:
     device: int | str | None = job_default("device")
     precision: str = job_default("precision")
     fields: Sequence[str] | None = job_default("fields")
+    quantize: bool = job_default("quantize")
     viewpoint: Sequence[float] | None = job_default("viewpoint")
     orient: str = job_default("orient")
     positions: str = job_default("positions")
@@ -197,6 +200,15 @@ def check_options(job):
     for name, takers in extra.items():
         raise UsageError(f"{OPTIONS[name].flag} is an option of --method {' or '.join(takers)} "
                          f"only, not of {job.method}")
+    if job.quantize:
+        outs = job.output if isinstance(job.output, (list, tuple)) else [job.output]
+        if isinstance(job.input, (list, tuple)):
+            outs = []                       # a catalog's outputs are LAS/LAZ, like its inputs
+        if not all(io.is_las(o) for o in outs):
+            raise UsageError("--quantize stores LAS/LAZ extra bytes: write .las or .laz")
+        if job.k is not None:
+            raise UsageError("--quantize scales the curvatures by the radius: give --radius, "
+                             "not --k")
     if job.k is not None:
         if job.radius != "auto":
             raise UsageError("give --radius or --k, not both")
@@ -207,20 +219,27 @@ def check_options(job):
                 raise UsageError(f"{name} does not combine with --k (a k-NN radius)")
 
 
+def chosen_fields(res, wanted=None):
+    """The names of the fields a file of ``res`` gets for the ``fields`` option's value
+    ``wanted`` (None: the method's default set; ``"all"``; names: :meth:`clcurv.ops.registry.
+    Operator.chosen_fields`), ``"normals"`` among them when they are written; UsageError
+    for an unknown name."""
+    extra = ("knn_radius",) if np.ndim(res.radius) else ()
+    try:
+        return OPERATORS[res.method].chosen_fields(wanted, extra)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+
+
 def result_fields(res, wanted=None):
     """The per-point fields of ``res`` to write, name -> (N,) array, named as
     CloudCompare/MeshLab scalar fields (:func:`clcurv.tiles.engine.curvature_fields`: the
     operator's file fields in the registry's order, then ``neighbours`` and ``status``).
-    ``wanted``: keep only these names (``"normals"`` is allowed and written apart);
-    UsageError for another name."""
-    f = curvature_fields(res)
-    if not wanted:
-        return f
-    unknown = sorted(set(wanted) - set(f) - {"normals"})
-    if unknown:
-        raise UsageError(f"unknown field(s) {', '.join(unknown)} for method {res.method}; "
-                         f"available: normals, {', '.join(f)}")
-    return {k: v for k, v in f.items() if k in wanted}
+    ``wanted``: the ``fields`` option (None: the method's default set, :func:`chosen_fields`;
+    ``"all"``: every one; ``"normals"`` is allowed and written apart); UsageError for an
+    unknown name."""
+    names = chosen_fields(res, wanted)
+    return {k: v for k, v in curvature_fields(res).items() if k in names}
 
 
 def summary_fields(method):
@@ -341,10 +360,10 @@ def _run_in_memory(job, out):
     res, work = _evaluate(job, cloud, radius, device, st)
     done = Done(cloud.points, res.radius if job.k is not None else radius, res,
                 result_fields(res, job.fields))
-    normals = None if job.fields and "normals" not in job.fields else res.normals
+    normals = res.normals if "normals" in chosen_fields(res, job.fields) else None
     with st.stage("writing"):
         io.write(job.output, _positions(job, cloud, res, work), fields=done.fields,
-                 normals=normals, like=cloud)
+                 normals=normals, like=cloud, quantize=radius if job.quantize else None)
     for line in _summary(job, cloud, done, device, st.times, normals is not None):
         out(line)
     return done
@@ -471,7 +490,7 @@ def _tiled_summary(job, summary):
 
 def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient="auto",
                    viewpoint=None, kernel=None, h=None, scale_space=0, projections=0,
-                   memory="auto", tile=None, workdir=None, fields=None,
+                   memory="auto", tile=None, workdir=None, fields=None, quantize=False,
                    ignore_normals=False, device=None, precision="float", progress=None,
                    out=None, client=None, workers=None):
     """Run ``method`` on the cloud of file ``src`` and write ``dst``, in tiles when the cloud
@@ -505,8 +524,15 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
     workdir : path, optional
         Workspace folder (default: beside ``dst``); kept between an interrupted run and
         the same command run again (finished tiles are skipped), removed at the end.
-    fields : list of str, optional
-        The fields to write (as ``clcurv compute --fields``); default all and the normals.
+    fields : list of str or 'all', optional
+        The fields to write (as ``clcurv compute --fields``; ``"normals"`` among them):
+        default the method's default set (its curvatures, ``neighbours``, ``status`` and
+        the normals; not the principal directions), ``"all"`` every one
+        (:meth:`clcurv.ops.registry.Operator.chosen_fields`).
+    quantize : bool
+        LAS/LAZ output: clcurv's real fields as integers with the extra-bytes descriptor's
+        scale (:func:`clcurv.io.las.quantization`: curvatures to 5e-5 / radius, normals to
+        5e-5, NaN as ``no_data``); ValueError for another output format.
     progress : callable(done, total, points) or None
         Called after each tile.
     client : dask.distributed.Client, optional
@@ -543,10 +569,13 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
     if int(scale_space) < 0:
         raise ValueError(f"scale_space must be >= 0, got {scale_space}")
     tiled.check_tiled_outputs(dst if catalog else [dst], source)
+    fields = OPERATORS[method].chosen_fields(fields)    # the names, in the resume key too
+    if quantize and not all(io.is_las(d) for d in (dst if catalog else [dst])):
+        raise ValueError("quantize stores LAS/LAZ extra bytes: write .las or .laz")
     params = CurvatureParams(method=method, radius=r, weights=weights, orient=orient,
                              viewpoint=viewpoint, kernel=kernel, h=h, device=device,
                              precision=precision, ignore_normals=ignore_normals,
-                             scale_space=scale_space)
+                             scale_space=scale_space, quantize=quantize)
     forced = catalog or tile is not None or client is not None or bool(workers)
     if not in_tiles(source.n, fit_budget(memory), forced):
         summary = _curvature_in_memory(src, dst, params, fields)
@@ -594,7 +623,7 @@ def _curvature_in_memory(src, dst, params, fields):
               precision=params.precision, fields=fields, viewpoint=params.viewpoint,
               orient="none" if orient is None else orient,
               ignore_normals=params.ignore_normals, scale_space=params.scale_space,
-              quiet=True)
+              quantize=params.quantize, quiet=True)
     t0 = time.perf_counter()
     check_options(job)
     done = _run_in_memory(job, out=lambda line: None)

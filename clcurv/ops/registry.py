@@ -73,14 +73,17 @@ class Kernel:
 @dataclass(frozen=True)
 class Output:
     """One per-point output of a method: the :class:`~clcurv.api.result.CurvatureResult`
-    attribute ``name`` ((N,) or (N, width) float64), its unit, whether it is signed, and
-    its field name in files (``None``: not written; a width-3 field gets _x, _y, _z)."""
+    attribute ``name`` ((N,) or (N, width) float64), its unit, whether it is signed, its
+    field name in files (``None``: not written; a width-3 field gets _x, _y, _z) and whether
+    a file gets it by default (``by_default``; else only when asked, ``fields=``:
+    :meth:`Operator.chosen_fields`)."""
     name: str
     width: int
     unit: str
     doc: str
     signed: bool = False
     file: str | None = None
+    by_default: bool = True
 
     def file_fields(self):
         if self.file is None:
@@ -154,6 +157,50 @@ class Operator:
                 out[f] = (o.name, c if len(names) > 1 else None)
         return out
 
+    def chosen_fields(self, wanted=None, extra=()):
+        """The names of the file fields to write, in file order (:meth:`file_fields`, then
+        ``extra``, e.g. ``knn_radius``, then :data:`COMMON_FILE_FIELDS`, then ``"normals"``),
+        for the ``fields`` option's value ``wanted``:
+
+        * None (the default) or ``"default"``: :meth:`default_fields`;
+        * ``"all"``: every field;
+        * names, among which ``"all"`` and ``"default"`` stand for those sets and the stem
+          of a width-3 field (``"dir1"``) for its three components (``dir1_x, _y, _z``).
+
+        ValueError naming the unknown names and the available ones."""
+        every = list(self.file_fields()) + list(extra) + list(COMMON_FILE_FIELDS) + ["normals"]
+        if wanted is None:
+            wanted = [DEFAULT_FIELDS]
+        elif isinstance(wanted, str):
+            wanted = [wanted]
+        stems = {o.file: o.file_fields() for o in self.outputs
+                 if o.file is not None and o.width > 1}
+        take, unknown = set(), []
+        for w in wanted:
+            if w == ALL_FIELDS:
+                take.update(every)
+            elif w == DEFAULT_FIELDS:
+                take.update(self.default_fields(extra))
+            elif w in stems:
+                take.update(stems[w])
+            elif w in every:
+                take.add(w)
+            else:
+                unknown.append(w)
+        if unknown:
+            raise ValueError(f"unknown field(s) {', '.join(sorted(unknown))} for method "
+                             f"{self.name}; available: {ALL_FIELDS}, {DEFAULT_FIELDS}, "
+                             f"{', '.join(every)}")
+        return [f for f in every if f in take]
+
+    def default_fields(self, extra=()):
+        """The file fields written unless ``fields=`` says otherwise: the operator's outputs
+        marked ``by_default`` (its curvatures or surface variation; not the principal
+        directions, 6 of MLS2's 13 real fields, which few LiDAR uses need), ``extra`` (the
+        ``knn_radius`` of a k-NN radius), ``neighbours``, ``status`` and ``normals``."""
+        own = [f for o in self.outputs if o.by_default for f in o.file_fields()]
+        return own + list(extra) + list(COMMON_FILE_FIELDS) + ["normals"]
+
 
 # ------------------------------------------------------------------------------------------
 # kernels
@@ -200,9 +247,10 @@ _MEAN = Output("mean", 1, "1/length", "signed mean curvature H", signed=True,
 def _magnitudes(unit_eig):
     return (Output("k1", 1, "1/length", "larger curvature magnitude k1 >= k2 >= 0", file="k1"),
             Output("k2", 1, "1/length", "smaller curvature magnitude", file="k2"),
-            Output("dir1", 3, "1", "unit principal direction of k1 (tangent)", file="dir1"),
+            Output("dir1", 3, "1", "unit principal direction of k1 (tangent)", file="dir1",
+                   by_default=False),
             Output("dir2", 3, "1", "unit principal direction of k2 = normal x dir1",
-                   file="dir2"),
+                   file="dir2", by_default=False),
             Output("eigenvalues", unit_eig[0], unit_eig[1], unit_eig[2]),
             Output("normals", 3, "1", "the unit normals the operator used (yours, "
                    "normalised, else the oriented PCA normals)"))
@@ -323,9 +371,10 @@ OPERATORS = {op.name: op for op in (
                      file="k1"),
               Output("k2", 1, "1/length", "signed principal curvature", signed=True,
                      file="k2"),
-              Output("dir1", 3, "1", "unit principal direction of k1 (tangent)", file="dir1"),
+              Output("dir1", 3, "1", "unit principal direction of k1 (tangent)", file="dir1",
+                     by_default=False),
               Output("dir2", 3, "1", "unit principal direction of k2 = normal x dir1",
-                     file="dir2"),
+                     file="dir2", by_default=False),
               Output("normals", 3, "1", "unit normals of the fitted quadric at the "
                      "projection, oriented as `orient` says"),
               Output("points", 3, "length", "the MLS2 projection of p")),
@@ -337,6 +386,9 @@ METHODS = tuple(OPERATORS)
 
 #: per-point fields every result has, beside the operator's outputs
 COMMON_FILE_FIELDS = ("neighbours", "status")
+#: the ``fields`` values (and ``--fields`` words) that stand for every file field and for
+#: the default ones (:meth:`Operator.chosen_fields`)
+ALL_FIELDS, DEFAULT_FIELDS = "all", "default"
 
 
 def signed_file_fields():

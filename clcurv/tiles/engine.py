@@ -129,12 +129,14 @@ class CurvatureParams:
     precision: str
     ignore_normals: bool
     scale_space: int = OPTIONS["scale_space"].default
+    quantize: bool = OPTIONS["quantize"].default
     orient_k: int = OPTIONS["orient_k"].default
     #: what the tiles compute (clcurv.tiles.features.FeatureParams: "features")
     kind = "curvature"
 
     def __post_init__(self):
         self.ignore_normals, self.scale_space = bool(self.ignore_normals), int(self.scale_space)
+        self.quantize = bool(self.quantize)
 
     def halo(self, file_normals):
         """Cells of halo of this run's tiles (:func:`halo_cells`)."""
@@ -428,7 +430,7 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
     stored = _stored_specs(params, specs)
     if source.n == 0:                   # as the in-memory run: an empty output
         windows = Windows(ws / "windows", 0, tile_dtype(stored))
-        _write_output(dst, source, windows, specs)
+        _write_output(dst, source, windows, specs, _quantize(params))
         return _summary(params, 0, 0, 0, source, times, windows.status, dst)
     def execute(tasks, fn):
         return _execute(tasks, client, fn)
@@ -491,7 +493,8 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
     t2 = time.perf_counter()
     if isinstance(source, stream.Catalog) and not mst:
         files_of = {t: info[t]["files"] for t in tiles}
-        status = write_files(ws, source, dst, tiles, files_of, stored, specs, execute)
+        status = write_files(ws, source, dst, tiles, files_of, stored, specs, execute,
+                             _quantize(params))
         times["writing"] = time.perf_counter() - t2
     else:
         windows = partition(ws, source.n, tiles, stored, mst)
@@ -566,7 +569,7 @@ def _run_regions(space, want, source, dst, params, budget, tile, wanted, progres
     _trim()
     times["merging"] = time.perf_counter() - t2
     t3 = time.perf_counter()
-    _write_output(dst, source, windows, specs)
+    _write_output(dst, source, windows, specs, _quantize(params))
     times["writing"] = time.perf_counter() - t3
     summary = _summary(params, len(tiles), len(tiles) - len(tasks), tiling.size, source,
                        times, windows.status, dst, halo)
@@ -661,16 +664,11 @@ def _trim():
 
 
 def _wanted_specs(params, wanted):
-    want_normals = not wanted or "normals" in wanted
-    specs = _field_specs(params.method, want_normals)
-    if wanted:
-        names = {s[0] for s in specs} | {"normals"}
-        unknown = sorted(set(wanted) - names)
-        if unknown:
-            raise ValueError(f"unknown field(s) {', '.join(unknown)} for method "
-                             f"{params.method}; available: {', '.join(sorted(names))}")
-        specs = [s for s in specs if s[0] in wanted]
-    return specs
+    """The specs of the fields written for the ``fields`` option's value ``wanted`` (None:
+    the method's default set; :meth:`clcurv.ops.registry.Operator.chosen_fields`, as the
+    run in memory); ValueError for an unknown name."""
+    names = OPERATORS[params.method].chosen_fields(wanted)
+    return [s for s in _field_specs(params.method, "normals" in names) if s[0] in names]
 
 
 @dataclass
@@ -841,6 +839,7 @@ class WriteTask:
     tiles: list         # the tiles that own its points
     stored: list        # the fields of the tiles' records
     specs: list         # the fields written
+    quantize: float = None   # the LAS writers' quantize (:func:`_quantize`)
 
 
 def write_file(task):
@@ -861,12 +860,12 @@ def write_file(task):
         if "status" in rec.dtype.names and len(rec):
             win.status += np.bincount(rec["status"], minlength=4)[:4]
         to_windows(rec, win.path, win.size)
-    _write_one(Path(task.dst), src, win.rows, task.n, task.specs, win.size)
+    _write_one(Path(task.dst), src, win.rows, task.n, task.specs, win.size, task.quantize)
     wsp.remove(folder)
     return task.t, win.status.tolist()
 
 
-def write_files(ws, source, dst, tiles, files_of, stored, specs, execute):
+def write_files(ws, source, dst, tiles, files_of, stored, specs, execute, quantize=None):
     """Pass (3) of a catalog: each input file's output written by a task of ``execute``
     (:func:`write_file`; on the workers of a Dask run), each under a hidden name beside
     its destination; once every one is written, each is renamed to its destination (a
@@ -878,7 +877,7 @@ def write_files(ws, source, dst, tiles, files_of, stored, specs, execute):
     for k, (part, off, tmp) in enumerate(zip(source.parts, source.offsets, hidden)):
         mine = [t for t in tiles if k in files_of[t]]
         tasks.append(WriteTask(str(ws), k, str(part.path), str(tmp), int(off), int(part.n),
-                               mine, stored, specs))
+                               mine, stored, specs, quantize))
     status = np.zeros(4, np.int64)
     try:
         for _, counts in execute(tasks, write_file):
@@ -918,23 +917,29 @@ def _execute(tasks, client, fn):
     yield from cluster.map_tiles(fn, tasks, client=client)
 
 
-def _write_output(dst, source, windows, specs):
+def _quantize(params):
+    """The ``quantize`` of the LAS writers: the run's radius when its fields are written
+    quantised (:func:`clcurv.io.las.quantization`), else None."""
+    return float(params.radius) if getattr(params, "quantize", False) else None
+
+
+def _write_output(dst, source, windows, specs, quantize=None):
     """Pass (3b): the output in input order, a window at a time, atomically (a catalog:
     one output per input file, each with its own points)."""
     if isinstance(source, stream.Catalog):
         for part, off, d in zip(source.parts, source.offsets, dst):
             rows = (lambda o: lambda a, b: windows.rows(o + a, o + b))(int(off))
-            _write_one(d, part, rows, part.n, specs, windows.size)
+            _write_one(d, part, rows, part.n, specs, windows.size, quantize)
         return
-    _write_one(dst, source, windows.rows, windows.n, specs, windows.size)
+    _write_one(dst, source, windows.rows, windows.n, specs, windows.size, quantize)
 
 
-def _write_one(dst, source, rows, n, specs, chunk=READ_CHUNK):
+def _write_one(dst, source, rows, n, specs, chunk=READ_CHUNK, quantize=None):
     """One output file, ``chunk`` points at a time (a window's: wide records, fewer)."""
     names = [name for name, _, _ in specs]
     with io.atomic_output(dst) as tmp:
         if io.is_las(dst):
-            stream.write_las(tmp, source, names, rows, chunk=chunk)
+            stream.write_las(tmp, source, names, rows, chunk=chunk, quantize=quantize)
         elif dst.suffix.lower() == ".ply":
             stream.write_ply(tmp, source, names, rows, n,
                              {name: (width, dtype) for name, width, dtype in specs},
