@@ -850,6 +850,8 @@ class _ExtraStats:
                         if s.data_type != 0]
 
     def grow(self, array):
+        if not len(array):
+            return
         for s in self.structs:
             name = s.format_name()
             if name not in (array.dtype.names or ()):

@@ -503,7 +503,7 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
         _trim()
         times["merging"] = time.perf_counter() - t2
         t3 = time.perf_counter()
-        _write_output(dst, source, windows, specs)
+        _write_output(dst, source, windows, specs, _quantize(params))
         times["writing"] = time.perf_counter() - t3
         status = windows.status
     summary = _summary(params, len(tiles), skipped, tiling.size, source, times, status,
