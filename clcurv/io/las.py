@@ -838,7 +838,7 @@ def _normal_names(header):
     return split_names(dims, xyz=False)[1]
 
 
-class _ExtraStats:
+class ExtraStats:
     """The minimum and maximum of each extra-bytes dimension over every point written (raw
     values, no-data values and NaN left out), set in the descriptors of the header written
     (:func:`write_records`)."""
@@ -868,11 +868,23 @@ class _ExtraStats:
                     lo, hi = np.fmin.reduce(c), np.fmax.reduce(c)
                     if np.isnan(lo):
                         continue
+                    lo, hi = lo + 0.0, hi + 0.0   # -0.0 as 0.0: the same whatever the order
                 else:
                     lo, hi = c.min(), c.max()
                 key = (name, i)
                 self.lo[key] = lo if key not in self.lo else min(self.lo[key], lo)
                 self.hi[key] = hi if key not in self.hi else max(self.hi[key], hi)
+
+    def state(self):
+        """The statistics, picklable: [(name, element, min, max)]."""
+        return [(k[0], k[1], self.lo[k].item(), self.hi[k].item()) for k in self.lo]
+
+    def merge(self, state):
+        """Add the statistics of another writer's records (:meth:`state`)."""
+        for name, i, lo, hi in state:
+            key = (name, i)
+            self.lo[key] = lo if key not in self.lo else min(self.lo[key], lo)
+            self.hi[key] = hi if key not in self.hi else max(self.hi[key], hi)
 
     def put(self, header):
         """Set the statistics in the descriptors of ``header`` (the writer's copy); a
@@ -897,7 +909,7 @@ def write_records(laspy, path, header, chunks, evlrs=None):
     :func:`clcurv.io.stream.write_las` in tiles, a window at a time).
 
     The minimum and maximum that each extra-bytes descriptor holds are those of every point
-    (:class:`_ExtraStats`): laspy's own take the first point of each chunk written, so they
+    (:class:`ExtraStats`): laspy's own take the first point of each chunk written, so they
     would be wrong and would differ between a file written at once and one written in
     chunks."""
     compress = is_laz(path)
@@ -906,7 +918,7 @@ def write_records(laspy, path, header, chunks, evlrs=None):
     with open(path, "wb+") as f, \
             laspy.open(f, mode="w", header=header, do_compress=compress, closefd=False,
                        laz_backend=laz_backends(laspy) if compress else None) as writer:
-        stats = _ExtraStats(writer.header)
+        stats = ExtraStats(writer.header)
         for rec in chunks:
             writer.write_points(rec)
             stats.grow(rec.array)

@@ -596,9 +596,11 @@ def _output_header(path, header, infos, laz, vlr):
 
 def _chunk_vlr(lazrs, header, chunks):
     """The output's LASzip VLR: fixed-size chunks when every chunk but the last has the
-    same count (and the last no more), else variable-size chunks (:data:`VARIABLE_CHUNKS`)."""
+    same count (and the last no more), else variable-size chunks (:data:`VARIABLE_CHUNKS`);
+    a single chunk of at most CHUNK_SIZE points announces CHUNK_SIZE, as laspy does."""
     counts = [c for c, _ in chunks]
-    fixed = counts[0] if counts else CHUNK_SIZE
+    # one chunk: the chunk size laspy (and the pieces) write with, unless the chunk is larger
+    fixed = counts[0] if len(counts) > 1 else max(counts + [CHUNK_SIZE])
     if all(c == fixed for c in counts[:-1]) and (not counts or counts[-1] <= fixed):
         return _laszip_vlr(lazrs, header.point_format, fixed)
     return _laszip_vlr(lazrs, header.point_format, VARIABLE_CHUNKS)
@@ -661,7 +663,7 @@ class _Limited(io.RawIOBase):
         return k
 
 
-def assemble(path, header, pieces, *, verify=True):
+def assemble(path, header, pieces, *, verify=True, finish=None):
     """Write the LAS/LAZ file ``path`` holding the points of ``pieces``, in order.
 
     Parameters
@@ -679,6 +681,10 @@ def assemble(path, header, pieces, *, verify=True):
         Check each payload's CRC-32 while copying it (one read of each piece). Without it,
         the sizes are checked only and the bytes are copied by the kernel
         (``os.copy_file_range``: a server-side copy on file systems that have one).
+    finish : callable(header) or None
+        Called on the output's header before it is written, to set what the caller knows
+        better (clcurv's writers: each extra-bytes descriptor's min and max over every point,
+        :class:`clcurv.io.las.ExtraStats`).
 
     Returns
     -------
@@ -706,6 +712,8 @@ def assemble(path, header, pieces, *, verify=True):
     chunks = [c for i in infos for c in i.chunks]
     vlr = _chunk_vlr(lazrs, header, chunks) if laz else None
     out = _output_header(path, header, infos, laz, vlr)
+    if finish is not None:
+        finish(out)
     table = b""
     if laz:
         buf = io.BytesIO()

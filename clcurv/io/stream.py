@@ -45,7 +45,7 @@ from pathlib import Path
 import numpy as np
 import plyfile
 
-from . import carry, las, ply, vpc
+from . import carry, las, pieces, ply, vpc
 from .common import (CatalogError, CorruptFileError, MissingFileError, UnknownFormatError,
                      check_claim,
                      LAS_SUFFIXES, from_las, is_las, looks_like_normals, native, split_names)
@@ -568,44 +568,106 @@ def write_las(path, src, names, rows, chunk=1_000_000, quantize=None):
 
 
 def _write_las(path, src, names, rows, chunk, quantize, wide):
-    laspy = las.import_laspy(path, las.is_laz(path))
-    header = las.output_header(src.header)
+    plan = LasPlan.make(path, src, names, rows(0, min(1, src.n)), quantize, wide)
+    laspy = plan.laspy
+    with laspy.open(str(src.path), laz_backend=las.laz_backends(laspy)) as reader:
+        las.write_records(laspy, path, plan.header, plan.records(
+            path, reader.chunk_iterator(chunk), rows, 0), plan.evlrs)   # as in memory
 
-    def columns(rec):
-        out = {}
-        for name in sorted(names, key=lambda k: k != "normals"):     # nx ny nz first
-            if name == "normals":
-                out.update(nx=rec[name][:, 0], ny=rec[name][:, 1], nz=rec[name][:, 2])
-            else:
-                out[name] = rec[name]
-        return out
-    first = columns(rows(0, min(1, src.n)))
-    counts = [k for k in first if k in las.COUNT_FIELDS]
-    if wide:
-        first.update({k: np.asarray(first[k]).astype(las.COUNT_TYPES[-1]) for k in counts})
-    added = las.extra_dims(laspy, path, first, header, quantize=quantize)
-    dims = set(header.point_format.dimension_names)
-    evlrs = header.evlrs if header.version.minor >= 4 else None
 
-    def records(reader):
-        start = 0
-        for rec in reader.chunk_iterator(chunk):
+def _las_columns(names, rec):
+    """{dimension name: values} of the fields ``names`` of the records ``rec`` (normals as
+    nx ny nz, first)."""
+    out = {}
+    for name in sorted(names, key=lambda k: k != "normals"):          # nx ny nz first
+        if name == "normals":
+            out.update(nx=rec[name][:, 0], ny=rec[name][:, 1], nz=rec[name][:, 2])
+        else:
+            out[name] = rec[name]
+    return out
+
+
+class LasPlan:
+    """The header of a LAS/LAZ output of a LAS/LAZ source with clcurv's fields, and how its
+    records are made from the source's (:func:`write_las`; a worker's piece of it,
+    :func:`write_las_piece`): small and picklable (the header, the field names)."""
+
+    def __init__(self, path, header, names, added, counts, quantize):
+        self.path, self.header, self.names = str(path), header, list(names)
+        self.added, self.counts, self.quantize = set(added), list(counts), quantize
+
+    @classmethod
+    def make(cls, path, src, names, first, quantize=None, wide=False):
+        """The plan of ``path`` from ``src`` (a :class:`LasSource`): ``first``, records of
+        the fields (a row, or none), whose types decide the dimensions' (``wide``: counts
+        as uint32)."""
+        laspy = las.import_laspy(path, las.is_laz(path))
+        header = las.output_header(src.header)
+        cols = _las_columns(names, first)
+        counts = [k for k in cols if k in las.COUNT_FIELDS]
+        if wide:
+            cols.update({k: np.asarray(cols[k]).astype(las.COUNT_TYPES[-1]) for k in counts})
+        added = las.extra_dims(laspy, path, cols, header, quantize=quantize)
+        return cls(path, header, names, added, counts, quantize)
+
+    @property
+    def laspy(self):
+        return las.import_laspy(Path(self.path), las.is_laz(Path(self.path)))
+
+    @property
+    def evlrs(self):
+        return self.header.evlrs if self.header.version.minor >= 4 else None
+
+    def records(self, path, chunks, rows, start):
+        """The output records of the source's records ``chunks`` (laspy point records, in
+        order, the first one of point ``start``), their fields from ``rows(a, b)``."""
+        laspy, header = self.laspy, self.header
+        dims = set(header.point_format.dimension_names)
+        for rec in chunks:
             m = len(rec)
             out = laspy.ScaleAwarePointRecord.zeros(m, header=header)
             _copy_records(rec.array, out.array)       # the raw records: integers as read
-            for name, a in columns(rows(start, start + m)).items():
-                if name in added:                     # unscaled extra bytes: raw = value
-                    if name in counts:
+            for name, a in _las_columns(self.names, rows(start, start + m)).items():
+                if name in self.added:                # unscaled extra bytes: raw = value
+                    if name in self.counts:
                         _check_counts(path, name, a, out.array.dtype[name])
-                    out.array[name] = las.raw_column(path, name, a, quantize)
+                    out.array[name] = las.raw_column(path, name, a, self.quantize)
                 elif name in dims:
                     las.check_fits(path, header.point_format, name, a)
                     out[name] = (np.asarray(a).astype(np.int64)
                                  if las.is_bitfield(header.point_format, name) else a)
             yield out
             start += m
-    with laspy.open(str(src.path), laz_backend=las.laz_backends(laspy)) as reader:
-        las.write_records(laspy, path, header, records(reader), evlrs)   # as in memory
+
+
+def write_las_piece(piece, plan, src_path, first, stop, rows, chunk=1_000_000):
+    """A worker's piece of a LAS/LAZ output (:mod:`clcurv.io.pieces`): the output records of
+    the source's points first..stop-1 (entered through the LAZ chunk table) with their
+    fields ``rows(a, b)`` (a, b counted from ``first``), written to the piece file
+    ``piece``; returns the extra-bytes statistics of its records
+    (:meth:`clcurv.io.las.ExtraStats.state`), which the output's header holds."""
+    laspy = plan.laspy
+    path = Path(plan.path)
+
+    def chunks(reader):
+        if first:
+            reader.seek(first)
+        at = first
+        while at < stop:
+            rec = reader.read_points(min(chunk, stop - at))
+            if not len(rec):
+                raise CorruptFileError(f"{src_path}: points {at}..{stop - 1} cannot be read "
+                                       "(the file changed during the run?)")
+            at += len(rec)
+            yield rec
+    stats = las.ExtraStats(plan.header)
+    with laspy.open(str(src_path), laz_backend=las.laz_backends(laspy)) as reader, \
+            pieces.PieceWriter(piece, plan.header, laz=las.is_laz(path)) as writer:
+        for out in plan.records(path, chunks(reader), lambda a, b: rows(a - first, b - first),
+                                first):
+            writer.write(out.array)
+            stats.grow(out.array)
+    return stats.state()
 
 
 def _check_counts(path, name, a, dt):

@@ -68,7 +68,6 @@ from __future__ import annotations
 import ctypes
 import errno
 import json
-import os
 import shutil
 import time
 import warnings
@@ -86,14 +85,15 @@ from clcurv.tiles import regions
 from clcurv.tiles import scale as tiled_scale
 from clcurv.tiles import workers as cluster
 from clcurv.tiles import workspace as wsp
-from clcurv.tiles.buckets import (READ_CHUNK, BucketTask, Buckets, OccupancyTask, SplitTask,
+from clcurv.tiles import writing
+from clcurv.tiles.buckets import (BucketTask, Buckets, OccupancyTask, SplitTask,
                                   bucket_grid, bucket_part, merge_sums, occupancy_part,
                                   split_part)
 from clcurv.grid.binning import Frame
 from clcurv.io import stream
 from clcurv.io.copc import UntrustedBounds
 from clcurv._shared.constants import TOO_FEW
-from clcurv.tiles.results import Windows, partition, tile_dtype, to_windows
+from clcurv.tiles.results import Windows, partition, tile_dtype
 from clcurv.tiles.workers import worker_device
 from clcurv.tiles.workspace import load_sealed, tile_file
 from clcurv.tiles.planning import (OCCUPANCY_BLOCKS, TILE_BYTES_PER_POINT, Tiling,
@@ -430,7 +430,7 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
     stored = _stored_specs(params, specs)
     if source.n == 0:                   # as the in-memory run: an empty output
         windows = Windows(ws / "windows", 0, tile_dtype(stored))
-        _write_output(dst, source, windows, specs, _quantize(params))
+        writing.write_output(dst, source, windows, specs, _quantize(params))
         return _summary(params, 0, 0, 0, source, times, windows.status, dst)
     def execute(tasks, fn):
         return _execute(tasks, client, fn)
@@ -471,7 +471,9 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
         f"cells of {tiling.frame.cell:.6g} (halo {halo} cell(s)), budget "
         f"{budget / 2**20:.0f} MiB")
     mst = isinstance(how, str) and how == "mst"
-    offsets = _file_offsets(source)
+    pieced = writing.writes_pieces(source, dst, mst)
+    windows = (writing.piece_windows(source.n, _workers(client)) if pieced else None)
+    offsets = tuple(a for a, _ in windows) if pieced else _file_offsets(source)
     todo = [(rank, t) for rank, t in enumerate(tiles) if not _tile_done(ws, t, mst, say)]
     skipped = len(tiles) - len(todo)
     tasks = [TileTask(str(ws), t, tiling, state["buckets"], params, how, file_normals,
@@ -491,10 +493,15 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
     for t in set(tiles) - set(info):        # a resumed run's tiles, done before
         info[t] = tile_info(load_sealed(tile_file(ws, t)), offsets, params, source.n)
     t2 = time.perf_counter()
+    files_of = {t: info[t]["files"] for t in tiles}
     if isinstance(source, stream.Catalog) and not mst:
-        files_of = {t: info[t]["files"] for t in tiles}
-        status = write_files(ws, source, dst, tiles, files_of, stored, specs, execute,
-                             _quantize(params))
+        status = writing.write_files(ws, source, dst, tiles, files_of, stored, specs,
+                                     execute, _quantize(params))
+        times["writing"] = time.perf_counter() - t2
+    elif pieced:
+        status = writing.write_pieces(ws, source, dst, tiles, files_of, windows, stored,
+                                      specs, execute, _quantize(params),
+                                      max([info[t]["most"] for t in tiles] + [0]))
         times["writing"] = time.perf_counter() - t2
     else:
         windows = partition(ws, source.n, tiles, stored, mst)
@@ -503,7 +510,7 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
         _trim()
         times["merging"] = time.perf_counter() - t2
         t3 = time.perf_counter()
-        _write_output(dst, source, windows, specs, _quantize(params))
+        writing.write_output(dst, source, windows, specs, _quantize(params))
         times["writing"] = time.perf_counter() - t3
         status = windows.status
     summary = _summary(params, len(tiles), skipped, tiling.size, source, times, status,
@@ -569,7 +576,7 @@ def _run_regions(space, want, source, dst, params, budget, tile, wanted, progres
     _trim()
     times["merging"] = time.perf_counter() - t2
     t3 = time.perf_counter()
-    _write_output(dst, source, windows, specs, _quantize(params))
+    writing.write_output(dst, source, windows, specs, _quantize(params))
     times["writing"] = time.perf_counter() - t3
     summary = _summary(params, len(tiles), len(tiles) - len(tasks), tiling.size, source,
                        times, windows.status, dst, halo)
@@ -785,6 +792,7 @@ def tile_info(out, offsets, params, n):
     names = [k for k in _ranged(params) + ["neighbours"] if k in out.dtype.names]
     take = out[out["id"] % step == 0]
     return {"files": _files(out["id"], offsets),
+            "most": int(out["neighbours"].max()) if "neighbours" in names and len(out) else 0,
             "sample": {k: take[k].tolist() for k in names},
             "nan": {k: int(np.count_nonzero(np.isnan(out[k]))) for k in names
                     if out.dtype[k].kind == "f"},
@@ -827,70 +835,6 @@ def _files(ids, offsets):
     return np.unique(np.searchsorted(np.asarray(offsets), ids, side="right") - 1).tolist()
 
 
-@dataclass
-class WriteTask:
-    """The output of input file number ``t`` of a catalog (:func:`write_file`)."""
-    ws: str
-    t: int
-    path: str           # the input file
-    dst: str            # where the worker writes it (renamed by the client at the end)
-    offset: int         # its first global id
-    n: int
-    tiles: list         # the tiles that own its points
-    stored: list        # the fields of the tiles' records
-    specs: list         # the fields written
-    quantize: float = None   # the LAS writers' quantize (:func:`_quantize`)
-
-
-def write_file(task):
-    """Pass (3) of one input file of a catalog, on a worker: its points' records gathered
-    from the tiles that own them (by id windows in the workspace, each id checked present
-    once: :class:`clcurv.tiles.results.Windows`), and its output written, in input order,
-    from its own input file; returns (t, points by status)."""
-    src = stream.open_source(Path(task.path))
-    folder = Path(task.ws) / "out" / str(task.t)
-    wsp.remove(folder)
-    folder.mkdir(parents=True)
-    win = Windows(folder, task.n, tile_dtype(task.stored))
-    lo, hi = task.offset, task.offset + task.n
-    for t in task.tiles:
-        rec = load_sealed(tile_file(task.ws, t))          # CorruptWorkspace: recomputed
-        rec = rec[(rec["id"] >= lo) & (rec["id"] < hi)]
-        rec["id"] -= lo
-        if "status" in rec.dtype.names and len(rec):
-            win.status += np.bincount(rec["status"], minlength=4)[:4]
-        to_windows(rec, win.path, win.size)
-    _write_one(Path(task.dst), src, win.rows, task.n, task.specs, win.size, task.quantize)
-    wsp.remove(folder)
-    return task.t, win.status.tolist()
-
-
-def write_files(ws, source, dst, tiles, files_of, stored, specs, execute, quantize=None):
-    """Pass (3) of a catalog: each input file's output written by a task of ``execute``
-    (:func:`write_file`; on the workers of a Dask run), each under a hidden name beside
-    its destination; once every one is written, each is renamed to its destination (a
-    failure leaves no output of the run and no earlier file replaced). Returns the points
-    by status."""
-    token = os.urandom(4).hex()
-    hidden = [Path(d).with_name(f".clcurv-{token}-{Path(d).name}") for d in dst]
-    tasks = []
-    for k, (part, off, tmp) in enumerate(zip(source.parts, source.offsets, hidden)):
-        mine = [t for t in tiles if k in files_of[t]]
-        tasks.append(WriteTask(str(ws), k, str(part.path), str(tmp), int(off), int(part.n),
-                               mine, stored, specs, quantize))
-    status = np.zeros(4, np.int64)
-    try:
-        for _, counts in execute(tasks, write_file):
-            status += counts
-        for tmp, d in zip(hidden, dst):
-            os.replace(tmp, d)
-    finally:
-        for tmp in hidden:
-            wsp.remove(tmp)
-        wsp.remove(Path(ws) / "out")
-    return status
-
-
 def _mst_records(task, out, own, pos, nl, node, ids):
     """The MST fields of a tile's own records, its halo records and its node sums."""
     o = np.asarray(task.tiling.frame.origin)
@@ -917,39 +861,16 @@ def _execute(tasks, client, fn):
     yield from cluster.map_tiles(fn, tasks, client=client)
 
 
+def _workers(client):
+    """The worker processes of a Dask ``client`` (0 without one)."""
+    if client is None:
+        return 0
+    return len(client.scheduler_info()["workers"])
+
+
 def _quantize(params):
     """The ``quantize`` of the LAS writers: the run's radius when its fields are written
     quantised (:func:`clcurv.io.las.quantization`), else None."""
     return float(params.radius) if getattr(params, "quantize", False) else None
-
-
-def _write_output(dst, source, windows, specs, quantize=None):
-    """Pass (3b): the output in input order, a window at a time, atomically (a catalog:
-    one output per input file, each with its own points)."""
-    if isinstance(source, stream.Catalog):
-        for part, off, d in zip(source.parts, source.offsets, dst):
-            rows = (lambda o: lambda a, b: windows.rows(o + a, o + b))(int(off))
-            _write_one(d, part, rows, part.n, specs, windows.size, quantize)
-        return
-    _write_one(dst, source, windows.rows, windows.n, specs, windows.size, quantize)
-
-
-def _write_one(dst, source, rows, n, specs, chunk=READ_CHUNK, quantize=None):
-    """One output file, ``chunk`` points at a time (a window's: wide records, fewer)."""
-    names = [name for name, _, _ in specs]
-    with io.atomic_output(dst) as tmp:
-        if io.is_las(dst):
-            stream.write_las(tmp, source, names, rows, chunk=chunk, quantize=quantize)
-        elif dst.suffix.lower() == ".ply":
-            stream.write_ply(tmp, source, names, rows, n,
-                             {name: (width, dtype) for name, width, dtype in specs},
-                             chunk=chunk)
-        else:
-            stream.write_npz(tmp, source, names, rows, n,
-                             {name: (width, dtype) for name, width, dtype in specs},
-                             chunk=chunk)
-
-
-# --------------------------------------------------------------------------- the file job
 
 
