@@ -776,9 +776,10 @@ def test_map_tiles_retries_a_task_that_fails(monkeypatch):
 
 
 def test_auto_runs_in_memory_whenever_the_cloud_fits_half_the_ram(monkeypatch):
-    """memory='auto': a cloud whose in-memory estimate (600 bytes a point) fits half the
-    available RAM runs in memory, however many points; tiles only beyond, planned with a
-    budget of at most AUTO_CAP."""
+    """memory='auto': a cloud whose in-memory estimate (550 bytes a point for MLS2, the
+    largest; a LAS input's reading and writing at least 300 + 4 x its record length) fits
+    half the available RAM runs in memory, however many points; tiles only beyond, planned
+    with a budget of at most AUTO_CAP."""
     from clcurv.jobs.job import in_tiles
     monkeypatch.setattr(tiling, "available_memory", lambda: 8 << 30)
     assert tiling.fit_budget("auto") == 4 << 30
@@ -787,6 +788,11 @@ def test_auto_runs_in_memory_whenever_the_cloud_fits_half_the_ram(monkeypatch):
     assert not in_tiles(5_000_000, tiling.fit_budget("auto"))      # 3.0 GB: in memory
     assert in_tiles(8_000_000, tiling.fit_budget("auto"))          # 4.8 GB: tiles
     assert in_tiles(1000, tiling.fit_budget("auto"), forced=True)
+    assert tiling.in_memory_bytes() == tiling.in_memory_bytes("mls2") == 550
+    assert tiling.in_memory_bytes("variation") == 250
+    assert tiling.in_memory_bytes("variation", record_length=34) == 436     # format 3
+    assert tiling.in_memory_bytes("features", None, 16 * 16 + 64) == 410
+    assert not in_tiles(12_000_000, tiling.fit_budget("auto"), method="variation")  # 3.0 GB
 
 
 def test_a_tiled_summary_takes_exact_counts_and_a_systematic_sample(monkeypatch):

@@ -371,12 +371,15 @@ def _run_in_memory(job, out):
 
 # --------------------------------------------------------------------------- in tiles, or not
 
-def in_tiles(n, budget, forced=False, extra=0):
+def in_tiles(n, budget, forced=False, extra=0, method=None, source=None):
     """The decision between a run in memory and one in tiles, for every entry point here: in
     tiles when it is ``forced`` (a tile size, workers or a Dask scheduler or client, several
-    input files) or when ``n`` points do not fit ``budget`` bytes (``extra`` bytes more per
-    point: :func:`clcurv.tiles.planning.fits_memory`)."""
-    return forced or not fits_memory(n, budget, extra)
+    input files) or when ``n`` points do not fit ``budget`` bytes (the estimate of
+    ``method`` and of the LAS records of ``source``, ``extra`` bytes more per point:
+    :func:`clcurv.tiles.planning.fits_memory`)."""
+    layout = getattr(source, "layout", None)
+    return forced or not fits_memory(n, budget, extra, method,
+                                     getattr(layout, "record_length", None))
 
 
 def wants_tiles(job):
@@ -387,14 +390,14 @@ def wants_tiles(job):
     if Path(job.input).suffix.lower() not in stream.STREAM_READS:
         return False
     try:
-        n = stream.open_source(job.input).n
+        src = stream.open_source(job.input)
     except Exception:                       # the in-memory reader reports it
         return False
     if job.projections or job.positions != "original" or job.k is not None:
         # options only the in-memory job has: tiles only when it cannot fit at all (the
         # tiled run then says which option it lacks)
-        return in_tiles(n, fit_budget("auto"))
-    return in_tiles(n, fit_budget(job.memory))
+        return in_tiles(src.n, fit_budget("auto"), method=job.method, source=src)
+    return in_tiles(src.n, fit_budget(job.memory), method=job.method, source=src)
 
 
 def options_for(job, takes):
@@ -518,7 +521,8 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
         'up' for aerial data).
     memory : 'auto', int or str
         Host memory budget ('auto': half the available RAM). The run tiles when about
-        N x IN_MEMORY_BYTES_PER_POINT exceeds it, or when ``tile`` is given.
+        N x clcurv.tiles.planning.in_memory_bytes (by method and input) exceeds it, or
+        when ``tile`` is given.
     tile : float, optional
         Tile side in the file's unit (default: from the budget).
     workdir : path, optional
@@ -577,7 +581,7 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
                              precision=precision, ignore_normals=ignore_normals,
                              scale_space=scale_space, quantize=quantize)
     forced = catalog or tile is not None or client is not None or bool(workers)
-    if not in_tiles(source.n, fit_budget(memory), forced):
+    if not in_tiles(source.n, fit_budget(memory), forced, method=method, source=source):
         summary = _curvature_in_memory(src, dst, params, fields)
         summary["dropped"] = int(getattr(source, "dropped", 0))
         return summary
@@ -702,7 +706,8 @@ def features_file(src, dst, radius=None, features=DEFAULT_FEATURES, *, k=None, d
             return _features_in_memory(src, dst, radii, names, None, ddof, optimal, device,
                                        precision)
     budget = budget_of(memory)
-    if not in_tiles(source.n, fit_budget(memory), forced or catalog, params.extra_in_memory()):
+    if not in_tiles(source.n, fit_budget(memory), forced or catalog, params.extra_in_memory(),
+                    method="features", source=source):
         return _features_in_memory(src, dst, radii, names, None, ddof, optimal, device,
                                    precision)
     tiled.check_tiled_outputs(dst if catalog else [dst], source)

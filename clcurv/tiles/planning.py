@@ -20,12 +20,26 @@ from clcurv.ops.registry import OPERATORS
 TILE_BYTES_PER_POINT = 900
 
 
-#: peak host bytes per point of an in-memory file job (clcurv.jobs.job), above the process's
-#: baseline, to decide whether a cloud fits the budget. Measured (/usr/bin/time peak RSS,
-#: PoCL, AMD EPYC, `clcurv compute` of a 3M-point aerial PLY, --radius 0.5, default fields,
-#: baseline 294 MB): MLS2 541, MLS1 516, variation 237 bytes a point; 600 covers MLS2, the
-#: largest, within 11% (1M points: 568)
-IN_MEMORY_BYTES_PER_POINT = 600
+#: peak host bytes per point of an in-memory file job (clcurv.jobs.job) while it computes,
+#: by method, above the process's baseline (~180 MB: the interpreter, OpenCL, the kernels
+#: cached), to decide whether a cloud fits the budget. Measured (/usr/bin/time peak RSS,
+#: PoCL, AMD EPYC Zen 4, `clcurv compute` of a 1M-point aerial scene, --radius 0.6 (~30
+#: neighbours), default fields; docs/performance.md): binary PLY in and out, MLS2 549,
+#: MLS1 524, 2dcov2 331, 3dcov 340, variation 248; "features": the base of
+#: :func:`clcurv.features_file`, whose columns and radii add
+#: :meth:`clcurv.tiles.features.FeatureParams.extra_in_memory` (16 a column, 64 a radius:
+#: the default set at one radius, 16 columns, measured 349, estimated 410; every feature
+#: at three radii, 63 columns, 1,116 and 1,290)
+IN_MEMORY_BYTES = {"mls2": 550, "mls1": 525, "mls0": 510, "variation": 250,
+                   "2dcov1": 345, "2dcov2": 345, "3dcov": 345, "features": 90}
+#: the largest: a run whose method is not known
+IN_MEMORY_BYTES_PER_POINT = max(IN_MEMORY_BYTES.values())
+#: a LAS/LAZ file job's reading and writing take about LAS_IO_BASE + LAS_IO_PER_BYTE x the
+#: record length bytes a point (the file's records, kept for the output, and the output's
+#: batches: a 1M-point LAZ of point format 3, 34-byte records, peaks at 438 bytes a point
+#: with variation, whose computation takes less); a run's estimate is the larger of that and
+#: its computation's
+LAS_IO_BASE, LAS_IO_PER_BYTE = 300, 4
 
 
 #: fraction of the available RAM that memory="auto" uses: a run that fits it runs in memory
@@ -89,10 +103,22 @@ def fit_budget(memory):
     return parse_memory(memory)
 
 
-def fits_memory(n, budget, extra_per_point=0):
-    """Does an in-memory run of ``n`` points fit ``budget`` bytes (``extra_per_point``: the
-    bytes per point a run needs beyond a curvature file job's, e.g. more output fields)?"""
-    return n * (IN_MEMORY_BYTES_PER_POINT + extra_per_point) <= budget
+def in_memory_bytes(method=None, record_length=None, extra=0):
+    """The bytes a point of an in-memory run of ``method`` takes at its peak: its
+    computation's (:data:`IN_MEMORY_BYTES`, None: the largest; ``extra`` more, e.g. more
+    output fields), or, for LAS/LAZ input of ``record_length``-byte records, its reading and
+    writing's when larger (:data:`LAS_IO_BASE`); within 25% of the measured peaks
+    (docs/performance.md)."""
+    b = IN_MEMORY_BYTES.get(method, IN_MEMORY_BYTES_PER_POINT) + extra
+    if record_length:
+        b = max(b, LAS_IO_BASE + LAS_IO_PER_BYTE * int(record_length))
+    return b
+
+
+def fits_memory(n, budget, extra_per_point=0, method=None, record_length=None):
+    """Does an in-memory run of ``n`` points fit ``budget`` bytes (:func:`in_memory_bytes`
+    of ``method``, the LAS ``record_length`` and ``extra_per_point``)?"""
+    return n * in_memory_bytes(method, record_length, extra_per_point) <= budget
 
 
 def halo_cells(method, weights="uniform", file_normals=False):
