@@ -9,7 +9,7 @@ import pytest
 
 import clcurv
 from clcurv import io
-from clcurv.tiles import engine as tiled
+from clcurv.tiles import buckets
 from clcurv.io import stream
 from clcurv.jobs.job import features_file
 
@@ -115,7 +115,7 @@ def scene():
 @pytest.fixture
 def small_chunks(monkeypatch):
     """The bucketing pass reads CHUNK rows at a time (so 'chunk' spoils a whole one)."""
-    monkeypatch.setattr(tiled, "READ_CHUNK", CHUNK)
+    monkeypatch.setattr(buckets, "READ_CHUNK", CHUNK)
 
 
 # --------------------------------------------------------------------------- the sources

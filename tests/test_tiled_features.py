@@ -70,9 +70,9 @@ def test_the_budget_decides_and_grows_with_the_fields(scene, tmp_path):
     assert many.columns() == 3 * 21
     assert many.bytes_per_point() == TILE_BYTES_PER_POINT + 16 * 63 + 3 * 64
     a = clcurv.features_file(path, tmp_path / "mem.laz", RADII, memory="64GiB")
-    # 20,700 points: in memory ~37 MB with these 63 columns (600 + 1,008 + 192 bytes a
-    # point, planning.fits_memory); a tile takes 2,100 bytes a point: 30 MiB takes tiles
-    b = clcurv.features_file(path, tmp_path / "small.laz", RADII, memory="30MiB")
+    # 20,700 points: in memory ~27 MB with these 63 columns (90 + 1,008 + 192 bytes a
+    # point, planning.fits_memory); a tile takes 2,100 bytes a point: 20 MiB takes tiles
+    b = clcurv.features_file(path, tmp_path / "small.laz", RADII, memory="20MiB")
     assert not a["tiled"] and b["tiled"]
     _assert_same(tmp_path / "mem.laz", tmp_path / "small.laz")
 

@@ -332,8 +332,8 @@ _KILLER = textwrap.dedent("""
             tick()
             save(path, arr)
         workspace.save_sealed = sealed
-    elif stage == "merging":
-        tile_results.open = wrap_open("windows")
+    elif stage == "merging":                 # the tiles' records gathered by window
+        tile_results.open = wrap_open("/out/")
     elif stage == "writing":
         rows = tile_results.Windows.rows
         def rows_then_kill(self, a, b):
@@ -562,17 +562,20 @@ def test_the_command_takes_a_workdir(inputs, fresh, tmp_path):
     _same(out, fresh("laz"))
 
 
+@pytest.mark.parametrize("where", ["write_las_piece", "assemble"])
 def test_a_disk_that_fills_while_writing_the_output_removes_the_workspace(inputs, tmp_path,
-                                                                          monkeypatch):
+                                                                          monkeypatch, where):
+    """The disk fills while a piece of the output is written (a task's) or while the client
+    joins the pieces: the previous output stays, and no workspace nor piece is left."""
     import errno
-    from clcurv.io import stream
+    from clcurv.io import pieces, stream
     d, _ = inputs
     out = tmp_path / "out.laz"
     out.write_bytes(b"previous")
 
     def full(*a, **kw):
         raise OSError(errno.ENOSPC, "No space left on device")
-    monkeypatch.setattr(stream, "write_las", full)
+    monkeypatch.setattr(stream if where == "write_las_piece" else pieces, where, full)
     with pytest.raises(OSError, match="no space left .* needs about") as e:
         _run(d / "scene.laz", out)
     assert e.value.errno == errno.ENOSPC
