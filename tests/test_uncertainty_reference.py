@@ -113,6 +113,9 @@ def test_values_are_the_operators():
         np.testing.assert_array_equal(got["count"], ref["count"])
         for key in ("mean", "gaussian", "k1", "k2", "normals"):
             np.testing.assert_allclose(got[key], ref[key], rtol=0, atol=1e-9)
+        if not kw:                                      # uniform ball: n - 6 residual dof
+            np.testing.assert_allclose(got["dof"], got["count"] - 6.0, rtol=0, atol=1e-9)
+            np.testing.assert_allclose(got["n_eff"], got["count"], rtol=0, atol=1e-9)
     mom = ops.moments(s["points"], r)
     flip = np.einsum("ij,ij->i", mom["normals"], s["normals"]) < 0
     nrm = np.where(flip[:, None], -mom["normals"], mom["normals"])

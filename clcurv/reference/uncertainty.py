@@ -49,7 +49,11 @@ Kish's effective number of points ``n_eff = W^2 / W2``, ``= n`` for uniform weig
   ``dH/dL = -(1 + q^2) / (2 W3)``, ``dH/dM = p q / W3``, ``dH/dN = -(1 + p^2) / (2 W3)``,
   ``dH/dp = -(p N - q M) / W3 - 3 p H / (1 + p^2 + q^2)`` (``q`` likewise),
   ``dK/dL = N / w^2``, ``dK/dN = L / w^2``, ``dK/dM = -2 M / w^2``, ``dK/dp = -4 p K / w``
-  (``w = 1 + p^2 + q^2``), ``dk1,2 = dH +- (2 H dH - dK) / (2 D)``. At an exact umbilic
+  (``w = 1 + p^2 + q^2``), ``dk1,2 = dH +- (2 H dH - dK) / (2 D)``. ``H`` is linear in
+  ``(L, M, N)`` (for given ``p, q``): its SE holds at any signal-to-noise ratio. ``K`` is a
+  product: its first-order SE is calibrated only where ``SE(k)`` is small against ``|k|``
+  (on the sphere, ``sigma = 0.5% r``: std z 1.33 at ``k r = 0.01`` where ``SE(H) ~ H / 2``,
+  1.02 at ``k r = 0.08``; bench/results/uncertainty.md). At an exact umbilic
   (``D = 0``, only in noise-free data) ``dD`` is taken as 0. Near an umbilic ``k1 = max``
   of two noisy eigenvalues is biased upwards by about ``1.25 SE(D)`` (an order-statistic
   bias, not in the SE; see the bench).
@@ -97,6 +101,24 @@ Assumes ``l1, l2 >> l0`` (a surface, not an edge or a blob).
 
 Outputs are NaN where the status is not OK, and the SEs also where the dof are not positive
 (e.g. exactly 6 neighbours for MLS2, 3 for a plane).
+
+What a kernel accumulates (one work-item per point, beside the sums it has)
+--------------------------------------------------------------------------
+* PCA pass: ``W2 = sum w^2`` and ``w_p`` (MLS0/MLS1 SE); for the PCA normal's SE with
+  non-0/1 weights ``Q1 = sum w^2 d`` (3) and ``Q2 = sum w^2 d d^T`` (6), centred on ``o`` in
+  the finish (``sum w^2 (d - m)(d - m)^T = Q2 - m Q1^T - Q1 m^T + W2 m m^T``, ``m = o - p``);
+  with uniform ball weights ``sum w^2 x_j^2 = W l_j`` and nothing more is needed.
+* MLS2 fit pass: ``sum w h^2`` (1); ``B = sum w^2 phi phi^T`` (21) only for non-0/1 weights
+  (density, Gaussian kernel): for the uniform ball ``B = A``, ``tr(A^-1 B) = 6`` and
+  ``Cov(a) = sigma_hat^2 A^-1``.
+* finish: ``RSS = sum w h^2 - a . b`` (in float32 this subtracts two sums of squared
+  heights: the heights include the curvature's ``k r^2 / 2``, so with little noise and a
+  large ``k r`` relative precision is lost, about ``(k r^2 / sigma)^2`` times the float32
+  epsilon); the SEs need ``J A^-1 B A^-1 J^T`` for the 4 rows ``J`` of
+  :func:`curvature_jacobian` and the 2 gradient rows: 6 solves with ``A``'s factorisation
+  (``u = A^-1 J^T``), then ``u^T B u`` (uniform ball: ``J . u``).
+* MLS0/MLS1 with ``noise="quadric"``: the MLS2 fit's ``RSS`` and ``nu`` (a fit pass in the
+  PCA frame); ``noise="plane"``: nothing beyond ``W2`` and ``w_p``.
 """
 from __future__ import annotations
 
@@ -467,7 +489,8 @@ def mls2_uncertainty(points, radius, normals, weights="uniform", kernel="ball", 
         ``"normals"`` (N, 3): the fitted normals (outward, as ``mls2``'s);
         ``"normal_se"`` (rad): SE of the fitted normal's angle;
         ``"roughness"`` (``L``): ``sigma_hat``, the dof-corrected residual RMS to the quadric;
-        ``"dof"``: ``nu = W - tr(A^-1 B)``; ``"n_eff"``: ``W^2 / W2``.
+        ``"dof"``: the residual degrees of freedom in points, ``nu W / W2`` (``n - 6`` for
+        uniform weights; ``nu`` itself is in weight units); ``"n_eff"``: ``W^2 / W2``.
         NaN where the status is not OK; the SEs and roughness also where ``nu <= 0``.
     """
     pts, r, nrm = _check(points, radius, normals)
@@ -503,7 +526,7 @@ def mls2_uncertainty(points, radius, normals, weights="uniform", kernel="ball", 
            "gaussian": values[:, 1], "k1": values[:, 2], "k2": values[:, 3],
            "mean_se": se[:, 0], "gaussian_se": se[:, 1], "k1_se": se[:, 2], "k2_se": se[:, 3],
            "normal_se": np.sqrt(np.maximum(nvar, 0.0)), "roughness": np.sqrt(fit["sigma2"]),
-           "dof": fit["dof"], "n_eff": n_eff}
+           "dof": fit["dof"] * pca["W"] / pca["W2"], "n_eff": n_eff}
     return _done(out)
 
 
