@@ -127,6 +127,7 @@ from scipy.spatial import cKDTree
 
 from clcurv._shared.constants import (DEGENERATE, MIN_COUNT_MLS2, MIN_COUNT_PCA, OK, SINGULAR,
                                       TOO_FEW)
+from clcurv._shared.options import choices
 from clcurv.reference.operators import RANK_TOL, SINGULAR_RCOND, tangent_frame
 
 __all__ = ["mls2_uncertainty", "mls1_uncertainty", "pca_uncertainty", "curvature_jacobian",
@@ -188,10 +189,9 @@ def _sums(balls, per_edge):
 def _weights(pts, balls, weights, kernel, h):
     """Edge weights as a function of ``(local, cols, own, d)``: 1 or ``1 / #N_r(q)`` times
     ``exp(-|d|^2 / h^2)`` for the Gaussian kernel."""
-    if weights not in ("uniform", "density"):
-        raise ValueError(f"weights must be 'uniform' or 'density', got {weights!r}")
-    if kernel not in ("ball", "gaussian"):
-        raise ValueError(f"kernel must be 'ball' or 'gaussian', got {kernel!r}")
+    for name, value in (("weights", weights), ("kernel", kernel)):
+        if value not in choices(name):         # the options' declaration (clcurv._shared)
+            raise ValueError(f"{name} must be one of {choices(name)}, got {value!r}")
     wpt = np.ones(balls.n) if weights == "uniform" else 1.0 / balls.counts
     if kernel == "ball":
         return lambda cols, d: wpt[cols]
