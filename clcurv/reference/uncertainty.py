@@ -56,7 +56,9 @@ Kish's effective number of points ``n_eff = W^2 / W2``, ``= n`` for uniform weig
   1.02 at ``k r = 0.08``; bench/results/uncertainty.md). At an exact umbilic
   (``D = 0``, only in noise-free data) ``dD`` is taken as 0. Near an umbilic ``k1 = max``
   of two noisy eigenvalues is biased upwards by about ``1.25 SE(D)`` (an order-statistic
-  bias, not in the SE; see the bench).
+  bias, not in the SE): on a sphere only ~90% of the z-scores of ``k1`` lie within 1.96.
+  No SE fixes that (a wider one breaks the std); the estimator can:
+  :func:`debiased_principal` (``k1_debiased``, 95% on the sphere; bench).
 * fitted normal ``(-p, -q, 1) / sqrt(w)``: its angle's variance is
   ``tr(G Cov(p, q))``, ``G = (I - g g^T / w) / w``, ``g = (p, q)``; ``normal_se`` is
   its square root (RMS angle, radians).
@@ -116,7 +118,9 @@ What a kernel accumulates (one work-item per point, beside the sums it has)
   large ``k r`` relative precision is lost, about ``(k r^2 / sigma)^2`` times the float32
   epsilon); the SEs need ``J A^-1 B A^-1 J^T`` for the 4 rows ``J`` of
   :func:`curvature_jacobian` and the 2 gradient rows: 6 solves with ``A``'s factorisation
-  (``u = A^-1 J^T``), then ``u^T B u`` (uniform ball: ``J . u``).
+  (``u = A^-1 J^T``), then ``u^T B u`` (uniform ball: ``J . u``). The debiased ``k1, k2``
+  (if adopted) also need ``cov(L, N)`` and ``var(M)``: the same with the unit rows of
+  ``a20, a11, a02``.
 * MLS0/MLS1 with ``noise="quadric"``: the MLS2 fit's ``RSS`` and ``nu`` (a fit pass in the
   PCA frame); ``noise="plane"``: nothing beyond ``W2`` and ``w_p``.
 """
@@ -131,7 +135,7 @@ from clcurv._shared.options import choices
 from clcurv.reference.operators import RANK_TOL, SINGULAR_RCOND, tangent_frame
 
 __all__ = ["mls2_uncertainty", "mls1_uncertainty", "pca_uncertainty", "curvature_jacobian",
-           "FIELDS"]
+           "debiased_principal", "FIELDS"]
 
 #: the issue's field names and their units (``L``: the length unit of the points)
 FIELDS = {"mean_curvature_se": "1/L", "gaussian_curvature_se": "1/L^2", "k1_se": "1/L",
@@ -468,7 +472,30 @@ def curvature_jacobian(coef, radius):
     return np.stack([h, kk, h + dd, h - dd], axis=1), jac
 
 
-def mls2_uncertainty(points, radius, normals, weights="uniform", kernel="ball", h=None):
+def debiased_principal(mean, gaussian, mean_se, coef, cov, radius):
+    """Principal curvatures with the umbilic bias of ``D = sqrt(H^2 - K)`` removed (a
+    proposal for the operator, not ``mls2``'s ``k1, k2``).
+
+    ``D`` estimated from noisy coefficients is biased upwards, ``E[D_hat^2] = D^2 + T`` with
+    ``T = SE(H)^2 - (cov(L, N) - var(M)) / w^2`` to second order (``E[H_hat^2] = H^2 +
+    Var H``, ``E[K_hat] = K + (cov(L, N) - var M) / w^2``); at an umbilic that makes ``k1`` the
+    larger of two noisy eigenvalues, ``~1.25 SE(D)`` too high. Returns
+    ``H +- sqrt(max(D_hat^2 - T, 0))`` (n,) each, unit ``1/L``. ``mean``, ``gaussian``,
+    ``mean_se`` (n,): ``H``, ``K``, ``SE(H)``; ``coef`` (n, 6), ``cov`` (n, 6, 6): the scaled
+    quadric's coefficients and their covariance; ``radius``: ``r``.
+    """
+    r = float(radius)
+    scale = np.array([2.0, 1.0, 2.0]) / r ** 2          # (L, M, N) from (a20, a11, a02)
+    c = cov[:, 3:6, 3:6] * scale[:, None] * scale[None, :]
+    p, q = coef[:, 1] / r, coef[:, 2] / r
+    w = 1.0 + p * p + q * q
+    t = mean_se ** 2 - (c[:, 0, 2] - c[:, 1, 1]) / w ** 2
+    d = np.sqrt(np.maximum(mean * mean - gaussian - t, 0.0))
+    return mean + d, mean - d
+
+
+def mls2_uncertainty(points, radius, normals, weights="uniform", kernel="ball", h=None, *,
+                     covariance=False):
     """MLS2 curvatures (as :func:`clcurv.reference.operators.mls2`) with their standard
     errors, the fitted normal's angular SE and the roughness to the quadric.
 
@@ -488,16 +515,25 @@ def mls2_uncertainty(points, radius, normals, weights="uniform", kernel="ball", 
         method on ``sigma_hat^2 A^-1 B A^-1``);
         ``"normals"`` (N, 3): the fitted normals (outward, as ``mls2``'s);
         ``"normal_se"`` (rad): SE of the fitted normal's angle;
+        with ``covariance=True`` also ``"coef"`` (N, 6): the quadric's coefficients
+        ``a00, a10, a01, a20, a11, a02`` (coordinates scaled by ``1 / r``, heights in ``L``)
+        and ``"coef_cov"`` (N, 6, 6): their covariance ``sigma_hat^2 A^-1 B A^-1``;
         ``"roughness"`` (``L``): ``sigma_hat``, the dof-corrected residual RMS to the quadric;
+        ``"k1_debiased"``, ``"k2_debiased"``: a proposal, not ``mls2``'s values:
+        ``H +- sqrt(max(D^2 - T, 0))`` (:func:`debiased_principal`), whose z-scores with
+        ``k1_se`` are calibrated at umbilics too;
         ``"dof"``: the residual degrees of freedom in points, ``nu W / W2`` (``n - 6`` for
         uniform weights; ``nu`` itself is in weight units); ``"n_eff"``: ``W^2 / W2``.
         NaN where the status is not OK; the SEs and roughness also where ``nu <= 0``.
     """
     pts, r, nrm = _check(points, radius, normals)
     names = ("mean", "gaussian", "k1", "k2", "normals", "mean_se", "gaussian_se", "k1_se", "k2_se",
-             "normal_se", "roughness", "dof", "n_eff")
+             "normal_se", "roughness", "dof", "n_eff", "k1_debiased", "k2_debiased")
     if len(pts) == 0:
-        return _empty(*names)
+        out = _empty(*names)
+        if covariance:
+            out["coef"], out["coef_cov"] = np.empty((0, 6)), np.empty((0, 6, 6))
+        return out
     hh = r / 2.0 if h is None else float(h)
     balls = _Balls(pts, r)
     weight = _weights(pts, balls, weights, kernel, hh)
@@ -518,6 +554,8 @@ def mls2_uncertainty(points, radius, normals, weights="uniform", kernel="ball", 
     metric = (np.eye(2)[None] - g[:, :, None] * g[:, None, :] / w[:, None, None]) / w[:, None, None]
     nvar = np.einsum("nij,nji->n", metric, gcov)
     se = np.sqrt(np.maximum(var, 0.0))
+    k1d, k2d = debiased_principal(values[:, 0], values[:, 1], se[:, 0], fit["coef"],
+                                  fit["cov"], r)
     with np.errstate(invalid="ignore", divide="ignore"):
         n_eff = pca["W"] ** 2 / pca["W2"]
     t1, t2 = tangent_frame(np.where(np.isfinite(v0), v0, 1.0))
@@ -526,7 +564,10 @@ def mls2_uncertainty(points, radius, normals, weights="uniform", kernel="ball", 
            "gaussian": values[:, 1], "k1": values[:, 2], "k2": values[:, 3],
            "mean_se": se[:, 0], "gaussian_se": se[:, 1], "k1_se": se[:, 2], "k2_se": se[:, 3],
            "normal_se": np.sqrt(np.maximum(nvar, 0.0)), "roughness": np.sqrt(fit["sigma2"]),
-           "dof": fit["dof"] * pca["W"] / pca["W2"], "n_eff": n_eff}
+           "dof": fit["dof"] * pca["W"] / pca["W2"], "n_eff": n_eff,
+           "k1_debiased": k1d, "k2_debiased": k2d}
+    if covariance:
+        out["coef"], out["coef_cov"] = fit["coef"], fit["cov"]
     return _done(out)
 
 
