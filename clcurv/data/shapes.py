@@ -20,13 +20,102 @@ def _finish(rng, pts, nrm, k1, k2, noise, dir1=None):
     return out
 
 
-def sphere(n, radius=2.0, *, noise=0.0, seed=0):
-    """Sphere of ``radius`` centred at the origin: k1 = k2 = 1/radius."""
+def sphere(n, radius=2.0, *, noise=0.0, seed=0, cap=None):
+    """Sphere of ``radius`` centred at the origin: k1 = k2 = 1/radius.
+
+    ``cap`` (radians, optional): sample only the cap of that half-angle around +z (uniform
+    by area: ``z`` uniform in ``[radius cos(cap), radius]``), a dense patch for small balls."""
     rng = np.random.default_rng(seed)
-    u = rng.normal(size=(n, 3))
+    if cap is None:
+        u = rng.normal(size=(n, 3))
+    else:
+        u = _cap_directions(rng, n, cap)
     u /= np.linalg.norm(u, axis=1)[:, None]
     k = np.full(n, 1.0 / radius)
     return _finish(rng, radius * u, u, k, k.copy(), noise)
+
+
+def _cap_directions(rng, n, cap, axis=(0.0, 0.0, 1.0)):
+    """``n`` unit vectors uniform on the cap of half-angle ``cap`` around ``axis``."""
+    z = rng.uniform(np.cos(cap), 1.0, n)
+    t = rng.uniform(0, 2 * np.pi, n)
+    s = np.sqrt(np.maximum(1.0 - z * z, 0.0))
+    local = np.stack([s * np.cos(t), s * np.sin(t), z], axis=1)
+    a = np.asarray(axis, dtype=np.float64)
+    a = a / np.linalg.norm(a)
+    e = np.zeros(3)
+    e[np.argmin(np.abs(a))] = 1.0
+    b1 = np.cross(a, e)
+    b1 /= np.linalg.norm(b1)
+    b2 = np.cross(a, b1)
+    return local @ np.stack([b1, b2, a])
+
+
+def ellipsoid(n, axes=(1.0, 0.8, 0.6), *, noise=0.0, seed=0, cap=None, axis=(0.0, 0.0, 1.0)):
+    """Ellipsoid ``x^2/a^2 + y^2/b^2 + z^2/c^2 = 1`` with semi-axes ``axes = (a, b, c)``.
+
+    Uniform by area: unit vectors ``u`` (uniform on the sphere, or on the cap of half-angle
+    ``cap`` radians around ``axis`` for a dense patch) are mapped to ``(a u1, b u2, c u3)``
+    and kept with probability proportional to the area ratio ``abc |(u1/a, u2/b, u3/c)|``.
+    Outward normals ``(x/a^2, y/b^2, z/c^2) / h`` with ``h = |(x/a^2, y/b^2, z/c^2)|``;
+    ``K = 1 / (a b c h^2)^2`` and ``H = (a^2 + b^2 + c^2 - |p|^2) / (2 a^2 b^2 c^2 h^3)``
+    (positive: convex with outward normals), ``k1,2 = H +- sqrt(H^2 - K)``. Four umbilics
+    (k1 = k2) in the plane of the longest and shortest axes."""
+    rng = np.random.default_rng(seed)
+    ax = np.asarray(axes, dtype=np.float64)
+    out = np.empty((0, 3))
+    while len(out) < n:
+        m = 2 * (n - len(out)) + 16
+        if cap is None:
+            u = rng.normal(size=(m, 3))
+            u /= np.linalg.norm(u, axis=1)[:, None]
+        else:
+            u = _cap_directions(rng, m, cap, axis)
+        g = np.sqrt(((u / ax) ** 2).sum(axis=1)) * ax.min()          # area ratio / its max
+        out = np.concatenate([out, u[rng.uniform(0, 1, m) < g]])
+    pts = out[:n] * ax
+    grad = pts / ax ** 2
+    h = np.linalg.norm(grad, axis=1)
+    nrm = grad / h[:, None]
+    abc2 = np.prod(ax) ** 2
+    K = 1.0 / (abc2 * h ** 4)
+    H = (np.sum(ax ** 2) - np.einsum("ij,ij->i", pts, pts)) / (2.0 * abc2 * h ** 3)
+    d = np.sqrt(np.maximum(H * H - K, 0.0))
+    return _finish(rng, pts, nrm, H + d, H - d, noise)
+
+
+def wave(n, amplitude=0.1, wavelength=1.0, extent=1.0, *, noise=0.0, seed=0):
+    """Wave graph ``z = A sin(w x) sin(w y)``, ``w = 2 pi / wavelength``, over the square
+    ``|x|, |y| <= extent``, uniform by area (rejection on ``sqrt(1 + zx^2 + zy^2)``).
+
+    Normals point up (+z side): ``(-zx, -zy, 1) / sqrt(1 + zx^2 + zy^2)``. clcurv's sign
+    (a surface bending away from its normal is positive): a crest has ``k1 = k2 = A w^2 > 0``
+    and a trough ``-A w^2``; elsewhere saddles and umbilic points mix. The curvatures are
+    minus the eigenvalues of the graph's shape operator ``I^-1 II``, as for MLS2:
+    ``H = -((1 + zy^2) zxx - 2 zx zy zxy + (1 + zx^2) zyy) / (2 W^3)``,
+    ``K = (zxx zyy - zxy^2) / W^4``, ``W = sqrt(1 + zx^2 + zy^2)``."""
+    rng = np.random.default_rng(seed)
+    a, w = float(amplitude), 2.0 * np.pi / float(wavelength)
+    gmax = np.sqrt(1.0 + 2.0 * (a * w) ** 2)
+    xy = np.empty((0, 2))
+    while len(xy) < n:
+        m = 2 * (n - len(xy)) + 16
+        c = rng.uniform(-extent, extent, size=(m, 2))
+        zx = a * w * np.cos(w * c[:, 0]) * np.sin(w * c[:, 1])
+        zy = a * w * np.sin(w * c[:, 0]) * np.cos(w * c[:, 1])
+        keep = rng.uniform(0, gmax, m) < np.sqrt(1.0 + zx * zx + zy * zy)
+        xy = np.concatenate([xy, c[keep]])
+    x, y = xy[:n].T
+    sx, cx, sy, cy = np.sin(w * x), np.cos(w * x), np.sin(w * y), np.cos(w * y)
+    zx, zy = a * w * cx * sy, a * w * sx * cy
+    zxx, zyy, zxy = -a * w * w * sx * sy, -a * w * w * sx * sy, a * w * w * cx * cy
+    ww = np.sqrt(1.0 + zx * zx + zy * zy)
+    H = -((1 + zy * zy) * zxx - 2 * zx * zy * zxy + (1 + zx * zx) * zyy) / (2.0 * ww ** 3)
+    K = (zxx * zyy - zxy * zxy) / ww ** 4
+    d = np.sqrt(np.maximum(H * H - K, 0.0))
+    nrm = np.stack([-zx, -zy, np.ones(n)], axis=1) / ww[:, None]
+    pts = np.stack([x, y, a * sx * sy], axis=1)
+    return _finish(rng, pts, nrm, H + d, H - d, noise)
 
 
 def cylinder(n, radius=1.0, length=4.0, *, noise=0.0, seed=0):
