@@ -36,6 +36,8 @@ sys.path.insert(0, str(REPO))
 from bench.tiled import make_scene          # noqa: E402
 
 RADIUS = 1.0
+#: io.md: the text above this line is kept (the summary), the tables below are rewritten
+MARKER = "<!-- the tables below are written by bench/io.py -->"
 RUNS = (("default fields", []), ("--fields all", ["--fields", "all"]),
         ("--quantize", ["--quantize"]))
 
@@ -159,13 +161,15 @@ def main(argv=None):
             (wd / f"out_{n}_{i}.laz").unlink(missing_ok=True)
     res = REPO / "bench" / "results"
     (res / "io.json").write_text(json.dumps(report, indent=1))
-    (res / "io.md").write_text(markdown(report))
+    md = res / "io.md"
+    kept = md.read_text().split(MARKER)[0] if md.exists() and MARKER in md.read_text() else ""
+    md.write_text(kept + MARKER + "\n" + markdown(report))
     print(f"wrote {res / 'io.json'} and io.md")
 
 
 def markdown(report):
     """The tables of ``report`` (bench/results/io.md)."""
-    out = [f"# I/O: bytes written and read back (bench/io.py)\n",
+    out = [f"## Measurements\n",
            f"Measured {report['date']} on {report['cpu']} ({report['cores']} cores, lscpu), "
            "PoCL CPU device, laspy 2.7 with lazrs; other processes shared the cores: the load "
            "average (1 min) is given beside each row. Synthetic aerial LAZ "
@@ -177,7 +181,7 @@ def markdown(report):
            "(mls2); read back = best `laspy.read` of the output.\n"]
     for size in report["sizes"]:
         n = size["points"]
-        out.append(f"\n## {n / 1e6:g}M points (input {size['input_bytes'] / 1e6:.1f} MB, "
+        out.append(f"\n### {n / 1e6:g}M points (input {size['input_bytes'] / 1e6:.1f} MB, "
                    f"{size['input_bytes'] / n:.1f} bytes a point)\n")
         out.append("| run | record bytes | output MB | bytes/point | laspy read back s | "
                    "wall s | reading s | mls2 s | writing s | wall / mls2 | peak RSS MiB "
