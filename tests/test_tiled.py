@@ -601,3 +601,21 @@ def test_quantised_tiles_equal_the_in_memory_run_byte_for_byte(scene, method):
         assert np.abs(a[ok] - b[ok]).max() <= step / 2 + 1e-7 * np.abs(a[ok]).max(), name
         checked += 1
     assert checked == (5 if method == "mls2" else 3)
+
+
+def test_a_flipped_tile_flips_the_fields_chosen_alone(tmp_path):
+    """MST orientation in tiles flips whole components afterwards: (k1, k2) -> (-k2, -k1)
+    and dir1 <-> dir2. ``fields=["k1", "dir1"]`` (or the default set, without the
+    directions) stores their partners too, so the values written are those of the run
+    with every field."""
+    s = clcurv.shapes.torus(20_000, 2.0, 0.7, seed=5)
+    src = tmp_path / "c.npy"
+    np.save(src, s["points"])                  # no normals: orient='auto' is MST
+    out = {}
+    for name, fields in (("all", ["all"]), ("some", ["k1", "dir1"])):
+        clcurv.curvature_file(src, tmp_path / f"{name}.npz", 0.2, method="mls2", tile=0.9,
+                              memory="64GiB", fields=fields)
+        out[name] = np.load(tmp_path / f"{name}.npz")
+    assert sorted(out["some"].files) == ["dir1_x", "dir1_y", "dir1_z", "k1", "points"]
+    for k in out["some"].files:
+        assert np.array_equal(out["some"][k], out["all"][k], equal_nan=True), k

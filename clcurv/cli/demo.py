@@ -5,7 +5,8 @@ metres), picks the radius for about 30 neighbours, runs 3 MLS1 scale-space steps
 (Digne & Morel's recommended pipeline), and writes into ``outdir``:
 
 * ``bunny_mls2.ply``: the input positions and order, the fitted normals (``nx ny nz``) and
-  the fields ``mean_curvature`` (H, 1/m), ``gaussian_curvature`` (K, 1/m^2), ``k1 >= k2``
+  every field (``--fields all``: the principal directions too, which the paper's pipeline
+  estimates) ``mean_curvature`` (H, 1/m), ``gaussian_curvature`` (K, 1/m^2), ``k1 >= k2``
   (signed, 1/m), ``dir1_*``, ``dir2_*``, ``neighbours``, ``status``;
 * ``bunny_mean_curvature.png``: the cloud coloured by H (needs matplotlib).
 
@@ -34,7 +35,7 @@ def run(outdir="out", device=None, quiet=False, out=print):
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
     job = Job(sample_path(), outdir / PLY_NAME, method="mls2", radius="auto",
-              scale_space=SCALE_SPACE_STEPS, device=device, quiet=quiet)
+              scale_space=SCALE_SPACE_STEPS, fields=["all"], device=device, quiet=quiet)
     out(f"demo: the bundled Stanford bunny ({job.input}), the paper's pipeline: "
         f"{SCALE_SPACE_STEPS} MLS1 scale-space iterations, then MLS2")
     done = run_job(job, out)

@@ -587,14 +587,22 @@ def _run_regions(space, want, source, dst, params, budget, tile, wanted, progres
     return summary
 
 
+#: fields that an orientation flip exchanges (clcurv.tiles.orient.flip_fields: MLS2's
+#: (k1, k2) -> (-k2, -k1), dir1 <-> dir2): one written, the tiles store both
+_FLIP_PAIRS = [("k1", "k2")] + [(f"dir1_{c}", f"dir2_{c}") for c in "xyz"]
+
+
 def _stored_specs(params, specs):
-    """The fields the tiles store: those written, and a curvature run's status and
-    neighbour count always (the summary's counts and the small-radius warning need them)."""
+    """The fields the tiles store: those written, the partner of each one that a flip of
+    the orientation exchanges with it (:data:`_FLIP_PAIRS`: ``--fields k1`` or ``dir1``
+    alone flips as every field does), and a curvature run's status and neighbour count
+    always (the summary's counts and the small-radius warning need them)."""
     if params.kind != "curvature":
         return specs
     names = {n for n, _, _ in specs}
-    return list(specs) + [s for s in _field_specs(params.method, False)
-                          if s[0] in ("neighbours", "status") and s[0] not in names]
+    need = {b for pair in _FLIP_PAIRS for a, b in (pair, pair[::-1])
+            if a in names and b not in names} | ({"status", "neighbours"} - names)
+    return list(specs) + [s for s in _field_specs(params.method, False) if s[0] in need]
 
 
 def _summary(params, tiles, skipped, size, source, times, status, dst, halo=0):
