@@ -14,8 +14,8 @@ from clcurv.cli import main as cli, demo
 from clcurv import io
 from clcurv.data import SAMPLE_POINTS, sample_path
 
-#: the default file fields of MLS2 (the principal directions on request)
-FIELDS = ["mean_curvature", "gaussian_curvature", "k1", "k2", "neighbours", "status"]
+DIRS = [f"dir{i}_{a}" for i in "12" for a in "xyz"]
+FIELDS = ["mean_curvature", "gaussian_curvature", "k1", "k2", *DIRS, "neighbours", "status"]
 #: median mean curvature (1/m) of the bunny after 3 MLS1 steps, MLS2, radius auto
 #: (0.003804 m, ~31 neighbours): measured 23.23 on PoCL (float); outward normals make the
 #: mostly convex bunny positive. The tolerance leaves room for other devices' rounding.
