@@ -88,6 +88,55 @@ def make_catalog(folder, n, files, seed=0, extent=None):
     return total
 
 
+def _cpu_tree(proc):
+    """CPU seconds of a process and its children (psutil: Dask's dependency)."""
+    import psutil
+    total = 0.0
+    for p in [proc] + proc.children(recursive=True):
+        try:
+            t = p.cpu_times()
+            total += t.user + t.system
+        except psutil.Error:
+            pass
+    return total
+
+
+def run_on_scheduler(folder, out, extra=()):
+    """The child's report of the command with ``--scheduler``: a Dask scheduler and two
+    single-threaded workers started here, each in its own process (the client process then
+    holds the client alone); the workers' CPU read from their processes before they stop."""
+    import psutil
+    bindir = Path(sys.executable).parent
+    sched = subprocess.Popen([str(bindir / "dask"), "scheduler", "--port", "0",
+                              "--dashboard-address", ":0", "--scheduler-file",
+                              str(out.parent / "sched.json")],
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        for _ in range(200):
+            if (out.parent / "sched.json").exists():
+                break
+            time.sleep(0.1)
+        address = json.loads((out.parent / "sched.json").read_text())["address"]
+        workers = [subprocess.Popen([str(bindir / "dask"), "worker", address, "--nthreads",
+                                     "1", "--nworkers", "1", "--no-dashboard"],
+                                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                   for _ in range(2)]
+        time.sleep(3)
+        procs = [psutil.Process(w.pid) for w in workers]
+        before = sum(_cpu_tree(p) for p in procs)
+        rep = run(folder, out, ("--scheduler", address, *extra))
+        rep["cpu_children"] = sum(_cpu_tree(p) for p in procs) - before
+        rep["cpu_scheduler"] = _cpu_tree(psutil.Process(sched.pid))
+        for w in workers:
+            w.terminate()
+            w.wait(30)
+    finally:
+        sched.terminate()
+        sched.wait(30)
+        (out.parent / "sched.json").unlink(missing_ok=True)
+    return rep
+
+
 def run(folder, out, extra=()):
     """The child's report (dict) of ``clcurv compute folder -o out ...``."""
     out.mkdir(parents=True, exist_ok=True)
@@ -126,9 +175,11 @@ def main(argv=None):
         make_catalog(small, 2000, 4, extent=20.0)
         (small / "done").write_text("2000")
     rows = []                       # ("done" is not a LAS/LAZ: no input of the catalog)
-    for label, extra in (("one process", ()), ("--workers 2", ("--workers", "2"))):
-        base = run(small, wd / "out_small", extra)
-        rep = run(cat, wd / "out", extra)
+    for label, extra in (("one process", ()), ("--workers 2", ("--workers", "2")),
+                         ("--scheduler", None)):
+        how = run if extra is not None else run_on_scheduler
+        base = how(small, wd / "out_small", extra or ())
+        rep = how(cat, wd / "out", extra or ())
         rep["in"], rep["out"] = _size(cat), _size(wd / "out")
         rows.append((label, rep, base))
     cpu = platform.processor() or platform.machine()

@@ -326,7 +326,7 @@ def test_cli_tiles_equal_the_cli_in_memory(scene, tmp_path):
     assert r1.code == 0 and r2.code == 0, (r1.stderr, r2.stderr)
     assert "tile(s)" in r2.stdout
     # the summary lines of an in-memory run: its percentiles too, exactly here (30,700
-    # points: the tiles' sample of 2^17 is every point), and the fields written
+    # points: the tiles' sample of 2^15 is every point), and the fields written
     def lines(text, out):
         keep = [ln for ln in text.splitlines()
                 if ln.startswith(("method ", "mean neighbours", "device ", "  "))]

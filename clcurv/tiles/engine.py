@@ -183,10 +183,16 @@ def workspace(dst, workdir):
     return wsp.folder(dst, workdir)
 
 
-def _source_key(src):
-    """The resume key of the input(s): content hashes and point counts."""
+def _source_key(src, execute=None):
+    """The resume key of the input(s): content hashes (each file's by a task of
+    ``execute``, when given: on the workers of a Dask run) and point counts."""
     parts = src.parts if isinstance(src, stream.Catalog) else [src]
-    keys = wsp.source_key([p.path for p in parts])
+    hashes = None
+    if execute is not None:
+        done = dict(execute([wsp.HashTask(k, str(p.path)) for k, p in enumerate(parts)],
+                            wsp.hash_task))
+        hashes = [done[k] for k in range(len(parts))]
+    keys = wsp.source_key([p.path for p in parts], hashes)
     for k, p in zip(keys, parts):
         k["n"] = int(p.n)
     return keys
@@ -299,14 +305,15 @@ def catalog_outputs(source, dst):
     return outs
 
 
-def _manifest(source, params, budget, tile, wanted, client, workers):
-    """The resume key: the inputs' content, every option that changes a byte of the
-    output (the fields written among them), the code, and the device of a local run."""
+def _manifest(source, params, budget, tile, wanted, client, workers, execute=None):
+    """The resume key: the inputs' content (hashed by the tasks of ``execute``), every
+    option that changes a byte of the output (the fields written among them), the code,
+    and the device of a local run."""
     device = None
     if client is None and not workers:
         info = worker_device(params.device).info
         device = [info.platform, info.name, info.driver]
-    return {"source": _source_key(source), "params": params.key(),
+    return {"source": _source_key(source, execute), "params": params.key(),
             "fields": sorted(wanted) if wanted else None, "code": wsp.code_key(),
             "tile": None if tile is None else float(tile),
             "budget": budget if tile is None else None, "device": device,
@@ -352,8 +359,9 @@ def run_tiles(source, dst, params, budget, tile, ws, wanted, progress, say, clie
     full disk (the same command cannot succeed as it is); the workspace after an
     interruption or any other failure, for the same command to resume. A workspace file
     that fails its check is recomputed: the run starts afresh once."""
-    want = _manifest(source, params, budget, tile, wanted, client, workers)
     with wsp.claim(ws, dst) as space, cluster.session(client, workers) as dask:
+        want = _manifest(source, params, budget, tile, wanted, client, workers,
+                         lambda tasks, fn: _execute(tasks, dask, fn))
         try:
             for attempt in (0, 1):
                 try:
@@ -780,7 +788,7 @@ def tile_records(task, pos, own, ids, file_normals, device=None):
 
 
 #: points of the sample the summary of a tiled run takes its percentiles from, about
-SAMPLE_POINTS = 1 << 17
+SAMPLE_POINTS = 1 << 15
 
 
 def _ranged(params):
@@ -801,7 +809,7 @@ def tile_info(out, offsets, params, n):
     take = out[out["id"] % step == 0]
     return {"files": _files(out["id"], offsets),
             "most": int(out["neighbours"].max()) if "neighbours" in names and len(out) else 0,
-            "sample": {k: take[k].tolist() for k in names},
+            "sample": {k: np.ascontiguousarray(take[k]) for k in names},
             "nan": {k: int(np.count_nonzero(np.isnan(out[k]))) for k in names
                     if out.dtype[k].kind == "f"},
             "neighbours": int(out["neighbours"].sum()) if "neighbours" in names else 0,

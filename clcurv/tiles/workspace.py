@@ -39,6 +39,7 @@ import struct
 import time
 import zlib
 from contextlib import ExitStack, contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -302,14 +303,28 @@ def file_hash(path):
     return h.hexdigest()
 
 
-def source_key(paths):
-    """The resume key of the input files ``paths``: path, size, mtime and content hash."""
+def source_key(paths, hashes=None):
+    """The resume key of the input files ``paths``: path, size, mtime and content hash
+    (:func:`file_hash`; ``hashes``: theirs, computed elsewhere, e.g. by the workers)."""
     out = []
-    for p in paths:
+    hashes = hashes if hashes is not None else [file_hash(p) for p in paths]
+    for p, h in zip(paths, hashes):
         st = os.stat(p)
         out.append({"path": str(Path(p).resolve()), "size": st.st_size,
-                    "mtime_ns": st.st_mtime_ns, "hash": file_hash(p)})
+                    "mtime_ns": st.st_mtime_ns, "hash": h})
     return out
+
+
+@dataclass
+class HashTask:
+    """The :func:`file_hash` of input file number ``t`` (:func:`hash_task`)."""
+    t: int
+    path: str
+
+
+def hash_task(task):
+    """The content hash of one input file, on a worker (the client reads no input)."""
+    return task.t, file_hash(task.path)
 
 
 _CODE = []
