@@ -42,22 +42,31 @@ cloud) computes, bit for bit on the same device. How:
   input), NPZ, binary PLY. ``radius="auto"`` of the CLI job is estimated from regions
   (:mod:`clcurv.jobs.tiled_job`).
 
-Passes and files. (1) The input is read once in chunks (:mod:`clcurv.io.stream`) and each
-point is appended, with its global id, to an on-disk bucket of a coarse 2-D grid
-(:mod:`clcurv.tiles.buckets`; files opened per write, so their number is not bounded by the
-open-file limit); the exact bounds are taken on the way. (1b) The buckets are split into
-one input file per tile: its points and halo, each flagged as owned or not. (2) Each tile
-reads its file, runs the operator on a :class:`clcurv.DeviceCloud` in the global frame, and
-writes its own points' fields with their global ids to a tile file. (3) The tile files are
-regrouped by windows of consecutive ids (:mod:`clcurv.tiles.results`; every point checked
-present once) and the output is written in input order, a window at a time (LAS/LAZ: the
-input's header, scales, offsets, VLRs and records kept, the fields as extra bytes),
-atomically (:func:`clcurv.io.atomic_output`). The workspace (buckets, tile files, windows,
-the manifest) is a folder the run makes, locks and checks (:mod:`clcurv.tiles.workspace`,
-docs/workspace.md): a run interrupted or killed is resumed by the same command (finished
-tiles are skipped) only when its inputs' content and options are the same and every file
-passes its count and CRC check; the folder is removed at the end, on bad input and on a full
-disk.
+Passes and files. Every pass over the points is a set of tasks (:func:`_execute`: in this
+process, or on Dask workers, :mod:`clcurv.tiles.workers`); the client reads only the
+files' headers and plans from the tasks' small results. (0) The inputs' content hashes,
+for the resume key. (1) The input is cut in parts (:func:`clcurv.io.stream.parts_of`: the
+files of a catalog, 4M-point ranges of a LAS/LAZ file), and each part's task reads it and
+appends each point, with its global id, to its own on-disk buckets of a coarse 2-D grid
+(:mod:`clcurv.tiles.buckets`; files opened per write, so their number is not bounded by
+the open-file limit), taking its exact bounds on the way. (1b) Each part's buckets are
+split into its share of the tiles' input files: their points and halo, each flagged as
+owned or not (the tiles sized from the parts' counts and, where needed, their occupancy
+of the cells, counted by a task per part). (2) Each tile reads its files, runs the
+operator on a :class:`clcurv.DeviceCloud` in the global frame, and writes its own points'
+fields with their global ids to a tile file. (3) The outputs (:mod:`clcurv.tiles.writing`):
+a task per catalog file, or per window of whole LAZ chunks of one LAS/LAZ output (pieces
+the client joins by byte copies), gathers its points' records from the tiles (every point
+checked present once) and writes them in input order (LAS/LAZ: the input's header, scales,
+offsets, VLRs and records kept, the fields as extra bytes); NPZ, PLY and MST-oriented
+outputs are merged and written by the client, a window of ids at a time; all atomically
+(:func:`clcurv.io.atomic_output`). A COPC file skips (1) and (1b): its tiles read their
+regions from the octree (:mod:`clcurv.tiles.regions`). The workspace (buckets, tile files,
+windows, pieces, the manifest) is a folder the run makes, locks and checks
+(:mod:`clcurv.tiles.workspace`, docs/workspace.md): a run interrupted or killed is resumed
+by the same command (finished tiles are skipped) only when its inputs' content and options
+are the same and every file passes its count and CRC check; the folder is removed at the
+end, on bad input and on a full disk.
 
 Memory: peak RSS is about the baseline (interpreter, OpenCL) plus the largest tile (its
 core and halo) times :data:`TILE_BYTES_PER_POINT`, whatever the size of the cloud; the
