@@ -809,10 +809,11 @@ def _ranged(params):
 
 
 def tile_info(out, offsets, params, n):
-    """What the client needs of a tile's records ``out``, small: the input files that hold
-    its points, and for the summary the exact NaN counts and neighbour sum, and a
-    systematic sample (the ids that are multiples of n / SAMPLE_POINTS) of the summary's
-    fields."""
+    """What the client needs of a tile's records ``out``, small: the input files (or the
+    output's windows) that hold its points (their first ids ``offsets``), its largest
+    neighbour count (the count type of a LAS output), and for the summary the exact NaN
+    counts and neighbour sum, and a systematic sample (the ids that are multiples of
+    n / SAMPLE_POINTS) of the summary's fields."""
     step = max(1, int(n) // SAMPLE_POINTS)
     names = [k for k in _ranged(params) + ["neighbours"] if k in out.dtype.names]
     take = out[out["id"] % step == 0]
