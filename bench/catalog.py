@@ -19,11 +19,12 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import platform
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+from bench.harness import cpu_model
 
 REPO = Path(__file__).resolve().parent.parent
 RADIUS = 0.6
@@ -182,12 +183,7 @@ def main(argv=None):
         rep = how(cat, wd / "out", extra or ())
         rep["in"], rep["out"] = _size(cat), _size(wd / "out")
         rows.append((label, rep, base))
-    cpu = platform.processor() or platform.machine()
-    try:
-        cpu = next(line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo")
-                   if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
+    cpu = cpu_model()
     load = open("/proc/loadavg").read().split()[:3]
     lines = [f"\n### Catalog on the workers, {time.strftime('%Y-%m-%d %H:%M')} — {cpu}, "
              f"load average {' '.join(load)}\n",

@@ -618,6 +618,19 @@ def covariance_ops(points, radius, normals, method, weights="uniform", align=Fal
 
 
 # --- operator 7: MLS2, and the iterations ---
+def solvable(amat, status):
+    """The rows of ``status`` OK whose 6x6 system ``amat`` is not singular (its smallest
+    singular value above SINGULAR_RCOND times its largest); the others OK before are set
+    SINGULAR in ``status``."""
+    idx = np.flatnonzero(status == OK)
+    if len(idx):
+        sv = np.linalg.svd(amat[idx], compute_uv=False)
+        singular = ~(sv[:, -1] > SINGULAR_RCOND * sv[:, 0])
+        status[idx[singular]] = SINGULAR
+        idx = idx[~singular]
+    return idx
+
+
 def _eigvec_2x2(s11, s12, s21, s22, lam):
     """Eigenvector ``(a, b)`` of ``[[s11, s12], [s21, s22]]`` for the eigenvalue ``lam``
     (not normalised): the longer of the vectors orthogonal to the two rows of
@@ -745,14 +758,9 @@ def mls2(points, radius, normals, weights="uniform", kernel="ball", h=None):
     amat, sb = _symmetric(sums[:len(iu)], 6), sums[len(iu):]
 
     coef = np.full((n, 6), np.nan)
-    idx = np.flatnonzero(status == OK)
+    idx = solvable(amat, status)
     if len(idx):
-        sv = np.linalg.svd(amat[idx], compute_uv=False)
-        singular = ~(sv[:, -1] > SINGULAR_RCOND * sv[:, 0])
-        status[idx[singular]] = SINGULAR
-        idx = idx[~singular]
-        if len(idx):
-            coef[idx] = np.linalg.solve(amat[idx], sb[:, idx].T[:, :, None])[:, :, 0]
+        coef[idx] = np.linalg.solve(amat[idx], sb[:, idx].T[:, :, None])[:, :, 0]
 
     # 4. derivatives, projection, normal, shape operator S = I^-1 II
     a00, a10, a01, a20, a11, a02 = coef.T

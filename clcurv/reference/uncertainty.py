@@ -129,10 +129,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from clcurv._shared.constants import (DEGENERATE, MIN_COUNT_MLS2, MIN_COUNT_PCA, OK, SINGULAR,
-                                      TOO_FEW)
+from clcurv._shared.constants import DEGENERATE, MIN_COUNT_MLS2, MIN_COUNT_PCA, OK, TOO_FEW
 from clcurv._shared.options import choices
-from clcurv.reference.operators import RANK_TOL, SINGULAR_RCOND, tangent_frame
+from clcurv.reference.operators import RANK_TOL, solvable, tangent_frame
 
 __all__ = ["mls2_uncertainty", "mls1_uncertainty", "pca_uncertainty", "curvature_jacobian",
            "debiased_principal", "FIELDS"]
@@ -415,12 +414,7 @@ def _mls2_pass(pts, r, balls, weight, pca, v0):
     coef = np.full((n, 6), np.nan)
     cov = np.full((n, 6, 6), np.nan)
     sigma2, dof, rss = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
-    idx = np.flatnonzero(status == OK)
-    if len(idx):
-        sv = np.linalg.svd(amat[idx], compute_uv=False)
-        singular = ~(sv[:, -1] > SINGULAR_RCOND * sv[:, 0])
-        status[idx[singular]] = SINGULAR
-        idx = idx[~singular]
+    idx = solvable(amat, status)
     if len(idx):
         a_inv = np.linalg.inv(amat[idx])
         c = np.linalg.solve(amat[idx], rhs[idx][:, :, None])[:, :, 0]
