@@ -276,12 +276,18 @@ class Buckets:
     def _dtype(self, state):
         return self.dtype if state is None else state.joined_dtype(self.dtype)
 
-    def state(self):
+    def state(self, parts=None):
+        """The picklable state (:meth:`from_state`); ``parts``: of those parts only (their
+        files' sums: a task's, which reads no other part's files; [] for none)."""
+        crc = self.crc.state()
+        if parts is not None:
+            keep = {str(k) for k in parts}
+            crc = {key: v for key, v in crc.items() if key.split("/")[0] in keep}
         return {"origin": self.origin.tolist(), "side": self.side, "shape": list(self.shape),
                 "counts": self.counts.tolist(), "lo": self.lo.tolist(),
                 "hi": self.hi.tolist(), "normals_finite": self.normals_finite,
-                "normals": "n" in self.dtype.names, "crc": self.crc.state(),
-                "part": self.part, "parts": list(self.parts)}
+                "normals": "n" in self.dtype.names, "crc": crc,
+                "part": self.part, "parts": list(self.parts if parts is None else parts)}
 
     @classmethod
     def from_state(cls, folder, s):

@@ -493,7 +493,8 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
     offsets = tuple(a for a, _ in windows) if pieced else _file_offsets(source)
     todo = [(rank, t) for rank, t in enumerate(tiles) if not _tile_done(ws, t, mst, say)]
     skipped = len(tiles) - len(todo)
-    tasks = [TileTask(str(ws), t, tiling, state["buckets"], params, how, file_normals,
+    layout = buckets.state([])          # a tile reads its split files, not the buckets
+    tasks = [TileTask(str(ws), t, tiling, layout, params, how, file_normals,
                       stored, smoothed, sums.get(str(t)), rank, offsets, source.n)
              for rank, t in todo]
     t1 = time.perf_counter()
@@ -542,7 +543,7 @@ def _occupancy(buckets, frame, execute):
     """The points' occupancy of ``frame`` (for planning), each part's counted by a task of
     ``execute`` (at most OCCUPANCY_BLOCKS blocks in all: what the client receives)."""
     limit = max(OCCUPANCY_BLOCKS // len(buckets.parts), 1 << 10)
-    tasks = [OccupancyTask(str(buckets.folder), k, buckets.state(), frame, limit)
+    tasks = [OccupancyTask(str(buckets.folder), k, buckets.state([k]), frame, limit)
              for k in buckets.parts]
     return merge_occupancy(frame, list(execute(tasks, occupancy_part)))
 
@@ -676,7 +677,7 @@ def _split(space, buckets, tiling, smoothed, execute):
         sums = buckets.split(tiling, folder, state=smoothed)
     else:
         folder.mkdir()
-        tasks = [SplitTask(str(buckets.folder), k, buckets.state(), tiling, str(folder))
+        tasks = [SplitTask(str(buckets.folder), k, buckets.state([k]), tiling, str(folder))
                  for k in buckets.parts]
         sums = {}
         for part in execute(tasks, split_part):
