@@ -14,6 +14,11 @@
  * Build options: REF_NORMALS (0|1: NX, NY, NZ orient v0), DENSITY, GAUSSIAN (par.y = 1 / h^2),
  * MIN_COUNT and the record columns COL_SHIFT (3), COL_K1, COL_K2, COL_DIR1 (3), COL_DIR2 (3),
  * COL_NORMALS (3), COL_COUNT, COL_STATUS (clcurv/ops/registry.py).
+ * UNCERTAINTY (0|1): a second record per point in out2 (the error record, columns
+ * COL_MEAN_SE, COL_GAUSSIAN_SE, COL_K1_SE, COL_K2_SE, COL_NORMAL_SE, COL_ROUGHNESS, and
+ * ECOL_COUNT, ECOL_STATUS): the standard errors of the curvatures and of the fitted normal,
+ * and the roughness, from the same walk (mls2_errors_v; the formulas are those of
+ * clcurv/reference/uncertainty.py, which documents the model).
  */
 #include "common.h"
 #include "neighbors.h"
@@ -27,6 +32,22 @@
     || !defined(COL_COUNT) || !defined(COL_STATUS)
 #error "mls2.cl needs REF_NORMALS, MIN_COUNT and its record columns (clcurv/ops/registry.py)"
 #endif
+#ifndef UNCERTAINTY
+#define UNCERTAINTY 0
+#endif
+#if UNCERTAINTY && (!defined(COL_MEAN_SE) || !defined(COL_GAUSSIAN_SE) || !defined(COL_K1_SE) \
+    || !defined(COL_K2_SE) || !defined(COL_NORMAL_SE) || !defined(COL_ROUGHNESS) \
+    || !defined(ECOL_COUNT) || !defined(ECOL_STATUS))
+#error "mls2.cl with UNCERTAINTY needs its error record's columns (clcurv/ops/registry.py)"
+#endif
+/* the error sums of one point beside its normal equations: sum w h^2 and, for weights that
+ * are not 0 or 1, B = sum w^2 phi phi^T (packed as the normal matrix) */
+typedef struct {
+    REAL hh[VW];
+#if DENSITY || GAUSSIAN
+    REAL B[21][VW];
+#endif
+} mls2_err_t;
 
 /* Unit eigenvectors (ex, ey) (in the parameter plane) of the VW 2x2 matrices s for their
  * eigenvalues lam; (1, 0) where the matrix is a multiple of the identity. */
@@ -51,6 +72,16 @@ inline void identity_system(REAL M[21][VW], REAL b[6][VW], uint k)
     for (int e = 0; e < 6; ++e) b[e][k] = 0;
 }
 
+/* Lane k of the error sums: those of the identity system (failed or unused lanes). */
+inline void identity_errors(mls2_err_t *err, uint k)
+{
+    err->hh[k] = 0;
+#if DENSITY || GAUSSIAN
+    for (int e = 0; e < 21; ++e)
+        err->B[e][k] = (REAL)(e == 0 || e == 2 || e == 5 || e == 9 || e == 14 || e == 20);
+#endif
+}
+
 /* Frame and normal equations of the sorted point g (lane k), once its PCA is known: v0
  * oriented by the reference normal, the tangent frame, Q - p, and sum w phi phi^T (packed)
  * and sum w h phi for phi = (1, x, y, x^2, xy, y^2). Returns the status. */
@@ -59,7 +90,7 @@ inline uchar mls2_system(__global const REAL *X, __global const REAL *Y, __globa
                          __global const REAL *NZ, __global const REAL *W,
                          __global const uint2 *ranges, uint cell, uint g, const pca_batch_t *pb,
                          uint k, REAL r, REAL ih2, REAL2 ball, REAL fr[12][VW],
-                         REAL M[21][VW], REAL b[6][VW])
+                         REAL M[21][VW], REAL b[6][VW], mls2_err_t *err)
 {
     const REAL3 p = (REAL3)(X[g], Y[g], Z[g]);
     const REAL ir = (REAL)1 / r;
@@ -79,6 +110,9 @@ inline uchar mls2_system(__global const REAL *X, __global const REAL *Y, __globa
     for (int e = 0; e < 12; ++e) fr[e][k] = frame[e];
     if (st != ST_OK) {                              /* identity system for failed points */
         identity_system(M, b, k);
+#if UNCERTAINTY
+        identity_errors(err, k);
+#endif
         return st;
     }
     /* x = <q - Q, t1> / r = <d, t1> / r (Q - p is along v0), likewise y;
@@ -91,6 +125,14 @@ inline uchar mls2_system(__global const REAL *X, __global const REAL *Y, __globa
     const REAL3 u1 = t1 * ir, u2 = t2 * ir;
     REALV s30 = 0, s21 = 0, s12 = 0, s03 = 0, s40 = 0, s31 = 0, s22 = 0, s13 = 0, s04 = 0;
     REALV hxx = 0, hxy = 0, hyy = 0;
+#if UNCERTAINTY
+    REALV hh = 0;
+#if DENSITY || GAUSSIAN
+    /* sum w^2 x^i y^j, i + j <= 4 */
+    REALV q00 = 0, q10 = 0, q01 = 0, q20 = 0, q11 = 0, q02 = 0, q30 = 0, q21 = 0, q12 = 0;
+    REALV q03 = 0, q40 = 0, q31 = 0, q22 = 0, q13 = 0, q04 = 0;
+#endif
+#endif
     REALV dx, dy, dz;
     NEIGHBOR_CHUNKS_BEGIN(ranges, cell, p, ball, i, end, pr)
         const IREALV m = chunk_offsets(X, Y, Z, i, end, pr, ball, &dx, &dy, &dz);
@@ -111,6 +153,21 @@ inline uchar mls2_system(__global const REAL *X, __global const REAL *Y, __globa
         s03 += wyy * y; s40 += wxx * xx; s31 += wxx * xy;
         s22 += wxx * yy; s13 += wxy * yy; s04 += wyy * yy;
         hxx += wxx * h; hxy += wxy * h; hyy += wyy * h;
+#if UNCERTAINTY
+#if DENSITY || GAUSSIAN
+        hh += w * h * h;
+        {
+            const REALV w2 = w * w, w2xx = w2 * xx, w2xy = w2 * xy, w2yy = w2 * yy;
+            q00 += w2; q10 += w2 * x; q01 += w2 * y;
+            q20 += w2xx; q11 += w2xy; q02 += w2yy;
+            q30 += w2xx * x; q21 += w2xx * y; q12 += w2xy * y; q03 += w2yy * y;
+            q40 += w2xx * xx; q31 += w2xx * xy; q22 += w2xx * yy; q13 += w2xy * yy;
+            q04 += w2yy * yy;
+        }
+#else
+        hh += h * h;
+#endif
+#endif
     NEIGHBOR_CHUNKS_END
     const REAL sw = (REAL)1 / pb->iw[k];
     const REAL c0 = pb->c[0][k], c1 = pb->c[1][k], c2 = pb->c[2][k];
@@ -137,6 +194,23 @@ inline uchar mls2_system(__global const REAL *X, __global const REAL *Y, __globa
     const REAL rhs[6] = {0, sw * dot(v0, C1) * ir, sw * dot(v0, C2) * ir,
                          hsum(hxx), hsum(hxy), hsum(hyy)};
     for (int e = 0; e < 6; ++e) b[e][k] = rhs[e];
+#if UNCERTAINTY
+    err->hh[k] = hsum(hh);
+#if DENSITY || GAUSSIAN
+    {
+        const REAL Q20 = hsum(q20), Q11 = hsum(q11), Q02 = hsum(q02);
+        const REAL Q30 = hsum(q30), Q21 = hsum(q21), Q12 = hsum(q12), Q03 = hsum(q03);
+        const REAL Q22 = hsum(q22);
+        const REAL bp[21] = {hsum(q00),
+                             hsum(q10), Q20,
+                             hsum(q01), Q11, Q02,
+                             Q20, Q30, Q21, hsum(q40),
+                             Q11, Q21, Q12, hsum(q31), Q22,
+                             Q02, Q12, Q03, Q22, hsum(q13), hsum(q04)};
+        for (int e = 0; e < 21; ++e) err->B[e][k] = bp[e];
+    }
+#endif
+#endif
     return st;
 }
 
@@ -179,10 +253,107 @@ inline void mls2_finish_v(const REALV a[6], REAL fr[12][VW], REAL r, REAL o[14][
     for (int e = 0; e < 14; ++e) VSTOREV(out[e], 0, o[e]);
 }
 
+#if UNCERTAINTY
+/* sum_ij u_i P_ij v_j over the indices 1..5 of a symmetric 6x6 P (full, P[i][j]) */
+inline REALV form5_v(const REALV u[5], REALV P[6][6], const REALV v[5])
+{
+    REALV t = 0;
+    for (int i = 0; i < 5; ++i) {
+        REALV row = 0;
+        for (int j = 0; j < 5; ++j) row += P[i + 1][j + 1] * v[j];
+        t += u[i] * row;
+    }
+    return t;
+}
+
+/* The error record's six values of the VW lanes, into e[6][VW]: SE(H), SE(K), SE(k1),
+ * SE(k2), SE of the fitted normal's angle (radians) and the roughness sigma_hat (length),
+ * from the fitted coefficients a (scaled coordinates, heights along v0), the factorised
+ * normal matrix (m, s, d, ok: factor6_v), its right-hand side b, the error sums and the
+ * neighbour counts (float). clcurv/reference/uncertainty.py (mls2_uncertainty,
+ * curvature_jacobian) has the model and the formulas:
+ *   RSS = sum w h^2 - a . b, nu = n - 6 (uniform ball) or sum w - tr(A^-1 B),
+ *   sigma^2 = RSS / nu, Cov(a) = sigma^2 A^-1 B A^-1 (B = A for the uniform ball),
+ *   SE(X)^2 = J_X Cov(a) J_X^T by the delta method, gradients included;
+ *   k1,2 = H +- D, D = sqrt(H^2 - K) (dD = 0 where D = 0). NaN where nu <= 0. */
+inline void mls2_errors_v(const REALV a[6], const REALV m[21], const REALV s[6],
+                          const REALV d[6], const IREALV ok, const REALV b[6],
+                          const mls2_err_t *err, const REALV count, REAL r, REALV e[6])
+{
+    REALV Ai[6][6];                                  /* A^-1, column by column */
+    for (int c = 0; c < 6; ++c) {
+        REALV u[6], x[6];
+        for (int i = 0; i < 6; ++i) u[i] = (REALV)(i == c ? 1 : 0);
+        subst6_v(m, s, d, ok, u, x);
+        for (int i = 0; i < 6; ++i) Ai[i][c] = x[i];
+    }
+    REALV rss = VLOADV(0, err->hh);
+    for (int i = 0; i < 6; ++i) rss -= a[i] * b[i];
+    rss = fmax(rss, (REALV)0);
+#if DENSITY || GAUSSIAN
+    REALV Bf[6][6], T[6][6], C[6][6];
+    for (int i = 0; i < 6; ++i)
+        for (int j = 0; j <= i; ++j)
+            Bf[i][j] = Bf[j][i] = VLOADV(0, err->B[S6(i, j)]);
+    REALV tr = 0;
+    for (int i = 0; i < 6; ++i)
+        for (int j = 0; j < 6; ++j) tr += Ai[i][j] * Bf[j][i];
+    const REALV nu = (REAL)1 / (s[0] * s[0]) - tr;  /* sum w = A00 = 1 / s0^2 (factor6_v) */
+    for (int i = 0; i < 6; ++i)                      /* T = B A^-1 */
+        for (int j = 0; j < 6; ++j) {
+            REALV t = 0;
+            for (int k = 0; k < 6; ++k) t += Bf[i][k] * Ai[k][j];
+            T[i][j] = t;
+        }
+    for (int i = 0; i < 6; ++i)                      /* C = A^-1 B A^-1 */
+        for (int j = 0; j < 6; ++j) {
+            REALV t = 0;
+            for (int k = 0; k < 6; ++k) t += Ai[i][k] * T[k][j];
+            C[i][j] = t;
+        }
+#else
+    const REALV nu = count - 6;
+    REALV (*C)[6] = Ai;
+#endif
+    const IREALV dof = isgreater(nu, (REALV)0);
+    const REALV sigma2 = select((REALV)0, rss / select((REALV)1, nu, dof), dof);
+    /* the curvatures from the coefficients, clcurv's signs (height along the outward v0) */
+    const REAL ir = (REAL)1 / r, ir2 = ir * ir;
+    const REALV p = a[1] * ir, q = a[2] * ir;
+    const REALV L = 2 * a[3] * ir2, M = a[4] * ir2, N = 2 * a[5] * ir2;
+    const REALV w = 1 + p * p + q * q, w3 = w * sqrt(w), iw3 = (REAL)1 / w3;
+    const REALV H = -((1 + q * q) * L - 2 * p * q * M + (1 + p * p) * N) * (REAL)0.5 * iw3;
+    const REALV K = (L * N - M * M) / (w * w);
+    /* gradients with respect to (a10, a01, a20, a11, a02): d/d(p, q, L, M, N) times the
+       chain factors (1/r, 1/r, 2/r^2, 1/r^2, 2/r^2) */
+    const REALV jH[5] = {(-(p * N - q * M) * iw3 - 3 * p * H / w) * ir,
+                         (-(q * L - p * M) * iw3 - 3 * q * H / w) * ir,
+                         -(1 + q * q) * iw3 * ir2, p * q * iw3 * ir2,
+                         -(1 + p * p) * iw3 * ir2};
+    const REALV jK[5] = {-4 * p * K / w * ir, -4 * q * K / w * ir, 2 * N / (w * w) * ir2,
+                         -2 * M / (w * w) * ir2, 2 * L / (w * w) * ir2};
+    const REALV D = sqrt(fmax(H * H - K, (REALV)0));
+    const IREALV pos = isgreater(D, (REALV)0);
+    const REALV iD = select((REALV)0, (REAL)0.5 / select((REALV)1, D, pos), pos);
+    REALV jD[5];
+    for (int i = 0; i < 5; ++i) jD[i] = (2 * H * jH[i] - jK[i]) * iD;
+    const REALV vH = form5_v(jH, C, jH), vK = form5_v(jK, C, jK), vD = form5_v(jD, C, jD);
+    const REALV cHD = form5_v(jH, C, jD);
+    /* the fitted normal (-p, -q, 1) / sqrt(w): angle variance tr(G Cov(p, q)),
+       G = (I - g g^T / w) / w, g = (p, q), Cov(p, q) = C[1..2][1..2] / r^2 */
+    const REALV iw = (REAL)1 / w;
+    const REALV g00 = (1 - p * p * iw) * iw, g01 = -p * q * iw * iw, g11 = (1 - q * q * iw) * iw;
+    const REALV nv = (g00 * C[1][1] + 2 * g01 * C[1][2] + g11 * C[2][2]) * ir2;
+    const REALV v[6] = {vH, vK, vH + vD + 2 * cHD, vH + vD - 2 * cHD, nv, (REALV)1};
+    for (int i = 0; i < 6; ++i)      /* fmax drops a NaN: the dof test restores it */
+        e[i] = select((REALV)(NAN), sqrt(fmax(sigma2 * v[i], (REALV)0)), dof);
+}
+#endif
+
 /* One work-item per VW consecutive sorted points (global size >= ceil(n / VW)): PCA of the
  * VW balls with one vectorised eigen solve, then each point's normal equations, then the VW
  * 6x6 systems solved at once in the vector lanes, then the per-point curvatures. */
-__kernel void mls2(OPERATOR_ARGS)
+__kernel void mls2(OPERATOR_ARGS, __global REAL *out2)
 {
     const REAL r = par.x, ih2 = par.y;
     const uint g0 = first + get_global_id(0) * VW;
@@ -191,26 +362,40 @@ __kernel void mls2(OPERATOR_ARGS)
     pca_batch_t pb;
     pca_batch(X, Y, Z, W, CN, cell_of, ranges, n, g0, kn, ball, ih2, &pb);
     REAL Ml[21][VW], bl[6][VW], fr[12][VW];
+    mls2_err_t err;
     uchar st[VW];
     for (uint k = 0; k < VW; ++k) {
         if (k < kn) {
             const uint g = g0 + k;
             const uint co = cell_of[g];
             st[k] = mls2_system(x_rows(X, co, n), Y, Z, NX, NY, NZ, W, ranges, co & CELL_MASK, g,
-                                &pb, k, r, ih2, POINT_BALL(W, g, ball), fr, Ml, bl);
+                                &pb, k, r, ih2, POINT_BALL(W, g, ball), fr, Ml, bl, &err);
         } else {
             identity_system(Ml, bl, k);
+#if UNCERTAINTY
+            identity_errors(&err, k);
+#endif
             for (int e = 0; e < 12; ++e) fr[e][k] = (REAL)(e == 0 || e == 4 || e == 8);
         }
     }
-    REALV Mv[21], bv[6], xv[6];
+    REALV Mv[21], bv[6], xv[6], sv[6], dv[6];
     for (int e = 0; e < 21; ++e) Mv[e] = VLOADV(0, Ml[e]);
     for (int e = 0; e < 6; ++e) bv[e] = VLOADV(0, bl[e]);
-    const IREALV ok = solve6_v(Mv, bv, xv);
+    const IREALV ok = solve6_v(Mv, sv, dv, bv, xv);
     IREAL okl[VW];
     CAT(vstore, VW)(ok, 0, okl);
     REAL o[14][VW];
     mls2_finish_v(xv, fr, r, o);
+#if UNCERTAINTY
+    REAL eo[6][VW];
+    {
+        REAL cnt[VW];
+        for (uint k = 0; k < VW; ++k) cnt[k] = (REAL)pb.count[k];
+        REALV ev[6];
+        mls2_errors_v(xv, Mv, sv, dv, ok, bv, &err, VLOADV(0, cnt), r, ev);
+        for (int e = 0; e < 6; ++e) VSTOREV(ev[e], 0, eo[e]);
+    }
+#endif
     /* the records: shift | k1 k2 | dir1 | dir2 | normal | count | status */
     for (uint k = 0; k < kn; ++k) {
         const uchar s = (st[k] == ST_OK && !okl[k]) ? ST_SINGULAR : st[k];
@@ -225,5 +410,20 @@ __kernel void mls2(OPERATOR_ARGS)
         }
         REC_COUNT_STATUS(rec, pb.count[k], s);
         REC_STORE(rec, REC_INDEX(g0 + k), out);
+#if UNCERTAINTY
+        /* the error record: SE(H) SE(K) SE(k1) SE(k2) SE(normal) roughness | count | status */
+        REAL16 er = (REAL16)(NAN);
+        if (s == ST_OK) {
+            er.COL_MEAN_SE = eo[0][k];
+            er.COL_GAUSSIAN_SE = eo[1][k];
+            er.COL_K1_SE = eo[2][k];
+            er.COL_K2_SE = eo[3][k];
+            er.COL_NORMAL_SE = eo[4][k];
+            er.COL_ROUGHNESS = eo[5][k];
+        }
+        er.ECOL_COUNT = UINT_AS_REAL(pb.count[k]);
+        er.ECOL_STATUS = (REAL)s;
+        REC_STORE(er, REC_INDEX(g0 + k), out2);
+#endif
     }
 }

@@ -20,10 +20,11 @@
 
 #define S6(i, j) ((i) * ((i) + 1) / 2 + (j))   /* packed index of A_ij, i >= j */
 
-/* Solves A_k x_k = b_k in every lane k; returns the mask of the lanes that succeeded. */
-inline IREALV solve6_v(REALV m[21], const REALV b[6], REALV x[6])
+/* Factorises A_k = S^-1 L D L^T S^-1 in every lane k, in place (m then holds L below the
+ * diagonal of the scaled system), S = diag(s), D = diag(d); returns the mask of the lanes
+ * whose pivots all pass SOLVE6_TOL. */
+inline IREALV factor6_v(REALV m[21], REALV s[6], REALV d[6])
 {
-    REALV s[6], y[6], d[6];
     IREALV ok = (IREALV)(-1);
     for (int i = 0; i < 6; ++i) {
         const IREALV pos = isgreater(m[S6(i, i)], (REALV)0);
@@ -48,6 +49,14 @@ inline IREALV solve6_v(REALV m[21], const REALV b[6], REALV x[6])
             m[S6(i, j)] = lij / d[j];
         }
     }
+    return ok;
+}
+
+/* x = A^-1 b in every lane from factor6_v's m, s, d (0 in the lanes where ok is 0). */
+inline void subst6_v(const REALV m[21], const REALV s[6], const REALV d[6], const IREALV ok,
+                     const REALV b[6], REALV x[6])
+{
+    REALV y[6];
     for (int i = 0; i < 6; ++i) {                 /* L y = S b */
         REALV v = b[i] * s[i];
         for (int k = 0; k < i; ++k) v -= m[S6(i, k)] * y[k];
@@ -59,6 +68,14 @@ inline IREALV solve6_v(REALV m[21], const REALV b[6], REALV x[6])
         x[i] = v;
     }
     for (int i = 0; i < 6; ++i) x[i] = select((REALV)0, x[i] * s[i], ok);   /* x = S z */
+}
+
+/* Solves A_k x_k = b_k in every lane k; returns the mask of the lanes that succeeded. m is
+ * left factorised (factor6_v), for further right-hand sides (subst6_v). */
+inline IREALV solve6_v(REALV m[21], REALV s[6], REALV d[6], const REALV b[6], REALV x[6])
+{
+    const IREALV ok = factor6_v(m, s, d);
+    subst6_v(m, s, d, ok, b, x);
     return ok;
 }
 #endif

@@ -90,7 +90,7 @@ def walk_chunks(cloud, entry, opts, plan, inputs, ranges, r, par, outputs, place
 
 
 def run_kernel(kernel, cloud, radius, *, normals=None, weights="uniform", h=None,
-               fields=None, defines=None, point_r2=None):
+               fields=None, defines=None, point_r2=None, uncertainty=False):
     """Run the operator kernel ``kernel`` (a :class:`clcurv.ops.registry.Kernel`) on ``cloud``.
 
     Parameters
@@ -113,6 +113,10 @@ def run_kernel(kernel, cloud, radius, *, normals=None, weights="uniform", h=None
         Per-point squared radii in the cloud's sorted order (the k-NN radius,
         :mod:`clcurv.ops.knn_radius`): each point's ball (kernels/radius.h); ``radius`` is then
         the largest. Not with ``weights='density'``.
+    uncertainty : bool
+        Also the kernel's error record (``kernel.errors``: standard errors and roughness,
+        kernels/mls2.cl's UNCERTAINTY), from the same walk; its real fields join the
+        result under their own names.
 
     Returns
     -------
@@ -130,13 +134,17 @@ def run_kernel(kernel, cloud, radius, *, normals=None, weights="uniform", h=None
         raise ValueError("per-point radii and density weights exclude each other")
     opts.update(defines or {}, DENSITY=int(weights == "density"), GAUSSIAN=int(h is not None),
                 REF_NORMALS=int(normals is not None), POINT_RADIUS=int(point_r2 is not None))
+    if uncertainty:
+        opts.update(kernel.error_defines())
     keep = set(kernel.layout) if fields is None else set(fields) | {"count", "status"}
     layout = {k: v for k, v in kernel.layout.items() if k in keep}
+    elayout = dict(kernel.errors) if uncertainty else None
     item = np.dtype(cloud.dtype).itemsize
     ranges = cloud.with_middles() if opts["ROW_PRUNE"] else cloud.ranges
     what = [w for w, on in (("the reference normals", normals is not None),
                             ("the density weights", weights == "density")) if on]
-    plan = cloud.plan(f"kernel_{kernel.name}", record_bytes(cloud, layout),
+    per_point = record_bytes(cloud, layout) + (record_bytes(cloud, elayout) if uncertainty else 0)
+    plan = cloud.plan(f"kernel_{kernel.name}", per_point,
                       reserve=item * (3 * (normals is not None) + (weights == "density")),
                       widest=RECORD_WIDTH * item, label=", ".join(["the coordinates, the grid"] + what))
     t = [time.perf_counter()]
@@ -152,13 +160,22 @@ def run_kernel(kernel, cloud, radius, *, normals=None, weights="uniform", h=None
     anchors = cell_normals(cloud) if opts.get("REFINE_L0") else cloud.x
     rec = record_buffer(cloud, plan.chunk)
     out = empty_fields(layout, cloud.n)
+    outputs = (rec,)
+    if kernel.errors is not None:       # the error record's argument (unused without it)
+        outputs = (rec, record_buffer(cloud, plan.chunk) if uncertainty else rec)
+        eout = empty_fields(elayout, cloud.n) if uncertainty else None
     cloud.device.queue.finish()
     t.append(time.perf_counter())
+
+    def place(first, stop, chunked):
+        place_records(cloud, rec, layout, out, first, stop, chunked)
+        if uncertainty:
+            place_records(cloud, outputs[1], elayout, eout, first, stop, chunked)
     run, fetch = walk_chunks(
         cloud, getattr(prg, kernel.entry), opts, plan, (nx, ny, nz, wbuf, anchors), ranges, r,
-        _par(cloud, r, h), (rec,),
-        lambda first, stop, chunked: place_records(cloud, rec, layout, out, first, stop,
-                                                   chunked))
+        _par(cloud, r, h), outputs, place)
+    if uncertainty:
+        out.update({k: v for k, v in eout.items() if k not in ("count", "status")})
     names = (f"build_{kernel.name}", "upload_normals", "density", "anchors")
     cloud.timings.update({k: b - a for k, a, b in zip(names, t, t[1:])})
     cloud.timings.update({f"kernel_{kernel.name}": run, "download": fetch})

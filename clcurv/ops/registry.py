@@ -52,6 +52,9 @@ class Kernel:
     min_count: int
     defines: Mapping[str, int] = field(default_factory=dict)
     reads_normals: bool = False
+    #: the error record's layout (``uncertainty=True``: standard errors from the same walk,
+    #: a second record per point in the kernel's argument after ``OPERATOR_ARGS``), or None
+    errors: Mapping[str, int | slice] | None = None
 
     def build_defines(self):
         """The kernel's build options: its defines, MIN_COUNT and the record columns."""
@@ -68,6 +71,17 @@ class Kernel:
     def width(self, name):
         v = self.layout[name]
         return 1 if isinstance(v, int) else v.stop - v.start
+
+    def error_defines(self):
+        """The build options of the error record (``UNCERTAINTY=1``): ``COL_<FIELD>`` of its
+        real fields, ``ECOL_COUNT`` and ``ECOL_STATUS``."""
+        if self.errors is None:
+            raise ValueError(f"the {self.name} kernel has no error record")
+        out = {"UNCERTAINTY": 1}
+        for k, v in self.errors.items():
+            prefix = "ECOL" if k in ("count", "status") else "COL"
+            out[f"{prefix}_{k.upper()}"] = record_selector(v)
+        return out
 
 
 @dataclass(frozen=True)
@@ -224,10 +238,15 @@ def _cov_kernel(name, code):
                   reads_normals=True)
 
 
+#: MLS2's error record (kernels/mls2.cl, UNCERTAINTY): the standard errors of H, K, k1, k2
+#: and of the fitted normal's angle, and the roughness (clcurv/reference/uncertainty.py)
+MLS2_ERRORS = {"mean_se": 0, "gaussian_se": 1, "k1_se": 2, "k2_se": 3, "normal_se": 4,
+               "roughness": 5, "count": 6, "status": 7}
+
 MLS2 = Kernel("mls2", "mls2.cl", "mls2",
               {"shift": slice(0, 3), "k1": 3, "k2": 4, "dir1": slice(5, 8),
                "dir2": slice(8, 11), "normals": slice(11, 14), "count": 14, "status": 15},
-              MIN_COUNT_MLS2, reads_normals=True)
+              MIN_COUNT_MLS2, reads_normals=True, errors=MLS2_ERRORS)
 
 
 # ------------------------------------------------------------------------------------------
@@ -420,6 +439,12 @@ def program_variants(precision_defines):
         out.append((k.file, dict(base, **k.build_defines(), DENSITY=1, GAUSSIAN=int(gaussian),
                                  REF_NORMALS=int(k.reads_normals), POINT_RADIUS=0,
                                  ROW_PRUNE=1) | on))
+        if k.errors is not None:        # uncertainty=True: the error record, both weightings
+            for density in (0, 1):
+                out.append((k.file, dict(base, **k.build_defines(), **k.error_defines(),
+                                         DENSITY=density, GAUSSIAN=int(gaussian) * (1 - density),
+                                         REF_NORMALS=int(k.reads_normals), POINT_RADIUS=0,
+                                         ROW_PRUNE=1) | on))
         # the k-NN radius (kernels/radius.h): per-point balls, which exclude DENSITY
         out.append((k.file, dict(base, **k.build_defines(), DENSITY=0, GAUSSIAN=0,
                                  REF_NORMALS=int(k.reads_normals), POINT_RADIUS=1)))
