@@ -129,7 +129,9 @@ class Operator:
     into those of the opposite normal where ``mask`` is True, so that the orientation can
     use the method's own normals afterwards instead of a PCA pass first. ``fields``: the
     kernel's record fields that ``finish`` reads (None: all), the only ones brought back
-    from the device.
+    from the device. ``errors``: the outputs of ``uncertainty=True`` (standard errors and
+    roughness, :class:`Output` s; empty: the method has none), which
+    ``finish_errors(raw, r)`` forms from the kernel's error record.
     """
     name: str
     title: str
@@ -141,6 +143,8 @@ class Operator:
     reference: Callable
     flip: Callable | None = None
     fields: tuple | None = None
+    errors: tuple = ()
+    finish_errors: Callable | None = None
 
     @property
     def signed(self):
@@ -162,10 +166,11 @@ class Operator:
         return {k: [m for m, op in OPERATORS.items() if k in op.options]
                 for k, v in given.items() if v and k not in self.options}
 
-    def file_fields(self):
-        """File field name -> (output name, column or None), in the output order."""
+    def file_fields(self, uncertainty=False):
+        """File field name -> (output name, column or None), in the output order (then the
+        error outputs with ``uncertainty``)."""
         out = {}
-        for o in self.outputs:
+        for o in self.outputs + (self.errors if uncertainty else ()):
             names = o.file_fields()
             for c, f in enumerate(names):
                 out[f] = (o.name, c if len(names) > 1 else None)
@@ -220,11 +225,17 @@ class Operator:
 # kernels
 # ------------------------------------------------------------------------------------------
 
+#: the moments kernel's error record (kernels/moments.cl, UNCERTAINTY): the PCA normal's
+#: angular SE, the plane's roughness, the quadric's noise sigma_hat, and the weights of the
+#: point's own noise and of its neighbours' in MLS0/MLS1's H (:func:`_finish_h_errors`)
+PCA_ERRORS = {"normal_se": 0, "roughness": 1, "sigma": 2, "own": 3, "others": 4, "count": 5,
+              "status": 6}
+
 #: the moments kernel: PCA normal, eigenvalues, surface variation, barycenter shift o - p
 PCA = Kernel("moments", "moments.cl", "moments",
              {"normals": slice(0, 3), "eigenvalues": slice(3, 6), "variation": 6,
               "shift": slice(7, 10), "count": 10, "status": 11},
-             MIN_COUNT_PCA, {"REFINE_L0": 1})
+             MIN_COUNT_PCA, {"REFINE_L0": 1}, errors=PCA_ERRORS)
 
 
 def _cov_kernel(name, code):
@@ -261,6 +272,28 @@ _VARIATION = Output("variation", 1, "1", "surface variation l0 / (l0 + l1 + l2),
                     file="surface_variation")
 _MEAN = Output("mean", 1, "1/length", "signed mean curvature H", signed=True,
                file="mean_curvature")
+
+
+# the error outputs of uncertainty=True (the model, its assumptions and every formula:
+# clcurv/reference/uncertainty.py; docs/uncertainty.md)
+_SE_MEAN = Output("mean_se", 1, "1/length", "standard error of H (noise along the normal, "
+                  "first order; the operator's bias not included)", file="mean_curvature_se")
+_SE_NORMAL_PCA = Output("normal_se", 1, "rad", "angular standard error of the PCA normal "
+                        "(first-order perturbation of the eigenvector)", file="normal_se")
+_ROUGH_PLANE = Output("roughness", 1, "length", "residual RMS to the regression plane, "
+                      "sqrt(l0 n_eff / (n_eff - 3)) (noise and the curvature's spread)",
+                      file="roughness")
+_PCA_ERRORS = (_SE_NORMAL_PCA, _ROUGH_PLANE)
+_MLS2_ERRORS = (
+    _SE_MEAN,
+    Output("gaussian_se", 1, "1/length^2", "standard error of K", file="gaussian_curvature_se"),
+    Output("k1_se", 1, "1/length", "standard error of k1 (below its coverage at umbilics, "
+           "docs/uncertainty.md)", file="k1_se"),
+    Output("k2_se", 1, "1/length", "standard error of k2", file="k2_se"),
+    Output("normal_se", 1, "rad", "angular standard error of the fitted normal",
+           file="normal_se"),
+    Output("roughness", 1, "length", "residual RMS to the fitted quadric, sigma_hat = "
+           "sqrt(RSS / nu) (degrees of freedom corrected)", file="roughness"))
 
 
 def _magnitudes(unit_eig):
@@ -301,6 +334,24 @@ def _finish_mls1(raw, pts, r, n, user):
                 points=pts + along[:, None] * n)
 
 
+def _finish_pca_errors(raw, r):
+    return {"normal_se": raw["normal_se"], "roughness": raw["roughness"]}
+
+
+def _finish_h_errors(raw, r):
+    """MLS0/MLS1: SE(H) = 4 / r^2 sqrt(sigma_p^2 (1 - w_p / W)^2 + s^2 (W2 - w_p^2) / W^2),
+    sigma_p the quadric's noise (``sigma``), s the plane's roughness, ``own`` and ``others``
+    the two weights (kernels/moments.cl)."""
+    se = 4.0 / (r * r) * np.sqrt(raw["sigma"] ** 2 * raw["own"]
+                                 + raw["roughness"] ** 2 * raw["others"])
+    return dict(_finish_pca_errors(raw, r), mean_se=se)
+
+
+def _finish_mls2_errors(raw, r):
+    return {k: raw[k] for k in ("mean_se", "gaussian_se", "k1_se", "k2_se", "normal_se",
+                                "roughness")}
+
+
 def _finish_cov(raw, pts, r, n, user):
     return {k: raw[k] for k in ("k1", "k2", "dir1", "dir2", "eigenvalues")} | {"normals": n}
 
@@ -315,6 +366,9 @@ def _flip_mls2(raw, mask):
     raw["k1"][m], raw["k2"][m] = -k2, -k1
     d1, d2 = raw["dir1"][m], raw["dir2"][m]
     raw["dir1"][m], raw["dir2"][m] = d2, d1
+    if "k1_se" in raw:                  # uncertainty=True: SE(k1) goes with k1
+        e1, e2 = raw["k1_se"][m], raw["k2_se"][m]
+        raw["k1_se"][m], raw["k2_se"][m] = e2, e1
     return raw
 
 
@@ -364,14 +418,17 @@ OPERATORS = {op.name: op for op in (
     Operator("variation", "surface variation l0/(l0+l1+l2) (Pauly)",
              "Theorem 4: r^2/16((k1^2+k2^2)/2 - k1k2/3)", PCA,
              (_VARIATION, _NORMALS_PCA, _EIG_PCA), "none", _finish_variation, _ref_moments,
-             fields=("normals", "eigenvalues", "variation")),
+             fields=("normals", "eigenvalues", "variation"), errors=_PCA_ERRORS,
+             finish_errors=_finish_pca_errors),
     Operator("mls0", "barycenter shift", "H = 4<p - o, n>/r^2 (Lemma 2)", PCA,
              (_MEAN, Output("points", 3, "length", "the barycenter o of the ball"),
-              _VARIATION, _NORMALS_PCA, _EIG_PCA), "values", _finish_mls0, _ref_moments),
+              _VARIATION, _NORMALS_PCA, _EIG_PCA), "values", _finish_mls0, _ref_moments,
+             errors=(_SE_MEAN,) + _PCA_ERRORS, finish_errors=_finish_h_errors),
     Operator("mls1", "projection on the PCA plane", "H = 4<p - p', n>/r^2 (Theorem 5)", PCA,
              (_MEAN, Output("points", 3, "length", "p', p projected on the PCA regression "
                             "plane"), _VARIATION, _NORMALS_PCA, _EIG_PCA),
-             "sign", _finish_mls1, _ref_moments),
+             "sign", _finish_mls1, _ref_moments, errors=(_SE_MEAN,) + _PCA_ERRORS,
+             finish_errors=_finish_h_errors),
     _cov("2dcov1", 1, "covariance of <d, n>(<d, t1>, <d, t2>) (Berkmann & Caelli)",
          "Theorem 1", "length^4", "eigenvalues (descending) of the count-normalised "
          "covariance of <d, n>(<d, t1>, <d, t2>), d = q - p"),
@@ -397,7 +454,8 @@ OPERATORS = {op.name: op for op in (
               Output("normals", 3, "1", "unit normals of the fitted quadric at the "
                      "projection, oriented as `orient` says"),
               Output("points", 3, "length", "the MLS2 projection of p")),
-             "sign", _finish_mls2, _ref_mls2, flip=_flip_mls2),
+             "sign", _finish_mls2, _ref_mls2, flip=_flip_mls2, errors=_MLS2_ERRORS,
+             finish_errors=_finish_mls2_errors),
 )}
 
 #: the method names, in the registry's order
