@@ -159,6 +159,11 @@ OPTIONS = dict([
     # 2dcov1 reads p's normal alone: aligning its neighbours' would change nothing
     _opt("align_normals", default=None, choices=(None, True, False),
          methods=("2dcov2", "3dcov")),
+    _opt("uncertainty", default=False, flag="--uncertainty", action="store_true",
+         job="uncertainty", methods=("variation", "mls0", "mls1", "mls2"),
+         help="also per-point standard errors from the same neighbour walk: "
+         "mean_curvature_se (mls0, mls1, mls2), gaussian_curvature_se, k1_se, k2_se "
+         "(mls2), normal_se and roughness (docs/uncertainty.md)"),
     _opt("device", default=None, flag="--device", job="device",
          commands=FILE_COMMANDS,
          help="index, 'platform:device' or name substring",

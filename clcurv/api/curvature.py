@@ -22,6 +22,7 @@ from clcurv.ops.registry import OPERATORS, PCA
 from clcurv.ops.smoothing import scale_space as smooth
 from clcurv.orient import orientation as _orient
 from clcurv.reference import operators as reference
+from clcurv.reference import uncertainty
 
 #: largest ``orient_k`` (the device graph's longest neighbour list, clcurv.orient.graph.KMAX):
 #: Hoppe's graph needs about 10; more only costs time and memory
@@ -57,10 +58,12 @@ class _Run:
                 check_pairs(grid, points, radius)
 
     def operator(self, op, normals=None, weights="uniform", kernel="ball", h=None,
-                 align=None):
+                 align=None, uncertainty=False):
         """The raw fields of ``op`` (a clcurv.ops.registry.Operator); ``h`` defaults to r / 2
         for ``kernel='gaussian'``; ``align`` (2dcov2, 3dcov): align each neighbour's normal
-        with the query point's (None: the kernel's default, the normals as given)."""
+        with the query point's (None: the kernel's default, the normals as given);
+        ``uncertainty``: the kernel's error record too (the reference's errors are
+        :meth:`reference_errors`)."""
         if self.cloud is None:
             opts = {"kernel": kernel, "h": h} if "kernel" in op.options else {}
             if align is not None:
@@ -70,8 +73,25 @@ class _Run:
             h = self.radius / 2
         return run_kernel(op.kernel, self.cloud, self.radius, normals=normals, weights=weights,
                           h=h if kernel == "gaussian" else None, fields=op.fields,
-                          point_r2=self.point_r2,
+                          point_r2=self.point_r2, uncertainty=uncertainty,
                           defines=None if align is None else {"ALIGN_NORMALS": int(align)})
+
+    def reference_errors(self, op, normals, weights, kernel, h, user=None):
+        """backend='numpy': the error outputs of ``op`` from the float64 reference
+        (clcurv.reference.uncertainty), ``normals`` the oriented normals the call used
+        (MLS2 and MLS1 orient their fits with them), ``user`` the user's (MLS0's n)."""
+        pts, r = self.points, self.radius
+        if op.name == "mls2":
+            hh = (r / 2 if h is None else h) if kernel == "gaussian" else None
+            ref = uncertainty.mls2_uncertainty(pts, r, normals, weights=weights,
+                                               kernel=kernel, h=hh)
+        elif op.name in ("mls0", "mls1"):
+            ref = uncertainty.mls1_uncertainty(
+                pts, r, normals if op.name == "mls1" or user is None else user,
+                weights=weights, method=op.name)
+        else:
+            ref = uncertainty.pca_uncertainty(pts, r, weights=weights)
+        return {o.name: ref[o.name] for o in op.errors}
 
     def mst_flips(self, normals, k):
         """Flip mask of Hoppe's propagation over the ``k``-nearest-neighbour graph within the
@@ -178,10 +198,11 @@ def _result(op, r, weights, count, status, attrs):
                            attrs.pop("eigenvalues", None), attrs.pop("variation", None), **attrs)
 
 
-def _check_options(op, kernel, h, projections, align_normals=None):
+def _check_options(op, kernel, h, projections, align_normals=None, uncertainty=False):
     """The method-specific options: given to a method that ignores them, they raise."""
     extra = op.foreign_options(given({"kernel": kernel, "h": h, "projections": projections,
-                                      "align_normals": align_normals}))
+                                      "align_normals": align_normals,
+                                      "uncertainty": uncertainty}))
     if extra:
         takers = next(iter(extra.values()))
         raise ValueError(f"{', '.join(extra)} {'is' if len(extra) == 1 else 'are'} not an "
@@ -199,13 +220,15 @@ def _check_options(op, kernel, h, projections, align_normals=None):
         raise ValueError(f"projections must be >= 0, got {projections}")
     if align_normals is not None and not isinstance(align_normals, (bool, np.bool_)):
         raise TypeError(f"align_normals must be True, False or None, got {align_normals!r}")
+    if not isinstance(uncertainty, (bool, np.bool_)):
+        raise TypeError(f"uncertainty must be True or False, got {uncertainty!r}")
     return kernel, h, projections
 
 
 def curvature(points, radius=None, *, method="mls1", weights="uniform", normals=None,
               orient="auto", viewpoint=None, orient_k=10, kernel=None, h=None, projections=0,
               scale_space=0, device=None, precision="float", backend="opencl", k=None,
-              align_normals=None):
+              align_normals=None, uncertainty=False):
     """Differential operators on the ball N_r(p) = {q : |q - p| < radius} of every point.
 
     Parameters
@@ -300,6 +323,18 @@ def curvature(points, radius=None, *, method="mls1", weights="uniform", normals=
         clcurv estimates the normals itself (the PCA normals, whatever ``orient``); the
         ``normals`` you pass are used as given. True: yours too (normals of arbitrary
         signs); False: never (the PCA normals as ``orient`` leaves them).
+    uncertainty : bool
+        Methods 'variation', 'mls0', 'mls1' and 'mls2': also per-point standard errors
+        (SE), from the same neighbour walk ('mls0' and 'mls1' add a second walk, MLS2's
+        quadric fit, for the point's own noise): ``mean_se`` (mls0, mls1, mls2),
+        ``gaussian_se``, ``k1_se``, ``k2_se`` (mls2), ``normal_se`` (radians: of the PCA
+        normal, or of MLS2's fitted normal) and ``roughness`` (length: the residual RMS to
+        the fitted quadric for mls2, to the regression plane otherwise). The model: noise
+        independent, along the normal, first order; the operator's bias (which grows
+        with the radius) is **not** included, so an SE is an error bar only where the
+        radius is small against the curvature's scale (docs/uncertainty.md, with the
+        calibration figures). With ``scale_space`` or ``projections`` they are the errors
+        of the final operator on the moved cloud. Not with ``k`` (per-point radii).
 
     Returns
     -------
@@ -330,13 +365,18 @@ def curvature(points, radius=None, *, method="mls1", weights="uniform", normals=
             weights=weights, normals=normals, orient=orient, viewpoint=viewpoint,
             orient_k=orient_k, kernel=kernel, h=h, projections=projections,
             scale_space=scale_space, device=device, precision=precision, backend=backend,
-            align_normals=align_normals))
+            align_normals=align_normals, uncertainty=uncertainty))
+    kernel, h, projections = _check_options(op, kernel, h, projections, align_normals,
+                                            uncertainty)
+    uncertainty = bool(uncertainty)
     knn = None
     if k is not None or isinstance(radius, str):
+        if uncertainty:
+            raise ValueError("uncertainty=True needs one radius for every point, not a k-NN "
+                             "radius (k=, radius='knn:K')")
         knn, radius = _knn(points, radius, k, weights, kernel, scale_space, projections, device,
                            precision, backend)
         points = knn.cloud
-    kernel, h, projections = _check_options(op, kernel, h, projections, align_normals)
     points, cloud = cloud_points(points)
     pts, r, ref_normals, vp, how = _inputs(points, radius, weights, backend, orient, normals,
                                            viewpoint, orient_k, unit=op.normals == "values",
@@ -348,9 +388,11 @@ def curvature(points, radius=None, *, method="mls1", weights="uniform", normals=
         ref_normals = _resolved(ref_normals)
     if len(pts) == 0:
         return _result(op, r, weights, np.empty(0), np.empty(0),
-                       empty_columns((o.name, o.width) for o in op.outputs))
+                       empty_columns((o.name, o.width) for o in
+                                     op.outputs + (op.errors if uncertainty else ())))
     same = dict(method=method, weights=weights, viewpoint=vp, orient_k=orient_k, device=device,
-                precision=precision, backend=backend, align_normals=align_normals)
+                precision=precision, backend=backend, align_normals=align_normals,
+                uncertainty=uncertainty)
     mls = dict(kernel=kernel if "kernel" in op.options else None, h=h)
     if scale_space:
         smoothed = smooth(pts, r, scale_space, weights=weights, device=device,
@@ -387,13 +429,14 @@ def curvature(points, radius=None, *, method="mls1", weights="uniform", normals=
         # yours as given, clcurv's own PCA normals aligned (align_normals)
         align = ((ref_normals is None if align_normals is None else bool(align_normals))
                  if "align_normals" in op.options else None)
+        unc = uncertainty and run.cloud is not None
         if isinstance(use, str):
-            raw = run.operator(op, None, weights, kernel, h)
+            raw = run.operator(op, None, weights, kernel, h, uncertainty=unc)
             use = op.flip(raw, _flip(run, raw["normals"], how, None, vp, orient_k))["normals"]
         else:
-            raw = run.operator(op, use, weights, kernel, h, align)
+            raw = run.operator(op, use, weights, kernel, h, align, uncertainty=unc)
     else:
-        raw = run.operator(op, weights=weights)
+        raw = run.operator(op, weights=weights, uncertainty=uncertainty and run.cloud is not None)
         use = _oriented(run, raw, how, ref_normals, vp, orient_k)
     if knn is not None:                 # each point's own radius in the constants
         r = knn.radius
@@ -401,8 +444,18 @@ def curvature(points, radius=None, *, method="mls1", weights="uniform", normals=
     warn_sparse(raw["status"], r, op.min_count, None if knn is None else knn.k)
     if run.cloud is None:               # backend='numpy': the reference's own finishing
         attrs = reference.finish(op.name, raw, pts, r, use, ref_normals)
+        if uncertainty:
+            attrs.update(run.reference_errors(op, use, weights, kernel, h, ref_normals))
     else:
+        if uncertainty:                 # before finish, which may reuse raw's arrays
+            errors = op.finish_errors(raw, r)
         attrs = op.finish(raw, pts, r, use, ref_normals)
+        if uncertainty:
+            attrs.update(errors)
+    if uncertainty:                     # NaN where the operator's own status is not OK
+        bad = raw["status"] != 0
+        for o in op.errors:
+            attrs[o.name] = np.where(bad, np.nan, attrs[o.name])
     res = _result(op, r, weights, raw["count"], raw["status"], attrs)
     res.info["orientation"] = how
     if knn is not None:
@@ -507,7 +560,7 @@ def _radius_list(op, points, radius, kw):
     one_walk = (cloud is not None and kw["weights"] == "uniform" and kw["normals"] is None
                 and not kw["scale_space"])
     plain = (one_walk and op.name == "variation" and kw["viewpoint"] is None
-             and kw["orient"] in ("auto", None))
+             and kw["orient"] in ("auto", None) and not kw["uncertainty"])
     if plain:
         return _variation_list(op, cloud, radii)
     if not one_walk or op.name == "variation":

@@ -44,6 +44,14 @@ class CurvatureResult:
         MLS2, magnitudes (>= 0) for 2dcov1, 2dcov2 and 3dcov.
     dir1, dir2 : (N, 3) float64 or None, unit principal directions (tangent, orthogonal).
     gaussian : (N,) float64 or None, Gaussian curvature K = k1 k2 (1/length^2), MLS2.
+    mean_se, gaussian_se, k1_se, k2_se : (N,) float64 or None, ``uncertainty=True``: the
+        standard errors of ``mean`` (mls0, mls1, mls2), ``gaussian``, ``k1`` and ``k2``
+        (mls2), same units; noise only, the operator's bias not included
+        (docs/uncertainty.md).
+    normal_se : (N,) float64 or None, ``uncertainty=True``: the angular standard error
+        (radians, RMS angle) of ``normals`` (PCA or MLS2's fitted normals).
+    roughness : (N,) float64 or None, ``uncertainty=True``: the residual RMS (length) to
+        the fitted quadric (mls2) or regression plane (the PCA methods).
     """
     method: str
     radius: float
@@ -60,6 +68,12 @@ class CurvatureResult:
     dir1: np.ndarray | None = None
     dir2: np.ndarray | None = None
     gaussian: np.ndarray | None = None
+    mean_se: np.ndarray | None = None
+    gaussian_se: np.ndarray | None = None
+    k1_se: np.ndarray | None = None
+    k2_se: np.ndarray | None = None
+    normal_se: np.ndarray | None = None
+    roughness: np.ndarray | None = None
     info: dict = field(default_factory=dict, repr=False, compare=False)
 
     def __len__(self):
