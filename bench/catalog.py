@@ -1,6 +1,7 @@
-"""Bench of a catalog run on the workers (issue 50): who reads and writes the points.
+"""Bench of a catalog or COPC run on the workers (issue 50): who reads and writes the points.
 
     python -m bench.catalog --points 10e6 --files 16 [--workdir /tmp/clcurv-bench-catalog]
+    python -m bench.catalog --points 10e6 --copc
 
 Generates (once, in --workdir, not committed) a catalog of ``--files`` LAZ files side by
 side (a square grid of blocks of clcurv.shapes.aerial_scene, about 100 points per square
@@ -13,6 +14,14 @@ kernel then adds to their parent's; the .vpc index written after is left out, a 
 and its CPU time (``getrusage``: itself, and its reaped children, the workers). A run of a 2,000-point catalog gives the client's fixed cost (the imports of
 Python, numpy, OpenCL and Dask), reported apart. Results are appended to
 bench/results/tiled.md.
+
+With ``--copc`` the same scene (the same ``--files`` blocks) is written once as one
+``.copc.laz`` (:func:`make_copc`, copclib), and the command is ``clcurv compute
+<file>.copc.laz -o <out>/out.laz --radius 0.6 -q --workers 2`` (the tiles read by region,
+on the workers), and with ``--scheduler``; a single-file COPC run in one process runs in
+memory by default and is not measured. One output file is joined by the client from the
+workers' pieces (:func:`clcurv.io.pieces.assemble`): the child also reports the bytes it
+read and wrote during that join, apart.
 """
 from __future__ import annotations
 
@@ -50,6 +59,18 @@ def measured(client=None, n=None):
             snap.append(io())        # before the workers exit: a reaped child's I/O is
                                      # added to its parent's /proc/<pid>/io
 workers.session = measured
+joined = [0]
+from clcurv.io import pieces
+_assemble = pieces.assemble
+
+def assemble(*a, **k):
+    before = io()
+    try:
+        return _assemble(*a, **k)
+    finally:
+        after = io()
+        joined[0] += sum(after[f] - before[f] for f in ("rchar", "wchar"))
+pieces.assemble = assemble
 t = time.perf_counter()
 code = main(sys.argv[1:])
 wall = time.perf_counter() - t
@@ -57,36 +78,99 @@ mine = snap[-1] if snap else io()
 me = resource.getrusage(resource.RUSAGE_SELF)
 kids = resource.getrusage(resource.RUSAGE_CHILDREN)
 print("BENCH " + json.dumps({"code": code, "wall": wall,
-      "rchar": mine["rchar"], "wchar": mine["wchar"],
+      "rchar": mine["rchar"], "wchar": mine["wchar"], "joined": joined[0],
       "cpu": me.ru_utime + me.ru_stime, "cpu_children": kids.ru_utime + kids.ru_stime,
       "rss": me.ru_maxrss * 1024, "rss_children": kids.ru_maxrss * 1024}))
 """
+
+
+def _blocks(n, files, seed=0, extent=None):
+    """The synthetic scene: ``files`` blocks of about n / files points each, a square grid
+    (of ``extent`` metres; default: 100 points per square metre); yields (i, j, scene)."""
+    from clcurv.data.shapes import aerial_scene
+    side = math.ceil(math.sqrt(files))
+    per = int(n // files)
+    extent = extent or math.sqrt(per / 100.0)
+    for b in range(files):
+        i, j = divmod(b, side)
+        yield i, j, aerial_scene(per, extent=(extent, extent), seed=seed + b,
+                                 origin=(480000.0 + extent * i, 4390000.0 + extent * j, 12.0))
 
 
 def make_catalog(folder, n, files, seed=0, extent=None):
     """``files`` LAZ files of about n / files points each, a square grid of blocks (of
     ``extent`` metres; default: 100 points per square metre)."""
     import laspy
-    from clcurv.data.shapes import aerial_scene
     folder.mkdir(parents=True, exist_ok=True)
-    side = math.ceil(math.sqrt(files))
-    per = int(n // files)
-    extent = extent or math.sqrt(per / 100.0)
     hdr = laspy.LasHeader(point_format=3, version="1.2")
     hdr.scales = [0.001] * 3
     hdr.offsets = [480000.0, 4390000.0, 0.0]
     total = 0
-    for b in range(files):
-        i, j = divmod(b, side)
+    for i, j, s in _blocks(n, files, seed, extent):
         path = folder / f"tile_{i:02d}_{j:02d}.laz"
-        s = aerial_scene(per, extent=(extent, extent), seed=seed + b,
-                         origin=(480000.0 + extent * i, 4390000.0 + extent * j, 12.0))
         las = laspy.LasData(hdr)
         las.x, las.y, las.z = s["points"].T
         las.classification = s["kind"]
         las.write(str(path))
         total += len(s["points"])
     return total
+
+
+def make_copc(path, n, files, seed=0, extent=None, depth=None, node_points=40_000):
+    """The scene of :func:`make_catalog` (the same blocks) as one COPC file (point format 6,
+    written by copclib, ``pip install copclib``), laid out as a COPC writer does: levels
+    0..depth-1 of the octree hold random samples, each about half the density of the next
+    (a node of level l about n / 2 / 4^(depth - l) points, flat terrain filling 4^l x-y
+    cells), level ``depth`` (default: nodes of about ``node_points``) the rest; each
+    node's points in scene order. Returns the number of points."""
+    import copclib as copc
+    import laspy
+    import numpy as np
+    scenes = list(_blocks(n, files, seed, extent))
+    pts = np.concatenate([s["points"] for _, _, s in scenes])
+    kind = np.concatenate([s["kind"] for _, _, s in scenes])
+    del scenes
+    hdr = laspy.LasHeader(point_format=6, version="1.4")
+    hdr.scales = [0.001] * 3
+    hdr.offsets = [480000.0, 4390000.0, 0.0]
+    rec = laspy.ScaleAwarePointRecord.zeros(len(pts), header=hdr)
+    rec.x, rec.y, rec.z = pts[:, 0], pts[:, 1], pts[:, 2]
+    rec.classification = kind
+    rec.return_number = rec.number_of_returns = np.ones(len(pts), np.uint8)
+    xyz = np.stack([np.asarray(rec.x), np.asarray(rec.y), np.asarray(rec.z)], axis=1)
+    lo, hi = xyz.min(axis=0), xyz.max(axis=0)       # the coordinates as laspy reads them
+    span = float((hi - lo).max())
+    cfg = copc.CopcConfigWriter(6, scale=(0.001,) * 3, offset=(480000.0, 4390000.0, 0.0))
+    cfg.las_header.min = copc.Vector3(*lo)
+    cfg.las_header.max = copc.Vector3(*hi)
+    info = cfg.copc_info
+    info.center_x, info.center_y, info.center_z = lo + span / 2
+    info.halfsize = span / 2
+    info.spacing = span / 128
+    depth = depth or max(1, round(math.log(max(len(pts) / node_points, 1), 4)))
+    rng = np.random.default_rng(seed)
+    level = np.full(len(pts), depth, np.int32)
+    u = rng.random(len(pts))
+    edge = 0.0
+    for lev in range(depth):                        # fractions 1/2 4^-(depth-l), l < depth
+        share = 0.5 * 4.0 ** (lev - depth)
+        level[(u >= edge) & (u < edge + share)] = lev
+        edge += share
+    records = np.ascontiguousarray(rec.array)
+    writer = copc.FileWriter(str(path), cfg)
+    for lev in range(depth + 1):
+        idx = np.flatnonzero(level == lev)
+        cell = np.clip(((xyz[idx] - lo) / (span / 2 ** lev)).astype(np.int64), 0,
+                       2 ** lev - 1)
+        keys = (cell[:, 0] << 40) | (cell[:, 1] << 20) | cell[:, 2]
+        order = np.argsort(keys, kind="stable")
+        idx, cell, keys = idx[order], cell[order], keys[order]
+        starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
+        for a, b in zip(starts, np.r_[starts[1:], len(keys)]):
+            data = records[idx[a:b]].view(np.int8).ravel()
+            writer.AddNode(copc.VoxelKey(lev, *map(int, cell[a])), copc.VectorChar(data))
+    writer.Close()
+    return len(pts)
 
 
 def _cpu_tree(proc):
@@ -102,7 +186,7 @@ def _cpu_tree(proc):
     return total
 
 
-def run_on_scheduler(folder, out, extra=()):
+def run_on_scheduler(folder, out, extra=(), name=None):
     """The child's report of the command with ``--scheduler``: a Dask scheduler and two
     single-threaded workers started here, each in its own process (the client process then
     holds the client alone); the workers' CPU read from their processes before they stop."""
@@ -125,7 +209,7 @@ def run_on_scheduler(folder, out, extra=()):
         time.sleep(3)
         procs = [psutil.Process(w.pid) for w in workers]
         before = sum(_cpu_tree(p) for p in procs)
-        rep = run(folder, out, ("--scheduler", address, *extra))
+        rep = run(folder, out, ("--scheduler", address, *extra), name)
         rep["cpu_children"] = sum(_cpu_tree(p) for p in procs) - before
         rep["cpu_scheduler"] = _cpu_tree(psutil.Process(sched.pid))
         for w in workers:
@@ -138,12 +222,14 @@ def run_on_scheduler(folder, out, extra=()):
     return rep
 
 
-def run(folder, out, extra=()):
-    """The child's report (dict) of ``clcurv compute folder -o out ...``."""
+def run(folder, out, extra=(), name=None):
+    """The child's report (dict) of ``clcurv compute folder -o out ...`` (``-o out/name``
+    with a ``name``: one output file)."""
     out.mkdir(parents=True, exist_ok=True)
     for f in out.iterdir():
         f.unlink()
-    args = ["compute", str(folder), "-o", str(out), "--radius", str(RADIUS), "-q", *extra]
+    args = ["compute", str(folder), "-o", str(out / name if name else out), "--radius",
+            str(RADIUS), "-q", *extra]
     p = subprocess.run([sys.executable, "-c", _CHILD, *args], capture_output=True,
                        text=True, cwd=REPO)
     line = next((ln for ln in p.stdout.splitlines() if ln.startswith("BENCH ")), None)
@@ -155,44 +241,76 @@ def run(folder, out, extra=()):
     return rep
 
 
-def _size(folder):
-    return sum(p.stat().st_size for p in Path(folder).iterdir() if p.is_file())
+def _size(path):
+    path = Path(path)
+    if path.is_file():
+        return path.stat().st_size
+    return sum(p.stat().st_size for p in path.iterdir() if p.is_file())
+
+
+def _inputs(a, wd):
+    """(the input, the 2,000-point input of the fixed cost, the points): made once."""
+    small = wd / "small"
+    if not (small / "done").exists():
+        make_catalog(small, 2000, 4, extent=20.0)
+        (small / "done").write_text("2000")
+    if a.copc:
+        src = wd / f"copc_{int(a.points)}_{a.files}.copc.laz"
+        done = src.with_name(src.name + ".done")
+        if not done.exists():
+            done.write_text(str(make_copc(src, a.points, a.files)))
+        tiny = wd / "small.copc.laz"
+        if not tiny.exists():
+            make_copc(tiny, 2000, 4, extent=20.0)
+        return src, tiny, int(done.read_text())
+    cat = wd / f"cat_{int(a.points)}_{a.files}"
+    if not (cat / "done").exists():
+        n = make_catalog(cat, a.points, a.files)
+        (cat / "done").write_text(str(n))
+    # ("done" is not a LAS/LAZ: no input of the catalog)
+    return cat, small, int((cat / "done").read_text())
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser()
     ap.add_argument("--points", type=float, default=10e6)
     ap.add_argument("--files", type=int, default=16)
+    ap.add_argument("--copc", action="store_true",
+                    help="the scene as one .copc.laz, written to one output file")
     ap.add_argument("--workdir", default="/tmp/clcurv-bench-catalog")
     a = ap.parse_args(argv)
     wd = Path(a.workdir)
-    cat = wd / f"cat_{int(a.points)}_{a.files}"
-    if not (cat / "done").exists():
-        n = make_catalog(cat, a.points, a.files)
-        (cat / "done").write_text(str(n))
-    n = int((cat / "done").read_text())
-    small = wd / "small"
-    if not (small / "done").exists():
-        make_catalog(small, 2000, 4, extent=20.0)
-        (small / "done").write_text("2000")
-    rows = []                       # ("done" is not a LAS/LAZ: no input of the catalog)
-    for label, extra in (("one process", ()), ("--workers 2", ("--workers", "2")),
-                         ("--scheduler", None)):
+    wd.mkdir(parents=True, exist_ok=True)
+    src, small, n = _inputs(a, wd)
+    name = "out.laz" if a.copc else None
+    runs = (("--workers 2", ("--workers", "2")), ("--scheduler", None))
+    if not a.copc:
+        runs = (("one process", ()),) + runs
+    load0 = open("/proc/loadavg").read().split()[:3]
+    rows = []
+    for label, extra in runs:
         how = run if extra is not None else run_on_scheduler
-        base = how(small, wd / "out_small", extra or ())
-        rep = how(cat, wd / "out", extra or ())
-        rep["in"], rep["out"] = _size(cat), _size(wd / "out")
+        base = how(small, wd / "out_small", extra or (), name)
+        rep = how(src, wd / "out", extra or (), name)
+        rep["in"], rep["out"] = _size(src), _size(wd / "out")
         rows.append((label, rep, base))
     cpu = cpu_model()
     load = open("/proc/loadavg").read().split()[:3]
-    lines = [f"\n### Catalog on the workers, {time.strftime('%Y-%m-%d %H:%M')} — {cpu}, "
-             f"load average {' '.join(load)}\n",
-             f"`clcurv compute <folder of {a.files} LAZ> -o <folder>/ --radius {RADIUS} -q` "
-             f"(default method and memory), {n:,} points; input {_size(cat) / 1e6:.1f} MB.\n",
+    what = "COPC" if a.copc else "Catalog"
+    cmd = (f"`clcurv compute <file>.copc.laz -o <folder>/out.laz --radius {RADIUS} -q` "
+           f"(the scene of the {a.files}-file catalog as one COPC file, copclib, point "
+           f"format 6, {src.stat().st_size / 1e6:.1f} MB)" if a.copc else
+           f"`clcurv compute <folder of {a.files} LAZ> -o <folder>/ --radius {RADIUS} -q` "
+           f"(input {_size(src) / 1e6:.1f} MB)")
+    lines = [f"\n### {what} on the workers, {time.strftime('%Y-%m-%d %H:%M')} — {cpu}, "
+             f"load average {' '.join(load0)} before, {' '.join(load)} after\n",
+             f"{cmd}, default method and memory, {n:,} points.\n",
              "| run | wall s | client CPU s | workers' CPU s | client CPU / workers' | "
              "client rchar+wchar MB (above its 2,000-point run) | of the point bytes in+out "
-             "| peak RSS client / worker MB | output MB | stages |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+             + ("| of which the join of the pieces MB " if a.copc else "")
+             + "| peak RSS client / worker MB | output MB | stages |",
+             "|---|---:|---:|---:|---:|---:|---:|" + ("---:|" if a.copc else "")
+             + "---:|---:|---|"]
     for label, rep, base in rows:
         moved = rep["rchar"] + rep["wchar"]
         above = moved - (base["rchar"] + base["wchar"])
@@ -200,10 +318,11 @@ def main(argv=None):
         kids = rep["cpu_children"]
         client_cpu = rep["cpu"] - (base["cpu"] if kids else 0)
         ratio = f"{client_cpu / kids:.1%}" if kids else "-"
+        join = f"{rep['joined'] / 1e6:.1f} | " if a.copc else ""
         lines.append(
             f"| {label} | {rep['wall']:.1f} | {rep['cpu']:.1f} ({client_cpu:.1f} above "
             f"its 2,000-point run) | {kids:.1f} | {ratio} | {moved / 1e6:.1f} "
-            f"({above / 1e6:.1f}) | {above / points:.2%} | {rep['rss'] / 2**20:.0f} / "
+            f"({above / 1e6:.1f}) | {above / points:.2%} | {join}{rep['rss'] / 2**20:.0f} / "
             f"{rep['rss_children'] / 2**20:.0f} | {rep['out'] / 1e6:.1f} | {rep['stages']} |")
     text = "\n".join(lines) + "\n"
     print(text)

@@ -15,7 +15,7 @@ from clcurv.io import stream, vpc
 from clcurv.tiles.planning import TilingError
 from clcurv.io.common import CatalogError, CorruptFileError, MissingFileError, \
     UnknownFormatError
-from tests.hostile import assert_same_las, run_cli
+from tests.hostile import assert_clean_failure, assert_same_las, run_cli
 
 laspy = pytest.importorskip("laspy")
 from laspy.vlrs.known import (GeoKeyDirectoryVlr, GeoKeyEntryStruct,  # noqa: E402
@@ -372,3 +372,47 @@ def test_a_file_whose_points_do_not_decode_fails_the_run_on_the_workers(scene, t
     with pytest.raises(CorruptFileError, match=r"t2\.laz: cannot decode the points"):
         clcurv.curvature_file(f, out, R, method=METHOD, workers=workers)
     assert os.listdir(out) == []
+
+
+@pytest.mark.parametrize("args", [["s3://survey/t1.laz"], ["https://example.org/t1.copc.laz"],
+                                  ["t1.laz", "s3://survey/t2.laz"], ["gs://survey/tiles/"]])
+def test_a_url_input_is_refused_as_a_url(tmp_path, args):
+    """clcurv reads files by path only (no fsspec, HTTP or S3): a URL as the input, alone or
+    in a catalog's list, is one error line that says it is a URL, and nothing is written."""
+    pts = np.round(clcurv.shapes.aerial_scene(400, extent=(20.0, 20.0), seed=1)["points"]
+                   / SCALE) * SCALE
+    _write(tmp_path / "t1.laz", pts, np.full(len(pts), 2, np.uint8))
+    args = [str(tmp_path / a) if "://" not in a else a for a in args]
+    out = tmp_path / "out"
+    out.mkdir()
+    r = run_cli("compute", *args, "-o", out / "x.laz" if len(args) == 1 else out,
+                "--radius", "1", "-q")
+    assert_clean_failure(r, 3, "a URL")
+    url = next(a for a in args if "://" in a)
+    assert f"{url}: a URL ({url.split(':')[0]}://)" in r.lines[0], r.lines
+    assert "same path" in r.lines[0], r.lines
+    assert list(out.iterdir()) == []
+    with pytest.raises(MissingFileError, match="a URL"):
+        clcurv.curvature_file(args if len(args) > 1 else args[0],
+                              out / "x.laz" if len(args) == 1 else out, R)
+
+
+def test_a_url_output_and_a_file_url_and_a_local_name_like_a_url(tmp_path, monkeypatch):
+    """-o s3://... is refused as a URL; a file: URL is told to give the path; a local path
+    that only looks like a URL (a folder named ``s3:``) is read."""
+    from clcurv import io as cio
+    pts = np.round(clcurv.shapes.aerial_scene(400, extent=(20.0, 20.0), seed=1)["points"]
+                   / SCALE) * SCALE
+    src = tmp_path / "t1.laz"
+    _write(src, pts, np.full(len(pts), 2, np.uint8))
+    r = run_cli("compute", src, "-o", "s3://survey/out.laz", "--radius", "1", "-q")
+    assert_clean_failure(r, 3, "a URL output")
+    assert "s3://survey/out.laz: a URL (s3://)" in r.lines[0], r.lines
+    with pytest.raises(cio.OutputPathError, match="a URL"):
+        cio.check_output("https://example.org/out.laz")
+    with pytest.raises(MissingFileError, match="give the file's path itself"):
+        cio.read(f"file://{src}")
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "s3:").mkdir()
+    np.save(tmp_path / "s3:" / "p.npy", pts)
+    assert len(cio.read("s3://p.npy").points) == len(pts)

@@ -62,7 +62,8 @@ from pathlib import Path
 from . import carry, las, npy, pcd, ply, text
 from .common import (CatalogError, Cloud, CorruptFileError, MissingDependencyError,
                      MissingFileError, ReadError, UnknownFormatError, WriteError, check_fields,
-                     check_normals, check_points, from_las, is_las)
+                     check_normals, check_points, from_las, is_las, refuse_urls, url_message,
+                     url_scheme)
 from .las import LAZ_HINT  # noqa: F401  (kept importable from clcurv.io)
 from .pcd import lzf_decompress  # noqa: F401
 
@@ -132,7 +133,8 @@ def read(path) -> Cloud:
     UnknownFormatError
         The extension is not supported.
     MissingFileError
-        The file does not exist.
+        The file does not exist, or ``path`` is a URL (``s3://``, ``https://``...: files
+        are read by path only).
     CorruptFileError
         The content cannot be parsed as the format of its extension.
     MissingDependencyError
@@ -145,6 +147,7 @@ def read(path) -> Cloud:
     docstring of its module: :mod:`clcurv.io.ply`, :mod:`clcurv.io.pcd`,
     :mod:`clcurv.io.las`, :mod:`clcurv.io.text`, :mod:`clcurv.io.npy`.
     """
+    refuse_urls(path)
     path = Path(os.fspath(path))
     ext = path.suffix.lower()
     if ext not in _READERS:
@@ -361,11 +364,15 @@ def check_output(path, formats=None, *, what="point cloud") -> Path:
     Raises
     ------
     OutputPathError
-        With one message starting with ``path``: the extension is not in ``formats`` (the
+        With one message starting with ``path``: a URL (``s3://``, ``https://``...: files
+        are written by path only), the extension is not in ``formats`` (the
         accepted ones are listed), the folder does not exist or is not a folder, ``path``
         is a directory or another non-regular file, the folder is not writable (permissions,
         read-only file system), or the existing file is read-only.
     """
+    scheme = url_scheme(path)
+    if scheme is not None:
+        raise OutputPathError(url_message(path, scheme))
     path = Path(os.fspath(path))
     formats = WRITE_FORMATS if formats is None else formats
     ext = path.suffix.lower()

@@ -10,6 +10,8 @@
   :func:`struct_columns` and :func:`quiet`; :func:`check_claim`, the guard against
   hostile headers (a count is checked against the bytes the file holds before anything is
   allocated from it);
+* :func:`refuse_urls`: a URL given as a path (``s3://``, ``https://``...) is an error that
+  says so (clcurv reads and writes files by path only);
 * writing helpers: :func:`check_points`, :func:`check_normals`, :func:`check_fields`
   (names ``[A-Za-z_][A-Za-z0-9_.-]*``, not reserved for coordinates or normals, shape
   ``(N,)``, numeric; bool becomes uint8) and :func:`int_as` (the integer type a format
@@ -17,6 +19,7 @@
 """
 from __future__ import annotations
 
+import os
 import re
 import warnings
 from contextlib import contextmanager
@@ -111,6 +114,43 @@ class MissingDependencyError(ReadError, ImportError):
 
 class WriteError(ValueError):
     """:func:`write` was given arguments it cannot write (shape, name, format...)."""
+
+
+#: a URL's scheme at the start of a path: two characters at least (``C:/`` is a Windows
+#: drive), one slash at least after the colon (pathlib folds ``s3://b/k`` to ``s3:/b/k``)
+_URL = re.compile(r"^([A-Za-z][A-Za-z0-9+.-]+):/")
+
+
+def url_scheme(path):
+    """The scheme of ``path`` when it is a URL (``'s3'``, ``'https'``, ``'file'``...) that
+    names no local file, else None."""
+    text = os.fspath(path) if isinstance(path, (str, os.PathLike)) else None
+    if not isinstance(text, str):
+        return None
+    m = _URL.match(text)
+    if m is None or Path(text).exists():
+        return None
+    return m.group(1).lower()
+
+
+def url_message(path, scheme):
+    """Why the URL ``path`` is not read or written, and what to do instead."""
+    if scheme == "file":
+        return (f"{os.fspath(path)}: a file: URL; give the file's path itself "
+                f"(clcurv takes paths, not URLs)")
+    return (f"{os.fspath(path)}: a URL ({scheme}://); clcurv reads and writes files by path "
+            "only, on a local file system or a shared one that every Dask worker mounts at "
+            "the same path (NFS, Lustre...): copy the file there, or mount the storage "
+            "(e.g. s3fs, rclone mount) and give the mounted path")
+
+
+def refuse_urls(src):
+    """MissingFileError when ``src`` (a path, or a list of paths) is or holds a URL that
+    names no local file: clcurv does not read s3://, http(s):// or other fsspec URLs."""
+    for p in (src if isinstance(src, (list, tuple)) else [src]):
+        scheme = url_scheme(p)
+        if scheme is not None:
+            raise MissingFileError(url_message(p, scheme))
 
 
 # --------------------------------------------------------------------------- Cloud

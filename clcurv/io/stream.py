@@ -47,7 +47,7 @@ import plyfile
 
 from . import carry, las, pieces, ply, vpc
 from .common import (CatalogError, CorruptFileError, MissingFileError, UnknownFormatError,
-                     check_claim,
+                     check_claim, refuse_urls,
                      LAS_SUFFIXES, from_las, is_las, looks_like_normals, native, split_names)
 from .npy import check_npy
 
@@ -60,6 +60,7 @@ SCAN_BYTES = 16 << 20
 
 def open_source(path):
     """The chunked source of ``path`` (:class:`LasSource` or :class:`NpySource`)."""
+    refuse_urls(path)
     path = Path(path)
     if not path.exists():
         raise MissingFileError(f"{path}: no such file")
@@ -135,6 +136,7 @@ class Catalog:
     :func:`clcurv.io.vpc.header_crs`; none stated counts as one) are refused."""
 
     def __init__(self, paths):
+        refuse_urls(paths)
         paths, self.vpc, items = _catalog_files(paths)
         missing = [p for p in paths if not p.exists()]
         if missing:
