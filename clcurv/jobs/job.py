@@ -50,7 +50,7 @@ from clcurv.runtime.device import get_device
 from clcurv.tiles import engine as tiled
 from clcurv.tiles.engine import CurvatureParams, curvature_fields
 from clcurv.tiles.features import FeatureParams, file_fields
-from clcurv.tiles.planning import (TilingError, budget_of, fit_budget,
+from clcurv.tiles.planning import (UNCERTAINTY_BYTES, TilingError, budget_of, fit_budget,
                                    check_tile_size, fits_memory)
 from clcurv._shared.options import (METHOD_OPTIONS, OPTIONS, check, cli_value, file_orient,
                                     given, job_default)
@@ -82,6 +82,8 @@ class Job:
     write the ``"original"`` positions or the ``"projected"`` ones (the operator's
     projection, else the smoothed cloud). ``k``: instead of ``radius``, each point's radius
     is the distance to its k-th nearest point (:mod:`clcurv.ops.knn_radius`; in memory only).
+    ``uncertainty``: also the standard errors and roughness (:func:`clcurv.curvature`'s
+    ``uncertainty``), written by default.
     """
     input: str | Path
     output: str | Path
@@ -107,6 +109,7 @@ class Job:
     scheduler: str | None = job_default("scheduler")
     workdir: str | Path | None = job_default("workdir")
     k: int | None = job_default("k")
+    uncertainty: bool = job_default("uncertainty")
 
     @classmethod
     def from_args(cls, args):
@@ -225,8 +228,9 @@ def chosen_fields(res, wanted=None):
     Operator.chosen_fields`), ``"normals"`` among them when they are written; UsageError
     for an unknown name."""
     extra = ("knn_radius",) if np.ndim(res.radius) else ()
+    op = OPERATORS[res.method]
     try:
-        return OPERATORS[res.method].chosen_fields(wanted, extra)
+        return op.chosen_fields(wanted, extra, op.has_errors(res))
     except ValueError as exc:
         raise UsageError(str(exc)) from None
 
@@ -242,10 +246,12 @@ def result_fields(res, wanted=None):
     return {k: v for k, v in curvature_fields(res).items() if k in names}
 
 
-def summary_fields(method):
+def summary_fields(method, uncertainty=False):
     """The file fields whose ranges the summary prints: the method's width-1 file fields
-    (its curvatures, or the surface variation)."""
-    return [o.file for o in OPERATORS[method].outputs if o.file is not None and o.width == 1]
+    (its curvatures, or the surface variation; with ``uncertainty`` its errors too)."""
+    op = OPERATORS[method]
+    return [o.file for o in op.outputs + (op.errors if uncertainty else ())
+            if o.file is not None and o.width == 1]
 
 
 def _range(v):
@@ -276,7 +282,8 @@ def _evaluate(job, cloud, radius, device, st):
         res = curvature(work, radius, k=job.k, method=job.method,
                         normals=_input_normals(job, cloud),
                         viewpoint=job.viewpoint, orient=orientation(job, cloud),
-                        kernel=job.kernel, h=job.h, projections=job.projections, **common)
+                        kernel=job.kernel, h=job.h, projections=job.projections,
+                        uncertainty=job.uncertainty, **common)
     return res, work
 
 
@@ -327,7 +334,7 @@ def _summary(job, cloud, done, device, times, normals_written):
                f"status ok {np.mean(res.valid):.1%}")
     yield f"device {device.info.name} ({device.info.platform})"
     yield "time: " + ", ".join(f"{k} {v:.2f} s" for k, v in times.items())
-    ranged = summary_fields(job.method)
+    ranged = summary_fields(job.method, job.uncertainty)
     for k, v in done.fields.items():
         if k in ranged:
             yield f"  {k:<20} {_range(v)}"
@@ -371,6 +378,12 @@ def _run_in_memory(job, out):
 
 # --------------------------------------------------------------------------- in tiles, or not
 
+def error_bytes(uncertainty):
+    """Host bytes more per point of an in-memory run with ``uncertainty``
+    (:data:`clcurv.tiles.planning.UNCERTAINTY_BYTES`), else 0."""
+    return UNCERTAINTY_BYTES if uncertainty else 0
+
+
 def in_tiles(n, budget, forced=False, extra=0, method=None, source=None):
     """The decision between a run in memory and one in tiles, for every entry point here: in
     tiles when it is ``forced`` (a tile size, workers or a Dask scheduler or client, several
@@ -396,8 +409,10 @@ def wants_tiles(job):
     if job.projections or job.positions != "original" or job.k is not None:
         # options only the in-memory job has: tiles only when it cannot fit at all (the
         # tiled run then says which option it lacks)
-        return in_tiles(src.n, fit_budget("auto"), method=job.method, source=src)
-    return in_tiles(src.n, fit_budget(job.memory), method=job.method, source=src)
+        return in_tiles(src.n, fit_budget("auto"), extra=error_bytes(job.uncertainty),
+                        method=job.method, source=src)
+    return in_tiles(src.n, fit_budget(job.memory), extra=error_bytes(job.uncertainty),
+                    method=job.method, source=src)
 
 
 def options_for(job, takes):
@@ -495,7 +510,7 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
                    viewpoint=None, kernel=None, h=None, scale_space=0, projections=0,
                    memory="auto", tile=None, workdir=None, fields=None, quantize=False,
                    ignore_normals=False, device=None, precision="float", progress=None,
-                   out=None, client=None, workers=None):
+                   out=None, client=None, workers=None, uncertainty=False):
     """Run ``method`` on the cloud of file ``src`` and write ``dst``, in tiles when the cloud
     does not fit the memory budget (:mod:`clcurv.tiles.engine`: the same output bit for
     bit).
@@ -537,6 +552,11 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
         LAS/LAZ output: clcurv's real fields as integers with the extra-bytes descriptor's
         scale (:func:`clcurv.io.las.quantization`: curvatures to 5e-5 / radius, normals to
         5e-5, NaN as ``no_data``); ValueError for another output format.
+    uncertainty : bool
+        Also the standard errors and roughness (as :func:`clcurv.curvature`), among the
+        default fields: ``mean_curvature_se``, ``gaussian_curvature_se``, ``k1_se``,
+        ``k2_se``, ``normal_se``, ``roughness`` (those of the method). Methods variation,
+        mls0, mls1 and mls2.
     progress : callable(done, total, points) or None
         Called after each tile.
     client : dask.distributed.Client, optional
@@ -573,15 +593,22 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
     if int(scale_space) < 0:
         raise ValueError(f"scale_space must be >= 0, got {scale_space}")
     tiled.check_tiled_outputs(dst if catalog else [dst], source)
-    fields = OPERATORS[method].chosen_fields(fields)    # the names, in the resume key too
+    uncertainty = bool(uncertainty)
+    if uncertainty and not OPERATORS[method].errors:
+        raise ValueError(f"uncertainty is not an option of method={method!r} (only of "
+                         f"{', '.join(repr(m) for m, o in OPERATORS.items() if o.errors)})")
+    # the names, in the resume key too
+    fields = OPERATORS[method].chosen_fields(fields, uncertainty=uncertainty)
     if quantize and not all(io.is_las(d) for d in (dst if catalog else [dst])):
         raise ValueError("quantize stores LAS/LAZ extra bytes: write .las or .laz")
     params = CurvatureParams(method=method, radius=r, weights=weights, orient=orient,
                              viewpoint=viewpoint, kernel=kernel, h=h, device=device,
                              precision=precision, ignore_normals=ignore_normals,
-                             scale_space=scale_space, quantize=quantize)
+                             scale_space=scale_space, quantize=quantize,
+                             uncertainty=uncertainty)
     forced = catalog or tile is not None or client is not None or bool(workers)
-    if not in_tiles(source.n, fit_budget(memory), forced, method=method, source=source):
+    if not in_tiles(source.n, fit_budget(memory), forced, error_bytes(uncertainty),
+                    method=method, source=source):
         summary = _curvature_in_memory(src, dst, params, fields)
         summary["dropped"] = int(getattr(source, "dropped", 0))
         return summary
@@ -627,7 +654,7 @@ def _curvature_in_memory(src, dst, params, fields):
               precision=params.precision, fields=fields, viewpoint=params.viewpoint,
               orient="none" if orient is None else orient,
               ignore_normals=params.ignore_normals, scale_space=params.scale_space,
-              quantize=params.quantize, quiet=True)
+              quantize=params.quantize, uncertainty=params.uncertainty, quiet=True)
     t0 = time.perf_counter()
     check_options(job)
     done = _run_in_memory(job, out=lambda line: None)

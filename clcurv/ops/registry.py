@@ -166,6 +166,11 @@ class Operator:
         return {k: [m for m, op in OPERATORS.items() if k in op.options]
                 for k, v in given.items() if v and k not in self.options}
 
+    def has_errors(self, res):
+        """Does the result ``res`` (a CurvatureResult of this method) hold the error
+        outputs (``uncertainty=True``)?"""
+        return bool(self.errors) and getattr(res, self.errors[0].name) is not None
+
     def file_fields(self, uncertainty=False):
         """File field name -> (output name, column or None), in the output order (then the
         error outputs with ``uncertainty``)."""
@@ -176,7 +181,7 @@ class Operator:
                 out[f] = (o.name, c if len(names) > 1 else None)
         return out
 
-    def chosen_fields(self, wanted=None, extra=()):
+    def chosen_fields(self, wanted=None, extra=(), uncertainty=False):
         """The names of the file fields to write, in file order (:meth:`file_fields`, then
         ``extra``, e.g. ``knn_radius``, then :data:`COMMON_FILE_FIELDS`, then ``"normals"``),
         for the ``fields`` option's value ``wanted``:
@@ -186,8 +191,12 @@ class Operator:
         * names, among which ``"all"`` and ``"default"`` stand for those sets and the stem
           of a width-3 field (``"dir1"``) for its three components (``dir1_x, _y, _z``).
 
+        With ``uncertainty`` the error outputs' fields (:attr:`errors`) are among them, and
+        among the default ones.
+
         ValueError naming the unknown names and the available ones."""
-        every = list(self.file_fields()) + list(extra) + list(COMMON_FILE_FIELDS) + ["normals"]
+        every = (list(self.file_fields(uncertainty)) + list(extra) + list(COMMON_FILE_FIELDS)
+                 + ["normals"])
         if wanted is None:
             wanted = [DEFAULT_FIELDS]
         elif isinstance(wanted, str):
@@ -199,7 +208,7 @@ class Operator:
             if w == ALL_FIELDS:
                 take.update(every)
             elif w == DEFAULT_FIELDS:
-                take.update(self.default_fields(extra))
+                take.update(self.default_fields(extra, uncertainty))
             elif w in stems:
                 take.update(stems[w])
             elif w in every:
@@ -212,12 +221,14 @@ class Operator:
                              f"{', '.join(every)}")
         return [f for f in every if f in take]
 
-    def default_fields(self, extra=()):
+    def default_fields(self, extra=(), uncertainty=False):
         """The file fields written unless ``fields=`` says otherwise: the operator's outputs
         marked ``by_default`` (its curvatures or surface variation; not the principal
         directions, 6 of MLS2's 13 real fields, which few LiDAR uses need), ``extra`` (the
-        ``knn_radius`` of a k-NN radius), ``neighbours``, ``status`` and ``normals``."""
-        own = [f for o in self.outputs if o.by_default for f in o.file_fields()]
+        ``knn_radius`` of a k-NN radius), ``neighbours``, ``status`` and ``normals``; with
+        ``uncertainty`` the error outputs too (asked for, so written)."""
+        outs = self.outputs + (self.errors if uncertainty else ())
+        own = [f for o in outs if o.by_default for f in o.file_fields()]
         return own + list(extra) + list(COMMON_FILE_FIELDS) + ["normals"]
 
 

@@ -140,12 +140,14 @@ class CurvatureParams:
     scale_space: int = OPTIONS["scale_space"].default
     quantize: bool = OPTIONS["quantize"].default
     orient_k: int = OPTIONS["orient_k"].default
+    uncertainty: bool = OPTIONS["uncertainty"].default
     #: what the tiles compute (clcurv.tiles.features.FeatureParams: "features")
     kind = "curvature"
 
     def __post_init__(self):
         self.ignore_normals, self.scale_space = bool(self.ignore_normals), int(self.scale_space)
         self.quantize = bool(self.quantize)
+        self.uncertainty = bool(self.uncertainty)
 
     def halo(self, file_normals):
         """Cells of halo of this run's tiles (:func:`halo_cells`)."""
@@ -216,7 +218,8 @@ def curvature_fields(res):
     (int32, #N_r(p), the point itself included) and ``status`` (uint8, 0 ok). The file job
     (:func:`clcurv.jobs.job.result_fields`) and the tiles write these."""
     f = {}
-    for name, (attr, col) in OPERATORS[res.method].file_fields().items():
+    op = OPERATORS[res.method]
+    for name, (attr, col) in op.file_fields(op.has_errors(res)).items():
         a = getattr(res, attr)
         f[name] = a if col is None else a[:, col]
     if np.ndim(res.radius):                  # a k-NN radius: each point's
@@ -226,11 +229,11 @@ def curvature_fields(res):
     return f
 
 
-def _field_specs(method, want_normals):
+def _field_specs(method, want_normals, uncertainty=False):
     """(name, width, dtype) of the stored fields, as :func:`curvature_fields` names them."""
     op = OPERATORS[method]
     real = np.float64
-    specs = [(name, None, real) for name in op.file_fields()]
+    specs = [(name, None, real) for name in op.file_fields(uncertainty)]
     specs += [("neighbours", None, np.int32), ("status", None, np.uint8)]
     if want_normals:
         specs.append(("normals", 3, np.float64))     # as the in-memory run writes them
@@ -275,7 +278,8 @@ def check_params(params, fields, local=True):
         warnings.simplefilter("ignore")
         curvature(pts, params.radius, method=params.method, weights=params.weights,
                   orient=how, viewpoint=params.viewpoint, kernel=params.kernel, h=params.h,
-                  precision=params.precision, normals=pts if given else None, **where)
+                  precision=params.precision, normals=pts if given else None,
+                  uncertainty=params.uncertainty, **where)
 
 
 def check_tiled_outputs(dsts, source):
@@ -607,7 +611,8 @@ def _run_regions(space, want, source, dst, params, budget, tile, wanted, progres
 
 #: fields that an orientation flip exchanges (clcurv.tiles.orient.flip_fields: MLS2's
 #: (k1, k2) -> (-k2, -k1), dir1 <-> dir2): one written, the tiles store both
-_FLIP_PAIRS = [("k1", "k2")] + [(f"dir1_{c}", f"dir2_{c}") for c in "xyz"]
+_FLIP_PAIRS = ([("k1", "k2"), ("k1_se", "k2_se")]
+               + [(f"dir1_{c}", f"dir2_{c}") for c in "xyz"])
 
 
 def _stored_specs(params, specs):
@@ -620,7 +625,8 @@ def _stored_specs(params, specs):
     names = {n for n, _, _ in specs}
     need = {b for pair in _FLIP_PAIRS for a, b in (pair, pair[::-1])
             if a in names and b not in names} | ({"status", "neighbours"} - names)
-    return list(specs) + [s for s in _field_specs(params.method, False) if s[0] in need]
+    return list(specs) + [s for s in _field_specs(params.method, False, params.uncertainty)
+                          if s[0] in need]
 
 
 def _summary(params, tiles, skipped, size, source, times, status, dst, halo=0):
@@ -700,8 +706,9 @@ def _wanted_specs(params, wanted):
     """The specs of the fields written for the ``fields`` option's value ``wanted`` (None:
     the method's default set; :meth:`clcurv.ops.registry.Operator.chosen_fields`, as the
     run in memory); ValueError for an unknown name."""
-    names = OPERATORS[params.method].chosen_fields(wanted)
-    return [s for s in _field_specs(params.method, "normals" in names) if s[0] in names]
+    names = OPERATORS[params.method].chosen_fields(wanted, uncertainty=params.uncertainty)
+    return [s for s in _field_specs(params.method, "normals" in names, params.uncertainty)
+            if s[0] in names]
 
 
 @dataclass
@@ -781,7 +788,7 @@ def tile_records(task, pos, own, ids, file_normals, device=None):
                 res = curvature(cloud, params.radius, method=params.method,
                                 weights=params.weights, normals=normals, orient=how,
                                 viewpoint=params.viewpoint, kernel=params.kernel, h=params.h,
-                                **extra)
+                                uncertainty=params.uncertainty, **extra)
             f = curvature_fields(res)
             f["normals"] = res.normals
         out["id"] = ids[own]
@@ -805,7 +812,8 @@ def _ranged(params):
     """The fields whose ranges a run's summary prints (clcurv.jobs.job.summary_fields)."""
     if params.kind != "curvature":
         return []
-    return [o.file for o in OPERATORS[params.method].outputs
+    op = OPERATORS[params.method]
+    return [o.file for o in op.outputs + (op.errors if params.uncertainty else ())
             if o.file is not None and o.width == 1]
 
 

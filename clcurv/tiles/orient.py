@@ -146,7 +146,8 @@ def flip_mask(rec, flips, centroid, small):
 
 def flip_fields(rec, mask, method):
     """Negate the orientation of the records where ``mask``: normals and H negated, for
-    MLS2 (k1, k2) -> (-k2, -k1) and dir1 <-> dir2; in place."""
+    MLS2 (k1, k2) -> (-k2, -k1), dir1 <-> dir2 and their standard errors k1_se <-> k2_se;
+    in place."""
     if not mask.any():
         return rec
     names = rec.dtype.names
@@ -157,6 +158,9 @@ def flip_fields(rec, mask, method):
     if method == "mls2" and "k1" in names and "k2" in names:
         k1, k2 = rec["k1"][mask].copy(), rec["k2"][mask].copy()
         rec["k1"][mask], rec["k2"][mask] = -k2, -k1
+        if "k1_se" in names and "k2_se" in names:
+            e1, e2 = rec["k1_se"][mask].copy(), rec["k2_se"][mask].copy()
+            rec["k1_se"][mask], rec["k2_se"][mask] = e2, e1
         for c in "xyz":
             a, b = f"dir1_{c}", f"dir2_{c}"
             if a in names and b in names:

@@ -103,6 +103,12 @@ def fit_budget(memory):
     return parse_memory(memory)
 
 
+#: Host bytes more per point of an in-memory run with ``uncertainty=True``: the error record
+#: (16 device REALs), its six fields as float64 host arrays, the result's copies and the
+#: written fields (an estimate from the arrays' sizes: 64 + 48 + 48 + 48)
+UNCERTAINTY_BYTES = 210
+
+
 def in_memory_bytes(method=None, record_length=None, extra=0):
     """The bytes a point of an in-memory run of ``method`` takes at its peak: its
     computation's (:data:`IN_MEMORY_BYTES`, None: the largest; ``extra`` more, e.g. more
