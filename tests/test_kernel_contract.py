@@ -92,17 +92,22 @@ def test_build_fails_without_each_host_constant(device, missing):
 @pytest.mark.parametrize("name", sorted(OPERATORS))
 def test_record_layouts_fit_and_match_their_kernel(name):
     k = OPERATORS[name].kernel
-    assert {"count", "status"} <= set(k.layout)
-    cols = []
-    for field in k.layout:
-        v = k.layout[field]
-        cols += [v] if isinstance(v, int) else list(range(v.start, v.stop))
-    assert len(cols) == len(set(cols)), f"{name}: overlapping record columns"
-    assert 0 <= min(cols) and max(cols) < constants.RECORD_WIDTH
+    layouts = [k.layout] + ([k.errors] if k.errors is not None else [])
+    for layout in layouts:             # the record, and the error record (uncertainty)
+        assert {"count", "status"} <= set(layout)
+        cols = []
+        for field in layout:
+            v = layout[field]
+            cols += [v] if isinstance(v, int) else list(range(v.start, v.stop))
+        assert len(cols) == len(set(cols)), f"{name}: overlapping record columns"
+        assert 0 <= min(cols) and max(cols) < constants.RECORD_WIDTH
     src = strip_comments((kernels_dir() / k.file).read_text())
     written = {c[len("COL_"):].lower() for c in re.findall(r"\bCOL_[A-Z0-9_]+\b", src)}
-    assert written <= set(k.layout), f"{k.file} writes columns {written - set(k.layout)} " \
-                                     f"that the {name} layout lacks"
+    named = set(k.layout) | set(k.errors or ())
+    assert written <= named, f"{k.file} writes columns {written - named} " \
+                             f"that the {name} layouts lack"
+    if k.errors is not None:           # the error record's own count and status columns
+        assert {"ECOL_COUNT", "ECOL_STATUS"} <= set(re.findall(r"\bECOL_[A-Z]+\b", src))
 
 
 @pytest.mark.parametrize("name", sorted(OPERATORS))
