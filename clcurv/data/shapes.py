@@ -130,8 +130,10 @@ def chirp(n, amplitude=0.02, wavelengths=(1.0, 0.3), extent=(2.0, 0.6), power=0.
     ``x = extent[0]`` (``b = ln(w1 / w0) / extent[0]``), so ``phi(x) = w0 (exp(b x) - 1) / b``;
     the amplitude ``A(x) = amplitude (w0 / w(x))^power`` (``power = 0``: constant amplitude,
     the crests' curvature grows as ``w^2``; ``power = 1``: constant slope, as ``w``). The
-    envelope of ``|H|`` (crests) therefore grows by ``(w1 / w0)^(2 - power)`` across x: 11.1x
-    with the defaults; H passes through 0 on every inflection line ``sin(phi) = 0``.
+    envelope of ``|H|`` (crests) therefore grows by ``(w1 / w0)^(2 - power)`` between the
+    two ends: 11.1x with the defaults (the crests actually sampled are fewer: the first
+    lies a quarter period in, so their range is smaller, ~8x with the defaults); H passes
+    through 0 on every inflection line ``sin(phi) = 0``.
 
     Exact derivatives (``A' = -power b A``):
     ``f' = A (w cos(phi) - power b sin(phi))``,
