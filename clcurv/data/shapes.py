@@ -118,6 +118,73 @@ def wave(n, amplitude=0.1, wavelength=1.0, extent=1.0, *, noise=0.0, seed=0):
     return _finish(rng, pts, nrm, H + d, H - d, noise)
 
 
+def chirp(n, amplitude=0.02, wavelengths=(1.0, 0.3), extent=(2.0, 0.6), power=0.0, *,
+          noise=0.0, seed=0):
+    """A chirp: the ridged graph ``z = A(x) sin(phi(x))`` whose frequency grows across x,
+    over ``0 <= x <= extent[0]``, ``0 <= y <= extent[1]``, uniform by area (rejection on
+    ``sqrt(1 + f'^2)``). A surface whose curvature varies by a known factor, for choosing a
+    radius per point (issue 51).
+
+    The angular frequency ``w(x) = phi'(x) = w0 exp(b x)`` grows geometrically from
+    ``w0 = 2 pi / wavelengths[0]`` at ``x = 0`` to ``w1 = 2 pi / wavelengths[1]`` at
+    ``x = extent[0]`` (``b = ln(w1 / w0) / extent[0]``), so ``phi(x) = w0 (exp(b x) - 1) / b``;
+    the amplitude ``A(x) = amplitude (w0 / w(x))^power`` (``power = 0``: constant amplitude,
+    the crests' curvature grows as ``w^2``; ``power = 1``: constant slope, as ``w``). The
+    envelope of ``|H|`` (crests) therefore grows by ``(w1 / w0)^(2 - power)`` between the
+    two ends: 11.1x with the defaults (the crests actually sampled are fewer: the first
+    lies a quarter period in, so their range is smaller, ~8x with the defaults); H passes
+    through 0 on every inflection line ``sin(phi) = 0``.
+
+    Exact derivatives (``A' = -power b A``):
+    ``f' = A (w cos(phi) - power b sin(phi))``,
+    ``f'' = A ((power^2 b^2 - w^2) sin(phi) + (1 - 2 power) b w cos(phi))``.
+    Normals point up (+z side): ``(-f', 0, 1) / W``, ``W = sqrt(1 + f'^2)``. The surface is a
+    cylinder over the profile (straight along y): one principal curvature is 0 and the other
+    is clcurv's ``kappa = -f'' / W^3`` (bending away from the upward normal is positive, so
+    a crest is positive), ``k1 = max(kappa, 0)``, ``k2 = min(kappa, 0)``, ``H = kappa / 2``,
+    ``K = 0``; ``dir1`` is the profile's tangent ``(1, 0, f') / W`` where ``kappa >= 0``, else
+    ``(0, 1, 0)``.
+
+    Returns the dict of the other samplers plus ``"omega"`` (N,): the local angular
+    frequency ``w(x)`` of each sample (noise added along the normal after)."""
+    rng = np.random.default_rng(seed)
+    lx, ly = (float(e) for e in extent)
+    w0, w1 = 2.0 * np.pi / float(wavelengths[0]), 2.0 * np.pi / float(wavelengths[1])
+    if not (lx > 0 and ly > 0 and w0 > 0 and w1 > 0):
+        raise ValueError(f"extent and wavelengths must be positive, got {extent}, {wavelengths}")
+    b = np.log(w1 / w0) / lx
+    a0, pw = float(amplitude), float(power)
+
+    def profile(x):
+        w = w0 * np.exp(b * x)
+        phi = w0 * np.expm1(b * x) / b if b != 0 else w0 * x
+        amp = a0 * (w0 / w) ** pw
+        s, c = np.sin(phi), np.cos(phi)
+        f1 = amp * (w * c - pw * b * s)
+        f2 = amp * ((pw * pw * b * b - w * w) * s + (1.0 - 2.0 * pw) * b * w * c)
+        return amp * s, f1, f2, w
+
+    grid = np.linspace(0.0, lx, 4097)
+    gmax = np.sqrt(1.0 + np.max(np.abs(profile(grid)[1])) ** 2) * 1.01
+    xy = np.empty((0, 2))
+    while len(xy) < n:
+        m = 2 * (n - len(xy)) + 16
+        c = rng.uniform(0.0, 1.0, size=(m, 2)) * [lx, ly]
+        keep = rng.uniform(0, gmax, m) < np.sqrt(1.0 + profile(c[:, 0])[1] ** 2)
+        xy = np.concatenate([xy, c[keep]])
+    x, y = xy[:n].T
+    f, f1, f2, w = profile(x)
+    ww = np.sqrt(1.0 + f1 * f1)
+    kappa = -f2 / ww ** 3
+    nrm = np.stack([-f1, np.zeros(n), np.ones(n)], axis=1) / ww[:, None]
+    tangent = np.stack([np.ones(n), np.zeros(n), f1], axis=1) / ww[:, None]
+    dir1 = np.where((kappa >= 0)[:, None], tangent, [0.0, 1.0, 0.0])
+    pts = np.stack([x, y, f], axis=1)
+    out = _finish(rng, pts, nrm, np.maximum(kappa, 0.0), np.minimum(kappa, 0.0), noise, dir1)
+    out["omega"] = w
+    return out
+
+
 def cylinder(n, radius=1.0, length=4.0, *, noise=0.0, seed=0):
     """Open cylinder around the z axis, z in [-length/2, length/2]: k1 = 1/radius, k2 = 0."""
     rng = np.random.default_rng(seed)
