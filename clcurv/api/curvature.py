@@ -19,6 +19,7 @@ from clcurv.ops.driver import run_kernel
 from clcurv.ops.features import run_features
 from clcurv.ops.knn_radius import knn_radii
 from clcurv.ops.registry import OPERATORS, PCA
+from clcurv.ops.selection import select_by_error
 from clcurv.ops.smoothing import scale_space as smooth
 from clcurv.orient import orientation as _orient
 from clcurv.reference import operators as reference
@@ -228,7 +229,7 @@ def _check_options(op, kernel, h, projections, align_normals=None, uncertainty=F
 def curvature(points, radius=None, *, method="mls1", weights="uniform", normals=None,
               orient="auto", viewpoint=None, orient_k=10, kernel=None, h=None, projections=0,
               scale_space=0, device=None, precision="float", backend="opencl", k=None,
-              align_normals=None, uncertainty=False):
+              align_normals=None, uncertainty=False, select=None):
     """Differential operators on the ball N_r(p) = {q : |q - p| < radius} of every point.
 
     Parameters
@@ -335,6 +336,13 @@ def curvature(points, radius=None, *, method="mls1", weights="uniform", normals=
         radius is small against the curvature's scale (docs/uncertainty.md, with the
         calibration figures). With ``scale_space`` or ``projections`` they are the errors
         of the final operator on the moved cloud. Not with ``k`` (per-point radii).
+    select : {None, 'error'}
+        Methods 'mls1' and 'mls2', with a list of radii: one result in which each point
+        keeps the radius of least predicted error SE(H)^2 + bias^2
+        (:func:`_selected`, :mod:`clcurv.ops.selection`), with ``uncertainty`` on;
+        ``result.radius`` is the (N,) array of the chosen radii. The cloud is binned once
+        at the largest radius and each radius runs on it; the normals of the largest
+        radius orient the others (one orientation for every radius).
 
     Returns
     -------
@@ -358,6 +366,12 @@ def curvature(points, radius=None, *, method="mls1", weights="uniform", normals=
     True
     """
     op = OPERATORS[check_method(method)]
+    if select is not None:
+        return _selected(op, points, radius, select, k, dict(
+            weights=weights, normals=normals, orient=orient, viewpoint=viewpoint,
+            orient_k=orient_k, kernel=kernel, h=h, projections=projections,
+            scale_space=scale_space, device=device, precision=precision, backend=backend,
+            align_normals=align_normals))
     if np.ndim(radius) > 0:
         if k is not None:
             raise ValueError("give either radius or k (or radius='knn:K'), not both")
@@ -576,6 +590,58 @@ def _radius_list(op, points, radius, kw):
         return [curvature(cloud, r, method=op.name, **kw) for r in radii]
     finally:
         _PCA_GIVEN.reset(token)
+
+
+def _selected(op, points, radius, select, k, kw):
+    """:func:`curvature` with ``select='error'``: every radius of ``radius`` on one cloud
+    binned at the largest, with ``uncertainty=True``; per point, the radius of least
+    predicted error of H (:func:`clcurv.ops.selection.select_by_error`, bias ``c r^2``: the
+    leading term of MLS1's and MLS2's expansions, docs/uncertainty.md). The largest radius
+    runs first and its oriented normals orient the others. Each output of the result is
+    the chosen radius's; points with no radius of finite H and SE keep the largest's.
+    ``info["select"]``: the radii, how often each was chosen, and per point the predicted
+    error ``predicted_error`` and the fitted bias coefficient ``bias_coef``."""
+    check(select, "select")
+    extra = op.foreign_options({"select": True})
+    if extra:
+        raise ValueError(f"select is not an option of method={op.name!r} (only of "
+                         f"{', '.join(repr(m) for m in extra['select'])})")
+    if k is not None:
+        raise ValueError("select='error' chooses among given radii: give radius=[r1, ...], "
+                         "not k")
+    radii, multi = as_radii(radius)
+    if not multi or len(radii) < 2:
+        raise ValueError("select='error' needs at least two radii: radius=[r1, r2, ...]")
+    if len(set(radii)) != len(radii):
+        raise ValueError(f"select='error' needs distinct radii, got {radii}")
+    points, cloud = cloud_points(points)
+    pts = as_points(points, finite=kw["backend"] != "opencl")
+    order = np.argsort(radii)[::-1]                   # the largest first: it orients
+    if kw["backend"] == "opencl" and cloud is None and len(pts):
+        cloud = DeviceCloud(pts, max(radii), device=kw["device"], precision=kw["precision"])
+    runs = {}
+    for j in order:
+        call = dict(kw)
+        if runs:                    # one orientation: the largest radius's normals
+            call.update(normals=runs[order[0]].normals, orient="normals", viewpoint=None)
+        runs[j] = curvature(pts if cloud is None else cloud, radii[j], method=op.name,
+                            uncertainty=True, **call)
+    up = sorted(range(len(radii)), key=lambda j: radii[j])       # ascending for the fit
+    rs = np.array([radii[j] for j in up])
+    values = np.stack([runs[j].mean for j in up], axis=1)
+    se = np.stack([runs[j].mean_se for j in up], axis=1)
+    sel = select_by_error(values, se, rs, order=2)
+    pick = np.where(sel.index >= 0, sel.index, len(up) - 1)      # none usable: the largest
+    res = runs[up[-1]]
+    rows = np.arange(len(pick))
+    for name, v in res.arrays().items():
+        stack = np.stack([getattr(runs[j], name) for j in up])
+        setattr(res, name, stack[pick, rows])
+    res.radius = rs[pick]
+    res.info["select"] = {"radii": rs.tolist(),
+                          "chosen": np.bincount(pick, minlength=len(rs)).tolist(),
+                          "predicted_error": sel.error, "bias_coef": sel.coef}
+    return res
 
 
 def _variation_list(op, cloud, radii):

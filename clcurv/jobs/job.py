@@ -83,7 +83,10 @@ class Job:
     projection, else the smoothed cloud). ``k``: instead of ``radius``, each point's radius
     is the distance to its k-th nearest point (:mod:`clcurv.ops.knn_radius`; in memory only).
     ``uncertainty``: also the standard errors and roughness (:func:`clcurv.curvature`'s
-    ``uncertainty``), written by default.
+    ``uncertainty``), written by default. ``select="error"``: ``radius`` is several radii
+    (a list, or numbers separated by commas) and each point keeps the one of least
+    predicted error (:func:`clcurv.curvature`'s ``select``; in memory only), written as
+    ``selected_radius`` with the standard errors.
     """
     input: str | Path
     output: str | Path
@@ -110,6 +113,7 @@ class Job:
     workdir: str | Path | None = job_default("workdir")
     k: int | None = job_default("k")
     uncertainty: bool = job_default("uncertainty")
+    select: str | None = job_default("select")
 
     @classmethod
     def from_args(cls, args):
@@ -177,6 +181,20 @@ def auto_radius(points, k=AUTO_NEIGHBOURS, sample=5000, seed=0):
     return auto_radius(distinct, k, sample, seed)
 
 
+def radius_list(radius):
+    """Several radii (``--select error``): a list of numbers or a string of numbers
+    separated by commas, as positive floats; UsageError otherwise."""
+    items = radius.split(",") if isinstance(radius, str) else list(np.ravel(radius))
+    try:
+        radii = [float(r) for r in items]
+    except (TypeError, ValueError):
+        raise UsageError(f"--select error needs --radius R1,R2[,...] (numbers separated by "
+                         f"commas), got {radius!r}") from None
+    if len(radii) < 2 or not all(np.isfinite(r) and r > 0 for r in radii):
+        raise UsageError(f"--select error needs at least two positive radii, got {radius!r}")
+    return radii
+
+
 def resolve_radius(radius, points, out=print):
     """The radius as a positive float: ``"auto"`` (said on ``out``) or a number."""
     if radius == "auto":
@@ -212,6 +230,16 @@ def check_options(job):
         if job.k is not None:
             raise UsageError("--quantize scales the curvatures by the radius: give --radius, "
                              "not --k")
+    if job.select is not None:
+        if job.select != "error":
+            raise UsageError(f"--select must be 'error', got {job.select!r}")
+        radius_list(job.radius)
+        for name, on in (("--k", job.k is not None), ("--quantize", job.quantize),
+                         ("--tile-size", job.tile_size is not None),
+                         ("--workers", bool(job.workers)), ("--scheduler", job.scheduler)):
+            if on:
+                raise UsageError(f"--select error runs in memory on one radius scale: not "
+                                 f"with {name}")
     if job.k is not None:
         if job.radius != "auto":
             raise UsageError("give --radius or --k, not both")
@@ -227,7 +255,8 @@ def chosen_fields(res, wanted=None):
     ``wanted`` (None: the method's default set; ``"all"``; names: :meth:`clcurv.ops.registry.
     Operator.chosen_fields`), ``"normals"`` among them when they are written; UsageError
     for an unknown name."""
-    extra = ("knn_radius",) if np.ndim(res.radius) else ()
+    extra = ((("selected_radius",) if "select" in res.info else ("knn_radius",))
+             if np.ndim(res.radius) else ())
     op = OPERATORS[res.method]
     try:
         return op.chosen_fields(wanted, extra, op.has_errors(res))
@@ -283,7 +312,8 @@ def _evaluate(job, cloud, radius, device, st):
                         normals=_input_normals(job, cloud),
                         viewpoint=job.viewpoint, orient=orientation(job, cloud),
                         kernel=job.kernel, h=job.h, projections=job.projections,
-                        uncertainty=job.uncertainty, **common)
+                        uncertainty=job.uncertainty and job.select is None, select=job.select,
+                        **common)
     return res, work
 
 
@@ -314,6 +344,10 @@ def _radius_text(job, radius):
     and isolated count."""
     if not np.ndim(radius):
         return f"radius {radius:.6g}"
+    if job.select is not None:
+        radii = sorted(set(np.asarray(radius)[np.isfinite(radius)].tolist()))
+        counts = ", ".join(f"{r:.6g}: {np.mean(radius == r):.0%}" for r in radii)
+        return f"radius selected per point by predicted error ({counts})"
     iso = int(np.count_nonzero(np.isnan(radius)))
     if iso == len(radius):
         return f"radius the distance to the k-th nearest point, k = {job.k} (every point isolated)"
@@ -334,7 +368,7 @@ def _summary(job, cloud, done, device, times, normals_written):
                f"status ok {np.mean(res.valid):.1%}")
     yield f"device {device.info.name} ({device.info.platform})"
     yield "time: " + ", ".join(f"{k} {v:.2f} s" for k, v in times.items())
-    ranged = summary_fields(job.method, job.uncertainty)
+    ranged = summary_fields(job.method, job.uncertainty or job.select is not None)
     for k, v in done.fields.items():
         if k in ranged:
             yield f"  {k:<20} {_range(v)}"
@@ -362,10 +396,11 @@ def _run_in_memory(job, out):
     st = Stages(job.quiet)
     with st.stage("reading"):
         cloud = io.read(job.input)
-    radius = None if job.k is not None else resolve_radius(job.radius, cloud.points, out)
+    radius = (None if job.k is not None else radius_list(job.radius) if job.select
+              else resolve_radius(job.radius, cloud.points, out))
     device = get_device(job.device)
     res, work = _evaluate(job, cloud, radius, device, st)
-    done = Done(cloud.points, res.radius if job.k is not None else radius, res,
+    done = Done(cloud.points, res.radius if job.k is not None or job.select else radius, res,
                 result_fields(res, job.fields))
     normals = res.normals if "normals" in chosen_fields(res, job.fields) else None
     with st.stage("writing"):
@@ -406,7 +441,8 @@ def wants_tiles(job):
         src = stream.open_source(job.input)
     except Exception:                       # the in-memory reader reports it
         return False
-    if job.projections or job.positions != "original" or job.k is not None:
+    if (job.projections or job.positions != "original" or job.k is not None
+            or job.select is not None):
         # options only the in-memory job has: tiles only when it cannot fit at all (the
         # tiled run then says which option it lacks)
         return in_tiles(src.n, fit_budget("auto"), extra=error_bytes(job.uncertainty),
@@ -436,6 +472,10 @@ def _check_before_reading(job):
 def run_tiled(job, out=print):
     """The file job ``job`` in tiles (:func:`curvature_file`); prints a summary on ``out``
     and returns the summary dict."""
+    if job.select is not None:
+        raise UsageError("--select error needs the whole cloud in memory: it does not run in "
+                         "tiles (a cloud larger than this machine's memory, several input "
+                         "files); give one --radius to run in tiles")
     if job.k is not None:
         raise UsageError("--k (a k-NN radius) needs the whole cloud in memory: it does not "
                          "run in tiles (--tile-size, --workers, --scheduler, several input "

@@ -222,8 +222,9 @@ def curvature_fields(res):
     for name, (attr, col) in op.file_fields(op.has_errors(res)).items():
         a = getattr(res, attr)
         f[name] = a if col is None else a[:, col]
-    if np.ndim(res.radius):                  # a k-NN radius: each point's
-        f["knn_radius"] = np.asarray(res.radius, dtype=np.float64)
+    if np.ndim(res.radius):                  # a k-NN radius, or a selected one: each point's
+        name = "selected_radius" if "select" in res.info else "knn_radius"
+        f[name] = np.asarray(res.radius, dtype=np.float64)
     f["neighbours"] = res.count.astype(np.int32)
     f["status"] = res.status.astype(np.uint8)
     return f
