@@ -612,8 +612,6 @@ def _selected(op, points, radius, select, k, kw):
     radii, multi = as_radii(radius)
     if not multi or len(radii) < 2:
         raise ValueError("select='error' needs at least two radii: radius=[r1, r2, ...]")
-    if len(set(radii)) != len(radii):
-        raise ValueError(f"select='error' needs distinct radii, got {radii}")
     points, cloud = cloud_points(points)
     pts = as_points(points, finite=kw["backend"] != "opencl")
     order = np.argsort(radii)[::-1]                   # the largest first: it orients
