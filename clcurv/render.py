@@ -36,7 +36,9 @@ Points are sorted by depth so that near points are drawn last (over far ones); p
 value is NaN are drawn first, beneath every valued point, so that they never hide one.
 Signed fields use a diverging colormap centred on 0 ("RdBu_r", symmetric limits); unsigned
 ones "viridis". Colour limits are robust percentiles of the finite values; NaN values are
-drawn light grey. The colour bar's label is kept inside the picture (the figure is widened,
+drawn light grey. With standard errors (``se``: ``clcurv compute --uncertainty``'s
+``mean_curvature_se`` for ``mean_curvature``...), the values not significant at about 95%,
+``|value| < 2 se``, are drawn mid grey: the view that tells a ridge from noise. The colour bar's label is kept inside the picture (the figure is widened,
 or the label's font reduced, when it would not fit).
 
 The picture format follows the extension of the output (:data:`IMAGE_FORMATS`: PNG, JPEG,
@@ -127,6 +129,10 @@ _AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
 
 _AXIS_NAMES = {(1, 0, 0): "x", (0, 1, 0): "y", (0, 0, 1): "z"}
 _NAN_GREY = "#c8c8c8"
+#: the colour of values not significant (|value| < SIGNIFICANCE * se)
+_NOT_SIGNIFICANT_GREY = "#8c8c8c"
+#: significance at about 95% (two standard errors)
+SIGNIFICANCE = 2.0
 
 
 class MissingMatplotlibError(ImportError):
@@ -273,7 +279,7 @@ def check_image_output(path) -> Path:
 
 def render(points, values, path, *, field="mean_curvature", unit="auto",
            signed=None, views=None, up="auto", source=None, max_points=200_000,
-           percentiles=(2, 98), title=None, dpi=110, seed=0) -> Path:
+           percentiles=(2, 98), title=None, dpi=110, seed=0, se=None) -> Path:
     """Write a picture of ``points`` coloured by ``values`` seen from ``views``; return its path.
 
     Parameters
@@ -314,6 +320,10 @@ def render(points, values, path, *, field="mean_curvature", unit="auto",
         inches (12 x 4.5 for three views).
     seed : int
         Seed of the subsample.
+    se : (N,) array_like, optional
+        Standard errors of ``values`` (same unit): points whose ``|value| < 2 se`` (not
+        significant at about 95%) are drawn mid grey and counted in the caption; a NaN ``se`` leaves its point coloured. The colour range is that of
+        every finite value.
 
     Raises
     ------
@@ -331,7 +341,7 @@ def render(points, values, path, *, field="mean_curvature", unit="auto",
     path = check_image_output(path)
     fig, _ = figure(points, values, field=field, unit=unit, signed=signed, views=views, up=up,
                     source=source, max_points=max_points, percentiles=percentiles, title=title,
-                    dpi=dpi, seed=seed)
+                    dpi=dpi, seed=seed, se=se)
     with atomic_output(path) as tmp:
         fig.savefig(tmp, dpi=dpi, format=IMAGE_FORMATS[path.suffix.lower()], facecolor="white")
     return path
@@ -339,12 +349,13 @@ def render(points, values, path, *, field="mean_curvature", unit="auto",
 
 def figure(points, values, *, field="mean_curvature", unit="auto", signed=None,
            views=None, up="auto", source=None, max_points=200_000, percentiles=(2, 98),
-           title=None, dpi=110, seed=0):
+           title=None, dpi=110, seed=0, se=None):
     """The matplotlib Figure that :func:`render` writes (same parameters, no path), and a
     dict: ``views``, ``up`` (unit vector), ``terrain``, ``label`` (the colour-bar label),
     ``label_bbox`` (its (x0, y0, x1, y1) in pixels of the written picture, origin bottom
     left) and
-    ``size`` (width, height) in pixels."""
+    ``size`` (width, height) in pixels, ``not_significant``: how many points have
+    ``|value| < 2 se`` (0 without ``se``)."""
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"points must be an (N, 3) array, got shape {pts.shape}")
@@ -354,6 +365,15 @@ def figure(points, values, *, field="mean_curvature", unit="auto", signed=None,
         vals = vals[:, 0]
     if vals.ndim != 1 or vals.shape[0] != n:
         raise ValueError(f"values must have one entry per point ({n}), got shape {vals.shape}")
+    if se is not None:
+        se = np.asarray(se, dtype=np.float64)
+        if se.shape != vals.shape:
+            raise ValueError(f"se must have one entry per point ({n}), got shape {se.shape}")
+        with np.errstate(invalid="ignore"):
+            insignificant = np.abs(vals) < SIGNIFICANCE * se       # False where NaN
+    else:
+        insignificant = np.zeros(n, dtype=bool)
+    n_insig = int(np.count_nonzero(insignificant))
     upv = up_axis(up, pts if pts.ndim == 2 and pts.shape[-1] == 3 else None, source)
     if views is None:
         views = default_views(pts, upv)
@@ -378,7 +398,7 @@ def figure(points, values, *, field="mean_curvature", unit="auto", signed=None,
     max_points = int(max_points)
 
     matplotlib, Figure, FigureCanvasAgg = _import_matplotlib()
-    from matplotlib.colors import Normalize     # the optional extra, found just above
+    from matplotlib.colors import Normalize, to_rgba   # the optional extra, found above
     from matplotlib.cm import ScalarMappable
 
     # --- colour scale from all finite values (before subsampling) ---------------------------
@@ -423,6 +443,7 @@ def figure(points, values, *, field="mean_curvature", unit="auto", signed=None,
     idx = idx[good]
     sp = pts[idx]
     sv = vals[idx]
+    s_insig = insignificant[idx]
     center = 0.5 * (sp.min(axis=0) + sp.max(axis=0)) if sp.size else np.zeros(3)
     frame = _frame(upv)
     sp = (sp - center) @ frame.T          # up is +y of the view table
@@ -483,15 +504,21 @@ def figure(points, values, *, field="mean_curvature", unit="auto", signed=None,
         d_px = _point_diameter_px(u, v, scale_px, u.size)
         size_pt2 = (d_px * 72.0 / dpi) ** 2
         valued = np.isfinite(sv)
-        # NaN points first (beneath), then the valued ones; each far first, near last
+        # NaN points first (beneath), then the valued ones, those not significant in grey
+        # among them; each far first, near last
         for part in (~valued, valued):
             sel = np.flatnonzero(part)
             if sel.size == 0:
                 continue
             sel = sel[np.argsort(depth[sel], kind="stable")]
-            ax.scatter(u[sel], v[sel], c=sv[sel], s=size_pt2, cmap=cmap, norm=norm,
-                       marker="o", linewidths=0, edgecolors="none", plotnonfinite=True,
-                       rasterized=True)
+            if part is valued and s_insig[sel].any():
+                rgba = cmap(norm(sv[sel]))
+                rgba[s_insig[sel]] = to_rgba(_NOT_SIGNIFICANT_GREY)
+                colour = dict(color=rgba)
+            else:
+                colour = dict(c=sv[sel], cmap=cmap, norm=norm, plotnonfinite=True)
+            ax.scatter(u[sel], v[sel], s=size_pt2, marker="o", linewidths=0,
+                       edgecolors="none", rasterized=True, **colour)
 
     # --- colorbar (and a grey "NaN" key when some values are NaN) --------------------------
     cb_x = fig_w - cbar_w + 0.12
@@ -523,6 +550,12 @@ def figure(points, values, *, field="mean_curvature", unit="auto", signed=None,
         kax.set_xticks([])
         kax.set_yticks([])
         kax.text(1.6, 0.5, "NaN", transform=kax.transAxes, fontsize=8, va="center")
+    if n_insig:
+        gax = add_axes((cb_x, bottom_pad + 0.36, cb_w, 0.16))
+        gax.set_facecolor(_NOT_SIGNIFICANT_GREY)
+        gax.set_xticks([])
+        gax.set_yticks([])
+        gax.text(1.6, 0.5, "< 2 SE", transform=gax.transAxes, fontsize=8, va="center")
 
     # --- caption -------------------------------------------------------------------------
     head = title if title is not None else field
@@ -538,6 +571,9 @@ def figure(points, values, *, field="mean_curvature", unit="auto", signed=None,
         parts.append(f"{_fmt_count(n_nan)} NaN (grey)")
     else:
         parts.append("no NaN")
+    if se is not None and n:
+        parts.append(f"{_fmt_count(n_insig)} ({n_insig / n:.0%}) not significant, |value| "
+                     f"< 2 SE (dark grey)")
     if n_bad_pos:
         parts.append(f"{_fmt_count(n_bad_pos)} with non-finite coordinates not drawn")
     if finite.size:
@@ -552,7 +588,8 @@ def figure(points, values, *, field="mean_curvature", unit="auto", signed=None,
     bbox = _fit_label(fig, placed, cax, label_artist, fig_h)
     w_px, h_px = (int(round(x * dpi)) for x in fig.get_size_inches())
     return fig, {"views": views, "up": upv, "terrain": is_terrain(pts, upv) if n else False,
-                 "label_bbox": bbox, "label": label, "size": (w_px, h_px)}
+                 "label_bbox": bbox, "label": label, "size": (w_px, h_px),
+                 "not_significant": n_insig}
 
 
 def _right_edge(cax, label, renderer):

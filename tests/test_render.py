@@ -311,3 +311,46 @@ def test_colourbar_unit_follows_the_field(tmp_path):
     from clcurv.cli.main import build_parser
     args = build_parser().parse_args(["render", "in.ply", "-o", "o.png"])
     assert args.unit == "auto"
+
+
+def greyish(rgb, level=0x8c, tol=6):
+    """Pixels of the 'not significant' grey (#8c8c8c)."""
+    d = np.abs(rgb[..., :3].astype(int) - level)
+    return np.count_nonzero(d.max(axis=-1) <= tol)
+
+
+def test_not_significant_points_are_grey(tmp_path, captions):
+    """|value| < 2 se is drawn #8c8c8c and counted: z on a sphere with se = 0.25 greys the
+    band |z| < 0.5 of the unit sphere, half its area (Archimedes: 10,000 of 20,000)."""
+    p = sphere(20_000, seed=4)
+    v = p[:, 2]
+    se = np.full(len(p), 0.25)
+    se[:10] = np.nan                                     # NaN se: coloured
+    fig, info = figure(p, v, field="z", se=se, dpi=DPI)
+    want = int(np.count_nonzero(np.abs(v[10:]) < 0.5))
+    assert info["not_significant"] == want and 9500 < want < 10500
+    assert any(f"{want:,} (" in t and "not significant" in t for t in captions)
+    out = render(p, v, tmp_path / "sig.png", field="z", se=se, dpi=DPI)
+    rgb, _, _ = check_picture(out)
+    plain = check_picture(render(p, v, tmp_path / "plain.png", field="z", dpi=DPI))[0]
+    assert greyish(rgb) > 20 * max(greyish(plain), 1) and greyish(rgb) > 1000
+    assert reddish(rgb) > 300 and bluish(rgb) > 300          # |z| > 0.5 stays coloured
+    with pytest.raises(ValueError, match="se must have one entry per point"):
+        render(p, v, tmp_path / "bad.png", se=se[:5])
+
+
+def test_cli_render_takes_the_field_se(tmp_path):
+    """clcurv render greys by <field>_se when the file has it (--se auto), or the field
+    named, and refuses a missing one."""
+    from clcurv import io
+    from clcurv.cli.main import main
+    p = sphere(3000, seed=5)
+    src = tmp_path / "c.ply"
+    io.write(src, p, fields={"mean_curvature": p[:, 2], "mean_curvature_se": np.full(3000, 0.25)})
+    assert main(["render", str(src), "-o", str(tmp_path / "a.png")]) == 0
+    assert main(["render", str(src), "--se", "none", "-o", str(tmp_path / "b.png")]) == 0
+    a = check_picture(tmp_path / "a.png", dpi=110)[0]       # the command's dpi
+    b = check_picture(tmp_path / "b.png", dpi=110)[0]
+    assert greyish(a) > 20 * max(greyish(b), 1)
+    assert main(["render", str(src), "--se", "k1_se", "-o", str(tmp_path / "c.png")]) == 2
+    assert not (tmp_path / "c.png").exists()

@@ -76,8 +76,16 @@ def render_cmd(args, out=print):
     if values is None:
         raise UsageError(f"{args.input} has no field {args.field!r}; it has: "
                          f"{', '.join(cloud.attributes) or 'none'}")
+    se = None
+    if args.se != "none":
+        name = f"{args.field}_se" if args.se == "auto" else args.se
+        se = cloud.attributes.get(name)
+        if se is None and args.se != "auto":
+            raise UsageError(f"{args.input} has no field {name!r} (--se); it has: "
+                             f"{', '.join(cloud.attributes) or 'none'}")
     path = render(cloud.points, np.asarray(values, dtype=float), args.output, field=args.field,
-                  unit=args.unit, up=args.up, source=args.input)
+                  unit=args.unit, up=args.up, source=args.input,
+                  se=None if se is None else np.asarray(se, dtype=float))
     out(f"wrote {path}")
     return path
 
@@ -233,6 +241,10 @@ def build_parser():
     r.add_argument("--up", default="auto", help="the cloud's up axis: auto (default: z for "
                    "LAS/LAZ, the thin axis of a flat cloud, else y), x, y, z, -z, ...; "
                    "terrain is drawn from the top and obliquely")
+    r.add_argument("--se", default="auto", metavar="FIELD", help="standard errors of the "
+                   "field: its points with |value| < 2 SE (not significant) are drawn grey. "
+                   "auto (default): the field <field>_se when the file has it (clcurv compute "
+                   "--uncertainty writes them); none: colour every point")
     r.add_argument("-o", "--output", required=True)
     f = sub.add_parser("features", help="covariance features (planarity, linearity, ...)",
                        allow_abbrev=False)
