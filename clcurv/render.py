@@ -582,14 +582,24 @@ def figure(points, values, *, field="mean_curvature", unit="auto", signed=None,
                      f"(p{p_lo:g}-p{p_hi:g}, {scale})")
     fig.text(0.5, 1 - 0.18 / fig_h, head, ha="center", va="top", fontsize=12,
              fontweight="bold")
-    fig.text(0.5, 1 - 0.45 / fig_h, "  \u00b7  ".join(parts), ha="center", va="top",
-             fontsize=9, color="#333333")
+    fig.text(0.5, 1 - 0.45 / fig_h, _wrapped(parts, fig_w), ha="center", va="top",
+             fontsize=9 if len(views) > 2 else 8, color="#333333")
 
     bbox = _fit_label(fig, placed, cax, label_artist, fig_h)
     w_px, h_px = (int(round(x * dpi)) for x in fig.get_size_inches())
     return fig, {"views": views, "up": upv, "terrain": is_terrain(pts, upv) if n else False,
                  "label_bbox": bbox, "label": label, "size": (w_px, h_px),
                  "not_significant": n_insig}
+
+
+def _wrapped(parts, fig_w, chars_per_inch=15):
+    """The caption's parts joined by middle dots, on two lines when one would be wider
+    than the figure (about ``chars_per_inch`` characters of 9-point text an inch)."""
+    line = "  \u00b7  ".join(parts)
+    if len(line) <= fig_w * chars_per_inch or len(parts) < 2:
+        return line
+    cut = max(1, len(parts) // 2)
+    return "  \u00b7  ".join(parts[:cut]) + "\n" + "  \u00b7  ".join(parts[cut:])
 
 
 def _right_edge(cax, label, renderer):

@@ -599,8 +599,10 @@ def _selected(op, points, radius, select, k, kw):
     leading term of MLS1's and MLS2's expansions, docs/uncertainty.md). The largest radius
     runs first and its oriented normals orient the others. Each output of the result is
     the chosen radius's; points with no radius of finite H and SE keep the largest's.
-    ``info["select"]``: the radii, how often each was chosen, and per point the predicted
-    error ``predicted_error`` and the fitted bias coefficient ``bias_coef``."""
+    A point without a normal at the largest radius (its status there not OK) has no sign
+    for the others: it keeps the largest radius's result (NaN). ``info["select"]``: the
+    radii, how often each was chosen, and per point the predicted error
+    ``predicted_error`` and the fitted bias coefficient ``bias_coef``."""
     check(select, "select")
     extra = op.foreign_options({"select": True})
     if extra:
@@ -617,17 +619,23 @@ def _selected(op, points, radius, select, k, kw):
     order = np.argsort(radii)[::-1]                   # the largest first: it orients
     if kw["backend"] == "opencl" and cloud is None and len(pts):
         cloud = DeviceCloud(pts, max(radii), device=kw["device"], precision=kw["precision"])
-    runs = {}
+    runs, unoriented = {}, None
     for j in order:
         call = dict(kw)
         if runs:                    # one orientation: the largest radius's normals
-            call.update(normals=runs[order[0]].normals, orient="normals", viewpoint=None)
+            if unoriented is None:
+                ref = runs[order[0]].normals
+                unoriented = ~np.all(np.isfinite(ref), axis=1)
+                ref = np.where(unoriented[:, None], (0.0, 0.0, 1.0), ref)
+            call.update(normals=ref, orient="normals", viewpoint=None)
         runs[j] = curvature(pts if cloud is None else cloud, radii[j], method=op.name,
                             uncertainty=True, **call)
     up = sorted(range(len(radii)), key=lambda j: radii[j])       # ascending for the fit
     rs = np.array([radii[j] for j in up])
     values = np.stack([runs[j].mean for j in up], axis=1)
     se = np.stack([runs[j].mean_se for j in up], axis=1)
+    if unoriented is not None:      # no normal at the largest radius: no sign for the others
+        values[unoriented] = np.nan
     sel = select_by_error(values, se, rs, order=2)
     pick = np.where(sel.index >= 0, sel.index, len(up) - 1)      # none usable: the largest
     res = runs[up[-1]]
