@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from clcurv.grid.cloud import DeviceCloud
-from clcurv.ops.pooling import ball_mean
+from clcurv.ops.pooling import ball_mean, pool_bias
+from clcurv.ops.selection import BiasFit
 from clcurv.reference.pooling import ball_mean as ref_ball_mean
 
 TOL = {"float": 1e-5, "double": 1e-12}
@@ -108,3 +109,31 @@ def test_bad_input_raises(device, kwargs, error, match):
     args.update(kwargs)
     with pytest.raises(error, match=match):
         ball_mean(**args)
+
+
+def test_pool_bias_is_the_ball_mean_of_the_coefficient(device):
+    """pool_bias: the inverse-variance (or plain) mean of c over the ball, its variance as
+    if the c_q were independent (1 / sum w; mean Var / count); exact rows weigh most."""
+    p, c, _ = slab(3000, seed=3)
+    var = np.random.default_rng(4).uniform(0.5, 2.0, len(p))
+    fit = BiasFit(coef=c, coef_var=np.where(np.isfinite(c), var, np.nan))
+    cloud = DeviceCloud(p, 0.06, device=device.info.index)
+    pooled = pool_bias(cloud, fit, 0.05)
+    ref, wsum = ref_ball_mean(p, c, 0.05, 1.0 / var)
+    half = 0.5 * np.ptp(c[np.isfinite(c)])
+    assert np.allclose(pooled.coef, ref, rtol=0, atol=TOL["float"] * half, equal_nan=True)
+    assert np.allclose(pooled.coef_var, 1.0 / wsum, rtol=1e-5, equal_nan=True)
+    uni = pool_bias(cloud, fit, 0.05, weights="uniform")
+    ref_u, count = ref_ball_mean(p, c, 0.05)
+    ref_v, _ = ref_ball_mean(p, fit.coef_var, 0.05)
+    assert np.allclose(uni.coef, ref_u, rtol=0, atol=TOL["float"] * half, equal_nan=True)
+    assert np.allclose(uni.coef_var, ref_v / count, rtol=1e-5, equal_nan=True)
+    # an exact row (Var 0) dominates its neighbours; all exact: the plain mean
+    q = np.array([[0.0, 0, 0], [0.1, 0, 0], [0.2, 0, 0]])
+    small = DeviceCloud(q, 1.0, device=device.info.index)
+    exact = pool_bias(small, BiasFit(np.array([1.0, 5.0, 9.0]), np.array([0.0, 1, 1])), 0.15)
+    assert exact.coef[0] == pytest.approx(1.0) and exact.coef[2] == pytest.approx(7.0)
+    flat = pool_bias(small, BiasFit(np.array([1.0, 5.0, 9.0]), np.zeros(3)), 0.15)
+    assert flat.coef.tolist() == [3.0, 5.0, 7.0]
+    with pytest.raises(ValueError, match="weights"):
+        pool_bias(small, exact, 0.1, weights="median")
