@@ -162,7 +162,8 @@ def pool_bias(cloud, fit, radius, *, weights="inverse_variance"):
         chirp (clcurv.ops.selection's docstring): the second of the four radii.
     weights : {"inverse_variance", "uniform"}
         ``w_q = 1 / Var(c_q)`` (``Var(c_q)`` floored at ``VAR_FLOOR`` times the
-        largest, so an exact row, ``Var`` 0, weighs most; every weight 1 when all are 0), or every finite ``c_q`` alike.
+        largest, so an exact row, ``Var`` 0, weighs most; every weight 1 when all are 0),
+        or every finite ``c_q`` alike.
 
     Returns
     -------
@@ -177,7 +178,7 @@ def pool_bias(cloud, fit, radius, *, weights="inverse_variance"):
     independent variance understates the pooled one: :func:`~clcurv.ops.selection.choose`
     then subtracts too little from ``coef^2``. The alternatives measured on the chirp (the
     fully correlated bound ``(sum w sd_q / sum w)^2``, or 0) changed the median error by
-    under 1 point at the second radius (clcurv.ops.selection's docstring). The mean is also
+    under 1.5 points at the second radius (clcurv.ops.selection's docstring). The mean is also
     biased towards the ball's average coefficient where ``c`` varies within the ball (it
     changes sign across a ridge): hence a small pooling radius.
     """
