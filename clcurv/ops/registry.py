@@ -493,6 +493,7 @@ def program_variants(precision_defines):
     out = [(f, base) for f in ("grid.cl", "density.cl", "gather.cl", "knn.cl", "forest.cl",
                                "anchor.cl")]
     out.append(("scale_space.cl", dict(base, DENSITY=1, GAUSSIAN=0)))
+    out += [("ball_mean.cl", dict(base, WEIGHTED=w, ROW_PRUNE=1)) for w in (0, 1)]
     layout = MLS2.build_defines()
     split = dict(base, NF=6, COL_COUNT=layout["COL_COUNT"], COL_STATUS=layout["COL_STATUS"],
                  **{f"{a}{k}": 1 for k in range(6) for a in "SW"})
