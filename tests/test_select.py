@@ -51,14 +51,30 @@ def test_selected_rows_are_the_chosen_radius_results(device, chirp):
 
 def test_kernels_selection_beats_every_fixed_radius(device, chirp):
     """Measured on PoCL: median |H - H_true| 0.389, 0.117, 0.0514, 0.0735 at the four fixed
-    radii, 0.0480 selected (6.7% below the best), as the float64 reference gives."""
+    radii, 0.0429 selected (16.6% below the best; c pooled over the second radius's ball),
+    as the float64 reference's values with the kernel's pooling give
+    (tests/test_selection.py)."""
     p, n, inner = chirp["points"], chirp["normals"], chirp["inner"]
     cloud = clcurv.DeviceCloud(p, max(RADII), device=device)
     sel = clcurv.curvature(cloud, RADII, method="mls2", normals=n, select="error")
     fixed = [np.median(np.abs(clcurv.curvature(cloud, r, method="mls2", normals=n).mean
                               - chirp["H"])[inner]) for r in RADII]
     chosen = np.median(np.abs(sel.mean - chirp["H"])[inner])
-    assert chosen < 0.96 * min(fixed), (chosen, fixed)
+    assert chosen < 0.86 * min(fixed), (chosen, fixed)
+
+
+def test_numpy_backend_selects_from_the_reference(chirp):
+    """backend='numpy': the reference's values and SEs, pooled with the reference's ball
+    mean; each row is the reference's at its chosen radius."""
+    from clcurv.reference.uncertainty import mls2_uncertainty
+    keep = chirp["points"][:, 0] < 0.5                     # a strip: a few thousand points
+    p, n = chirp["points"][keep], chirp["normals"][keep]
+    sel = clcurv.curvature(p, RADII[:3], method="mls2", normals=n, select="error",
+                           backend="numpy")
+    for r in RADII[:3]:
+        rows = sel.radius == r
+        ref = mls2_uncertainty(p, r, n)
+        assert np.allclose(sel.mean_se[rows], ref["mean_se"][rows], rtol=1e-12, equal_nan=True)
 
 
 def test_bad_select_requests(device, chirp):

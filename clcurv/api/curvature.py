@@ -19,10 +19,12 @@ from clcurv.ops.driver import run_kernel
 from clcurv.ops.features import run_features
 from clcurv.ops.knn_radius import knn_radii
 from clcurv.ops.registry import OPERATORS, PCA
-from clcurv.ops.selection import select_by_error
+from clcurv.ops.pooling import pool_bias
+from clcurv.ops.selection import choose, fit_bias
 from clcurv.ops.smoothing import scale_space as smooth
 from clcurv.orient import orientation as _orient
 from clcurv.reference import operators as reference
+from clcurv.reference import pooling as reference_pooling
 from clcurv.reference import uncertainty
 
 #: largest ``orient_k`` (the device graph's longest neighbour list, clcurv.orient.graph.KMAX):
@@ -595,8 +597,10 @@ def _radius_list(op, points, radius, kw):
 def _selected(op, points, radius, select, k, kw):
     """:func:`curvature` with ``select='error'``: every radius of ``radius`` on one cloud
     binned at the largest, with ``uncertainty=True``; per point, the radius of least
-    predicted error of H (:func:`clcurv.ops.selection.select_by_error`, bias ``c r^2``: the
-    leading term of MLS1's and MLS2's expansions, docs/uncertainty.md). The largest radius
+    predicted error of H (bias ``c r^2``, the leading term of MLS1's and MLS2's expansions:
+    ``c`` fitted per point, :func:`clcurv.ops.selection.fit_bias`, pooled over the ball of
+    the second smallest radius, :func:`clcurv.ops.pooling.pool_bias`, then
+    :func:`clcurv.ops.selection.choose`; docs/uncertainty.md). The largest radius
     runs first and its oriented normals orient the others. Each output of the result is
     the chosen radius's; points with no radius of finite H and SE keep the largest's.
     A point without a normal at the largest radius (its status there not OK) has no sign
@@ -636,7 +640,12 @@ def _selected(op, points, radius, select, k, kw):
     se = np.stack([runs[j].mean_se for j in up], axis=1)
     if unoriented is not None:      # no normal at the largest radius: no sign for the others
         values[unoriented] = np.nan
-    sel = select_by_error(values, se, rs, order=2)
+    # c fitted per point, pooled over the second radius's ball (inverse-variance weights:
+    # clcurv.ops.selection's docstring has the measurements), then the choice
+    fit = fit_bias(values, se, rs, order=2)
+    mean = None if cloud is not None else (
+        lambda v, r, w: reference_pooling.ball_mean(pts, v, r, w))
+    sel = choose(values, se, rs, *pool_bias(cloud, fit, rs[1], mean=mean), order=2)
     pick = np.where(sel.index >= 0, sel.index, len(up) - 1)      # none usable: the largest
     res = runs[up[-1]]
     rows = np.arange(len(pick))

@@ -147,7 +147,7 @@ def ball_mean(cloud, values, radius, weights=None, *, return_weight=False):
     return mean, weight
 
 
-def pool_bias(cloud, fit, radius, *, weights="inverse_variance"):
+def pool_bias(cloud, fit, radius, *, weights="inverse_variance", mean=None):
     """The bias coefficient of :func:`clcurv.ops.selection.fit_bias` pooled over every
     point's ball, for :func:`clcurv.ops.selection.choose` (issue 51).
 
@@ -164,6 +164,10 @@ def pool_bias(cloud, fit, radius, *, weights="inverse_variance"):
         ``w_q = 1 / Var(c_q)`` (``Var(c_q)`` floored at ``VAR_FLOOR`` times the
         largest, so an exact row, ``Var`` 0, weighs most; every weight 1 when all are 0),
         or every finite ``c_q`` alike.
+    mean : callable, optional
+        ``mean(values, radius, weights) -> (mean, weight sum)``, the ball mean to pool
+        with (default :func:`ball_mean` on ``cloud``; ``backend="numpy"`` passes the
+        float64 reference's, :func:`clcurv.reference.pooling.ball_mean`).
 
     Returns
     -------
@@ -186,10 +190,13 @@ def pool_bias(cloud, fit, radius, *, weights="inverse_variance"):
         raise ValueError(f"weights must be one of {POOL_WEIGHTS}, got {weights!r}")
     c = np.asarray(fit.coef, dtype=np.float64)
     var = np.asarray(fit.coef_var, dtype=np.float64)
+    if mean is None:
+        def mean(v, r, w):
+            return ball_mean(cloud, v, r, w, return_weight=True)
     if weights == "uniform":
-        mean, count = ball_mean(cloud, c, radius, return_weight=True)
+        avg, count = mean(c, radius, None)
         with np.errstate(invalid="ignore", divide="ignore"):
-            pooled_var = ball_mean(cloud, np.where(np.isfinite(c), var, np.nan), radius) / count
+            pooled_var = mean(np.where(np.isfinite(c), var, np.nan), radius, None)[0] / count
     else:
         # exact rows (Var 0) weigh most: Var floored at VAR_FLOOR of the largest (all 0:
         # noise-free input, every weight 1)
@@ -198,7 +205,7 @@ def pool_bias(cloud, fit, radius, *, weights="inverse_variance"):
             w = 1.0 / np.maximum(var, VAR_FLOOR * top)
         else:
             w = np.where(np.isnan(var), np.nan, 1.0)
-        mean, wsum = ball_mean(cloud, c, radius, w, return_weight=True)
+        avg, wsum = mean(c, radius, w)
         with np.errstate(divide="ignore"):
             pooled_var = np.where(wsum > 0, 1.0 / wsum, np.nan)
-    return BiasFit(coef=mean, coef_var=np.where(np.isfinite(mean), pooled_var, np.nan))
+    return BiasFit(coef=avg, coef_var=np.where(np.isfinite(avg), pooled_var, np.nan))
