@@ -4,8 +4,8 @@ stdout (bench/results/errors.md holds a run).
 
 * Cost, default arguments, a 1M-point noisy sphere at about 30 neighbours: the MLS2 call
   with ``uncertainty=True`` against the same call without (paired rounds, their minima);
-  ``select='error'`` among 4 radii (the largest the 30-neighbour one, ratio 1.6) against
-  one call at the largest radius; MLS1 with ``uncertainty=True`` against MLS1. Peak RSS of
+  ``select='error'`` among 4 radii of ratio 1.6 (the second the 30-neighbour one: about
+  12, 30, 77 and 200 neighbours) against one call at the largest radius; MLS1 with ``uncertainty=True`` against MLS1. Peak RSS of
   each call in a fresh interpreter beside it.
 * Real scans (../shared/data, when present; the bundled bunny otherwise): the fraction of
   points whose H (MLS2) is significant, |H| > 2 SE(H), at radii of about 15, 30, 60 and
@@ -47,11 +47,11 @@ def cost(n, repeats):
     s = clcurv.shapes.sphere(n, 1.0, noise=0.002, seed=0)
     p = s["points"]
     r = float(np.sqrt(4.0 * 30 / n))                    # ~30 neighbours on the unit sphere
-    radii = [r / RATIO ** j for j in range(3, -1, -1)]
+    radii = [r * RATIO ** j for j in (-1, 0, 1, 2)]
     rows = []
     cases = [("mls2", dict(radius=r, method="mls2"), dict(radius=r, method="mls2",
                                                           uncertainty=True)),
-             ("mls2 select, 4 radii", dict(radius=r, method="mls2"),
+             ("mls2 select, 4 radii", dict(radius=radii[-1], method="mls2"),
               dict(radius=radii, method="mls2", select="error")),
              ("mls1", dict(radius=r, method="mls1"), dict(radius=r, method="mls1",
                                                           uncertainty=True))]

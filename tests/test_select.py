@@ -32,12 +32,16 @@ def chirp():
 
 
 def test_selected_rows_are_the_chosen_radius_results(device, chirp):
+    """Each point's outputs are, bit for bit, those of a call at its chosen radius: the
+    largest on the given DeviceCloud, the others binned at their own radius with the
+    largest's normals."""
     p, n = chirp["points"], chirp["normals"]
     cloud = clcurv.DeviceCloud(p, max(RADII), device=device)
     sel = clcurv.curvature(cloud, RADII, method="mls2", normals=n, select="error")
-    fixed = {r: clcurv.curvature(cloud, r, method="mls2", normals=sel.normals if r != RADII[-1]
-                                 else n, orient="normals", uncertainty=True)
-             for r in RADII}
+    big = clcurv.curvature(cloud, RADII[-1], method="mls2", normals=n, uncertainty=True)
+    fixed = {r: clcurv.curvature(p, r, method="mls2", normals=big.normals, orient="normals",
+                                 uncertainty=True, device=device) for r in RADII[:-1]}
+    fixed[RADII[-1]] = big
     assert set(np.unique(sel.radius)) <= set(RADII)
     assert sum(sel.info["select"]["chosen"]) == len(p)
     for r in RADII:

@@ -342,9 +342,10 @@ def curvature(points, radius=None, *, method="mls1", weights="uniform", normals=
         Methods 'mls1' and 'mls2', with a list of radii: one result in which each point
         keeps the radius of least predicted error SE(H)^2 + bias^2
         (:func:`_selected`, :mod:`clcurv.ops.selection`), with ``uncertainty`` on;
-        ``result.radius`` is the (N,) array of the chosen radii. The cloud is binned once
-        at the largest radius and each radius runs on it; the normals of the largest
-        radius orient the others (one orientation for every radius).
+        ``result.radius`` is the (N,) array of the chosen radii. Each radius is binned at
+        its own size; the normals of the largest radius orient the others (one
+        orientation for every radius), and each point's outputs are those of a call at
+        its chosen radius with those normals.
 
     Returns
     -------
@@ -595,8 +596,10 @@ def _radius_list(op, points, radius, kw):
 
 
 def _selected(op, points, radius, select, k, kw):
-    """:func:`curvature` with ``select='error'``: every radius of ``radius`` on one cloud
-    binned at the largest, with ``uncertainty=True``; per point, the radius of least
+    """:func:`curvature` with ``select='error'``: every radius of ``radius`` with
+    ``uncertainty=True``, each binned at its own radius (the largest on ``points`` when it
+    is a DeviceCloud), so that each point's outputs are bit for bit those of a call at its
+    radius with the largest radius's normals (``orient='normals'``); per point, the radius of least
     predicted error of H (bias ``c r^2``, the leading term of MLS1's and MLS2's expansions:
     ``c`` fitted per point, :func:`clcurv.ops.selection.fit_bias`, pooled over the ball of
     the second smallest radius, :func:`clcurv.ops.pooling.pool_bias`, then
@@ -621,19 +624,24 @@ def _selected(op, points, radius, select, k, kw):
     points, cloud = cloud_points(points)
     pts = as_points(points, finite=kw["backend"] != "opencl")
     order = np.argsort(radii)[::-1]                   # the largest first: it orients
-    if kw["backend"] == "opencl" and cloud is None and len(pts):
+    opencl = kw["backend"] == "opencl" and len(pts) > 0
+    if opencl and cloud is None:
         cloud = DeviceCloud(pts, max(radii), device=kw["device"], precision=kw["precision"])
     runs, unoriented = {}, None
     for j in order:
-        call = dict(kw)
+        call, where = dict(kw), pts if cloud is None else cloud
         if runs:                    # one orientation: the largest radius's normals
             if unoriented is None:
                 ref = runs[order[0]].normals
                 unoriented = ~np.all(np.isfinite(ref), axis=1)
                 ref = np.where(unoriented[:, None], (0.0, 0.0, 1.0), ref)
             call.update(normals=ref, orient="normals", viewpoint=None)
-        runs[j] = curvature(pts if cloud is None else cloud, radii[j], method=op.name,
-                            uncertainty=True, **call)
+            # binned at its own radius: the walk scans 27 cells of that radius, not of the
+            # largest (a quarter of the largest: 2.3x faster at 1M points)
+            where = pts
+            if cloud is not None:
+                call["device"] = cloud.device
+        runs[j] = curvature(where, radii[j], method=op.name, uncertainty=True, **call)
     up = sorted(range(len(radii)), key=lambda j: radii[j])       # ascending for the fit
     rs = np.array([radii[j] for j in up])
     values = np.stack([runs[j].mean for j in up], axis=1)
@@ -648,10 +656,10 @@ def _selected(op, points, radius, select, k, kw):
     sel = choose(values, se, rs, *pool_bias(cloud, fit, rs[1], mean=mean), order=2)
     pick = np.where(sel.index >= 0, sel.index, len(up) - 1)      # none usable: the largest
     res = runs[up[-1]]
-    rows = np.arange(len(pick))
-    for name, v in res.arrays().items():
-        stack = np.stack([getattr(runs[j], name) for j in up])
-        setattr(res, name, stack[pick, rows])
+    for name, v in res.arrays().items():       # the largest's arrays, others' rows put in
+        for col, j in enumerate(up[:-1]):
+            rows = pick == col
+            v[rows] = getattr(runs[j], name)[rows]
     res.radius = rs[pick]
     res.info["select"] = {"radii": rs.tolist(),
                           "chosen": np.bincount(pick, minlength=len(rs)).tolist(),
