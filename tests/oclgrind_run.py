@@ -104,6 +104,15 @@ def calls(points, precision, device):
                                                   weights="density", **common)),
         ("mls2+gaussian", lambda: clcurv.curvature(points, R, method="mls2", orient=None,
                                                    kernel="gaussian", **common)),
+        # the error records (quadric.h): MLS2's, and the moments kernel's second walk
+        ("mls2+uncertainty+density", lambda: clcurv.curvature(
+            points, R, method="mls2", orient=None, weights="density", uncertainty=True,
+            **common)),
+        ("mls1+uncertainty", lambda: clcurv.curvature(points, R, method="mls1", orient=None,
+                                                      uncertainty=True, **common)),
+        # a radius per point: every radius with its errors, the pooled bias (ball_mean.cl)
+        ("mls2+select", lambda: clcurv.curvature(points, [R / 2, R / 1.4, R], method="mls2",
+                                                 orient=None, select="error", **common)),
         ("scale_space+density", lambda: clcurv.scale_space(points, R, 2, weights="density",
                                                            **common)),
         ("project", lambda: clcurv.project(points, R, projections=1, orient=None, **common)),
