@@ -586,3 +586,43 @@ def test_an_interrupted_region_run_resumes(files, tmp_path, monkeypatch):
     clcurv.curvature_file(plain, b, R, method="mls1", memory="64GiB")
     assert_same(a, b)
     assert sorted(os.listdir(tmp_path)) == ["a.laz", "b.laz"]
+
+
+def test_a_copc_file_is_entered_at_any_point(tmp_path):
+    """clcurv.io.las.read_range (what the bucket pass's parts and the output's pieces read)
+    gives the records first..stop-1 of a COPC file (variable-size chunks, where lazrs'
+    seek is wrong) as laspy reads them whole, for ranges starting inside a chunk, on a
+    chunk's first point, and crossing many chunks."""
+    from bench.catalog import make_copc
+    from clcurv.io import las as clas
+    src = tmp_path / "big.copc.laz"
+    n = make_copc(src, 60_000, 1, extent=24.0, node_points=4000)
+    ref = laspy.read(str(src)).points.array
+    firsts = ccopc.open_index(src).nodes["first"]
+    with laspy.open(str(src)) as r:                 # the bug this works around
+        r.seek(int(firsts[3]) + 5)
+        assert not np.array_equal(r.read_points(10).array, ref[firsts[3] + 5:][:10])
+    cases = [(0, n, 1000), (1, n, 7000), (int(firsts[2]), int(firsts[5]), 10 ** 6),
+             (int(firsts[4]) + 1, n - 3, 2500), (n - 5, n, 10), (17, 17, 5)]
+    for a, b, size in cases:
+        got = list(clas.read_range(laspy, src, a, b, size))
+        arr = np.concatenate([g.array for g in got]) if got else ref[:0]
+        assert np.array_equal(arr, ref[a:b]), (a, b, size)
+    part = stream.open_source(src).chunks(3000, first=int(firsts[4]) + 1, stop=n - 3)
+    xyz = np.concatenate([p for _, p, _ in part])
+    assert np.array_equal(xyz, cio.read(src).points[int(firsts[4]) + 1:n - 3])
+
+
+def test_a_copc_file_in_parts_through_the_buckets(tmp_path, monkeypatch):
+    """A COPC file read through the buckets (scale_space: not by region) in parts of
+    20,000 points, which enter it in the middle: the in-memory output byte for byte."""
+    from bench.catalog import make_copc
+    src = tmp_path / "big.copc.laz"
+    make_copc(src, 60_000, 1, extent=24.0, node_points=4000)
+    monkeypatch.setattr(stream, "PART_POINTS", 20_000)
+    a, c = tmp_path / "a.laz", tmp_path / "c.laz"
+    ra = clcurv.curvature_file(src, a, 0.6, method="mls1", scale_space=1, tile=8.0,
+                               memory="64GiB")
+    clcurv.curvature_file(src, c, 0.6, method="mls1", scale_space=1, memory="64GiB")
+    assert ra["tiled"] and not ra.get("regions")
+    assert a.read_bytes() == c.read_bytes()
