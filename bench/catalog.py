@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import subprocess
 import sys
 import time
@@ -192,9 +193,13 @@ def run_on_scheduler(folder, out, extra=(), name=None):
     holds the client alone); the workers' CPU read from their processes before they stop."""
     import psutil
     bindir = Path(sys.executable).parent
+    # the workers import this checkout's clcurv, as the client does (cwd=REPO), not the
+    # one installed in the environment (the `dask` script's path comes first otherwise)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+        [str(REPO)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]))
     sched = subprocess.Popen([str(bindir / "dask"), "scheduler", "--port", "0",
                               "--dashboard-address", ":0", "--scheduler-file",
-                              str(out.parent / "sched.json")],
+                              str(out.parent / "sched.json")], env=env,
                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         for _ in range(200):
@@ -203,7 +208,7 @@ def run_on_scheduler(folder, out, extra=(), name=None):
             time.sleep(0.1)
         address = json.loads((out.parent / "sched.json").read_text())["address"]
         workers = [subprocess.Popen([str(bindir / "dask"), "worker", address, "--nthreads",
-                                     "1", "--nworkers", "1", "--no-dashboard"],
+                                     "1", "--nworkers", "1", "--no-dashboard"], env=env,
                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
                    for _ in range(2)]
         time.sleep(3)

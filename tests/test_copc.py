@@ -25,9 +25,9 @@ import clcurv
 from tests.hostile import assert_same_las, las_dims
 from clcurv import io as cio
 from clcurv.io import copc as ccopc
-from clcurv.io import stream
+from clcurv.io import pieces, stream
 from clcurv.io.common import CorruptFileError
-from clcurv.tiles import engine, regions
+from clcurv.tiles import engine, regions, writing
 
 from hostile import run_cli
 
@@ -375,28 +375,97 @@ def _no_bucket_pass(*args, **kwargs):
     raise AssertionError("a COPC input read by region makes no bucket")
 
 
-@pytest.mark.parametrize("method,tile,memory,workers", [
-    ("mls1", 6.0, "64GiB", None), ("2dcov2", 8.0, "64GiB", None),
-    ("mls1", None, "3MiB", None), ("mls1", 6.0, "64GiB", 2)],
-    ids=["mls1-tile6", "2dcov2-halo2", "mls1-budget", "mls1-2workers"])
+def _no_client_merge(*args, **kwargs):
+    raise AssertionError("a LAS/LAZ output of a region run is written in pieces on the "
+                         "workers, not merged and written by the client")
+
+
+def _count_joins(monkeypatch):
+    """Spy on clcurv.io.pieces.assemble (the client's join of the workers' pieces): the
+    list of the piece counts of its calls."""
+    joins, assemble = [], pieces.assemble
+
+    def spy(dst, header, parts, **kw):
+        joins.append(len(parts))
+        return assemble(dst, header, parts, **kw)
+    monkeypatch.setattr(pieces, "assemble", spy)
+    return joins
+
+
+@pytest.mark.parametrize("method,tile,memory,workers,ext", [
+    ("mls1", 6.0, "64GiB", None, ".laz"), ("2dcov2", 8.0, "64GiB", None, ".laz"),
+    ("mls1", None, "3MiB", None, ".laz"), ("mls1", 6.0, "64GiB", 2, ".laz"),
+    ("mls1", 6.0, "64GiB", 2, ".las")],
+    ids=["mls1-tile6", "2dcov2-halo2", "mls1-budget", "mls1-2workers", "mls1-2workers-las"])
 def test_region_tiles_equal_the_in_memory_plain_laz(files, tmp_path, monkeypatch, method,
-                                                     tile, memory, workers):
+                                                     tile, memory, workers, ext):
+    """The output of a region run equals the in-memory output of the same points as a
+    plain LAZ, and is byte for byte the in-memory output of the COPC file itself: written
+    in pieces by the tile tasks' processes (the workers with ``workers``) and joined by
+    the client (clcurv.io.pieces.assemble), which never merges nor writes the points."""
     _, src, plain, _, _, order = files
     monkeypatch.setattr(engine, "_prepare", _no_bucket_pass)
-    a, b = tmp_path / "copc.laz", tmp_path / "plain.laz"
+    monkeypatch.setattr(engine, "partition", _no_client_merge)
+    monkeypatch.setattr(writing, "write_output", _no_client_merge)
+    joins = _count_joins(monkeypatch)
+    a, b, c = tmp_path / f"copc{ext}", tmp_path / "plain.laz", tmp_path / f"mem{ext}"
     said = []
     ra = clcurv.curvature_file(src, a, R, method=method, tile=tile, memory=memory,
                                workers=workers, out=said.append)
     rb = clcurv.curvature_file(plain, b, R, method=method, memory="64GiB")
-    assert ra["tiled"] and ra.get("regions") and not rb["tiled"]
+    rc = clcurv.curvature_file(src, c, R, method=method, memory="64GiB")
+    assert ra["tiled"] and ra.get("regions") and not rb["tiled"] and not rc["tiled"]
     assert ra["tiles"] >= 4 and ra["points"] == N
+    assert "merging" not in ra["times"] and "writing" in ra["times"]
+    assert joins == [len(writing.piece_windows(N, workers or 0))]   # whole chunks: 1
     assert any("read by region" in s for s in said), said
     assert_plain(a)
     assert_same(a, b)
+    assert a.read_bytes() == c.read_bytes()          # the in-memory writer's file
     las, dims = _dims(a)
     assert np.array_equal(dims["gps_time"], order)
     assert ra["status"] == [int(np.count_nonzero(dims["status"] == k)) for k in range(4)]
-    assert sorted(os.listdir(tmp_path)) == ["copc.laz", "plain.laz"]     # no workspace
+    assert sorted(os.listdir(tmp_path)) == sorted([a.name, "plain.laz", c.name])  # no workspace
+
+
+@pytest.mark.parametrize("workers", [None, 2])
+def test_region_pieces_span_many_windows(tmp_path, monkeypatch, workers):
+    """A COPC file of 110,000 points (bench.catalog.make_copc: an octree of levels 0-2
+    whose coarse levels sample the whole scene) written in windows of 50,000 points: every
+    tile owns points of several windows, each window's task gathers them from every tile
+    that owns some, the client joins three pieces; byte for byte the in-memory output.
+    (The pieces read the input's records from the middle of the COPC file: its chunks
+    differ in size, where lazrs' own seek is wrong; clcurv.io.las.read_range.)"""
+    from bench.catalog import make_copc
+    src = tmp_path / "big.copc.laz"
+    n = make_copc(src, 110_000, 1, extent=33.0, node_points=8000)
+    monkeypatch.setattr(writing, "PIECE_POINTS", 50_000)
+    monkeypatch.setattr(engine, "partition", _no_client_merge)
+    monkeypatch.setattr(writing, "write_output", _no_client_merge)
+    joins = _count_joins(monkeypatch)
+    a, c = tmp_path / "copc.laz", tmp_path / "mem.laz"
+    ra = clcurv.curvature_file(src, a, 0.6, method="mls1", tile=10.0, memory="64GiB",
+                               workers=workers)
+    clcurv.curvature_file(src, c, 0.6, method="mls1", memory="64GiB")
+    assert ra.get("regions") and ra["tiles"] >= 9 and ra["points"] == n
+    assert joins == [len(writing.piece_windows(n, workers or 0))] == [3]
+    assert a.read_bytes() == c.read_bytes()
+
+
+@pytest.mark.parametrize("ext", [".npz", ".ply"])
+def test_region_run_to_npz_or_ply_is_merged_by_the_client(files, tmp_path, ext):
+    """An NPZ or PLY output of a region run is merged and written by the client, as for
+    any tiled input: the in-memory output of the COPC file, array for array."""
+    _, src, _, _, _, _ = files
+    a, c = tmp_path / f"copc{ext}", tmp_path / f"mem{ext}"
+    ra = clcurv.curvature_file(src, a, R, method="mls1", tile=6.0, memory="64GiB")
+    clcurv.curvature_file(src, c, R, method="mls1", memory="64GiB")
+    assert ra.get("regions") and "merging" in ra["times"]
+    ta, tc = cio.read(a), cio.read(c)
+    assert np.array_equal(ta.points, tc.points)
+    assert sorted(ta.attributes) == sorted(tc.attributes)
+    for k in tc.attributes:
+        assert np.array_equal(ta.attributes[k], tc.attributes[k], equal_nan=True), k
 
 
 def _lattice(tmp_path):
@@ -586,3 +655,69 @@ def test_an_interrupted_region_run_resumes(files, tmp_path, monkeypatch):
     clcurv.curvature_file(plain, b, R, method="mls1", memory="64GiB")
     assert_same(a, b)
     assert sorted(os.listdir(tmp_path)) == ["a.laz", "b.laz"]
+
+
+def test_a_region_run_interrupted_while_writing_resumes(files, tmp_path, monkeypatch):
+    """Every tile done, the run interrupted while the pieces are written: no output, and
+    the same command skips every tile and writes the in-memory output byte for byte (the
+    pieces are made again, never trusted from the interrupted run)."""
+    _, src, _, _, _, _ = files
+    piece = writing.write_piece
+
+    def flaky(task):
+        piece(task)             # one piece written, then the interruption
+        raise KeyboardInterrupt("interrupted")
+    monkeypatch.setattr(writing, "write_piece", flaky)
+    a, c = tmp_path / "a.laz", tmp_path / "c.laz"
+    with pytest.raises(KeyboardInterrupt):
+        clcurv.curvature_file(src, a, R, method="mls1", tile=6.0, memory="64GiB")
+    assert not a.exists()
+    monkeypatch.setattr(writing, "write_piece", piece)
+    said = []
+    ra = clcurv.curvature_file(src, a, R, method="mls1", tile=6.0, memory="64GiB",
+                               out=said.append)
+    assert ra.get("regions") and ra["skipped"] == ra["tiles"] >= 4
+    assert any("resuming" in s for s in said)
+    clcurv.curvature_file(src, c, R, method="mls1", memory="64GiB")
+    assert a.read_bytes() == c.read_bytes()
+    assert sorted(os.listdir(tmp_path)) == ["a.laz", "c.laz"]
+
+
+def test_a_copc_file_is_entered_at_any_point(tmp_path):
+    """clcurv.io.las.read_range (what the bucket pass's parts and the output's pieces read)
+    gives the records first..stop-1 of a COPC file (variable-size chunks, where lazrs'
+    seek is wrong) as laspy reads them whole, for ranges starting inside a chunk, on a
+    chunk's first point, and crossing many chunks."""
+    from bench.catalog import make_copc
+    from clcurv.io import las as clas
+    src = tmp_path / "big.copc.laz"
+    n = make_copc(src, 60_000, 1, extent=24.0, node_points=4000)
+    ref = laspy.read(str(src)).points.array
+    firsts = ccopc.open_index(src).nodes["first"]
+    with laspy.open(str(src)) as r:                 # the bug this works around
+        r.seek(int(firsts[3]) + 5)
+        assert not np.array_equal(r.read_points(10).array, ref[firsts[3] + 5:][:10])
+    cases = [(0, n, 1000), (1, n, 7000), (int(firsts[2]), int(firsts[5]), 10 ** 6),
+             (int(firsts[4]) + 1, n - 3, 2500), (n - 5, n, 10), (17, 17, 5)]
+    for a, b, size in cases:
+        got = list(clas.read_range(laspy, src, a, b, size))
+        arr = np.concatenate([g.array for g in got]) if got else ref[:0]
+        assert np.array_equal(arr, ref[a:b]), (a, b, size)
+    part = stream.open_source(src).chunks(3000, first=int(firsts[4]) + 1, stop=n - 3)
+    xyz = np.concatenate([p for _, p, _ in part])
+    assert np.array_equal(xyz, cio.read(src).points[int(firsts[4]) + 1:n - 3])
+
+
+def test_a_copc_file_in_parts_through_the_buckets(tmp_path, monkeypatch):
+    """A COPC file read through the buckets (scale_space: not by region) in parts of
+    20,000 points, which enter it in the middle: the in-memory output byte for byte."""
+    from bench.catalog import make_copc
+    src = tmp_path / "big.copc.laz"
+    make_copc(src, 60_000, 1, extent=24.0, node_points=4000)
+    monkeypatch.setattr(stream, "PART_POINTS", 20_000)
+    a, c = tmp_path / "a.laz", tmp_path / "c.laz"
+    ra = clcurv.curvature_file(src, a, 0.6, method="mls1", scale_space=1, tile=8.0,
+                               memory="64GiB")
+    clcurv.curvature_file(src, c, 0.6, method="mls1", scale_space=1, memory="64GiB")
+    assert ra["tiled"] and not ra.get("regions")
+    assert a.read_bytes() == c.read_bytes()

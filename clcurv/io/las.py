@@ -84,6 +84,7 @@ import math
 import struct
 import warnings
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -343,6 +344,94 @@ def _read_points(laspy, path, layout):
     points = laspy.ScaleAwarePointRecord(out, header.point_format, header.scales,
                                          header.offsets)
     return laspy.LasData(header=header, points=points)
+
+
+def read_range(laspy, path, first, stop, size, backend=None):
+    """The records (laspy ``ScaleAwarePointRecord``) of the points first..stop-1 of the
+    LAS/LAZ file ``path``, at most about ``size`` at a time, in file order (fewer than
+    stop - first when the file ends early: the caller says so).
+
+    A LAZ file is entered at the chunk that holds ``first``, through its chunk table:
+    laspy's own seek for fixed-size chunks; for variable-size chunks (every COPC file),
+    whose seek is wrong in lazrs 0.8 (:mod:`clcurv.io.pieces`), the chunks from the one
+    holding ``first`` are decoded here by the table's counts and byte sizes
+    (:func:`_variable_chunks`; lazrs)."""
+    if first >= stop:
+        return
+    table = _variable_chunks(laspy, path) if first and is_laz(Path(path)) else None
+    if table is not None:
+        yield from _read_variable(laspy, path, first, stop, size, *table)
+        return
+    with laspy.open(str(path), laz_backend=backend) as reader:
+        if first:
+            reader.seek(first)
+        at = first
+        while at < stop:
+            rec = reader.read_points(min(size, stop - at))
+            if not len(rec):
+                return
+            at += len(rec)
+            yield rec
+
+
+def _variable_chunks(laspy, path):
+    """(header, LASzip VLR data, chunk table (k, 2) of (points, bytes), byte of the first
+    chunk) of a LAZ file of variable-size chunks read with lazrs; None for fixed-size
+    chunks, or without lazrs (LASzip's own seek is right in both)."""
+    try:
+        import lazrs
+    except ImportError:
+        return None
+    with open(path, "rb") as f:
+        header = laspy.LasHeader.read_from(f)
+        zips = [v for v in header.vlrs if v.user_id == "laszip encoded"]
+        if not zips or len(zips[0].record_data) < 16:
+            return None
+        laszip = bytes(zips[0].record_data)
+        if struct.unpack_from("<I", laszip, 12)[0] != _VARIABLE_CHUNKS:
+            return None
+        f.seek(header.offset_to_point_data)
+        try:
+            table = lazrs.read_chunk_table(f, lazrs.LazVlr(laszip))
+        except (lazrs.LazrsError, ValueError, OSError, RuntimeError) as exc:
+            raise CorruptFileError(f"{path}: cannot read the LAZ chunk table: {exc}"
+                                   ) from exc
+    table = np.asarray(table, np.int64).reshape(-1, 2)
+    return header, laszip, table, header.offset_to_point_data + 8
+
+
+def _read_variable(laspy, path, first, stop, size, header, laszip, table, start):
+    """:func:`read_range` in a LAZ file of variable-size chunks: its chunks decoded about
+    ``size`` points at a time (a chunk whole), from the one that holds ``first``."""
+    import lazrs
+    fmt = header.point_format
+    ends = np.cumsum(table[:, 0])
+    byte = start + np.r_[0, np.cumsum(table[:, 1])]
+    k = int(np.searchsorted(ends, first, side="right"))
+    with open(path, "rb") as f:
+        while k < len(table) and ends[k] - table[k, 0] < stop:
+            j = k + 1
+            while (j < len(table) and ends[j - 1] - ends[k] + table[k, 0] < size
+                   and ends[j - 1] < stop):
+                j += 1
+            f.seek(int(byte[k]))
+            raw = f.read(int(byte[j] - byte[k]))
+            lo, n = int(ends[k] - table[k, 0]), int(ends[j - 1] - ends[k] + table[k, 0])
+            if len(raw) != byte[j] - byte[k]:
+                raise CorruptFileError(f"{path}: the LAZ chunks of points {lo}..{lo + n - 1} "
+                                       "are cut short (truncated file?)")
+            out = np.zeros(n * fmt.size, np.uint8)
+            try:
+                lazrs.decompress_points_with_chunk_table(
+                    raw, laszip, out, [tuple(c) for c in table[k:j].tolist()])
+            except (lazrs.LazrsError, ValueError, OSError) as exc:
+                raise CorruptFileError(f"{path}: cannot decode the points {lo}.."
+                                       f"{lo + n - 1}: {exc}") from exc
+            rec = laspy.PackedPointRecord.from_buffer(out, fmt)
+            a, b = max(first, lo) - lo, min(stop, lo + n) - lo
+            yield laspy.ScaleAwarePointRecord(rec.array[a:b], fmt, header.scales,
+                                              header.offsets)
+            k = j
 
 
 def _decodable(laspy, path, start, stop):

@@ -62,7 +62,9 @@ the assembled files, fixed or variable chunks, and its ``chunk_iterator`` works 
 them; LASzip also seeks in both. lazrs 0.8's *seek* (laspy's ``LasReader.seek``) is wrong in
 files with variable-size chunks (it takes the position within a chunk as the point index
 modulo the chunk's count); with windows from :func:`windows` the output has fixed-size
-chunks and seeking works with every backend.
+chunks and seeking works with every backend. clcurv's own readers of a range of points
+(the tiled run's parts and pieces) enter a file of variable-size chunks, such as a COPC
+input, by its chunk table instead (:func:`clcurv.io.las.read_range`).
 
 Costs: a worker's :func:`write_piece` costs what laspy's LAZ write of its points costs (one
 lazrs compression, plus a pass over the records for the extremes, 0.04 s a million points);

@@ -238,26 +238,20 @@ class LasSource:
         stop = self.n if stop is None else min(int(stop), self.n)
         start = first = int(first)
         try:
-            with self.laspy.open(str(self.path)) as f:
-                if first:
-                    f.seek(first)
-                while start < stop:
-                    rec = f.read_points(min(size, stop - start))
-                    m = len(rec)
-                    if m == 0:
-                        break
-                    xyz = np.empty((m, 3))
-                    xyz[:, 0], xyz[:, 1], xyz[:, 2] = rec.x, rec.y, rec.z
-                    nrm = None
-                    if self.has_normals:
-                        nrm = np.column_stack([np.asarray(rec[k], np.float64)
-                                               for k in self.nrm])
-                    if attributes:
-                        yield start, xyz, nrm, {k: native(np.asarray(rec[k]))
-                                                for k in self.attributes}
-                    else:
-                        yield start, xyz, nrm
-                    start += m
+            for rec in las.read_range(self.laspy, self.path, first, stop, size):
+                m = len(rec)
+                xyz = np.empty((m, 3))
+                xyz[:, 0], xyz[:, 1], xyz[:, 2] = rec.x, rec.y, rec.z
+                nrm = None
+                if self.has_normals:
+                    nrm = np.column_stack([np.asarray(rec[k], np.float64)
+                                           for k in self.nrm])
+                if attributes:
+                    yield start, xyz, nrm, {k: native(np.asarray(rec[k]))
+                                            for k in self.attributes}
+                else:
+                    yield start, xyz, nrm
+                start += m
         except (self.laspy.LaspyException, ValueError, OSError, IndexError,
                 RuntimeError) as exc:       # RuntimeError: lazrs.LazrsError, bad LAZ data
             raise CorruptFileError(f"{self.path}: cannot decode the points after #{start}: "
@@ -651,21 +645,18 @@ def write_las_piece(piece, plan, src_path, first, stop, rows, chunk=1_000_000):
     laspy = plan.laspy
     path = Path(plan.path)
 
-    def chunks(reader):
-        if first:
-            reader.seek(first)
+    def chunks():
         at = first
-        while at < stop:
-            rec = reader.read_points(min(chunk, stop - at))
-            if not len(rec):
-                raise CorruptFileError(f"{src_path}: points {at}..{stop - 1} cannot be read "
-                                       "(the file changed during the run?)")
+        for rec in las.read_range(laspy, src_path, first, stop, chunk,
+                                  las.laz_backends(laspy)):
             at += len(rec)
             yield rec
+        if at != stop:
+            raise CorruptFileError(f"{src_path}: points {at}..{stop - 1} cannot be read "
+                                   "(the file changed during the run?)")
     stats = las.ExtraStats(plan.header)
-    with laspy.open(str(src_path), laz_backend=las.laz_backends(laspy)) as reader, \
-            pieces.PieceWriter(piece, plan.header, laz=las.is_laz(path)) as writer:
-        for out in plan.records(path, chunks(reader), lambda a, b: rows(a - first, b - first),
+    with pieces.PieceWriter(piece, plan.header, laz=las.is_laz(path)) as writer:
+        for out in plan.records(path, chunks(), lambda a, b: rows(a - first, b - first),
                                 first):
             writer.write(out.array)
             stats.grow(out.array)

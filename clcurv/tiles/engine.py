@@ -459,7 +459,7 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
     if regions.applies(source, params):
         try:
             return _run_regions(space, want, source, dst, params, budget, tile, wanted,
-                                progress, say, execute)
+                                progress, say, execute, _workers(client))
         except UntrustedBounds as exc:
             say(f"{exc}: reading it as a plain LAZ instead")
             space.clear()
@@ -554,11 +554,13 @@ def _occupancy(buckets, frame, execute):
 
 
 def _run_regions(space, want, source, dst, params, budget, tile, wanted, progress, say,
-                 execute):
+                 execute, workers=0):
     """A tiled run of one COPC file whose tiles read their own regions
     (:mod:`clcurv.tiles.regions`): no pass (1) nor (1b); the tiles' results checked
     against the header (UntrustedBounds: the caller starts again through the buckets),
-    then merged and written as by :func:`_run_tiles`; the summary dict."""
+    then written as by :func:`_run_tiles`: a LAS/LAZ output in pieces by the tasks of
+    ``execute`` (windows for ``workers`` Dask workers) that the client joins by byte
+    copies, an NPZ or PLY output merged and written by the client; the summary dict."""
     times, ws = {}, space.path
     specs = params.specs(wanted)
     stored = _stored_specs(params, specs)
@@ -577,9 +579,13 @@ def _run_regions(space, want, source, dst, params, budget, tile, wanted, progres
     say(f"{source.n} points in {len(tiles)} tile(s) of {tiling.size} x {tiling.size} "
         f"cells of {tiling.frame.cell:.6g} (halo {halo} cell(s)), read by region from the "
         f"COPC file, budget {budget / 2**20:.0f} MiB")
+    pieced = writing.writes_pieces(source, dst, False)
+    windows = writing.piece_windows(source.n, workers) if pieced else None
+    offsets = tuple(a for a, _ in windows) if pieced else (0,)
     todo = [(rank, t) for rank, t in enumerate(tiles) if not _tile_done(ws, t, False, say)]
     tasks = [TileTask(str(ws), t, tiling, None, params, how, False, stored, rank=rank,
-                      n=source.n, region=plan.region(t)) for rank, t in todo]
+                      offsets=offsets, n=source.n, region=plan.region(t))
+             for rank, t in todo]
     t1 = time.perf_counter()
     info, computed = {}, 0
     for t, owned, about in execute(tasks, compute_tile):
@@ -590,19 +596,27 @@ def _run_regions(space, want, source, dst, params, budget, tile, wanted, progres
             progress(len(tiles) - len(tasks) + len(info), len(tiles), computed)
     times["tiles"] = time.perf_counter() - t1
     for t in set(tiles) - set(info):        # a resumed run's tiles, done before
-        info[t] = tile_info(load_sealed(tile_file(ws, t)), (0,), params, source.n)
+        info[t] = tile_info(load_sealed(tile_file(ws, t)), offsets, params, source.n)
         info[t]["box"] = load_sealed(regions.box_file(tile_file(ws, t))).tolist()
     regions.check(plan.index, [info[t]["box"] for t in tiles],
                   sum(info[t]["points"] for t in tiles))
     t2 = time.perf_counter()
-    windows = partition(ws, source.n, tiles, stored, False)
-    _trim()
-    times["merging"] = time.perf_counter() - t2
-    t3 = time.perf_counter()
-    writing.write_output(dst, source, windows, specs, _quantize(params))
-    times["writing"] = time.perf_counter() - t3
+    if pieced:
+        status = writing.write_pieces(ws, source, dst, tiles,
+                                      {t: info[t]["files"] for t in tiles}, windows, stored,
+                                      specs, execute, _quantize(params),
+                                      max([info[t]["most"] for t in tiles] + [0]))
+        times["writing"] = time.perf_counter() - t2
+    else:
+        windows = partition(ws, source.n, tiles, stored, False)
+        _trim()
+        times["merging"] = time.perf_counter() - t2
+        t3 = time.perf_counter()
+        writing.write_output(dst, source, windows, specs, _quantize(params))
+        times["writing"] = time.perf_counter() - t3
+        status = windows.status
     summary = _summary(params, len(tiles), len(tiles) - len(tasks), tiling.size, source,
-                       times, windows.status, dst, halo)
+                       times, status, dst, halo)
     summary.update(values_summary([info[t] for t in tiles], params))
     summary["fields"] = [("nx ny nz" if k == "normals" else k)
                          for k, _, _ in sorted(specs, key=lambda s: s[0] != "normals")]
