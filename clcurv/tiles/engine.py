@@ -521,8 +521,22 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
         status = writing.write_files(ws, source, dst, tiles, files_of, stored, specs,
                                      execute, _quantize(params))
         times["writing"] = time.perf_counter() - t2
-    elif pieced:
-        status = writing.write_pieces(ws, source, dst, tiles, files_of, windows, stored,
+        return _finished(params, tiles, skipped, tiling.size, source, times, status, dst,
+                         halo, info, specs)
+    return _write_one(ws, source, dst, params, tiles, info, windows,
+                      stored, specs, execute, mst, times, skipped, tiling.size, halo)
+
+
+def _write_one(ws, source, dst, params, tiles, info, windows, stored, specs, execute, mst,
+               times, skipped, size, halo):
+    """Write the one output ``dst`` of a run's ``tiles``: in pieces on the workers
+    (``windows`` given: :func:`clcurv.tiles.writing.write_pieces`), else merged
+    (:func:`partition`, the orientation's reconciliation with ``mst``) and written by the
+    client (NPZ, PLY); then the run's summary dict (:func:`_finished`)."""
+    t2 = time.perf_counter()
+    if windows is not None:
+        status = writing.write_pieces(ws, source, dst, tiles,
+                                      {t: info[t]["files"] for t in tiles}, windows, stored,
                                       specs, execute, _quantize(params),
                                       max([info[t]["most"] for t in tiles] + [0]))
         times["writing"] = time.perf_counter() - t2
@@ -536,8 +550,13 @@ def _run_tiles(space, want, source, dst, params, budget, tile, wanted, progress,
         writing.write_output(dst, source, windows, specs, _quantize(params))
         times["writing"] = time.perf_counter() - t3
         status = windows.status
-    summary = _summary(params, len(tiles), skipped, tiling.size, source, times, status,
-                       dst, halo)
+    return _finished(params, tiles, skipped, size, source, times, status, dst, halo, info,
+                     specs)
+
+
+def _finished(params, tiles, skipped, size, source, times, status, dst, halo, info, specs):
+    """The summary dict of a run (:func:`_summary`, the values' summary, the fields)."""
+    summary = _summary(params, len(tiles), skipped, size, source, times, status, dst, halo)
     summary.update(values_summary([info[t] for t in tiles], params))
     summary["fields"] = [("nx ny nz" if k == "normals" else k)
                          for k, _, _ in sorted(specs, key=lambda s: s[0] != "normals")]
@@ -600,26 +619,9 @@ def _run_regions(space, want, source, dst, params, budget, tile, wanted, progres
         info[t]["box"] = load_sealed(regions.box_file(tile_file(ws, t))).tolist()
     regions.check(plan.index, [info[t]["box"] for t in tiles],
                   sum(info[t]["points"] for t in tiles))
-    t2 = time.perf_counter()
-    if pieced:
-        status = writing.write_pieces(ws, source, dst, tiles,
-                                      {t: info[t]["files"] for t in tiles}, windows, stored,
-                                      specs, execute, _quantize(params),
-                                      max([info[t]["most"] for t in tiles] + [0]))
-        times["writing"] = time.perf_counter() - t2
-    else:
-        windows = partition(ws, source.n, tiles, stored, False)
-        _trim()
-        times["merging"] = time.perf_counter() - t2
-        t3 = time.perf_counter()
-        writing.write_output(dst, source, windows, specs, _quantize(params))
-        times["writing"] = time.perf_counter() - t3
-        status = windows.status
-    summary = _summary(params, len(tiles), len(tiles) - len(tasks), tiling.size, source,
-                       times, status, dst, halo)
-    summary.update(values_summary([info[t] for t in tiles], params))
-    summary["fields"] = [("nx ny nz" if k == "normals" else k)
-                         for k, _, _ in sorted(specs, key=lambda s: s[0] != "normals")]
+    summary = _write_one(ws, source, dst, params, tiles, info, windows,
+                         stored, specs, execute, False, times, len(tiles) - len(tasks),
+                         tiling.size, halo)
     summary["regions"] = True
     return summary
 
