@@ -34,7 +34,7 @@ import sys
 import time
 from pathlib import Path
 
-from bench.harness import cpu_model
+from bench.harness import copc_config, cpu_model
 
 REPO = Path(__file__).resolve().parent.parent
 RADIUS = 0.6
@@ -141,13 +141,7 @@ def make_copc(path, n, files, seed=0, extent=None, depth=None, node_points=40_00
     xyz = np.stack([np.asarray(rec.x), np.asarray(rec.y), np.asarray(rec.z)], axis=1)
     lo, hi = xyz.min(axis=0), xyz.max(axis=0)       # the coordinates as laspy reads them
     span = float((hi - lo).max())
-    cfg = copc.CopcConfigWriter(6, scale=(0.001,) * 3, offset=(480000.0, 4390000.0, 0.0))
-    cfg.las_header.min = copc.Vector3(*lo)
-    cfg.las_header.max = copc.Vector3(*hi)
-    info = cfg.copc_info
-    info.center_x, info.center_y, info.center_z = lo + span / 2
-    info.halfsize = span / 2
-    info.spacing = span / 128
+    cfg = copc_config(copc, 6, (0.001,) * 3, (480000.0, 4390000.0, 0.0), lo, hi, 128)
     depth = depth or max(1, round(math.log(max(len(pts) / node_points, 1), 4)))
     rng = np.random.default_rng(seed)
     level = np.full(len(pts), depth, np.int32)

@@ -85,6 +85,23 @@ def run_python(code, *args, env=None):
     return out.stdout
 
 
+# ----------------------------------------------------------------------------- files
+def copc_config(copc, fmt, scale, offset, lo, hi, divisions):
+    """copclib's writer configuration (``copc``: the copclib module, an optional extra) of
+    a COPC file of point format ``fmt`` with ``scale`` and ``offset`` (3 each), the header's
+    bounds ``lo``, ``hi``, and an octree whose root cube holds them, of spacing its side
+    over ``divisions``."""
+    span = float((np.asarray(hi) - np.asarray(lo)).max())
+    cfg = copc.CopcConfigWriter(fmt, scale=tuple(scale), offset=tuple(offset))
+    cfg.las_header.min = copc.Vector3(*lo)
+    cfg.las_header.max = copc.Vector3(*hi)
+    info = cfg.copc_info
+    info.center_x, info.center_y, info.center_z = np.asarray(lo) + span / 2
+    info.halfsize = span / 2
+    info.spacing = span / divisions
+    return cfg
+
+
 # ----------------------------------------------------------------------------- clouds
 def radius_for(k, n):
     """Radius giving ~k neighbours besides the point itself on a unit sphere of n points."""

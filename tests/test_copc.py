@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 
 import clcurv
+from bench.harness import copc_config
 from tests.hostile import assert_same_las, las_dims
 from clcurv import io as cio
 from clcurv.io import copc as ccopc
@@ -60,13 +61,7 @@ def write_copc(path, pts, kind, rgb=None, fmt=6, seed=0):
     """
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     span = float((hi - lo).max())
-    cfg = copc.CopcConfigWriter(fmt, scale=(SCALE,) * 3, offset=tuple(np.floor(lo)))
-    cfg.las_header.min = copc.Vector3(*lo)
-    cfg.las_header.max = copc.Vector3(*hi)
-    info = cfg.copc_info
-    info.center_x, info.center_y, info.center_z = lo + span / 2
-    info.halfsize = span / 2
-    info.spacing = span / 32
+    cfg = copc_config(copc, fmt, (SCALE,) * 3, np.floor(lo), lo, hi, 32)
     writer = copc.FileWriter(str(path), cfg)
     header = writer.copc_config.las_header
 
