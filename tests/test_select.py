@@ -147,3 +147,22 @@ def test_select_field_in_files_and_refusals(tmp_path, device, capsys):
                           "-o", str(tmp_path / "y.las")]) == 2
     assert "runs in memory" in capsys.readouterr().err
     assert not (tmp_path / "x.las").exists() and not (tmp_path / "y.las").exists()
+
+
+def test_select_on_a_double_devicecloud_and_empty(device):
+    """A given DeviceCloud's device and precision serve every radius; no points: empty."""
+    if not device.info.fp64:
+        pytest.skip("the device has no cl_khr_fp64")
+    s = shapes.sphere(5000, 1.0, noise=0.003, seed=2)
+    cloud = clcurv.DeviceCloud(s["points"], 0.2, device=device, precision="double")
+    sel = clcurv.curvature(cloud, [0.1, 0.2], method="mls2", normals=s["normals"],
+                           select="error")
+    big = clcurv.curvature(cloud, 0.2, method="mls2", normals=s["normals"], uncertainty=True)
+    small = clcurv.curvature(s["points"], 0.1, method="mls2", normals=big.normals,
+                             orient="normals", uncertainty=True, device=device,
+                             precision="double")
+    rows = sel.radius == 0.1
+    assert rows.any() and np.array_equal(sel.mean[rows], small.mean[rows])
+    empty = clcurv.curvature(np.empty((0, 3)), [0.1, 0.2], method="mls2", select="error",
+                             device=device)
+    assert len(empty) == 0 and empty.radius.shape == (0,)

@@ -599,8 +599,9 @@ def _selected(op, points, radius, select, k, kw):
     """:func:`curvature` with ``select='error'``: every radius of ``radius`` with
     ``uncertainty=True``, each binned at its own radius (the largest on ``points`` when it
     is a DeviceCloud), so that each point's outputs are bit for bit those of a call at its
-    radius with the largest radius's normals (``orient='normals'``); per point, the radius of least
-    predicted error of H (bias ``c r^2``, the leading term of MLS1's and MLS2's expansions:
+    radius with the largest radius's normals (``orient='normals'``); per point, the radius
+    of least predicted error of H (bias ``c r^2``, the leading term of MLS1's and MLS2's
+    expansions:
     ``c`` fitted per point, :func:`clcurv.ops.selection.fit_bias`, pooled over the ball of
     the second smallest radius, :func:`clcurv.ops.pooling.pool_bias`, then
     :func:`clcurv.ops.selection.choose`; docs/uncertainty.md). The largest radius
@@ -639,8 +640,9 @@ def _selected(op, points, radius, select, k, kw):
             # binned at its own radius: the walk scans 27 cells of that radius, not of the
             # largest (a quarter of the largest: 2.3x faster at 1M points)
             where = pts
-            if cloud is not None:
+            if cloud is not None:       # the given DeviceCloud's device and precision
                 call["device"] = cloud.device
+                call["precision"] = "double" if cloud.dtype == np.float64 else "float"
         runs[j] = curvature(where, radii[j], method=op.name, uncertainty=True, **call)
     up = sorted(range(len(radii)), key=lambda j: radii[j])       # ascending for the fit
     rs = np.array([radii[j] for j in up])
