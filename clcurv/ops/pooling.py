@@ -181,10 +181,11 @@ def pool_bias(cloud, fit, radius, *, weights="inverse_variance", mean=None):
     Neighbouring ``c_q`` are correlated (their balls overlap and share points), so the
     independent variance understates the pooled one: :func:`~clcurv.ops.selection.choose`
     then subtracts too little from ``coef^2``. The alternatives measured on the chirp (the
-    fully correlated bound ``(sum w sd_q / sum w)^2``, or 0) changed the median error by
-    under 1.5 points at the second radius (clcurv.ops.selection's docstring). The mean is also
-    biased towards the ball's average coefficient where ``c`` varies within the ball (it
-    changes sign across a ridge): hence a small pooling radius.
+    fully correlated bound ``(sum w sd_q / sum w)^2``, 12.5x, 0, the coefficients' spread in
+    the ball, and a pretest ``|coef| > 1.96 SE``) were no better (clcurv.ops.selection's
+    docstring: the pooled noise is small against what the model ``c r^2`` misses). The mean
+    is also biased towards the ball's average coefficient where ``c`` varies within the
+    ball (it changes sign across a ridge): hence a small pooling radius.
     """
     if weights not in POOL_WEIGHTS:
         raise ValueError(f"weights must be one of {POOL_WEIGHTS}, got {weights!r}")
