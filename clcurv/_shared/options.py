@@ -164,7 +164,8 @@ OPTIONS = dict([
          help="also per-point standard errors from the same neighbour walk: "
          "mean_curvature_se (mls0, mls1, mls2), gaussian_curvature_se, k1_se, k2_se "
          "(mls2), normal_se and roughness (docs/uncertainty.md)"),
-    _opt("select", default=None, choices=(None, "error"), flag="--select", job="select",
+    _opt("select", default=None, choices=(None, "error"), cli_choices={"error": "error"},
+         flag="--select", job="select",
          methods=("mls1", "mls2"),
          help="with several radii (--radius R1,R2,...): each point keeps the radius of "
          "least predicted error SE^2 + bias^2 (the bias fitted per point from how H moves "
