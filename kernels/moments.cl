@@ -24,6 +24,12 @@
     || !defined(COL_COUNT) || !defined(COL_STATUS)
 #error "moments.cl needs REFINE_L0, MIN_COUNT and its record columns (clcurv/ops/registry.py)"
 #endif
+/* NOISE_WALK (0|1, default 1): the quadric walk for the point's own noise (COL_SIGMA,
+ * MLS0/MLS1's SE(H)); 0 leaves COL_SIGMA NaN and walks only for density weights, whose
+ * normal SE needs its sums of w^2 (variation and the covariance operators' normals) */
+#ifndef NOISE_WALK
+#define NOISE_WALK 1
+#endif
 #if UNCERTAINTY && (!defined(COL_NORMAL_SE) || !defined(COL_ROUGHNESS) || !defined(COL_SIGMA) \
     || !defined(COL_OWN) || !defined(COL_OTHERS) || !defined(ECOL_COUNT) || !defined(ECOL_STATUS))
 #error "moments.cl with UNCERTAINTY needs its error record's columns (clcurv/ops/registry.py)"
@@ -83,7 +89,11 @@ __kernel void moments(OPERATOR_ARGS, __global REAL *out2)
 #if UNCERTAINTY
     REAL fr[12][VW], sig2[VW];
     mls2_err_t err;
+#if NOISE_WALK || DENSITY
     moments_quadric(X, Y, Z, W, cell_of, ranges, n, ball, par.x, g0, kn, &pb, fr, &err, sig2);
+#else
+    for (uint k = 0; k < VW; ++k) sig2[k] = NAN;    /* no quadric walk: no point noise */
+#endif
 #endif
 
     /* 3. per point: status, lambda0 refinement, stores */

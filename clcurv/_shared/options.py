@@ -160,10 +160,10 @@ OPTIONS = dict([
     _opt("align_normals", default=None, choices=(None, True, False),
          methods=("2dcov2", "3dcov")),
     _opt("uncertainty", default=False, flag="--uncertainty", action="store_true",
-         job="uncertainty", methods=("variation", "mls0", "mls1", "mls2"),
+         job="uncertainty",
          help="also per-point standard errors from the same neighbour walk: "
          "mean_curvature_se (mls0, mls1, mls2), gaussian_curvature_se, k1_se, k2_se "
-         "(mls2), normal_se and roughness (docs/uncertainty.md)"),
+         "(mls2), normal_se and roughness (every method; docs/uncertainty.md)"),
     _opt("select", default=None, choices=(None, "error"), cli_choices={"error": "error"},
          flag="--select", job="select",
          methods=("mls1", "mls2"),

@@ -18,7 +18,7 @@ from clcurv.grid.cloud import DeviceCloud
 from clcurv.ops.driver import run_kernel
 from clcurv.ops.features import run_features
 from clcurv.ops.knn_radius import knn_radii
-from clcurv.ops.registry import OPERATORS, PCA
+from clcurv.ops.registry import OPERATORS, PCA, PCA_NORMALS_DEFINES
 from clcurv.ops.pooling import pool_bias
 from clcurv.ops.selection import choose, fit_bias
 from clcurv.ops.smoothing import scale_space as smooth
@@ -77,13 +77,16 @@ class _Run:
         return run_kernel(op.kernel, self.cloud, self.radius, normals=normals, weights=weights,
                           h=h if kernel == "gaussian" else None, fields=op.fields,
                           point_r2=self.point_r2, uncertainty=uncertainty,
-                          defines=None if align is None else {"ALIGN_NORMALS": int(align)})
+                          defines=dict({} if align is None else {"ALIGN_NORMALS": int(align)},
+                                       **(op.error_defines if uncertainty else {})))
 
     def reference_errors(self, op, normals, weights, kernel, h, user=None):
         """backend='numpy': the error outputs of ``op`` from the float64 reference
         (clcurv.reference.uncertainty), ``normals`` the oriented normals the call used
         (MLS2 and MLS1 orient their fits with them), ``user`` the user's (MLS0's n)."""
         pts, r = self.points, self.radius
+        if op.normals == "values" and op.name != "mls0" and user is not None:
+            return _unknown_errors(op, len(pts))     # your normals: their error unknown
         if op.name == "mls2":
             hh = (r / 2 if h is None else h) if kernel == "gaussian" else None
             ref = uncertainty.mls2_uncertainty(pts, r, normals, weights=weights,
@@ -106,16 +109,20 @@ class _Run:
         own = self.point_r2 if self.knn_k is not None and k < self.knn_k else None
         return _orient.flip_on_device(self.cloud, normals, self.radius, k, own)
 
-    def pca_normals(self, weights):
-        """Unoriented PCA normals (and count, status) only: the orientation pass."""
+    def pca_normals(self, weights, uncertainty=False):
+        """Unoriented PCA normals (and count, status) only: the orientation pass, and the
+        covariance operators' normals (``uncertainty``: with the error record, the
+        normal's SE and the plane's roughness; the same normals bit for bit)."""
         if self.cloud is None:
             return reference.moments(self.points, self.radius, weights=weights)
         given = _PCA_GIVEN.get()
         if (given is not None and given["cloud"] is self.cloud and weights == "uniform"
-                and self.point_r2 is None and self.radius in given["raws"]):
+                and self.point_r2 is None and self.radius in given["raws"]
+                and not uncertainty):
             return given["raws"][self.radius]
         return run_kernel(PCA, self.cloud, self.radius, weights=weights, fields=("normals",),
-                          defines={"REFINE_L0": 0}, point_r2=self.point_r2)
+                          defines=PCA_NORMALS_DEFINES, point_r2=self.point_r2,
+                          uncertainty=uncertainty)
 
 
 DEFER_MIN = 100_000     # from this size, user normals are checked while the cloud is binned
@@ -201,11 +208,16 @@ def _result(op, r, weights, count, status, attrs):
                            attrs.pop("eigenvalues", None), attrs.pop("variation", None), **attrs)
 
 
+def _unknown_errors(op, n):
+    """The error outputs of ``op`` as NaN: the covariance operators with your normals,
+    whose errors clcurv cannot know."""
+    return {o.name: np.full(n, np.nan) for o in op.errors}
+
+
 def _check_options(op, kernel, h, projections, align_normals=None, uncertainty=False):
     """The method-specific options: given to a method that ignores them, they raise."""
     extra = op.foreign_options(given({"kernel": kernel, "h": h, "projections": projections,
-                                      "align_normals": align_normals,
-                                      "uncertainty": uncertainty}))
+                                      "align_normals": align_normals}))
     if extra:
         takers = next(iter(extra.values()))
         raise ValueError(f"{', '.join(extra)} {'is' if len(extra) == 1 else 'are'} not an "
@@ -327,12 +339,13 @@ def curvature(points, radius=None, *, method="mls1", weights="uniform", normals=
         ``normals`` you pass are used as given. True: yours too (normals of arbitrary
         signs); False: never (the PCA normals as ``orient`` leaves them).
     uncertainty : bool
-        Methods 'variation', 'mls0', 'mls1' and 'mls2': also per-point standard errors
-        (SE), from the same neighbour walk ('mls0' and 'mls1' add a second walk, MLS2's
-        quadric fit, for the point's own noise): ``mean_se`` (mls0, mls1, mls2),
-        ``gaussian_se``, ``k1_se``, ``k2_se`` (mls2), ``normal_se`` (radians: of the PCA
-        normal, or of MLS2's fitted normal) and ``roughness`` (length: the residual RMS to
-        the fitted quadric for mls2, to the regression plane otherwise). The model: noise
+        Also per-point standard errors (SE), from the same neighbour walk ('mls0' and
+        'mls1' add a second walk, MLS2's quadric fit, for the point's own noise):
+        ``mean_se`` (mls0, mls1, mls2), ``gaussian_se``, ``k1_se``, ``k2_se`` (mls2),
+        ``normal_se`` (radians: of the PCA normal, or of MLS2's fitted normal) and
+        ``roughness`` (length: the residual RMS to the fitted quadric for mls2, to the
+        regression plane otherwise); the covariance operators have the last two, of
+        their PCA normals' pass (NaN with your ``normals``: their error is not known). The model: noise
         independent, along the normal, first order; the operator's bias (which grows
         with the radius) is **not** included, so an SE is an error bar only where the
         radius is small against the curvature's scale (docs/uncertainty.md, with the
@@ -431,6 +444,7 @@ def curvature(points, radius=None, *, method="mls1", weights="uniform", normals=
         res.info["projections"] = projections
         return res
     run = _Run(backend, pts, r, device, precision, cloud, knn)  # bins while the normals are checked
+    err_raw = None                      # the error record, when not the operator's own
     ref_normals = _resolved(ref_normals)
     if op.kernel.reads_normals:
         # the normal-based operators and MLS2 need only oriented normals: with the user's
@@ -442,11 +456,15 @@ def curvature(points, radius=None, *, method="mls1", weights="uniform", normals=
         elif op.flip is not None and run.cloud is not None:
             use = "own"                     # orient the fit's own normals afterwards
         else:                               # 2dcov2/3dcov align these per ball
-            use = _oriented(run, run.pca_normals(weights), how, None, vp, orient_k)
+            pca = run.pca_normals(weights, uncertainty and run.cloud is not None)
+            use = _oriented(run, pca, how, None, vp, orient_k)
+            if op.kernel.errors is None:    # the covariance operators: their normals' errors
+                err_raw = pca
         # yours as given, clcurv's own PCA normals aligned (align_normals)
         align = ((ref_normals is None if align_normals is None else bool(align_normals))
                  if "align_normals" in op.options else None)
-        unc = uncertainty and run.cloud is not None
+        # the operator's own error record (the covariance operators have none)
+        unc = uncertainty and run.cloud is not None and op.kernel.errors is not None
         if isinstance(use, str):
             raw = run.operator(op, None, weights, kernel, h, uncertainty=unc)
             use = op.flip(raw, _flip(run, raw["normals"], how, None, vp, orient_k))["normals"]
@@ -465,7 +483,9 @@ def curvature(points, radius=None, *, method="mls1", weights="uniform", normals=
             attrs.update(run.reference_errors(op, use, weights, kernel, h, ref_normals))
     else:
         if uncertainty:                 # before finish, which may reuse raw's arrays
-            errors = op.finish_errors(raw, r)
+            errors = (op.finish_errors(err_raw, r) if err_raw is not None
+                      else op.finish_errors(raw, r) if op.kernel.errors is not None
+                      else _unknown_errors(op, len(pts)))
         attrs = op.finish(raw, pts, r, use, ref_normals)
         if uncertainty:
             attrs.update(errors)

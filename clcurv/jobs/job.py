@@ -595,8 +595,7 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
     uncertainty : bool
         Also the standard errors and roughness (as :func:`clcurv.curvature`), among the
         default fields: ``mean_curvature_se``, ``gaussian_curvature_se``, ``k1_se``,
-        ``k2_se``, ``normal_se``, ``roughness`` (those of the method). Methods variation,
-        mls0, mls1 and mls2.
+        ``k2_se``, ``normal_se``, ``roughness`` (those of the method).
     progress : callable(done, total, points) or None
         Called after each tile.
     client : dask.distributed.Client, optional
@@ -634,9 +633,6 @@ def curvature_file(src, dst, radius, *, method="mls2", weights="uniform", orient
         raise ValueError(f"scale_space must be >= 0, got {scale_space}")
     tiled.check_tiled_outputs(dst if catalog else [dst], source)
     uncertainty = bool(uncertainty)
-    if uncertainty and not OPERATORS[method].errors:
-        raise ValueError(f"uncertainty is not an option of method={method!r} (only of "
-                         f"{', '.join(repr(m) for m, o in OPERATORS.items() if o.errors)})")
     # the names, in the resume key too
     fields = OPERATORS[method].chosen_fields(fields, uncertainty=uncertainty)
     if quantize and not all(io.is_las(d) for d in (dst if catalog else [dst])):

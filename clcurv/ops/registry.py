@@ -131,7 +131,9 @@ class Operator:
     kernel's record fields that ``finish`` reads (None: all), the only ones brought back
     from the device. ``errors``: the outputs of ``uncertainty=True`` (standard errors and
     roughness, :class:`Output` s; empty: the method has none), which
-    ``finish_errors(raw, r)`` forms from the kernel's error record.
+    ``finish_errors(raw, r)`` forms from the kernel's error record, built with
+    ``error_defines`` (the covariance operators, whose kernel has none: from the error
+    record of their PCA normals' pass, :data:`PCA_NORMALS_DEFINES`).
     """
     name: str
     title: str
@@ -145,6 +147,9 @@ class Operator:
     fields: tuple | None = None
     errors: tuple = ()
     finish_errors: Callable | None = None
+    #: build options of the error record (``NOISE_WALK=0``: no quadric walk where no
+    #: output needs the point's own noise)
+    error_defines: Mapping[str, int] = field(default_factory=dict)
 
     @property
     def signed(self):
@@ -241,6 +246,11 @@ class Operator:
 #: point's own noise and of its neighbours' in MLS0/MLS1's H (:func:`_finish_h_errors`)
 PCA_ERRORS = {"normal_se": 0, "roughness": 1, "sigma": 2, "own": 3, "others": 4, "count": 5,
               "status": 6}
+
+#: the build options of the PCA normals' pass (the orientation, the covariance operators'
+#: normals): one-pass sums (no anchor: the normals' bits as the features walk gives them),
+#: and with its error record no quadric walk
+PCA_NORMALS_DEFINES = {"REFINE_L0": 0, "NOISE_WALK": 0}
 
 #: the moments kernel: PCA normal, eigenvalues, surface variation, barycenter shift o - p
 PCA = Kernel("moments", "moments.cl", "moments",
@@ -422,7 +432,8 @@ def _cov(name, code, title, formula, eig_unit, eig_doc):
     k = _cov_kernel(name, code)
     return Operator(name, title, formula, k, _magnitudes((k.width("eigenvalues"), eig_unit,
                                                          eig_doc)),
-                    "values", _finish_cov, _ref_cov(name))
+                    "values", _finish_cov, _ref_cov(name), errors=_PCA_ERRORS,
+                    finish_errors=_finish_pca_errors)
 
 
 OPERATORS = {op.name: op for op in (
@@ -430,7 +441,7 @@ OPERATORS = {op.name: op for op in (
              "Theorem 4: r^2/16((k1^2+k2^2)/2 - k1k2/3)", PCA,
              (_VARIATION, _NORMALS_PCA, _EIG_PCA), "none", _finish_variation, _ref_moments,
              fields=("normals", "eigenvalues", "variation"), errors=_PCA_ERRORS,
-             finish_errors=_finish_pca_errors),
+             finish_errors=_finish_pca_errors, error_defines={"NOISE_WALK": 0}),
     Operator("mls0", "barycenter shift", "H = 4<p - o, n>/r^2 (Lemma 2)", PCA,
              (_MEAN, Output("points", 3, "length", "the barycenter o of the ball"),
               _VARIATION, _NORMALS_PCA, _EIG_PCA), "values", _finish_mls0, _ref_moments,
