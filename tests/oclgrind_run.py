@@ -110,6 +110,10 @@ def calls(points, precision, device):
             **common)),
         ("mls1+uncertainty", lambda: clcurv.curvature(points, R, method="mls1", orient=None,
                                                       uncertainty=True, **common)),
+        # the normals' pass with its error record and no quadric walk (NOISE_WALK=0)
+        ("2dcov2+uncertainty", lambda: clcurv.curvature(points, R, method="2dcov2",
+                                                        orient=None, uncertainty=True,
+                                                        **common)),
         # a radius per point: every radius with its errors, the pooled bias (ball_mean.cl)
         ("mls2+select", lambda: clcurv.curvature(points, [R / 2, R / 1.4, R], method="mls2",
                                                  orient=None, select="error", **common)),
