@@ -99,7 +99,7 @@ def scans():
                 clcurv.render.render(pts, res.mean, png, field="mean_curvature", se=res.mean_se,
                                      up="z" if name == "autzen" else "auto",
                                      source=path, title=f"{name}: MLS2 H at r = {r:.4g}, "
-                                     "grey where |H| < 2 SE", dpi=80)
+                                     "grey where |H| < 2 SE", dpi=60)
     return out
 
 
